@@ -1,0 +1,342 @@
+"""Typed, validated configuration read from ``params.yaml``.
+
+``params.yaml`` is the single source of every hyper-parameter and seed. Each
+stage has a section; inside a section, ``all`` holds the values shared by every
+profile and ``smoke`` / ``default`` / ``paper`` hold what differs. The
+top-level ``profile`` key picks one; the resolved section is ``all`` updated by
+the profile's mapping (nested mappings are merged key by key).
+
+Resolution is strict: an unknown key, a value of the wrong type or an
+impossible value stops with a :class:`ConfigError` naming the key, e.g.
+``data.default.fps``.
+"""
+
+from __future__ import annotations
+
+from orbis2.errors import OrbisError
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+PROFILES = ("smoke", "default", "paper")
+SPLITS = ("train", "val", "turns", "heldout", "probe")
+
+
+class ConfigError(OrbisError):
+    """A params.yaml value is missing, unknown, mistyped or impossible."""
+
+
+# --------------------------------------------------------------------------- sections
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """Frame geometry and the two temporal rates of the hierarchy.
+
+    ``fps`` is the native rate of every episode on disk; detail windows sample it
+    every ``fps // detail_hz`` frames and abstract windows every ``fps // abstract_hz``.
+    """
+
+    width: int
+    height: int
+    fps: int
+    source: str = "town"
+    detail_hz: int = 10
+    abstract_hz: int = 2
+    detail_window: int = 10
+    detail_context: int = 5
+    abstract_window: int = 6
+    abstract_context: int = 5
+
+    def validate(self, where: str) -> None:
+        _positive(self, where, "width", "height", "fps", "detail_hz", "abstract_hz")
+        for rate in ("detail_hz", "abstract_hz"):
+            if self.fps % getattr(self, rate):
+                raise ConfigError(
+                    f"{where}.fps = {self.fps} must be an integer multiple of "
+                    f"{rate} = {getattr(self, rate)} (the hierarchy samples the native "
+                    f"rate every fps/{rate} frames)"
+                )
+        if self.width % 2 or self.height % 2:
+            raise ConfigError(f"{where}.width/height must be even (video codecs need it)")
+        if self.source not in ("town", "import"):
+            raise ConfigError(f"{where}.source = {self.source!r} must be 'town' or 'import'")
+        for win, ctx in (("detail_window", "detail_context"), ("abstract_window", "abstract_context")):
+            if not 0 < getattr(self, ctx) < getattr(self, win):
+                raise ConfigError(f"{where}.{ctx} must lie in [1, {win} - 1]")
+
+    @property
+    def window_span_frames(self) -> int:
+        """Native frames covered by one training sample (abstract context start to last prediction)."""
+        before = (self.abstract_context - 1) * self.abstract_stride
+        after = max((self.abstract_window - self.abstract_context) * self.abstract_stride,
+                    (self.detail_window - self.detail_context) * self.detail_stride)
+        return before + after + 1
+
+    @property
+    def detail_stride(self) -> int:
+        return self.fps // self.detail_hz
+
+    @property
+    def abstract_stride(self) -> int:
+        return self.fps // self.abstract_hz
+
+
+@dataclass(frozen=True)
+class TownConfig:
+    """The procedural driving world: how many episodes per split and how long."""
+
+    seed: int
+    episodes: dict[str, int]
+    episode_seconds: dict[str, float]
+    hfov_deg: float = 90.0
+    mount_height_m: float = 1.5
+    turns_candidates: int = 32
+    label_splits: list[str] = field(default_factory=lambda: ["probe"])
+    label_stride: int = 5
+    workers: int = 0
+    preview_seconds: float = 6.0
+
+    def validate(self, where: str) -> None:
+        for name in ("episodes", "episode_seconds"):
+            mapping = getattr(self, name)
+            if set(mapping) != set(SPLITS):
+                raise ConfigError(f"{where}.{name} must name exactly the splits {list(SPLITS)}, got {sorted(mapping)}")
+            if any(v <= 0 for v in mapping.values()):
+                raise ConfigError(f"{where}.{name} values must be positive")
+        unknown = set(self.label_splits) - set(SPLITS)
+        if unknown:
+            raise ConfigError(f"{where}.label_splits names unknown splits {sorted(unknown)}")
+        if not 10.0 <= self.hfov_deg <= 170.0:
+            raise ConfigError(f"{where}.hfov_deg = {self.hfov_deg} must lie in [10, 170]")
+        if self.turns_candidates < self.episodes["turns"]:
+            raise ConfigError(f"{where}.turns_candidates must be >= episodes.turns")
+        _positive(self, where, "label_stride", "mount_height_m", "preview_seconds")
+        if self.workers < 0:
+            raise ConfigError(f"{where}.workers must be >= 0 (0 = one per CPU core)")
+
+
+@dataclass(frozen=True)
+class ImportConfig:
+    """User videos: a folder of OpenCV-readable files with optional odometry CSVs."""
+
+    videos: str = "data/videos"
+    skip_bad: bool = False
+    fps_tolerance: float = 0.002
+
+    def validate(self, where: str) -> None:
+        if not 0 <= self.fps_tolerance < 0.1:
+            raise ConfigError(f"{where}.fps_tolerance must lie in [0, 0.1)")
+
+
+@dataclass(frozen=True)
+class ShardsConfig:
+    """WebDataset shards: clip length per split, JPEG quality, shard size."""
+
+    clip_seconds: dict[str, float]
+    max_shard_mb: float = 256.0
+    jpeg_quality: int = 95
+
+    def validate(self, where: str) -> None:
+        if set(self.clip_seconds) != set(SPLITS):
+            raise ConfigError(f"{where}.clip_seconds must name exactly the splits {list(SPLITS)}")
+        if not 50 <= self.jpeg_quality <= 100:
+            raise ConfigError(f"{where}.jpeg_quality must lie in [50, 100]")
+        _positive(self, where, "max_shard_mb")
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Every stage's resolved section for one profile."""
+
+    profile: str
+    data: DataConfig
+    town: TownConfig
+    import_: ImportConfig
+    shards: ShardsConfig
+
+    def section(self, name: str) -> Any:
+        return getattr(self, SECTION_ATTRS.get(name, name))
+
+    def validate(self) -> None:
+        min_clip = self.data.window_span_frames / self.data.fps
+        for split, seconds in self.shards.clip_seconds.items():
+            if seconds < min_clip:
+                raise ConfigError(
+                    f"shards.{self.profile}.clip_seconds.{split} = {seconds} is shorter than one "
+                    f"training window ({min_clip:.2f} s)"
+                )
+            if seconds > self.town.episode_seconds[split]:
+                raise ConfigError(
+                    f"shards.{self.profile}.clip_seconds.{split} = {seconds} exceeds "
+                    f"town.episode_seconds.{split} = {self.town.episode_seconds[split]}"
+                )
+
+
+# Section names in params.yaml whose Python attribute differs (``import`` is a keyword).
+SECTION_ATTRS = {"import": "import_"}
+SECTION_TYPES: dict[str, type] = {
+    "data": DataConfig,
+    "town": TownConfig,
+    "import": ImportConfig,
+    "shards": ShardsConfig,
+}
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def load_params(path: str | Path = "params.yaml") -> dict[str, Any]:
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: not found; run from the project root or pass --params")
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}: not valid YAML: {err}") from err
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: the top level must be a mapping")
+    return raw
+
+
+def resolve_section(raw: dict[str, Any], name: str, profile: str) -> dict[str, Any]:
+    """Merge ``<name>.all`` with ``<name>.<profile>``; a plain mapping, validated later."""
+    if name not in raw:
+        raise ConfigError(f"params.yaml has no section '{name}'")
+    section = raw[name]
+    if not isinstance(section, dict):
+        raise ConfigError(f"{name} must be a mapping with keys 'all' and the profiles {list(PROFILES)}")
+    unknown = set(section) - {"all", *PROFILES}
+    if unknown:
+        raise ConfigError(f"{name}: unknown key(s) {sorted(unknown)}; allowed: 'all', {list(PROFILES)}")
+    merged: dict[str, Any] = {}
+    for part in ("all", profile):
+        value = section.get(part) or {}
+        if not isinstance(value, dict):
+            raise ConfigError(f"{name}.{part} must be a mapping")
+        merged = _deep_merge(merged, value)
+    return merged
+
+
+def load_config(path: str | Path = "params.yaml", profile: str | None = None) -> PipelineConfig:
+    """Read params.yaml and return the validated config of ``profile`` (default: its ``profile`` key)."""
+    raw = load_params(path)
+    profile = profile or raw.get("profile")
+    if profile not in PROFILES:
+        raise ConfigError(f"profile = {profile!r} must be one of {list(PROFILES)}")
+    unknown = set(raw) - {"profile", *SECTION_TYPES}
+    if unknown:
+        raise ConfigError(f"params.yaml: unknown top-level key(s) {sorted(unknown)}")
+    sections = {}
+    for name, cls in SECTION_TYPES.items():
+        values = resolve_section(raw, name, profile)
+        obj = build(cls, values, f"{name}.{profile}")
+        obj.validate(f"{name}.{profile}")
+        sections[SECTION_ATTRS.get(name, name)] = obj
+    cfg = PipelineConfig(profile=profile, **sections)
+    cfg.validate()
+    return cfg
+
+
+def build(cls: type, values: dict[str, Any], where: str) -> Any:
+    """Instantiate dataclass ``cls`` from ``values`` checking keys and types."""
+    if not isinstance(values, dict):
+        raise ConfigError(f"{where} must be a mapping")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = set(values) - set(fields)
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}; allowed: {sorted(fields)}")
+    kwargs = {}
+    for name, f in fields.items():
+        if name not in values:
+            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                raise ConfigError(f"{where}.{name} is required")
+            continue
+        kwargs[name] = _check(hints[name], values[name], f"{where}.{name}")
+    return cls(**kwargs)
+
+
+def as_dict(obj: Any) -> dict[str, Any]:
+    return dataclasses.asdict(obj)
+
+
+def flatten(mapping: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}`` (for MLflow params)."""
+    out: dict[str, Any] = {}
+    for key, value in mapping.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(flatten(value, f"{name}."))
+        else:
+            out[name] = value
+    return out
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _check(tp: Any, value: Any, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _check(arg, value, where)
+            except ConfigError as err:
+                errors.append(str(err))
+        raise ConfigError(errors[0] if errors else f"{where} must not be null")
+    if origin is list:
+        if not isinstance(value, list):
+            raise ConfigError(f"{where} must be a list, got {type(value).__name__}")
+        return [_check(args[0], v, f"{where}[{i}]") for i, v in enumerate(value)]
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where} must be a mapping, got {type(value).__name__}")
+        return {_check(args[0], k, where): _check(args[1], v, f"{where}.{k}") for k, v in value.items()}
+    if dataclasses.is_dataclass(tp):
+        return build(tp, value, where)
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where} must be a number, got {value!r}")
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where} must be an integer, got {value!r}")
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where} must be true or false, got {value!r}")
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where} must be a string, got {value!r}")
+        return value
+    raise TypeError(f"unsupported config type {tp} at {where}")
+
+
+def _deep_merge(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in update.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _deep_merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def _positive(obj: Any, where: str, *names: str) -> None:
+    for name in names:
+        if getattr(obj, name) <= 0:
+            raise ConfigError(f"{where}.{name} = {getattr(obj, name)} must be positive")

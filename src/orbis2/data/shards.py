@@ -1,0 +1,327 @@
+"""WebDataset shards of clips, and the two-rate clip windows the predictors train on.
+
+One sample per clip (a fixed-length piece of an episode). Members of sample ``key``:
+
+- ``key.0000.jpg`` ... one JPEG per native frame. JPEG rather than mp4 bytes: any
+  frame decodes alone straight from memory, so a 10 Hz or 2 Hz window costs only
+  the frames it uses, and no temporary file or codec state is needed;
+- ``key.odometry.npy``: float32 ``[n, 2]`` (speed m/s, yaw rate rad/s; NaN if unknown);
+- ``key.pose.npy``: float64 ``[n, 3]`` (x, y, yaw of the camera; NaN if unknown);
+- ``key.json``: source, split, episode, fps, start frame and time, resolution, camera;
+- ``key.labels.npz`` (labelled splits): ``frames`` (indices within the clip),
+  ``depth`` (float16 m), ``semantic`` (Cityscapes train ids).
+
+Keys are ``<episode stem>_<clip index>`` with zero padding, unique across the dataset.
+Tar headers carry fixed owners and times, so the same clips give the same bytes
+and hashes on every run. ``manifest.json`` lists shards, sample counts and SHA-256.
+
+A *window* is read from a clip around an anchor ``a``, the native index of the
+last detail context frame: detail frames every ``fps/detail_hz`` frames
+(``detail_context`` up to and including ``a``, then the predicted ones), abstract
+frames every ``fps/abstract_hz`` frames (``abstract_context`` ending on ``a``,
+then the predicted ones, the first of which lands on the last predicted detail
+frame with the default 10 Hz / 2 Hz / 5-frame settings).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import tarfile
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import cv2
+import numpy as np
+import torch
+from torch.utils.data import IterableDataset, get_worker_info
+from tqdm import tqdm
+
+from orbis2.config import SPLITS, DataConfig, ShardsConfig
+from orbis2.data.episodes import RawIndex, read_odometry
+from orbis2.data.video import read_video
+from orbis2.errors import OrbisError
+from orbis2.io import load_npy, load_npz, npy_bytes, npz_bytes, write_json
+
+MANIFEST = "manifest.json"
+
+
+class ShardError(OrbisError):
+    """A shard or manifest is missing, truncated or corrupt; the message names the file."""
+
+
+# --------------------------------------------------------------------------- writing
+
+
+class ShardWriter:
+    """Writes samples into ``<prefix>-000000.tar``, rolling over at ``max_bytes``."""
+
+    def __init__(self, folder: Path, prefix: str, max_bytes: int):
+        self.folder, self.prefix, self.max_bytes = folder, prefix, max_bytes
+        self.shards: list[dict[str, Any]] = []
+        self._tar: tarfile.TarFile | None = None
+
+    def write(self, key: str, members: dict[str, bytes]) -> None:
+        if self._tar is None or self.shards[-1]["bytes"] >= self.max_bytes:
+            self._open_next()
+        for ext in members:
+            data = members[ext]
+            info = tarfile.TarInfo(f"{key}.{ext}")
+            info.size, info.mtime, info.mode = len(data), 0, 0o644
+            self._tar.addfile(info, io.BytesIO(data))
+            self.shards[-1]["bytes"] += len(data) + 512
+        self.shards[-1]["samples"] += 1
+
+    def _open_next(self) -> None:
+        self.close()
+        path = self.folder / f"{self.prefix}-{len(self.shards):06d}.tar"
+        self._tar = tarfile.open(path, "w", format=tarfile.USTAR_FORMAT)
+        self.shards.append({"path": path, "samples": 0, "bytes": 0})
+
+    def close(self) -> None:
+        if self._tar is not None:
+            self._tar.close()
+            self._tar = None
+
+
+def clip_starts(n_frames: int, clip_frames: int, min_frames: int) -> list[tuple[int, int]]:
+    """Non-overlapping (start, length) clips; a short episode becomes one shorter clip."""
+    if n_frames >= clip_frames:
+        return [(s, clip_frames) for s in range(0, n_frames - clip_frames + 1, clip_frames)]
+    return [(0, n_frames)] if n_frames >= min_frames else []
+
+
+def write_shards(raw_root: Path, out_root: Path, data: DataConfig, cfg: ShardsConfig) -> dict[str, Any]:
+    """Cut every raw episode into clips and write per-split shards plus the manifest."""
+    index = RawIndex.read(raw_root)
+    if (index.fps, index.width, index.height) != (data.fps, data.width, data.height):
+        raise ShardError(f"{raw_root / 'index.json'}: episodes are {index.width}x{index.height} at {index.fps} fps "
+                         f"but params.yaml asks for {data.width}x{data.height} at {data.fps} fps; "
+                         f"re-run the town/import stage")
+    manifest: dict[str, Any] = {"source": index.source, "fps": index.fps, "width": index.width,
+                                "height": index.height, "camera": index.camera, "splits": {}}
+    encode = [int(cv2.IMWRITE_JPEG_QUALITY), cfg.jpeg_quality]
+    for split in SPLITS:
+        episodes = index.split(split)
+        if not episodes:
+            continue
+        (out_root / split).mkdir(parents=True, exist_ok=True)
+        writer = ShardWriter(out_root / split, split, int(cfg.max_shard_mb * 2**20))
+        clip_frames = round(cfg.clip_seconds[split] * data.fps)
+        frames_total = 0
+        for ep in tqdm(episodes, desc=f"shards: {split}", unit="ep"):
+            frames = read_video(ep.video(raw_root))
+            odo = read_odometry(ep.odometry(raw_root))
+            n = min(len(frames), len(odo["frame"]))
+            labels = load_npz(ep.labels(raw_root).read_bytes()) if ep.label_frames else None
+            for c, (start, length) in enumerate(clip_starts(n, clip_frames, data.window_span_frames)):
+                members = {f"{i:04d}.jpg": _jpeg(frames[start + i], encode) for i in range(length)}
+                sl = slice(start, start + length)
+                members["odometry.npy"] = npy_bytes(np.stack([odo["speed"][sl], odo["yaw_rate"][sl]], 1)
+                                                    .astype(np.float32))
+                members["pose.npy"] = npy_bytes(np.stack([odo["x"][sl], odo["y"][sl], odo["yaw"][sl]], 1))
+                if labels is not None:
+                    keep = (labels["frames"] >= start) & (labels["frames"] < start + length)
+                    members["labels.npz"] = npz_bytes(frames=labels["frames"][keep] - start,
+                                                      depth=labels["depth"][keep], semantic=labels["semantic"][keep])
+                members["json"] = json.dumps({
+                    "source": index.source, "split": split, "episode": ep.stem, "origin": ep.origin,
+                    "fps": data.fps, "start_frame": start, "start_time": start / data.fps, "frames": length,
+                    "width": data.width, "height": data.height, "camera": index.camera,
+                    "has_odometry": ep.has_odometry, "has_pose": ep.has_pose}, sort_keys=True).encode()
+                writer.write(f"{ep.stem}_{c:04d}", members)
+                frames_total += length
+        writer.close()
+        shards = [{"path": str(s["path"].relative_to(out_root)), "samples": s["samples"],
+                   "bytes": s["path"].stat().st_size, "sha256": _sha256(s["path"])} for s in writer.shards]
+        manifest["splits"][split] = {"samples": sum(s["samples"] for s in shards), "frames": frames_total,
+                                     "shards": shards}
+    write_json(out_root / MANIFEST, manifest)
+    return manifest
+
+
+def _jpeg(frame: np.ndarray, params: list[int]) -> bytes:
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(frame, cv2.COLOR_RGB2BGR), params)
+    assert ok, "OpenCV failed to encode a JPEG frame"
+    return buf.tobytes()
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def load_manifest(root: Path) -> dict[str, Any]:
+    path = Path(root) / MANIFEST
+    if not path.is_file():
+        raise ShardError(f"{path}: missing; run the `shards` stage first")
+    try:
+        return json.loads(path.read_text())
+    except ValueError as err:
+        raise ShardError(f"{path}: not valid JSON ({err}); re-run the `shards` stage") from err
+
+
+def shard_paths(root: Path, split: str) -> list[Path]:
+    manifest = load_manifest(root)
+    if split not in manifest["splits"]:
+        raise ShardError(f"{Path(root) / MANIFEST}: no split '{split}' (have {sorted(manifest['splits'])})")
+    return [Path(root) / s["path"] for s in manifest["splits"][split]["shards"]]
+
+
+def verify_shards(root: Path) -> None:
+    """Check every shard's size and SHA-256 against the manifest."""
+    for split in load_manifest(root)["splits"].values():
+        for shard in split["shards"]:
+            path = Path(root) / shard["path"]
+            if not path.is_file():
+                raise ShardError(f"{path}: listed in the manifest but missing; re-run the `shards` stage")
+            if path.stat().st_size != shard["bytes"] or _sha256(path) != shard["sha256"]:
+                raise ShardError(f"{path}: content does not match the manifest's hash (corrupt or modified); "
+                                 f"re-run the `shards` stage")
+
+
+def iter_samples(path: Path) -> Iterator[dict[str, bytes | str]]:
+    """Yield WebDataset samples (members grouped by key) from one tar shard."""
+    sample: dict[str, Any] = {}
+    try:
+        with tarfile.open(path, "r") as tar:
+            for member in tar:
+                if not member.isfile():
+                    continue
+                key, _, ext = member.name.partition(".")
+                if sample and sample["__key__"] != key:
+                    yield sample
+                    sample = {}
+                sample["__key__"] = key
+                sample[ext] = tar.extractfile(member).read()
+    except (tarfile.TarError, EOFError, OSError, zlib.error) as err:
+        raise ShardError(f"{path}: truncated or corrupt shard ({err}); re-run the `shards` stage") from err
+    if sample:
+        yield sample
+
+
+@dataclass
+class Clip:
+    """A decoded-on-demand clip: JPEG bytes stay compressed until a frame is asked for."""
+
+    key: str
+    meta: dict[str, Any]
+    jpegs: list[bytes]
+    odometry: np.ndarray  # [n, 2] speed, yaw rate
+    pose: np.ndarray      # [n, 3]
+    labels: dict[str, np.ndarray] | None
+
+    @classmethod
+    def from_sample(cls, sample: dict[str, Any], source: str = "") -> "Clip":
+        key = sample["__key__"]
+        try:
+            meta = json.loads(sample["json"])
+            jpegs = [sample[f"{i:04d}.jpg"] for i in range(meta["frames"])]
+            labels = load_npz(sample["labels.npz"]) if "labels.npz" in sample else None
+            return cls(key, meta, jpegs, load_npy(sample["odometry.npy"]), load_npy(sample["pose.npy"]), labels)
+        except (KeyError, ValueError) as err:
+            raise ShardError(f"{source}: sample '{key}' is incomplete or malformed ({err!r}); "
+                             f"re-run the `shards` stage") from err
+
+    def __len__(self) -> int:
+        return len(self.jpegs)
+
+    def frames(self, indices: np.ndarray | list[int]) -> np.ndarray:
+        """RGB uint8 ``[len(indices), H, W, 3]``."""
+        out = []
+        for i in indices:
+            bgr = cv2.imdecode(np.frombuffer(self.jpegs[i], np.uint8), cv2.IMREAD_COLOR)
+            if bgr is None:
+                raise ShardError(f"clip '{self.key}': frame {i} is not a decodable JPEG; re-run the `shards` stage")
+            out.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+        return np.stack(out)
+
+
+def window_indices(data: DataConfig, anchor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Native frame indices of the detail and abstract windows around ``anchor``."""
+    detail = anchor + data.detail_stride * (np.arange(data.detail_window) - (data.detail_context - 1))
+    abstract = anchor + data.abstract_stride * (np.arange(data.abstract_window) - (data.abstract_context - 1))
+    return detail, abstract
+
+
+def anchor_range(data: DataConfig, n_frames: int) -> range:
+    """Anchors whose two windows both fit inside a clip of ``n_frames``."""
+    detail, abstract = window_indices(data, 0)
+    first = -min(detail.min(), abstract.min())
+    last = n_frames - 1 - max(detail.max(), abstract.max())
+    return range(first, last + 1)
+
+
+def clip_window(clip: Clip, data: DataConfig, anchor: int) -> dict[str, Any]:
+    """The two windows (frames and odometry) of one clip at one anchor."""
+    detail, abstract = window_indices(data, anchor)
+    valid = anchor_range(data, len(clip))
+    if anchor not in valid:
+        raise ValueError(f"anchor {anchor} outside {valid} for clip '{clip.key}' of {len(clip)} frames")
+    span = np.arange(min(detail.min(), abstract.min()), max(detail.max(), abstract.max()) + 1)
+    return {
+        "key": clip.key,
+        "anchor": anchor,
+        "detail_frames": clip.frames(detail),
+        "abstract_frames": clip.frames(abstract),
+        "detail_odometry": clip.odometry[detail],
+        "abstract_odometry": clip.odometry[abstract],
+        "odometry": clip.odometry[span],
+        "has_odometry": bool(clip.meta["has_odometry"]),
+    }
+
+
+def assign(items: int, rank: int, world: int, worker: int, workers: int) -> tuple[str, int, int]:
+    """How one reader (rank, worker) takes its part: whole shards if there are enough, else every n-th sample."""
+    slot, slots = rank * workers + worker, world * workers
+    return ("shards" if items >= slots else "samples"), slot, slots
+
+
+class WindowDataset(IterableDataset):
+    """Two-rate windows from a split's shards, partitioned across DDP ranks and DataLoader workers.
+
+    ``anchors="random"``: one random anchor per clip per epoch (training);
+    ``anchors="first"``: the earliest anchor (deterministic evaluation).
+    """
+
+    def __init__(self, root: Path, split: str, data: DataConfig, anchors: str = "random", seed: int = 0,
+                 epoch: int = 0, rank: int | None = None, world: int | None = None):
+        if anchors not in ("random", "first"):
+            raise ValueError(f"anchors must be 'random' or 'first', got {anchors!r}")
+        self.paths = shard_paths(root, split)
+        self.data, self.anchors, self.seed, self.epoch = data, anchors, seed, epoch
+        dist = torch.distributed.is_available() and torch.distributed.is_initialized()
+        self.rank = rank if rank is not None else (torch.distributed.get_rank() if dist else 0)
+        self.world = world if world is not None else (torch.distributed.get_world_size() if dist else 1)
+
+    def __iter__(self) -> Iterator[dict[str, Any]]:
+        info = get_worker_info()
+        worker, workers = (info.id, info.num_workers) if info else (0, 1)
+        mode, slot, slots = assign(len(self.paths), self.rank, self.world, worker, workers)
+        paths = self.paths[slot::slots] if mode == "shards" else self.paths
+        position = 0
+        for path in paths:
+            for sample in iter_samples(path):
+                position += 1
+                if mode == "samples" and (position - 1) % slots != slot:
+                    continue
+                clip = Clip.from_sample(sample, str(path))
+                valid = anchor_range(self.data, len(clip))
+                if len(valid) == 0:
+                    continue
+                if self.anchors == "first":
+                    anchor = valid[0]
+                else:
+                    rng = np.random.default_rng([self.seed, self.epoch, zlib.crc32(clip.key.encode())])
+                    anchor = int(rng.integers(valid.start, valid.stop))
+                yield clip_window(clip, self.data, anchor)
+

@@ -1,0 +1,128 @@
+"""Video files through OpenCV: probing, reading, writing, frame-rate resampling.
+
+Frames are RGB ``uint8`` arrays ``[H, W, 3]`` everywhere in the library; the BGR
+order OpenCV uses stays inside this module.
+"""
+
+from __future__ import annotations
+
+from orbis2.errors import OrbisError
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Iterator
+
+import cv2
+import numpy as np
+
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
+
+
+class VideoError(OrbisError):
+    """A video cannot be used; the message names the file and the problem."""
+
+
+@dataclass(frozen=True)
+class VideoInfo:
+    path: Path
+    fps: float
+    frames: int  # as reported by the container; verified when decoding
+    width: int
+    height: int
+
+
+def probe(path: Path) -> VideoInfo:
+    cap = cv2.VideoCapture(str(path))
+    try:
+        if not cap.isOpened():
+            raise VideoError(f"{path}: OpenCV cannot open this file (unreadable or not a video)")
+        info = VideoInfo(
+            path=Path(path),
+            fps=float(cap.get(cv2.CAP_PROP_FPS) or 0.0),
+            frames=int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0),
+            width=int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
+            height=int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),
+        )
+    finally:
+        cap.release()
+    if info.fps <= 0:
+        raise VideoError(f"{path}: the container reports no frame rate; re-encode it with a fixed rate")
+    return info
+
+
+def resample_stride(source_fps: float, target_fps: int, tolerance: float, path: Path) -> int:
+    """Keep every ``stride``-th frame; only integer ratios are exact, so only those are allowed.
+
+    ``tolerance`` is relative slack for rates such as 29.97 (NTSC), taken as 30.
+    """
+    ratio = source_fps / target_fps
+    stride = round(ratio)
+    if stride < 1 or abs(ratio - stride) > tolerance * stride:
+        raise VideoError(
+            f"{path}: frame rate {source_fps:.3f} fps is not an integer multiple of the configured "
+            f"native rate {target_fps} fps; re-encode it (e.g. ffmpeg -r {target_fps * max(stride, 1)}) "
+            f"or change data.fps in params.yaml"
+        )
+    return stride
+
+
+def iter_frames(path: Path, stride: int = 1, size: tuple[int, int] | None = None) -> Iterator[np.ndarray]:
+    """Decode every ``stride``-th frame as RGB, resized (cover + centre crop) to ``size=(W, H)``."""
+    cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        raise VideoError(f"{path}: OpenCV cannot open this file (unreadable or not a video)")
+    try:
+        index = 0
+        while True:
+            ok, frame = cap.read()
+            if not ok:
+                break
+            if index % stride == 0:
+                rgb = cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
+                yield rgb if size is None else resize_cover(rgb, size)
+            index += 1
+    finally:
+        cap.release()
+
+
+def read_video(path: Path, stride: int = 1, size: tuple[int, int] | None = None) -> np.ndarray:
+    frames = list(iter_frames(path, stride, size))
+    if not frames:
+        raise VideoError(f"{path}: no frame could be decoded (empty or truncated video)")
+    return np.stack(frames)
+
+
+def resize_cover(frame: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Scale so the frame covers ``size=(W, H)``, then centre-crop (keeps the aspect ratio)."""
+    width, height = size
+    h, w = frame.shape[:2]
+    if (w, h) == (width, height):
+        return frame
+    scale = max(width / w, height / h)
+    new_w, new_h = max(width, round(w * scale)), max(height, round(h * scale))
+    interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
+    resized = cv2.resize(frame, (new_w, new_h), interpolation=interp)
+    x0, y0 = (new_w - width) // 2, (new_h - height) // 2
+    return np.ascontiguousarray(resized[y0 : y0 + height, x0 : x0 + width])
+
+
+def write_video(path: Path, frames: Iterable[np.ndarray], fps: float) -> int:
+    """Write RGB frames as MPEG-4 (``mp4v``, the codec every OpenCV build can write).
+
+    Returns the number of frames written. The caller makes the write atomic.
+    """
+    writer = None
+    count = 0
+    try:
+        for frame in frames:
+            if writer is None:
+                h, w = frame.shape[:2]
+                writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
+                if not writer.isOpened():
+                    raise VideoError(f"{path}: OpenCV cannot write an mp4v video here")
+            writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+            count += 1
+    finally:
+        if writer is not None:
+            writer.release()
+    return count

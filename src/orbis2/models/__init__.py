@@ -1,0 +1,1 @@
+"""Networks, one file per model with all of its blocks."""

@@ -1,0 +1,41 @@
+"""What every stage script shares: arguments, config, the MLflow run, errors, the summary line."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from typing import Callable
+
+from orbis2.config import PipelineConfig, as_dict, load_config
+from orbis2.errors import OrbisError
+from orbis2.tracking import StageRun, stage_run
+
+StageBody = Callable[[PipelineConfig, argparse.Namespace, StageRun], str]
+
+
+def stage_main(name: str, sections: list[str], body: StageBody,
+               add_arguments: Callable[[argparse.ArgumentParser], None] | None = None,
+               argv: list[str] | None = None) -> None:
+    """Parse ``--params/--profile``, run ``body`` inside the stage's MLflow run, print its summary.
+
+    ``sections`` are the params.yaml sections the stage reads; they are logged as the
+    run's parameters. A user-fixable problem (:class:`OrbisError`) exits with status 2.
+    """
+    parser = argparse.ArgumentParser(prog=f"stages/{name}.py", description=body.__doc__)
+    parser.add_argument("--params", default="params.yaml", help="params file (default: params.yaml)")
+    parser.add_argument("--profile", default=None, help="smoke | default | paper (default: the file's `profile`)")
+    if add_arguments:
+        add_arguments(parser)
+    args = parser.parse_args(argv)
+    started = time.perf_counter()
+    try:
+        cfg = load_config(args.params, args.profile)
+        params = {"profile": cfg.profile, **{s: as_dict(cfg.section(s)) for s in sections}}
+        with stage_run(name, params) as run:
+            summary = body(cfg, args, run)
+            run.log_metrics({"wall_seconds": time.perf_counter() - started})
+    except OrbisError as err:
+        print(f"[{name}] error: {err}", file=sys.stderr)
+        sys.exit(2)
+    print(f"[{name}] {summary} ({time.perf_counter() - started:.1f} s, profile {cfg.profile})")

@@ -1,0 +1,97 @@
+"""MLflow tracking: one run per stage, nested under one parent run per pipeline invocation.
+
+The store is ``sqlite:///mlflow.db`` unless ``MLFLOW_TRACKING_URI`` says otherwise;
+the experiment is ``orbis2`` unless ``MLFLOW_EXPERIMENT_NAME`` says otherwise.
+
+A *pipeline invocation* is one ``snakemake`` or ``dvc repro`` call. Stages are
+separate processes started by it, so they find their common parent through an
+invocation key: ``ORBIS2_PIPELINE_ID`` when set, else the process group (both
+tools run their jobs in their own process group) and that group leader's start
+time. The first stage of an invocation creates the parent; later ones reuse it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import hashlib
+import os
+import socket
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Iterator
+
+from orbis2.config import flatten
+
+DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
+INVOCATION_TAG = "orbis2.invocation"
+
+
+def invocation_key() -> str:
+    explicit = os.environ.get("ORBIS2_PIPELINE_ID")
+    if explicit:
+        return explicit
+    pgid = os.getpgid(0)
+    started = ""
+    with contextlib.suppress(OSError, IndexError):
+        # Field 22 of /proc/<pid>/stat is the start time in clock ticks since boot.
+        started = Path(f"/proc/{pgid}/stat").read_text().rsplit(")", 1)[1].split()[19]
+    return f"{socket.gethostname()}:{pgid}:{started}"
+
+
+class StageRun:
+    """What a stage logs: metrics per step, artifacts, and a final summary."""
+
+    def __init__(self, mlflow_module: Any, run_id: str):
+        self._mlflow = mlflow_module
+        self.run_id = run_id
+
+    def log_metrics(self, metrics: dict[str, float], step: int | None = None) -> None:
+        self._mlflow.log_metrics({k: float(v) for k, v in metrics.items()}, step=step)
+
+    def log_artifact(self, path: Path, artifact_path: str | None = None) -> None:
+        self._mlflow.log_artifact(str(path), artifact_path)
+
+    def set_tags(self, tags: dict[str, str]) -> None:
+        self._mlflow.set_tags(tags)
+
+
+@contextlib.contextmanager
+def stage_run(stage: str, params: dict[str, Any]) -> Iterator[StageRun]:
+    """Open the stage's MLflow run (nested under the invocation's parent) for the block."""
+    import mlflow
+    from mlflow.tracking import MlflowClient
+
+    uri = os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_TRACKING_URI)
+    mlflow.set_tracking_uri(uri)
+    experiment = mlflow.set_experiment(os.environ.get("MLFLOW_EXPERIMENT_NAME", "orbis2"))
+    client = MlflowClient()
+    parent_id = _parent_run(client, experiment.experiment_id)
+    client.update_run(parent_id, status="RUNNING")
+    status = "FAILED"
+    with mlflow.start_run(run_name=stage, parent_run_id=parent_id, nested=True,
+                          tags={"orbis2.stage": stage}) as run:
+        flat = {k: str(v)[:6000] for k, v in flatten(params).items()}
+        for start in range(0, len(flat), 100):  # MLflow limits one batch to 100 params
+            mlflow.log_params(dict(list(flat.items())[start:start + 100]))
+        try:
+            yield StageRun(mlflow, run.info.run_id)
+            status = "FINISHED"
+        finally:
+            mlflow.end_run(status=status)
+            client.set_terminated(parent_id, status=status)
+
+
+def _parent_run(client: Any, experiment_id: str) -> str:
+    key = invocation_key()
+    lock = Path(tempfile.gettempdir()) / f"orbis2-{hashlib.sha1(key.encode()).hexdigest()[:16]}.lock"
+    with open(lock, "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)  # stages running in parallel must share one parent
+        found = client.search_runs([experiment_id], filter_string=f"tags.`{INVOCATION_TAG}` = '{key}'",
+                                   max_results=1)
+        if found:
+            return found[0].info.run_id
+        run = client.create_run(experiment_id, run_name=f"pipeline {time.strftime('%Y-%m-%d %H:%M:%S')}",
+                                tags={INVOCATION_TAG: key, "orbis2.pipeline": "true"})
+        return run.info.run_id

@@ -1,0 +1,26 @@
+"""Stage `shards`: cut raw episodes into clips and write WebDataset shards + manifest to data/shards."""
+
+from pathlib import Path
+
+from orbis2.data.shards import write_shards
+from orbis2.io import atomic_dir
+from orbis2.stage import stage_main
+
+OUT = Path("data/shards")
+
+
+def run(cfg, args, run):
+    """Write one WebDataset sample per clip, per split, with a manifest of counts and hashes."""
+    raw = Path("data/raw") / cfg.data.source
+    with atomic_dir(OUT) as tmp:
+        manifest = write_shards(raw, tmp, cfg.data, cfg.shards)
+    for split, info in manifest["splits"].items():
+        run.log_metrics({f"{split}_clips": info["samples"], f"{split}_shards": len(info["shards"]),
+                         f"{split}_mb": sum(s["bytes"] for s in info["shards"]) / 2**20})
+    run.log_artifact(OUT / "manifest.json")
+    counts = {split: info["samples"] for split, info in manifest["splits"].items()}
+    return f"clips per split {counts} -> {OUT}"
+
+
+if __name__ == "__main__":
+    stage_main("shards", ["data", "shards"], run)

@@ -1,0 +1,59 @@
+"""params.yaml resolution: profiles, strict keys, types and impossible values."""
+
+import copy
+
+import pytest
+import yaml
+
+from orbis2.config import PROFILES, ConfigError, load_config, load_params
+
+from conftest import ROOT
+
+
+def write_params(tmp_path, mutate):
+    raw = copy.deepcopy(load_params(ROOT / "params.yaml"))
+    mutate(raw)
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    return path
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+def test_every_profile_resolves(profile):
+    cfg = load_config(ROOT / "params.yaml", profile)
+    assert cfg.profile == profile
+    assert cfg.data.fps % cfg.data.detail_hz == 0 and cfg.data.fps % cfg.data.abstract_hz == 0
+
+
+def test_profile_key_selects_values(tmp_path):
+    path = write_params(tmp_path, lambda raw: raw.update(profile="smoke"))
+    assert load_config(path).data.width == 128
+    assert load_config(path, "paper").data.width == 512  # an explicit profile wins
+
+
+@pytest.mark.parametrize("mutate, key", [
+    (lambda r: r["town"]["all"].update(sede=1), "town.smoke: unknown key(s) ['sede']"),
+    (lambda r: r["data"]["all"].update(fps="ten"), "data.smoke.fps must be an integer"),
+    (lambda r: r["data"]["all"].update(fps=25), "data.smoke.fps = 25 must be an integer multiple of detail_hz"),
+    (lambda r: r["data"]["all"].update(fps=15), "data.smoke.fps = 15 must be an integer multiple of detail_hz"),
+    (lambda r: r["shards"]["smoke"]["clip_seconds"].update(train=1.0), "clip_seconds.train = 1.0 is shorter"),
+    (lambda r: r["town"]["smoke"]["episodes"].pop("probe"), "town.smoke.episodes must name exactly the splits"),
+    (lambda r: r["town"]["all"].update(workers=True), "town.smoke.workers must be an integer"),
+    (lambda r: r.update(profile="huge"), "profile = 'huge' must be one of"),
+    (lambda r: r.update(extra={}), "unknown top-level key(s) ['extra']"),
+    (lambda r: r["data"].update(large={}), "data: unknown key(s) ['large']"),
+])
+def test_bad_values_name_the_key(tmp_path, mutate, key):
+    def apply(raw):
+        raw["profile"] = "smoke"
+        mutate(raw)
+
+    with pytest.raises(ConfigError) as err:
+        load_config(write_params(tmp_path, apply))
+    assert key in str(err.value)
+
+
+def test_native_rate_of_twenty_is_accepted(tmp_path):
+    path = write_params(tmp_path, lambda r: r["data"]["all"].update(fps=20))
+    cfg = load_config(path, "smoke")
+    assert (cfg.data.detail_stride, cfg.data.abstract_stride) == (2, 10)
