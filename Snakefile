@@ -12,6 +12,8 @@ from orbis2.config import resolve_section
 configfile: "params.yaml"
 
 PROFILE = config["profile"]
+# How training stages start: plain python, or e.g. "torchrun --standalone --nproc_per_node 8".
+TRAIN_LAUNCHER = config.get("train_launcher", "python")
 SOURCE = resolve_section(config, "data", PROFILE)["source"]
 
 
@@ -21,10 +23,11 @@ def section(name):
 
 rule all:
     input:
-        "data/shards",
+        "data/latents",
 
 
 rule town:
+    threads: workflow.cores  # uses every core itself; run nothing beside it
     input:
         "stages/town.py",
         "src/orbis2/data/town.py",
@@ -70,3 +73,77 @@ rule shards:
         shards=section("shards"),
     shell:
         "python stages/shards.py --profile {params.profile}"
+
+
+rule assets:
+    input:
+        "stages/assets.py",
+        "src/orbis2/assets.py",
+    output:
+        directory("data/assets"),
+    params:
+        profile=PROFILE,
+        assets=section("assets"),
+    shell:
+        "python stages/assets.py --profile {params.profile}"
+
+
+rule tokenizer_detail:
+    threads: workflow.cores  # uses every core itself; run nothing beside it
+    input:
+        "stages/tokenizer_detail.py",
+        "src/orbis2/tasks/tokenizers.py",
+        "src/orbis2/models/tokenizer.py",
+        "src/orbis2/losses.py",
+        "src/orbis2/train.py",
+        "data/shards",
+        "data/assets",
+    output:
+        directory("data/tokenizers/detail"),
+        "reports/tokenizer_detail.json",
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        tokenizer_detail=section("tokenizer_detail"),
+    shell:
+        f"{TRAIN_LAUNCHER} stages/tokenizer_detail.py --profile {{params.profile}}"
+
+
+rule tokenizer_abstract:
+    threads: workflow.cores  # uses every core itself; run nothing beside it
+    input:
+        "stages/tokenizer_abstract.py",
+        "src/orbis2/tasks/tokenizers.py",
+        "src/orbis2/models/tokenizer.py",
+        "src/orbis2/models/teachers.py",
+        "src/orbis2/losses.py",
+        "src/orbis2/train.py",
+        "data/shards",
+        "data/assets",
+    output:
+        directory("data/tokenizers/abstract"),
+        "reports/tokenizer_abstract.json",
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        tokenizer_abstract=section("tokenizer_abstract"),
+    shell:
+        f"{TRAIN_LAUNCHER} stages/tokenizer_abstract.py --profile {{params.profile}}"
+
+
+rule latents:
+    threads: workflow.cores  # uses every core itself; run nothing beside it
+    input:
+        "stages/latents.py",
+        "src/orbis2/latents.py",
+        "data/shards",
+        "data/tokenizers/detail",
+        "data/tokenizers/abstract",
+    output:
+        directory("data/latents"),
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        latents=section("latents"),
+    shell:
+        "python stages/latents.py --profile {params.profile}"

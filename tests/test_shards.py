@@ -8,8 +8,19 @@ import pytest
 import torch
 
 from orbis2.data.episodes import EpisodeRecord, RawIndex, write_labels, write_odometry
-from orbis2.data.shards import (Clip, ShardError, WindowDataset, anchor_range, clip_window, iter_samples,
-                                load_manifest, shard_paths, verify_shards, window_indices, write_shards)
+from orbis2.data.shards import (
+    Clip,
+    ShardError,
+    WindowDataset,
+    anchor_range,
+    clip_window,
+    iter_samples,
+    load_manifest,
+    shard_paths,
+    verify_shards,
+    window_indices,
+    write_shards,
+)
 from orbis2.data.video import read_video, write_video
 
 from conftest import moving_pattern

@@ -13,9 +13,9 @@ impossible value stops with a :class:`ConfigError` naming the key, e.g.
 
 from __future__ import annotations
 
-from orbis2.errors import OrbisError
-
 import dataclasses
+import hashlib
+import json
 import types
 import typing
 from dataclasses import dataclass, field
@@ -23,6 +23,8 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+
+from orbis2.errors import OrbisError
 
 PROFILES = ("smoke", "default", "paper")
 SPLITS = ("train", "val", "turns", "heldout", "probe")
@@ -151,6 +153,90 @@ class ShardsConfig:
         _positive(self, where, "max_shard_mb")
 
 
+ASSET_NAMES = ("i3d_kinetics400", "inception_v3", "dinov2_vitb14")
+TOKENIZER_PRESETS = ("smoke", "default", "paper")
+
+
+@dataclass(frozen=True)
+class AssetsConfig:
+    """Pretrained networks: where converted files go, and files the user provides by hand."""
+
+    dir: str = "data/assets"
+    download: bool = True
+    local: dict[str, str | None] = field(default_factory=dict)
+
+    def validate(self, where: str) -> None:
+        unknown = set(self.local) - set(ASSET_NAMES)
+        if unknown:
+            raise ConfigError(f"{where}.local names unknown assets {sorted(unknown)}; known: {list(ASSET_NAMES)}")
+
+
+@dataclass(frozen=True)
+class DetailTokenizerConfig:
+    """The detail (VQ) tokenizer: preset sizes, loss weights and schedules (paper appendix, reference code)."""
+
+    preset: str
+    train: TrainConfig
+    frames_per_clip: int = 4
+    l1_weight: float = 1.0
+    entropy_start: float = 0.01
+    entropy_end: float = 0.001
+    entropy_decay_steps: int = 10000
+    disc_start: int = 10000
+    gan_scale: float = 0.1
+    disc_lr_scale: float = 1.0
+    mae_checkpoint: str | None = None
+    eval_images: int = 64
+    fid_images: int = 256
+    scale_images: int = 256
+
+    def validate(self, where: str) -> None:
+        _tokenizer_common(self, where)
+        if self.disc_start < 0:
+            raise ConfigError(f"{where}.disc_start must be >= 0")
+        _positive(self, where, "fid_images")
+
+
+@dataclass(frozen=True)
+class AbstractTokenizerConfig:
+    """The abstract tokenizer: encoder aligned to a frozen teacher (paper eq. 3) plus a weak decoder."""
+
+    preset: str
+    train: TrainConfig
+    teacher: str = "inception"
+    alignment: str = "l2"
+    rec_weight: float = 0.1
+    compress: bool = True
+    frames_per_clip: int = 4
+    eval_images: int = 64
+    scale_images: int = 256
+
+    def validate(self, where: str) -> None:
+        _tokenizer_common(self, where)
+        if self.teacher not in ("inception", "dinov2"):
+            raise ConfigError(f"{where}.teacher = {self.teacher!r} must be 'inception' or 'dinov2'")
+        if self.alignment not in ("l2", "cosine"):
+            raise ConfigError(f"{where}.alignment = {self.alignment!r} must be 'l2' or 'cosine'")
+        if self.rec_weight < 0:
+            raise ConfigError(f"{where}.rec_weight must be >= 0")
+
+
+@dataclass(frozen=True)
+class LatentsConfig:
+    """The latent cache: how many frames are encoded per forward pass."""
+
+    batch_size: int = 32
+
+    def validate(self, where: str) -> None:
+        _positive(self, where, "batch_size")
+
+
+def _tokenizer_common(cfg: Any, where: str) -> None:
+    if cfg.preset not in TOKENIZER_PRESETS:
+        raise ConfigError(f"{where}.preset = {cfg.preset!r} must be one of {list(TOKENIZER_PRESETS)}")
+    _positive(cfg, where, "frames_per_clip", "eval_images", "scale_images")
+
+
 @dataclass(frozen=True)
 class PipelineConfig:
     """Every stage's resolved section for one profile."""
@@ -160,6 +246,10 @@ class PipelineConfig:
     town: TownConfig
     import_: ImportConfig
     shards: ShardsConfig
+    assets: AssetsConfig
+    tokenizer_detail: DetailTokenizerConfig
+    tokenizer_abstract: AbstractTokenizerConfig
+    latents: LatentsConfig
 
     def section(self, name: str) -> Any:
         return getattr(self, SECTION_ATTRS.get(name, name))
@@ -179,6 +269,59 @@ class PipelineConfig:
                 )
 
 
+# Fields that change only bookkeeping, never the trajectory: a resume may change them.
+_BOOKKEEPING = frozenset({"log_every", "eval_every", "checkpoint_every"})
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation settings of one stage; ``batch_size`` is global (summed over ranks)."""
+
+    steps: int
+    batch_size: int
+    lr: float
+    weight_decay: float = 0.0
+    betas: tuple[float, float] = (0.9, 0.999)
+    optimizer: str = "adamw"
+    warmup_steps: int = 0
+    min_lr_ratio: float = 0.1
+    grad_clip: float | None = None
+    ema_decay: float | None = None
+    mixed_precision: str = "bf16"
+    log_every: int = 10
+    eval_every: int = 0
+    checkpoint_every: int = 500
+    seed: int = 0
+    num_workers: int = 0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "betas", tuple(self.betas))  # YAML gives a list
+        rules = {  # field: (valid, what it must be)
+            "lr": (self.lr > 0, "> 0"),
+            "betas": (len(self.betas) == 2 and all(0 <= b < 1 for b in self.betas), "two numbers in [0, 1)"),
+            "optimizer": (self.optimizer in ("adamw", "adam"), "'adamw' or 'adam'"),
+            "min_lr_ratio": (0 <= self.min_lr_ratio <= 1, "in [0, 1]"),
+            "grad_clip": (self.grad_clip is None or self.grad_clip > 0, "> 0, or null for off"),
+            "ema_decay": (self.ema_decay is None or 0 <= self.ema_decay < 1, "in [0, 1), or null for off"),
+            "mixed_precision": (self.mixed_precision in ("bf16", "none"), "'bf16' or 'none'"),
+            **{name: (getattr(self, name) >= 1, ">= 1") for name in ("steps", "batch_size", "log_every",
+                                                                     "checkpoint_every")},
+            **{name: (getattr(self, name) >= 0, ">= 0") for name in ("weight_decay", "warmup_steps", "eval_every",
+                                                                     "seed", "num_workers")},
+        }
+        for name, (valid, rule) in rules.items():
+            if not valid:
+                raise ConfigError(f"{name} = {getattr(self, name)!r} must be {rule}")
+
+    def trajectory_fields(self) -> dict[str, Any]:
+        """The fields a resumed run must share with the run that wrote the checkpoint."""
+        return {k: v for k, v in dataclasses.asdict(self).items() if k not in _BOOKKEEPING}
+
+    def fingerprint(self) -> str:
+        blob = json.dumps(self.trajectory_fields(), sort_keys=True).encode()
+        return hashlib.sha256(blob).hexdigest()[:16]
+
+
 # Section names in params.yaml whose Python attribute differs (``import`` is a keyword).
 SECTION_ATTRS = {"import": "import_"}
 SECTION_TYPES: dict[str, type] = {
@@ -186,6 +329,10 @@ SECTION_TYPES: dict[str, type] = {
     "town": TownConfig,
     "import": ImportConfig,
     "shards": ShardsConfig,
+    "assets": AssetsConfig,
+    "tokenizer_detail": DetailTokenizerConfig,
+    "tokenizer_abstract": AbstractTokenizerConfig,
+    "latents": LatentsConfig,
 }
 
 
@@ -260,7 +407,10 @@ def build(cls: type, values: dict[str, Any], where: str) -> Any:
                 raise ConfigError(f"{where}.{name} is required")
             continue
         kwargs[name] = _check(hints[name], values[name], f"{where}.{name}")
-    return cls(**kwargs)
+    try:
+        return cls(**kwargs)
+    except ConfigError as err:
+        raise ConfigError(f"{where}: {err}") from err
 
 
 def as_dict(obj: Any) -> dict[str, Any]:
@@ -301,6 +451,10 @@ def _check(tp: Any, value: Any, where: str) -> Any:
         if not isinstance(value, list):
             raise ConfigError(f"{where} must be a list, got {type(value).__name__}")
         return [_check(args[0], v, f"{where}[{i}]") for i, v in enumerate(value)]
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)) or len(value) != len(args):
+            raise ConfigError(f"{where} must be a list of {len(args)} values, got {value!r}")
+        return tuple(_check(a, v, f"{where}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
     if origin is dict:
         if not isinstance(value, dict):
             raise ConfigError(f"{where} must be a mapping, got {type(value).__name__}")

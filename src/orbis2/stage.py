@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
+import shutil
 import sys
 import time
+from pathlib import Path
 from typing import Callable
 
 from orbis2.config import PipelineConfig, as_dict, load_config
 from orbis2.errors import OrbisError
+from orbis2.io import atomic_dir, write_json
 from orbis2.tracking import StageRun, stage_run
 
 StageBody = Callable[[PipelineConfig, argparse.Namespace, StageRun], str]
@@ -39,3 +44,29 @@ def stage_main(name: str, sections: list[str], body: StageBody,
         print(f"[{name}] error: {err}", file=sys.stderr)
         sys.exit(2)
     print(f"[{name}] {summary} ({time.perf_counter() - started:.1f} s, profile {cfg.profile})")
+
+
+def training_dir(name: str, cfg: PipelineConfig, sections: list[str]) -> Path:
+    """Where a training stage keeps checkpoints: ``data/runs/<stage>-<profile>-<params hash>``.
+
+    Outside the stage's declared outputs, because Snakemake and DVC delete those
+    before re-running a stage; keyed by the resolved params, so a killed run
+    resumes while a changed config starts afresh.
+    """
+    blob = json.dumps({s: as_dict(cfg.section(s)) for s in sections}, sort_keys=True).encode()
+    return Path("data/runs") / f"{name}-{cfg.profile}-{hashlib.sha256(blob).hexdigest()[:12]}"
+
+
+def publish_training(run_dir: Path, out: Path, files: list[str], report: Path, metrics: dict[str, float],
+                     run: StageRun) -> None:
+    """Copy a finished training run's ``files`` and ``samples/`` into the stage output, atomically;
+    write the metrics report and log the samples."""
+    with atomic_dir(out) as tmp:
+        for name in files:
+            shutil.copy2(run_dir / name, tmp / name)
+        if (run_dir / "samples").is_dir():
+            shutil.copytree(run_dir / "samples", tmp / "samples")
+    for png in sorted((out / "samples").glob("*.png")):
+        run.log_artifact(png, "samples")
+    write_json(report, metrics)
+    run.log_artifact(report)

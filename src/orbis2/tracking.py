@@ -5,9 +5,8 @@ the experiment is ``orbis2`` unless ``MLFLOW_EXPERIMENT_NAME`` says otherwise.
 
 A *pipeline invocation* is one ``snakemake`` or ``dvc repro`` call. Stages are
 separate processes started by it, so they find their common parent through an
-invocation key: ``ORBIS2_PIPELINE_ID`` when set, else the process group (both
-tools run their jobs in their own process group) and that group leader's start
-time. The first stage of an invocation creates the parent; later ones reuse it.
+invocation key (:func:`invocation_key`). The first stage of an invocation
+creates the parent; later ones reuse it.
 """
 
 from __future__ import annotations
@@ -28,38 +27,75 @@ DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
 INVOCATION_TAG = "orbis2.invocation"
 
 
+PIPELINE_TOOLS = ("snakemake", "dvc")
+
+
 def invocation_key() -> str:
+    """Identify the pipeline invocation this stage belongs to.
+
+    ``ORBIS2_PIPELINE_ID`` if set; else the nearest ancestor process that is
+    ``snakemake`` or ``dvc`` (pid and start time, so a reused pid is a new key);
+    else this process's group (a stage run by hand is its own pipeline).
+    """
     explicit = os.environ.get("ORBIS2_PIPELINE_ID")
     if explicit:
         return explicit
+    pid = os.getppid()
+    while pid > 1:
+        stat = _proc_stat(pid)
+        if stat is None:
+            break
+        if set(PIPELINE_TOOLS) & _proc_programs(pid):
+            return f"{socket.gethostname()}:{pid}:{stat[19]}"
+        pid = int(stat[1])
     pgid = os.getpgid(0)
-    started = ""
-    with contextlib.suppress(OSError, IndexError):
-        # Field 22 of /proc/<pid>/stat is the start time in clock ticks since boot.
-        started = Path(f"/proc/{pgid}/stat").read_text().rsplit(")", 1)[1].split()[19]
-    return f"{socket.gethostname()}:{pgid}:{started}"
+    stat = _proc_stat(pgid)
+    return f"{socket.gethostname()}:pg{pgid}:{stat[19] if stat else ''}"
+
+
+def _proc_stat(pid: int) -> list[str] | None:
+    """Fields of /proc/<pid>/stat after the command name (state, ppid, ..., starttime at 19)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+
+
+def _proc_programs(pid: int) -> set[str]:
+    """Base names of a process's program and first argument (``python .../snakemake`` -> both)."""
+    try:
+        argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[:2]
+    except OSError:
+        return set()
+    return {Path(a.decode(errors="replace")).name for a in argv}
 
 
 class StageRun:
-    """What a stage logs: metrics per step, artifacts, and a final summary."""
+    """What a stage logs: metrics per step and artifacts. Without an MLflow module
+    (ranks other than 0 under torchrun) every call does nothing."""
 
-    def __init__(self, mlflow_module: Any, run_id: str):
+    def __init__(self, mlflow_module: Any | None, run_id: str | None):
         self._mlflow = mlflow_module
         self.run_id = run_id
 
     def log_metrics(self, metrics: dict[str, float], step: int | None = None) -> None:
-        self._mlflow.log_metrics({k: float(v) for k, v in metrics.items()}, step=step)
+        if self._mlflow:
+            self._mlflow.log_metrics({k: float(v) for k, v in metrics.items()}, step=step)
 
     def log_artifact(self, path: Path, artifact_path: str | None = None) -> None:
-        self._mlflow.log_artifact(str(path), artifact_path)
-
-    def set_tags(self, tags: dict[str, str]) -> None:
-        self._mlflow.set_tags(tags)
+        if self._mlflow:
+            self._mlflow.log_artifact(str(path), artifact_path)
 
 
 @contextlib.contextmanager
 def stage_run(stage: str, params: dict[str, Any]) -> Iterator[StageRun]:
-    """Open the stage's MLflow run (nested under the invocation's parent) for the block."""
+    """Open the stage's MLflow run (nested under the invocation's parent) for the block.
+
+    Under torchrun only rank 0 logs; the other ranks get a :class:`StageRun` that does nothing.
+    """
+    if int(os.environ.get("RANK", "0")) != 0:
+        yield StageRun(None, None)
+        return
     import mlflow
     from mlflow.tracking import MlflowClient
 

@@ -18,8 +18,6 @@ speed and yaw rate, and ``has_odometry = false`` in the index.
 
 from __future__ import annotations
 
-from orbis2.errors import OrbisError
-
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -29,6 +27,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from orbis2.errors import OrbisError
 from orbis2.io import atomic_file, npz_bytes, write_json
 
 ODOMETRY_COLUMNS = ("frame", "t", "speed", "yaw_rate", "x", "y", "yaw")

@@ -25,7 +25,6 @@ frame with the default 10 Hz / 2 Hz / 5-frame settings).
 
 from __future__ import annotations
 
-import hashlib
 import io
 import json
 import tarfile
@@ -44,7 +43,7 @@ from orbis2.config import SPLITS, DataConfig, ShardsConfig
 from orbis2.data.episodes import RawIndex, read_odometry
 from orbis2.data.video import read_video
 from orbis2.errors import OrbisError
-from orbis2.io import load_npy, load_npz, npy_bytes, npz_bytes, write_json
+from orbis2.io import load_npy, load_npz, npy_bytes, npz_bytes, sha256_file, write_json
 
 MANIFEST = "manifest.json"
 
@@ -136,7 +135,7 @@ def write_shards(raw_root: Path, out_root: Path, data: DataConfig, cfg: ShardsCo
                 frames_total += length
         writer.close()
         shards = [{"path": str(s["path"].relative_to(out_root)), "samples": s["samples"],
-                   "bytes": s["path"].stat().st_size, "sha256": _sha256(s["path"])} for s in writer.shards]
+                   "bytes": s["path"].stat().st_size, "sha256": sha256_file(s["path"])} for s in writer.shards]
         manifest["splits"][split] = {"samples": sum(s["samples"] for s in shards), "frames": frames_total,
                                      "shards": shards}
     write_json(out_root / MANIFEST, manifest)
@@ -147,14 +146,6 @@ def _jpeg(frame: np.ndarray, params: list[int]) -> bytes:
     ok, buf = cv2.imencode(".jpg", cv2.cvtColor(frame, cv2.COLOR_RGB2BGR), params)
     assert ok, "OpenCV failed to encode a JPEG frame"
     return buf.tobytes()
-
-
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 # --------------------------------------------------------------------------- reading
@@ -184,7 +175,7 @@ def verify_shards(root: Path) -> None:
             path = Path(root) / shard["path"]
             if not path.is_file():
                 raise ShardError(f"{path}: listed in the manifest but missing; re-run the `shards` stage")
-            if path.stat().st_size != shard["bytes"] or _sha256(path) != shard["sha256"]:
+            if path.stat().st_size != shard["bytes"] or sha256_file(path) != shard["sha256"]:
                 raise ShardError(f"{path}: content does not match the manifest's hash (corrupt or modified); "
                                  f"re-run the `shards` stage")
 
@@ -253,6 +244,11 @@ def window_indices(data: DataConfig, anchor: int) -> tuple[np.ndarray, np.ndarra
     return detail, abstract
 
 
+def window_span(detail: np.ndarray, abstract: np.ndarray) -> np.ndarray:
+    """Every native frame from the first to the last frame of the two windows."""
+    return np.arange(min(detail.min(), abstract.min()), max(detail.max(), abstract.max()) + 1)
+
+
 def anchor_range(data: DataConfig, n_frames: int) -> range:
     """Anchors whose two windows both fit inside a clip of ``n_frames``."""
     detail, abstract = window_indices(data, 0)
@@ -267,7 +263,7 @@ def clip_window(clip: Clip, data: DataConfig, anchor: int) -> dict[str, Any]:
     valid = anchor_range(data, len(clip))
     if anchor not in valid:
         raise ValueError(f"anchor {anchor} outside {valid} for clip '{clip.key}' of {len(clip)} frames")
-    span = np.arange(min(detail.min(), abstract.min()), max(detail.max(), abstract.max()) + 1)
+    span = window_span(detail, abstract)
     return {
         "key": clip.key,
         "anchor": anchor,
@@ -286,24 +282,22 @@ def assign(items: int, rank: int, world: int, worker: int, workers: int) -> tupl
     return ("shards" if items >= slots else "samples"), slot, slots
 
 
-class WindowDataset(IterableDataset):
-    """Two-rate windows from a split's shards, partitioned across DDP ranks and DataLoader workers.
+class ClipStream(IterableDataset):
+    """Clips of a split's shards, partitioned across DDP ranks and DataLoader workers.
 
-    ``anchors="random"``: one random anchor per clip per epoch (training);
-    ``anchors="first"``: the earliest anchor (deterministic evaluation).
+    Iterating yields the clips themselves; subclasses turn each clip into training
+    items (``items``). ``seed`` and ``epoch`` make every random choice reproducible.
     """
 
-    def __init__(self, root: Path, split: str, data: DataConfig, anchors: str = "random", seed: int = 0,
-                 epoch: int = 0, rank: int | None = None, world: int | None = None):
-        if anchors not in ("random", "first"):
-            raise ValueError(f"anchors must be 'random' or 'first', got {anchors!r}")
+    def __init__(self, root: Path, split: str, seed: int = 0, epoch: int = 0,
+                 rank: int | None = None, world: int | None = None):
         self.paths = shard_paths(root, split)
-        self.data, self.anchors, self.seed, self.epoch = data, anchors, seed, epoch
+        self.seed, self.epoch = seed, epoch
         dist = torch.distributed.is_available() and torch.distributed.is_initialized()
         self.rank = rank if rank is not None else (torch.distributed.get_rank() if dist else 0)
         self.world = world if world is not None else (torch.distributed.get_world_size() if dist else 1)
 
-    def __iter__(self) -> Iterator[dict[str, Any]]:
+    def clips(self) -> Iterator[Clip]:
         info = get_worker_info()
         worker, workers = (info.id, info.num_workers) if info else (0, 1)
         mode, slot, slots = assign(len(self.paths), self.rank, self.world, worker, workers)
@@ -314,14 +308,44 @@ class WindowDataset(IterableDataset):
                 position += 1
                 if mode == "samples" and (position - 1) % slots != slot:
                     continue
-                clip = Clip.from_sample(sample, str(path))
-                valid = anchor_range(self.data, len(clip))
-                if len(valid) == 0:
-                    continue
-                if self.anchors == "first":
-                    anchor = valid[0]
-                else:
-                    rng = np.random.default_rng([self.seed, self.epoch, zlib.crc32(clip.key.encode())])
-                    anchor = int(rng.integers(valid.start, valid.stop))
-                yield clip_window(clip, self.data, anchor)
+                yield Clip.from_sample(sample, str(path))
 
+    def rng(self, clip: Clip) -> np.random.Generator:
+        return np.random.default_rng([self.seed, self.epoch, zlib.crc32(clip.key.encode())])
+
+    def items(self, clip: Clip) -> Iterator[Any]:
+        yield clip
+
+    def __iter__(self) -> Iterator[Any]:
+        for clip in self.clips():
+            yield from self.items(clip)
+
+
+class WindowDataset(ClipStream):
+    """Two-rate windows: ``anchors="random"`` draws one anchor per clip per epoch (training),
+    ``anchors="first"`` takes the earliest (deterministic evaluation)."""
+
+    def __init__(self, root: Path, split: str, data: DataConfig, anchors: str = "random", **kwargs: Any):
+        if anchors not in ("random", "first"):
+            raise ValueError(f"anchors must be 'random' or 'first', got {anchors!r}")
+        super().__init__(root, split, **kwargs)
+        self.data, self.anchors = data, anchors
+
+    def items(self, clip: Clip) -> Iterator[dict[str, Any]]:
+        valid = anchor_range(self.data, len(clip))
+        if len(valid) == 0:
+            return
+        anchor = valid[0] if self.anchors == "first" else int(self.rng(clip).integers(valid.start, valid.stop))
+        yield clip_window(clip, self.data, anchor)
+
+
+class FrameDataset(ClipStream):
+    """Single RGB frames (``uint8 [H, W, 3]``) for the tokenizers: ``per_clip`` random frames per clip."""
+
+    def __init__(self, root: Path, split: str, per_clip: int = 4, **kwargs: Any):
+        super().__init__(root, split, **kwargs)
+        self.per_clip = per_clip
+
+    def items(self, clip: Clip) -> Iterator[np.ndarray]:
+        picks = self.rng(clip).choice(len(clip), size=min(self.per_clip, len(clip)), replace=False)
+        yield from clip.frames(np.sort(picks))

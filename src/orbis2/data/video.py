@@ -6,14 +6,14 @@ order OpenCV uses stays inside this module.
 
 from __future__ import annotations
 
-from orbis2.errors import OrbisError
-
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator
 
 import cv2
 import numpy as np
+
+from orbis2.errors import OrbisError
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
 

@@ -1,0 +1,1 @@
+"""Evaluation: FVD and its chunked form, linear probes, steering odometry, speed."""

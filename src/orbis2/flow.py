@@ -1,0 +1,142 @@
+"""Flow matching for the predictors, as pure functions (paper Sec. 3.1, eq. 1 and 2).
+
+Convention of the paper: x_tau = (1 - tau) x + tau eps, tau = 0 is data and
+tau = 1 is noise; the network regresses the velocity eps - x and sampling
+integrates from tau = 1 down to tau = 0. Frames carry their own noise level,
+tau [B, F], which is what lets one network serve teacher forcing (clean context
+at tau = 0) and diffusion forcing (an independent tau per frame).
+
+``model_fn(x, tau, **cond) -> velocity`` takes all frames [B, F, C, h, w] with
+tau [B, F]; ``cond`` (frame rate, abstract conditioning, steering) is passed
+through untouched. All randomness comes from an explicit ``torch.Generator``
+(drawn on the generator's device, then moved), so runs are reproducible.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+import torch.nn.functional as F
+
+ModelFn = Callable[..., torch.Tensor]
+
+NULL_CONTEXT_TAU = 1.0
+"""Noise level of a dropped ("null") context frame, whose content is zeros.
+
+Used by context dropout in teacher forcing and by the linear-probe protocol
+("context set to null", paper Appendix "Linear probing details").
+"""
+
+
+def _per_frame(tau: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """tau [B, F] -> [B, F, 1, 1, 1] in ``like``'s dtype, to broadcast over a frame's latent."""
+    return tau.to(like.dtype).reshape(*tau.shape, *([1] * (like.ndim - tau.ndim)))
+
+
+def _randn(shape: torch.Size | tuple[int, ...], like: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    return torch.randn(shape, generator=generator, device=generator.device).to(like)
+
+
+def _rand(shape: tuple[int, ...], like: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    return torch.rand(shape, generator=generator, device=generator.device).to(like)
+
+
+def interpolate(x: torch.Tensor, eps: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
+    """x_tau = (1 - tau) x + tau eps, with tau [B, F] (one level per frame)."""
+    t = _per_frame(tau, x)
+    return (1 - t) * x + t * eps
+
+
+def velocity_target(x: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
+    """d x_tau / d tau = eps - x, the regression target of eq. 1."""
+    return eps - x
+
+
+def null_context(context: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A dropped context: zero frames and their noise level ``NULL_CONTEXT_TAU`` [B, F_c]."""
+    tau = torch.full(context.shape[:2], NULL_CONTEXT_TAU, device=context.device, dtype=context.dtype)
+    return torch.zeros_like(context), tau
+
+
+def teacher_forcing_loss(
+    model_fn: ModelFn,
+    context: torch.Tensor,
+    target: torch.Tensor,
+    generator: torch.Generator,
+    context_noise_prob: float = 0.0,
+    context_noise_std: float = 0.1,
+    context_drop_prob: float = 0.0,
+    **cond,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Eq. 1: clean context at tau = 0, one tau ~ U[0, 1] per sample for all target frames.
+
+    ``context`` [B, F_c, ...] and ``target`` [B, F_t, ...] are packed on the
+    frame axis; the MSE is on the target frames only (REFERENCE_NOTES
+    "Predictor"). Per sample, with ``context_noise_prob`` the context gets
+    ``context_noise_std`` * N(0, 1) added (it stays at tau = 0), and with
+    ``context_drop_prob`` it is replaced by the null context (``null_context``),
+    which trains the context-free path the linear probes use (reference v1
+    code: 0.5 / 0.1 / 0.2).
+    """
+    b, n_context = context.shape[:2]
+    eps = _randn(target.shape, target, generator)
+    tau_target = _rand((b, 1), target, generator).expand(b, target.shape[1])
+    tau_context = torch.zeros(b, n_context, device=target.device, dtype=target.dtype)
+
+    per_sample = (b,) + (1,) * (context.ndim - 1)
+    noised = _rand((b,), target, generator) < context_noise_prob
+    aug = _randn(context.shape, context, generator) * context_noise_std
+    context = torch.where(noised.reshape(per_sample), context + aug, context)
+    dropped = _rand((b,), target, generator) < context_drop_prob
+    null, null_tau = null_context(context)
+    context = torch.where(dropped.reshape(per_sample), null, context)
+    tau_context = torch.where(dropped[:, None], null_tau, tau_context)
+
+    x = torch.cat([context, interpolate(target, eps, tau_target)], dim=1)
+    tau = torch.cat([tau_context, tau_target], dim=1)
+    velocity = model_fn(x, tau, **cond)[:, n_context:]
+    loss = F.mse_loss(velocity.float(), velocity_target(target, eps).float())
+    metrics = {
+        "loss": loss.item(),
+        "context_noised": noised.float().mean().item(),
+        "context_dropped": dropped.float().mean().item(),
+    }
+    return loss, metrics
+
+
+def diffusion_forcing_loss(
+    model_fn: ModelFn, frames: torch.Tensor, generator: torch.Generator, **cond
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Eq. 2: an independent tau_i ~ U[0, 1] for every frame of every sample, loss on all frames."""
+    eps = _randn(frames.shape, frames, generator)
+    tau = _rand(tuple(frames.shape[:2]), frames, generator)
+    velocity = model_fn(interpolate(frames, eps, tau), tau, **cond)
+    loss = F.mse_loss(velocity.float(), velocity_target(frames, eps).float())
+    return loss, {"loss": loss.item(), "tau_mean": tau.float().mean().item()}
+
+
+@torch.no_grad()
+def euler_sample(
+    model_fn: ModelFn,
+    context: torch.Tensor,
+    n_target: int,
+    nfe: int,
+    generator: torch.Generator,
+    **cond,
+) -> torch.Tensor:
+    """Sample ``n_target`` frames after ``context`` [B, F_c, C, h, w]: Euler from tau = 1 to 0 in ``nfe`` steps.
+
+    Uniform grid, context at tau = 0 throughout (paper "Inference protocol":
+    15 NFE abstract, 30 NFE detail). Returns the target frames [B, n_target, C, h, w].
+    """
+    b, n_context = context.shape[:2]
+    x = _randn((b, n_target, *context.shape[2:]), context, generator)
+    tau_context = torch.zeros(b, n_context, device=context.device, dtype=context.dtype)
+    grid = torch.linspace(1.0, 0.0, nfe + 1)
+    for tau_now, tau_next in zip(grid[:-1].tolist(), grid[1:].tolist()):
+        tau_target = torch.full((b, n_target), tau_now, device=context.device, dtype=context.dtype)
+        tau = torch.cat([tau_context, tau_target], dim=1)
+        velocity = model_fn(torch.cat([context, x], dim=1), tau, **cond)[:, n_context:]
+        x = x + (tau_next - tau_now) * velocity.to(x.dtype)
+    return x

@@ -1,0 +1,581 @@
+"""Spatio-Temporal DiT (ST-DiT) predictor of Orbis 2: every block in one file.
+
+One network serves both levels of the hierarchy (paper Sec. 3.2, 4.2 and
+Appendix "Model details"):
+
+* the abstract predictor F_H: causal temporal attention, optionally steered by
+  an ego-motion sequence (the embedding is added to the noise-level embedding
+  that feeds adaLN, paper "Action-conditioning");
+* the detail predictor F_L: bidirectional temporal attention, conditioned on
+  abstract latents placed at frame slots, through a per-token gated adaLN path
+  and a gated spatial cross-attention layer in every block.
+
+Inputs are latent frames ``x`` [B, F, C, h, w] with one noise level per frame
+``tau`` [B, F], so the same network is trained with teacher forcing (context at
+tau = 0) and diffusion forcing (independent tau per frame). It returns the
+flow-matching velocity [B, F, C, h, w] (``orbis2.flow``).
+
+Block layout follows the reference STDiT (REFERENCE_NOTES "Predictor"): spatial
+attention, spatial MLP, temporal attention, temporal MLP, each with its own
+adaLN-Zero shift/scale/gate. With hidden 768, depth 24 that gives the paper's
+512M parameters; the abstract conditioning adds the paper's 43M because its
+tokens live at half the width (``cond_dim``), which is what lets both the adaLN
+path and the cross-attention fit that budget.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from orbis2.models.tokenizer import sincos_pos_embed_2d
+
+# Initial gates of the abstract conditioning paths: small but non-zero (paper Appendix "Model details").
+COND_GATE_BIAS = -2.0  # adaLN path gate sigmoid(-2) ~ 0.12
+CROSS_GATE_INIT = 0.1  # cross-attention gate tanh(0.1) ~ 0.1
+
+
+def modulate(x: torch.Tensor, shift: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    return x * (1 + scale) + shift
+
+
+def sinusoidal_embedding(values: torch.Tensor, dim: int, max_period: float = 10000.0) -> torch.Tensor:
+    """``values`` [...] -> [..., dim] cos/sin features at geometric frequencies (DiT's timestep features)."""
+    half = dim // 2
+    freqs = torch.exp(-math.log(max_period) * torch.arange(half, device=values.device, dtype=torch.float32) / half)
+    angles = values.float()[..., None] * freqs
+    return torch.cat([torch.cos(angles), torch.sin(angles)], dim=-1)
+
+
+@lru_cache(maxsize=16)
+def _grid_positions(dim: int, h: int, w: int) -> torch.Tensor:
+    """Fixed 2-D sin-cos positions [h*w, dim], built once per grid on the CPU."""
+    with torch.device("cpu"):
+        return sincos_pos_embed_2d(dim, (h, w))
+
+
+def patchify(x: torch.Tensor, p: int) -> torch.Tensor:
+    """[B, F, C, h, w] -> [B, F, (h/p)(w/p), p*p*C], row-major over the patch grid."""
+    b, f, c, h, w = x.shape
+    if h % p or w % p:
+        raise ValueError(f"latent grid {h}x{w} is not divisible by patch size {p}")
+    x = x.reshape(b, f, c, h // p, p, w // p, p).permute(0, 1, 3, 5, 4, 6, 2)
+    return x.reshape(b, f, (h // p) * (w // p), p * p * c)
+
+
+def unpatchify(tokens: torch.Tensor, p: int, c: int, h: int, w: int) -> torch.Tensor:
+    """Inverse of ``patchify``: [B, F, N, p*p*C] -> [B, F, C, h, w]."""
+    b, f = tokens.shape[:2]
+    x = tokens.reshape(b, f, h // p, w // p, p, p, c).permute(0, 1, 6, 2, 4, 3, 5)
+    return x.reshape(b, f, c, h, w)
+
+
+# --------------------------------------------------------------------------- layers
+
+
+class Attention(nn.Module):
+    """Multi-head self-attention with qk-norm (RMSNorm per head), through SDPA (flash attention on GPU).
+
+    ``causal`` is a hard mask (``is_causal=True``): the reference code's float
+    mask of ones only adds +1 to the scores and lets the future leak in.
+    """
+
+    def __init__(self, dim: int, num_heads: int):
+        super().__init__()
+        if dim % num_heads:
+            raise ValueError(f"dim = {dim} is not divisible by num_heads = {num_heads}")
+        self.num_heads = num_heads
+        head_dim = dim // num_heads
+        self.qkv = nn.Linear(dim, 3 * dim)
+        self.q_norm = nn.RMSNorm(head_dim, eps=1e-6)
+        self.k_norm = nn.RMSNorm(head_dim, eps=1e-6)
+        self.proj = nn.Linear(dim, dim)
+
+    def forward(self, x: torch.Tensor, causal: bool = False) -> torch.Tensor:
+        b, n, d = x.shape
+        q, k, v = self.qkv(x).reshape(b, n, 3, self.num_heads, d // self.num_heads).permute(2, 0, 3, 1, 4)
+        out = F.scaled_dot_product_attention(self.q_norm(q), self.k_norm(k), v, is_causal=causal)
+        return self.proj(out.transpose(1, 2).reshape(b, n, d))
+
+
+class CrossAttention(nn.Module):
+    """Queries from the detail tokens, keys/values from the abstract conditioning tokens (qk-norm, SDPA)."""
+
+    def __init__(self, dim: int, context_dim: int, num_heads: int):
+        super().__init__()
+        if context_dim % num_heads:
+            raise ValueError(f"cond_dim = {context_dim} is not divisible by num_heads = {num_heads}")
+        self.num_heads = num_heads
+        head_dim = context_dim // num_heads
+        self.q = nn.Linear(dim, context_dim)
+        self.kv = nn.Linear(context_dim, 2 * context_dim)
+        self.q_norm = nn.RMSNorm(head_dim, eps=1e-6)
+        self.k_norm = nn.RMSNorm(head_dim, eps=1e-6)
+        self.proj = nn.Linear(context_dim, dim)
+
+    def forward(self, x: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+        b, n, _ = x.shape
+        inner = self.q.out_features
+        q = self.q(x).reshape(b, n, self.num_heads, -1).transpose(1, 2)
+        k, v = self.kv(context).reshape(b, context.shape[1], 2, self.num_heads, -1).permute(2, 0, 3, 1, 4)
+        out = F.scaled_dot_product_attention(self.q_norm(q), self.k_norm(k), v)
+        return self.proj(out.transpose(1, 2).reshape(b, n, inner))
+
+
+class Mlp(nn.Module):
+    def __init__(self, dim: int, hidden: int):
+        super().__init__()
+        self.fc1 = nn.Linear(dim, hidden)
+        self.fc2 = nn.Linear(hidden, dim)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.fc2(F.gelu(self.fc1(x), approximate="tanh"))
+
+
+def _norm(dim: int) -> nn.LayerNorm:
+    """LayerNorm without affine parameters: adaLN supplies shift and scale (DiT)."""
+    return nn.LayerNorm(dim, elementwise_affine=False, eps=1e-6)
+
+
+# --------------------------------------------------------------------------- embedders
+
+
+class NoiseLevelEmbedder(nn.Module):
+    """tau in [0, 1] -> D: 256-d sinusoidal features of 1000 * tau, then an MLP (DiT's timestep embedder).
+
+    The 1000x puts tau on DiT's timestep scale so the geometric frequencies
+    resolve small differences in noise level.
+    """
+
+    def __init__(self, hidden_size: int, frequency_dim: int = 256):
+        super().__init__()
+        self.frequency_dim = frequency_dim
+        self.mlp = nn.Sequential(nn.Linear(frequency_dim, hidden_size), nn.SiLU(), nn.Linear(hidden_size, hidden_size))
+
+    def forward(self, tau: torch.Tensor) -> torch.Tensor:
+        features = sinusoidal_embedding(tau * 1000.0, self.frequency_dim)
+        return self.mlp(features.to(self.mlp[0].weight.dtype))
+
+
+class SteeringEmbedder(nn.Module):
+    """Steering sequence [B, S, K] (e.g. speed and yaw rate; NaN = missing) -> [B, D] (REFERENCE_NOTES "Steering").
+
+    Each element's token is the sum over features of a small MLP (1 -> D -> D)
+    of that value, or of a learned "no value" embedding where it is NaN, plus a
+    learned position embedding. Tokens pass SiLU and a linear layer before the
+    mean over the sequence: a purely linear mean would reduce the position
+    embeddings to a constant and lose the order of the sequence. That output
+    layer starts at zero and the null embedding (steering dropout) at zero, so
+    an embedder added to a pre-trained unconditional predictor leaves it
+    unchanged at the start of the fine-tune (paper "Action-conditioning").
+    Values should be roughly unit scale (normalise speed in m/s by the caller).
+    """
+
+    def __init__(self, hidden_size: int, num_features: int, max_len: int):
+        super().__init__()
+        self.feature_mlps = nn.ModuleList(
+            nn.Sequential(nn.Linear(1, hidden_size), nn.SiLU(), nn.Linear(hidden_size, hidden_size))
+            for _ in range(num_features)
+        )
+        self.no_value = nn.Parameter(torch.zeros(num_features, hidden_size))
+        self.position = nn.Parameter(torch.zeros(max_len, hidden_size))
+        self.out = nn.Linear(hidden_size, hidden_size)
+        self.null = nn.Parameter(torch.zeros(hidden_size))
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        for mlp in self.feature_mlps:
+            for layer in (mlp[0], mlp[2]):
+                nn.init.xavier_uniform_(layer.weight)
+                nn.init.zeros_(layer.bias)
+        nn.init.normal_(self.no_value, std=0.02)
+        nn.init.normal_(self.position, std=0.02)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+        nn.init.zeros_(self.null)
+
+    def tokens(self, steering: torch.Tensor) -> torch.Tensor:
+        """Per-element tokens [B, S, D] before pooling."""
+        b, s, k = steering.shape
+        if k != len(self.feature_mlps):
+            raise ValueError(f"steering has {k} features per step, the embedder expects {len(self.feature_mlps)}")
+        if s > self.position.shape[0]:
+            raise ValueError(f"steering has {s} steps, more than the embedder's max_len = {self.position.shape[0]}")
+        steering = steering.to(self.out.weight.dtype)
+        total = self.position[:s].expand(b, s, -1)
+        for i, mlp in enumerate(self.feature_mlps):
+            value = steering[..., i : i + 1]
+            missing = torch.isnan(value)
+            total = total + torch.where(missing, self.no_value[i], mlp(torch.nan_to_num(value, nan=0.0)))
+        return total
+
+    def forward(self, steering: torch.Tensor, drop: torch.Tensor | None = None) -> torch.Tensor:
+        embedding = self.out(F.silu(self.tokens(steering))).mean(dim=1)
+        if drop is not None:
+            embedding = torch.where(drop.reshape(-1, 1), self.null.to(embedding.dtype), embedding)
+        return embedding
+
+
+class AbstractConditioner(nn.Module):
+    """Abstract latents at their frame slots -> conditioning tokens [B, F, N, cond_dim].
+
+    Paper Appendix "Detailed short-horizon predictor": a linear patchify (resized
+    to the detail grid first if the grids differ), zero where ``cond_mask`` says
+    the slot carries no latent, plus a learned frame-position MLP of i/(F-1) for
+    every slot (REFERENCE_NOTES "Hierarchy wiring") and the fixed 2-D sin-cos
+    position, so the cross-attention keys know where each token lies.
+    """
+
+    def __init__(self, abstract_channels: int, cond_dim: int, patch_size: int):
+        super().__init__()
+        self.patch_size = patch_size
+        self.patchify = nn.Linear(patch_size * patch_size * abstract_channels, cond_dim)
+        self.frame_position = nn.Sequential(nn.Linear(1, cond_dim), nn.SiLU(), nn.Linear(cond_dim, cond_dim))
+
+    def forward(self, cond_frames: torch.Tensor, cond_mask: torch.Tensor, grid_hw: tuple[int, int]) -> torch.Tensor:
+        b, f, c, ha, wa = cond_frames.shape
+        h, w = grid_hw
+        if (ha, wa) != (h, w):
+            resized = F.interpolate(cond_frames.flatten(0, 1), size=(h, w), mode="bilinear", align_corners=False)
+            cond_frames = resized.reshape(b, f, c, h, w)
+        tokens = self.patchify(patchify(cond_frames, self.patch_size).to(self.patchify.weight.dtype))
+        tokens = tokens * cond_mask.to(tokens.dtype)[:, :, None, None]
+        slot = torch.arange(f, device=tokens.device, dtype=tokens.dtype) / max(f - 1, 1)
+        p = self.patch_size
+        grid = _grid_positions(tokens.shape[-1], h // p, w // p).to(tokens)
+        return tokens + self.frame_position(slot[:, None])[None, :, None] + grid
+
+
+# --------------------------------------------------------------------------- blocks
+
+
+class STDiTBlock(nn.Module):
+    """Space-time DiT block: spatial attention, spatial MLP, temporal attention, temporal MLP.
+
+    Each sub-layer is adaLN-Zero modulated (shift, scale, gate) by the
+    per-frame conditioning vector. With ``cond_dim`` the block also takes the
+    abstract conditioning (paper Appendix "Model details"): before the block,
+    x += sigmoid(gate) * modulate(LN(x), shift, scale) with shift/scale/gate
+    per token from the aligned conditioning tokens; after spatial attention, a
+    gated cross-attention to the sample's conditioning tokens, gate tanh(alpha).
+    """
+
+    def __init__(self, hidden_size: int, num_heads: int, mlp_ratio: float, cond_dim: int | None = None):
+        super().__init__()
+        mlp_hidden = int(hidden_size * mlp_ratio)
+        self.space_norm, self.space_mlp_norm = _norm(hidden_size), _norm(hidden_size)
+        self.time_norm, self.time_mlp_norm = _norm(hidden_size), _norm(hidden_size)
+        self.space_attn = Attention(hidden_size, num_heads)
+        self.space_mlp = Mlp(hidden_size, mlp_hidden)
+        self.time_attn = Attention(hidden_size, num_heads)
+        self.time_mlp = Mlp(hidden_size, mlp_hidden)
+        self.adaLN_modulation = nn.Sequential(nn.SiLU(), nn.Linear(hidden_size, 12 * hidden_size))
+        self.has_cond = cond_dim is not None
+        if self.has_cond:
+            self.cond_norm = _norm(hidden_size)
+            self.cond_modulation = nn.Sequential(nn.SiLU(), nn.Linear(cond_dim, 3 * hidden_size))
+            self.cross_norm = _norm(hidden_size)
+            self.cross_attn = CrossAttention(hidden_size, cond_dim, num_heads)
+            self.cross_gate = nn.Parameter(torch.zeros(hidden_size))
+
+    def forward(
+        self,
+        x: torch.Tensor,
+        c: torch.Tensor,
+        causal: bool,
+        cond_tokens: torch.Tensor | None = None,
+        cond_context: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """x [B, F, N, D]; c [B, F, D]; cond_tokens [B, F, N, cond_dim]; cond_context [B, M, cond_dim]."""
+        b, f, n, d = x.shape
+        if cond_tokens is not None:
+            shift, scale, gate = self.cond_modulation(cond_tokens).chunk(3, dim=-1)
+            x = x + torch.sigmoid(gate) * modulate(self.cond_norm(x), shift, scale)
+        (sh_sa, sc_sa, g_sa, sh_sm, sc_sm, g_sm,
+         sh_ta, sc_ta, g_ta, sh_tm, sc_tm, g_tm) = self.adaLN_modulation(c)[:, :, None].chunk(12, dim=-1)
+
+        h = modulate(self.space_norm(x), sh_sa, sc_sa).reshape(b * f, n, d)
+        x = x + g_sa * self.space_attn(h).reshape(b, f, n, d)
+        if cond_context is not None:
+            h = self.cross_attn(self.cross_norm(x).reshape(b, f * n, d), cond_context)
+            x = x + torch.tanh(self.cross_gate) * h.reshape(b, f, n, d)
+        x = x + g_sm * self.space_mlp(modulate(self.space_mlp_norm(x), sh_sm, sc_sm))
+
+        h = modulate(self.time_norm(x), sh_ta, sc_ta).permute(0, 2, 1, 3).reshape(b * n, f, d)
+        h = self.time_attn(h, causal=causal).reshape(b, n, f, d).permute(0, 2, 1, 3)
+        x = x + g_ta * h
+        return x + g_tm * self.time_mlp(modulate(self.time_mlp_norm(x), sh_tm, sc_tm))
+
+
+class FinalLayer(nn.Module):
+    """adaLN final layer of DiT: modulated LayerNorm, then a linear map back to patches (zero-initialised)."""
+
+    def __init__(self, hidden_size: int, patch_size: int, out_channels: int):
+        super().__init__()
+        self.norm = _norm(hidden_size)
+        self.adaLN_modulation = nn.Sequential(nn.SiLU(), nn.Linear(hidden_size, 2 * hidden_size))
+        self.linear = nn.Linear(hidden_size, patch_size * patch_size * out_channels)
+
+    def forward(self, x: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+        shift, scale = self.adaLN_modulation(c)[:, :, None].chunk(2, dim=-1)
+        return self.linear(modulate(self.norm(x), shift, scale))
+
+
+# --------------------------------------------------------------------------- model
+
+
+class STDiT(nn.Module):
+    """The ST-DiT velocity network (see the module docstring).
+
+    Token positions: fixed 2-D sin-cos over the patch grid, a learned frame
+    embedding and a sinusoidal frame-rate encoding (REFERENCE_NOTES "Predictor").
+    Frame embeddings are aligned to the last frame (frame i of F uses slot
+    max_frames - F + i, as in the reference code), so the predicted frame has
+    the same embedding whatever the context length, including the linear-probe
+    protocol's context-free input.
+    """
+
+    def __init__(
+        self,
+        latent_channels: int,
+        hidden_size: int,
+        depth: int,
+        num_heads: int,
+        mlp_ratio: float = 4.0,
+        patch_size: int = 1,
+        max_frames: int = 16,
+        causal: bool = False,
+        abstract_channels: int | None = None,
+        cond_dim: int | None = None,
+        steering: bool = False,
+        steering_features: int = 2,
+        steering_len: int = 16,
+    ):
+        super().__init__()
+        self.latent_channels = latent_channels
+        self.hidden_size = hidden_size
+        self.patch_size = patch_size
+        self.max_frames = max_frames
+        self.causal = causal
+        self.abstract_channels = abstract_channels
+        block_cond_dim = None
+        if abstract_channels is not None:
+            block_cond_dim = cond_dim or hidden_size
+            self.abstract = AbstractConditioner(abstract_channels, block_cond_dim, patch_size)
+        self.x_embedder = nn.Linear(patch_size * patch_size * latent_channels, hidden_size)
+        self.tau_embedder = NoiseLevelEmbedder(hidden_size)
+        self.frame_embed = nn.Parameter(torch.zeros(max_frames, hidden_size))
+        self.steering = SteeringEmbedder(hidden_size, steering_features, steering_len) if steering else None
+        self.blocks = nn.ModuleList(
+            STDiTBlock(hidden_size, num_heads, mlp_ratio, block_cond_dim) for _ in range(depth)
+        )
+        self.final_layer = FinalLayer(hidden_size, patch_size, latent_channels)
+        self._initialize()
+
+    def _initialize(self) -> None:
+        """DiT initialisation (xavier, zero adaLN and final layer) plus small non-zero conditioning paths."""
+
+        def basic(module: nn.Module) -> None:
+            if isinstance(module, nn.Linear):
+                nn.init.xavier_uniform_(module.weight)
+                nn.init.zeros_(module.bias)
+
+        self.apply(basic)
+        nn.init.trunc_normal_(self.frame_embed, std=0.02)
+        nn.init.normal_(self.tau_embedder.mlp[0].weight, std=0.02)
+        nn.init.normal_(self.tau_embedder.mlp[2].weight, std=0.02)
+        for block in self.blocks:
+            nn.init.zeros_(block.adaLN_modulation[-1].weight)
+            nn.init.zeros_(block.adaLN_modulation[-1].bias)
+            if block.has_cond:
+                # Small non-zero shift/scale and gates sigmoid(-2) ~ 0.12 and
+                # tanh(0.1) ~ 0.1: the paths start weak but carry gradient.
+                nn.init.normal_(block.cond_modulation[-1].weight, std=0.02)
+                bias = block.cond_modulation[-1].bias
+                nn.init.zeros_(bias)
+                nn.init.constant_(bias[2 * self.hidden_size :], COND_GATE_BIAS)
+                nn.init.constant_(block.cross_gate, CROSS_GATE_INIT)
+        nn.init.zeros_(self.final_layer.adaLN_modulation[-1].weight)
+        nn.init.zeros_(self.final_layer.adaLN_modulation[-1].bias)
+        nn.init.zeros_(self.final_layer.linear.weight)
+        nn.init.zeros_(self.final_layer.linear.bias)
+        if self.steering is not None:
+            self.steering.reset_parameters()
+
+    def conditioning(
+        self,
+        tau: torch.Tensor,
+        steering: torch.Tensor | None = None,
+        steering_drop: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Per-frame adaLN input [B, F, D]: the frame's tau embedding plus the steering embedding.
+
+        A steered model given no steering uses the null (dropout) embedding,
+        i.e. it runs unconditionally.
+        """
+        c = self.tau_embedder(tau)
+        if self.steering is None:
+            if steering is not None or steering_drop is not None:
+                raise ValueError("this predictor was built without steering (steering=False) but got a steering input")
+            return c
+        if steering is None:
+            return c + self.steering.null.to(c.dtype)
+        return c + self.steering(steering, steering_drop)[:, None]
+
+    def embed(self, x: torch.Tensor, frame_rate: torch.Tensor | float | None) -> torch.Tensor:
+        """Latent frames [B, F, C, h, w] -> tokens [B, F, N, D] with all position encodings added."""
+        b, f, _, h, w = x.shape
+        if f > self.max_frames:
+            raise ValueError(f"got {f} frames but the predictor has max_frames = {self.max_frames}")
+        tokens = self.x_embedder(patchify(x, self.patch_size).to(self.x_embedder.weight.dtype))
+        p = self.patch_size
+        tokens = tokens + _grid_positions(self.hidden_size, h // p, w // p).to(tokens)
+        tokens = tokens + self.frame_embed[self.max_frames - f :, None]
+        if frame_rate is not None:
+            rate = torch.as_tensor(frame_rate, device=x.device, dtype=torch.float32).expand(b)
+            tokens = tokens + sinusoidal_embedding(rate, self.hidden_size).to(tokens.dtype)[:, None, None]
+        return tokens
+
+    def _abstract_inputs(
+        self, cond_frames: torch.Tensor | None, cond_mask: torch.Tensor | None, grid_hw: tuple[int, int], n_frames: int
+    ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """Conditioning tokens per frame slot, and the cross-attention context (the conditioned slots' tokens)."""
+        if self.abstract_channels is None:
+            if cond_frames is not None or cond_mask is not None:
+                raise ValueError("this predictor was built without abstract conditioning but got cond_frames")
+            return None, None
+        if cond_frames is None or cond_mask is None:
+            raise ValueError("the detail predictor needs cond_frames [B, F, C_a, h_a, w_a] and cond_mask [B, F]")
+        if cond_frames.shape[1] != n_frames or tuple(cond_mask.shape) != (cond_frames.shape[0], n_frames):
+            raise ValueError(
+                f"cond_frames {tuple(cond_frames.shape)} and cond_mask {tuple(cond_mask.shape)} "
+                f"must have one slot per input frame ({n_frames})"
+            )
+        cond_mask = cond_mask.bool()
+        tokens = self.abstract(cond_frames, cond_mask, grid_hw)
+        counts = cond_mask.sum(dim=1)
+        if (counts != counts[0]).any():
+            raise ValueError(f"every sample needs the same number of conditioned slots, got {counts.tolist()}")
+        if counts[0] == 0:
+            return tokens, None
+        b, _, n, dc = tokens.shape
+        return tokens, tokens[cond_mask].reshape(b, -1, dc)
+
+    def forward(
+        self,
+        x: torch.Tensor,
+        tau: torch.Tensor,
+        frame_rate: torch.Tensor | float | None = None,
+        cond_frames: torch.Tensor | None = None,
+        cond_mask: torch.Tensor | None = None,
+        steering: torch.Tensor | None = None,
+        steering_drop: torch.Tensor | None = None,
+        features_from_block: int | None = None,
+    ) -> torch.Tensor:
+        """Velocity [B, F, C, h, w] for latents ``x`` [B, F, C, h, w] at noise levels ``tau`` [B, F].
+
+        ``frame_rate``: Hz, a number or [B]. ``cond_frames``/``cond_mask``:
+        abstract latents [B, F, C_a, h_a, w_a] at the slots where ``cond_mask``
+        [B, F] is true (detail predictor only). ``steering`` [B, S, K] with
+        optional per-sample ``steering_drop`` [B] (steered predictor only).
+        ``features_from_block=k`` returns instead the token features after
+        block k counted from the end (k=1: the last block) as [B, F, D, h/p, w/p],
+        for the linear probes; later blocks are skipped.
+        """
+        b, f, _, h, w = x.shape
+        if tuple(tau.shape) != (b, f):
+            raise ValueError(f"tau must be one noise level per frame [B, F] = {[b, f]}, got {list(tau.shape)}")
+        depth = len(self.blocks)
+        if features_from_block is not None and not 1 <= features_from_block <= depth:
+            raise ValueError(f"features_from_block = {features_from_block} must be in 1..{depth}")
+        c = self.conditioning(tau, steering, steering_drop)
+        tokens = self.embed(x, frame_rate)
+        cond_tokens, cond_context = self._abstract_inputs(cond_frames, cond_mask, (h, w), f)
+        for index, block in enumerate(self.blocks):
+            tokens = block(tokens, c, self.causal, cond_tokens, cond_context)
+            if features_from_block is not None and index == depth - features_from_block:
+                p = self.patch_size
+                return tokens.transpose(2, 3).reshape(b, f, self.hidden_size, h // p, w // p)
+        out = self.final_layer(tokens, c)
+        return unpatchify(out, self.patch_size, self.latent_channels, h, w).to(x.dtype)
+
+
+# --------------------------------------------------------------------------- presets
+
+STDIT_PRESETS: dict[str, dict] = {
+    # Tests and CI: a CPU step in tens of milliseconds.
+    "smoke": {
+        "hidden_size": 64,
+        "depth": 2,
+        "num_heads": 2,
+        "mlp_ratio": 4.0,
+        "patch_size": 1,
+        "max_frames": 16,
+        "cond_dim": 32,
+        "steering_features": 2,
+        "steering_len": 16,
+    },
+    # Laptop run: 16x9 latents, 6 (abstract) or 10 (detail) frames, batch 8 on 2 CPU cores.
+    "default": {
+        "hidden_size": 192,
+        "depth": 4,
+        "num_heads": 4,
+        "mlp_ratio": 4.0,
+        "patch_size": 1,
+        "max_frames": 16,
+        "cond_dim": 96,
+        "steering_features": 2,
+        "steering_len": 16,
+    },
+    # Paper: 32x18 latents of 16 channels; 512M (abstract) and 555M (detail) parameters.
+    "paper": {
+        "hidden_size": 768,
+        "depth": 24,
+        "num_heads": 16,
+        "mlp_ratio": 4.0,
+        "patch_size": 1,
+        "max_frames": 16,
+        "cond_dim": 384,
+        "steering_features": 2,
+        "steering_len": 16,
+    },
+}
+
+
+def stdit_config(preset: str, **overrides) -> dict:
+    """A preset's settings with ``overrides`` applied; unknown names raise."""
+    if preset not in STDIT_PRESETS:
+        raise KeyError(f"unknown ST-DiT preset {preset!r}; choose from {sorted(STDIT_PRESETS)}")
+    cfg = dict(STDIT_PRESETS[preset])
+    unknown = set(overrides) - set(cfg)
+    if unknown:
+        raise KeyError(f"unknown ST-DiT setting(s) {sorted(unknown)}; known: {sorted(cfg)}")
+    cfg.update(overrides)
+    return cfg
+
+
+def build_stdit(
+    preset: str,
+    latent_channels: int,
+    causal: bool,
+    abstract_channels: int | None = None,
+    steering: bool = False,
+    **overrides,
+) -> STDiT:
+    """An ST-DiT of a preset's size.
+
+    Abstract predictor: ``causal=True`` (and ``steering=True`` for the action
+    fine-tune). Detail predictor: ``causal=False, abstract_channels=C_a``.
+    """
+    cfg = stdit_config(preset, **overrides)
+    return STDiT(
+        latent_channels=latent_channels,
+        causal=causal,
+        abstract_channels=abstract_channels,
+        steering=steering,
+        **cfg,
+    )

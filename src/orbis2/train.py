@@ -1,0 +1,502 @@
+"""One training loop for every stage: DDP, EMA, bf16 on GPU, resumable checkpoints.
+
+A stage supplies a :class:`Task` (model, data, loss, optional evaluation, optional
+extra optimisers such as a GAN discriminator); :func:`train` owns the rest, so
+resuming, logging and multi-process behaviour are written and tested once.
+
+``out_dir/checkpoints/last.pt`` (every ``checkpoint_every`` steps and at the end)
+holds model, EMA, optimisers, step, data position and every rank's RNG state; a
+re-run resumes from it, bit-identically on CPU. The schedule is a pure function
+of the step (:func:`lr_at`), so the step is the whole scheduler state.
+``out_dir/model.pt`` holds ``{"model": EMA weights if EMA is on else raw, "raw",
+"ema", "step", "config"}``; read it with :func:`load_weights`. Under ``torchrun``
+every rank calls :func:`train`; rank 0 alone logs, evaluates and writes files.
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import copy
+import dataclasses
+import math
+import os
+import pickle
+import random
+import socket
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
+
+import numpy as np
+import torch
+import torch.distributed as dist
+import torch.multiprocessing as mp
+from torch import nn
+from torch.nn.parallel import DistributedDataParallel
+from tqdm import tqdm
+
+from orbis2.config import ConfigError, TrainConfig
+from orbis2.errors import OrbisError
+from orbis2.io import atomic_file
+
+LossOutput = tuple[torch.Tensor, dict[str, float]]
+
+
+def lr_at(step: int, cfg: TrainConfig) -> float:
+    """Learning rate of the update at 0-based ``step``: linear warm-up, then cosine.
+
+    Warm-up reaches ``lr`` at step ``warmup_steps - 1``; the cosine then falls to
+    ``min_lr_ratio * lr`` at ``step == steps`` and stays there.
+    """
+    if step < cfg.warmup_steps:
+        return cfg.lr * (step + 1) / cfg.warmup_steps
+    progress = min(1.0, (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps))
+    floor = cfg.min_lr_ratio
+    return cfg.lr * (floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * progress)))
+
+
+def rank_seed(seed: int, rank: int) -> int:
+    """An independent seed per rank, so ranks draw different noise from one params.yaml seed."""
+    return int(np.random.SeedSequence([seed, rank]).generate_state(1)[0])
+
+
+@dataclass(frozen=True)
+class DataSpec:
+    """What a task needs to produce this rank's batches.
+
+    ``seed`` is the config seed, shared by all ranks, so a task can draw one global
+    stream and keep its ``rank``-th slice (or use ``rank_seed(seed, rank)``). ``start``
+    is how many batches this rank has already consumed: the iterator must begin there
+    (a resume after a kill), and must not draw from the global RNGs.
+    """
+
+    rank: int
+    world_size: int
+    batch_size: int  # per rank
+    seed: int
+    start: int
+    num_workers: int
+
+
+@dataclass(frozen=True)
+class Update:
+    """An extra optimiser, stepped after the main one on the same batch (e.g. a discriminator).
+
+    ``loss(model, batch, step)`` returns ``(loss, metrics)``, or ``None`` to skip this
+    step (e.g. before the discriminator starts); decide before running the model.
+    Its ``params`` are left out of the main optimiser; ``lr_scale`` scales the schedule.
+    """
+
+    name: str
+    params: Sequence[nn.Parameter]
+    loss: Callable[[nn.Module, Any, int], LossOutput | None]
+    lr_scale: float = 1.0
+
+
+class Task(Protocol):
+    """The stage-specific part of training.
+
+    ``loss`` receives the model as wrapped for training (``DistributedDataParallel``
+    under DDP): run it by calling it, so gradients are synchronised; reach its
+    attributes through :func:`unwrap`. Two optional methods are used when present:
+
+    - ``evaluate(model, step) -> dict[str, float]``: rank 0 only, on the EMA model when
+      EMA is on, in eval mode; the training RNG streams are restored afterwards.
+    - ``extra_updates(model) -> list[Update]``: more optimisers over parts of the
+      unwrapped model, stepped in order after the main loss each step.
+    """
+
+    def build_model(self) -> nn.Module: ...
+
+    def batches(self, spec: DataSpec) -> Iterable[Any]: ...
+
+    def loss(self, model: nn.Module, batch: Any, step: int) -> LossOutput: ...
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    """How a call to :func:`train` went and where its outputs are."""
+
+    step: int
+    start_step: int
+    seconds: float
+    model_path: Path
+    checkpoint_path: Path
+    metrics: dict[str, float]
+    history: list[tuple[int, dict[str, float]]]
+
+
+class ResumeError(OrbisError):
+    """A checkpoint in the output folder cannot continue this run."""
+
+
+def unwrap(model: nn.Module) -> nn.Module:
+    """The plain module inside a ``DistributedDataParallel`` wrapper."""
+    return model.module if isinstance(model, DistributedDataParallel) else model
+
+
+def load_weights(path: Path, raw: bool = False) -> dict[str, torch.Tensor]:
+    """The state dict saved in ``model.pt``: EMA weights when EMA was on, unless ``raw``."""
+    saved = torch.load(path, map_location="cpu", weights_only=True)
+    return saved["raw" if raw else "model"]
+
+
+def train(task: Task, cfg: TrainConfig, out_dir: Path, logger: Any = None) -> TrainResult:
+    """Train ``task`` to ``cfg.steps``, resuming from ``out_dir/checkpoints/last.pt`` if present.
+
+    ``logger`` is anything with ``log_metrics(metrics, step)`` (e.g. the stage's
+    MLflow run); only rank 0 calls it.
+    """
+    return _Run(task, cfg, Path(out_dir), logger, _start_distributed()).run()
+
+
+def spawn_cpu_processes(fn: Callable[..., Any], world_size: int, *args: Any, timeout_s: float = 600) -> list[Any]:
+    """Run ``fn(*args)`` in ``world_size`` fresh CPU processes set up the way torchrun does.
+
+    Lets tests and laptops exercise the DDP path over gloo. ``fn`` and ``args`` must
+    be picklable (module level); returns each rank's result, rank 0 first. A hang
+    (e.g. one rank skipping a collective) is killed after ``timeout_s``.
+    """
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    with tempfile.TemporaryDirectory() as results:
+        context = mp.spawn(_cpu_process, args=(fn, args, world_size, port, results), nprocs=world_size, join=False)
+        deadline = time.monotonic() + timeout_s
+        while not context.join(max(0.0, deadline - time.monotonic())):
+            if time.monotonic() >= deadline:
+                for process in context.processes:
+                    process.kill()
+                raise TimeoutError(f"{world_size} processes running {fn.__name__} still busy after {timeout_s} s")
+        return [pickle.loads(Path(results, f"{rank}.pkl").read_bytes()) for rank in range(world_size)]
+
+
+def _cpu_process(rank: int, fn: Callable[..., Any], args: tuple, world_size: int, port: int, results: str) -> None:
+    os.environ.update(RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE=str(world_size),
+                      MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), CUDA_VISIBLE_DEVICES="")
+    Path(results, f"{rank}.pkl").write_bytes(pickle.dumps(fn(*args)))
+
+
+@dataclass(frozen=True)
+class _Env:
+    rank: int
+    world_size: int
+    device: torch.device
+
+
+def _start_distributed() -> _Env:
+    """Join the process group described by torchrun's environment variables, if any.
+
+    The group is destroyed when the process exits, not when :func:`train` returns: a
+    second rendezvous on the same port can hang, and a stage may train twice.
+    """
+    cuda = torch.cuda.is_available()
+    device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0"))) if cuda else torch.device("cpu")
+    if cuda:
+        torch.cuda.set_device(device)
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if cuda else "gloo", device_id=device if cuda else None)
+        atexit.register(_destroy_group)
+    if dist.is_initialized():
+        return _Env(dist.get_rank(), dist.get_world_size(), device)
+    return _Env(0, 1, device)
+
+
+def _destroy_group() -> None:
+    if dist.is_initialized():
+        dist.destroy_process_group()
+
+
+class _Run:
+    """One call to :func:`train` on one rank."""
+
+    def __init__(self, task: Task, cfg: TrainConfig, out_dir: Path, logger: Any, env: _Env):
+        if cfg.batch_size % env.world_size:
+            raise ConfigError(f"train config: batch_size = {cfg.batch_size} is not divisible by the "
+                              f"{env.world_size} processes; use a multiple of {env.world_size}")
+        self.task, self.cfg, self.logger, self.env = task, cfg, logger, env
+        self.out_dir = out_dir
+        self.checkpoint_path = out_dir / "checkpoints" / "last.pt"
+        torch.manual_seed(cfg.seed)  # the same initial weights on every rank
+        self.raw = task.build_model().to(env.device)
+        extras = list(task.extra_updates(self.raw)) if hasattr(task, "extra_updates") else []
+        claimed = {id(p) for update in extras for p in update.params}
+        if len(claimed) != sum(len(update.params) for update in extras):
+            raise ValueError("extra_updates must not share parameters")
+        main = [p for p in self.raw.parameters() if p.requires_grad and id(p) not in claimed]
+        self.updates = [Update("main", main, task.loss), *extras]
+        names = [update.name for update in self.updates]
+        if len(set(names)) != len(names):
+            raise ValueError(f"update names must be unique and not 'main', got {names}")
+        self.optimizers = {u.name: _optimizer(u.params, cfg, env.device) for u in self.updates}
+        self.model: nn.Module = self.raw
+        if env.world_size > 1:
+            # Alternating updates leave the other part without gradients on each backward.
+            cuda = env.device.type == "cuda"
+            self.model = DistributedDataParallel(self.raw, device_ids=[env.device] if cuda else None,
+                                                 find_unused_parameters=bool(extras))
+        self.ema = None if cfg.ema_decay is None else copy.deepcopy(self.raw).requires_grad_(False).eval()
+        self.step = self.start_step = self.position = 0
+        self.metrics: dict[str, float] = {}
+        self.history: list[tuple[int, dict[str, float]]] = []
+        seed = rank_seed(cfg.seed, env.rank)  # a resume replaces these streams with the saved ones
+        random.seed(seed)
+        np.random.seed(seed)
+        torch.manual_seed(seed)
+
+    def run(self) -> TrainResult:
+        self.resume()
+        cfg, env = self.cfg, self.env
+        spec = DataSpec(env.rank, env.world_size, cfg.batch_size // env.world_size, cfg.seed, self.position,
+                        cfg.num_workers)
+        batches: Iterator[Any] = iter(self.task.batches(spec))
+        meter = _Meter()
+        started = time.perf_counter()
+        bar = tqdm(total=cfg.steps, initial=self.step, unit="step", desc=self.out_dir.name, dynamic_ncols=True,
+                   disable=env.rank != 0, mininterval=0.5 if sys.stderr.isatty() else 30.0)
+        with bar:
+            while self.step < cfg.steps:
+                batch = next(batches, _EXHAUSTED)
+                if batch is _EXHAUSTED:
+                    raise RuntimeError(f"task.batches ran out after {self.position} batches; "
+                                       f"it must keep yielding until step {cfg.steps}")
+                self.train_step(batch, meter)
+                bar.update()
+                self.after_step(meter, bar)
+        if self.step > self.start_step:
+            self.save_checkpoint()
+        if env.rank == 0 and (self.step > self.start_step or not (self.out_dir / "model.pt").exists()):
+            self.save_weights()
+        _barrier(env)
+        seconds = time.perf_counter() - started
+        if env.rank == 0:
+            print(self.summary(seconds), flush=True)
+        return TrainResult(self.step, self.start_step, seconds, self.out_dir / "model.pt", self.checkpoint_path,
+                           self.metrics, self.history)
+
+    def train_step(self, batch: Any, meter: _Meter) -> None:
+        lr = lr_at(self.step, self.cfg)
+        batch = _to_device(batch, self.env.device)
+        self.position += 1
+        for update in self.updates:
+            with self.autocast():
+                out = update.loss(self.model, batch, self.step)
+            if out is None:
+                continue
+            loss, metrics = out
+            self.model.zero_grad(set_to_none=True)
+            loss.backward()
+            norm = nn.utils.clip_grad_norm_(update.params, self.cfg.grad_clip or math.inf)
+            optimizer = self.optimizers[update.name]
+            for group in optimizer.param_groups:
+                group["lr"] = lr * update.lr_scale
+            optimizer.step()
+            suffix = "" if update.name == "main" else f"_{update.name}"
+            meter.add({**metrics, f"loss{suffix}": loss.detach(), f"grad_norm{suffix}": norm})
+        if self.ema is not None:
+            _ema_update(self.ema, self.raw, self.cfg.ema_decay)
+        self.step += 1
+
+    def after_step(self, meter: _Meter, bar: tqdm) -> None:
+        step, cfg = self.step, self.cfg
+        last = step == cfg.steps
+        if step % cfg.log_every == 0 or last:
+            self.metrics = {**meter.reduce(self.env), "lr": lr_at(step - 1, cfg)}
+            bad = {k: v for k, v in self.metrics.items() if k.startswith("loss") and not math.isfinite(v)}
+            if bad:
+                raise OrbisError(f"training diverged at step {step} ({bad}) in {self.out_dir}: lower lr or set "
+                                 f"grad_clip, then delete {self.checkpoint_path} and run again")
+            self.log(self.metrics)
+            bar.set_postfix_str(f"loss {self.metrics.get('loss', math.nan):.4g}", refresh=False)
+        if cfg.eval_every and (step % cfg.eval_every == 0 or last) and hasattr(self.task, "evaluate"):
+            if self.env.rank == 0:
+                model = self.ema if self.ema is not None else self.raw
+                with _eval_mode(model), _preserved_rng(self.env.device):
+                    self.log(dict(self.task.evaluate(model, step)))
+        if step % cfg.checkpoint_every == 0 and not last:
+            self.save_checkpoint()
+
+    def autocast(self) -> contextlib.AbstractContextManager:
+        if self.cfg.mixed_precision == "bf16" and self.env.device.type == "cuda":
+            return torch.autocast("cuda", dtype=torch.bfloat16)
+        return contextlib.nullcontext()
+
+    def log(self, metrics: dict[str, float]) -> None:
+        self.history.append((self.step, metrics))
+        if self.env.rank == 0 and self.logger is not None:
+            self.logger.log_metrics(metrics, self.step)
+
+    def resume(self) -> None:
+        path = self.checkpoint_path
+        if not path.exists():
+            return
+        try:
+            saved = torch.load(path, map_location="cpu", weights_only=True)
+        except (EOFError, RuntimeError, pickle.UnpicklingError) as err:
+            raise ResumeError(f"{path} cannot be read ({err}); delete it to start this stage over") from err
+        if saved["fingerprint"] != self.cfg.fingerprint():
+            old = saved["config"]
+            changed = ", ".join(f"{k}: {old.get(k)!r} -> {v!r}"
+                                for k, v in self.cfg.trajectory_fields().items() if old.get(k) != v)
+            raise ResumeError(f"{path} was written with a different training config ({changed}); resuming it "
+                              f"would mix two runs. Delete {path} to start this stage over, or restore the old "
+                              f"config to resume")
+        if saved["world_size"] != self.env.world_size:
+            raise ResumeError(f"{path} was written by {saved['world_size']} processes, this run has "
+                              f"{self.env.world_size}; resume with {saved['world_size']} or delete {path}")
+        try:
+            self.raw.load_state_dict(saved["model"])
+            if self.ema is not None:
+                self.ema.load_state_dict(saved["ema"])
+            for name, optimizer in self.optimizers.items():
+                optimizer.load_state_dict(saved["optimizers"][name])
+        except (KeyError, RuntimeError, ValueError) as err:
+            raise ResumeError(f"{path} does not fit this model ({err}); delete it to start this stage over") from err
+        self.step = self.start_step = saved["step"]
+        self.position = saved["data_position"]
+        _set_rng_state(saved["rng"][self.env.rank], self.env.device)
+
+    def save_checkpoint(self) -> None:
+        rng = _all_gather(_rng_state(self.env.device), self.env)
+        if self.env.rank == 0:
+            _atomic_save({
+                "fingerprint": self.cfg.fingerprint(), "config": dataclasses.asdict(self.cfg),
+                "world_size": self.env.world_size, "step": self.step, "data_position": self.position,
+                "model": self.raw.state_dict(), "ema": None if self.ema is None else self.ema.state_dict(),
+                "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()}, "rng": rng,
+            }, self.checkpoint_path)
+        _barrier(self.env)
+
+    def save_weights(self) -> None:
+        final = self.ema if self.ema is not None else self.raw
+        _atomic_save({"model": final.state_dict(), "raw": self.raw.state_dict(), "ema": self.ema is not None,
+                      "step": self.step, "config": dataclasses.asdict(self.cfg)}, self.out_dir / "model.pt")
+
+    def summary(self, seconds: float) -> str:
+        ran, weights = self.step - self.start_step, self.out_dir / "model.pt"
+        if ran == 0:
+            return f"train {self.out_dir}: already complete at step {self.step}; weights {weights}"
+        resumed = f" (resumed at {self.start_step})" if self.start_step else ""
+        return (f"train {self.out_dir}: {ran} steps to {self.step}{resumed} in {seconds:.1f} s ({ran / seconds:.2f}"
+                f" steps/s), loss {self.metrics.get('loss', math.nan):.4g}; weights {weights}")
+
+
+_EXHAUSTED = object()
+
+
+class _Meter:
+    """Averages metrics over the steps since the last log and over ranks."""
+
+    def __init__(self) -> None:
+        self.sums: dict[str, Any] = {}
+        self.counts: dict[str, int] = {}
+
+    def add(self, metrics: dict[str, Any]) -> None:
+        for key, value in metrics.items():
+            value = value.detach().double() if torch.is_tensor(value) else float(value)  # no GPU sync per step
+            self.sums[key] = self.sums.get(key, 0.0) + value
+            self.counts[key] = self.counts.get(key, 0) + 1
+
+    def reduce(self, env: _Env) -> dict[str, float]:
+        keys = sorted(self.sums)
+        totals = torch.tensor([[float(self.sums[k]), self.counts[k]] for k in keys], dtype=torch.float64,
+                              device=env.device).reshape(-1, 2)
+        if env.world_size > 1:
+            dist.all_reduce(totals)
+        self.sums, self.counts = {}, {}
+        return {key: (total / count).item() for key, (total, count) in zip(keys, totals)}
+
+
+def _optimizer(params: Sequence[nn.Parameter], cfg: TrainConfig, device: torch.device) -> torch.optim.Optimizer:
+    """Adam(W) with no weight decay on biases and norm scales (tensors with fewer than 2 dims)."""
+    groups = [{"params": [p for p in params if p.ndim >= 2], "weight_decay": cfg.weight_decay},
+              {"params": [p for p in params if p.ndim < 2], "weight_decay": 0.0}]
+    kind = torch.optim.AdamW if cfg.optimizer == "adamw" else torch.optim.Adam
+    return kind([g for g in groups if g["params"]], lr=cfg.lr, betas=cfg.betas, fused=device.type == "cuda")
+
+
+@torch.no_grad()
+def _ema_update(ema: nn.Module, raw: nn.Module, decay: float) -> None:
+    """Parameters move towards the trained ones; buffers (e.g. norm statistics) are copied."""
+    torch._foreach_lerp_(list(ema.parameters()), list(raw.parameters()), 1.0 - decay)
+    for ema_buffer, buffer in zip(ema.buffers(), raw.buffers()):
+        ema_buffer.copy_(buffer)
+
+
+def _to_device(batch: Any, device: torch.device) -> Any:
+    if device.type == "cpu":
+        return batch
+    if torch.is_tensor(batch):
+        return batch.to(device, non_blocking=True)
+    if isinstance(batch, dict):
+        return {key: _to_device(value, device) for key, value in batch.items()}
+    if isinstance(batch, (list, tuple)):
+        return type(batch)(_to_device(value, device) for value in batch)
+    return batch
+
+
+@contextlib.contextmanager
+def _eval_mode(model: nn.Module) -> Iterator[None]:
+    """Eval mode for evaluation, then every submodule's own mode back (frozen parts stay frozen)."""
+    modes = [(module, module.training) for module in model.modules()]
+    model.eval()
+    try:
+        yield
+    finally:
+        for module, training in modes:
+            module.training = training
+
+
+def _rng_state(device: torch.device) -> dict[str, Any]:
+    """Every global RNG stream, in types that ``torch.load(weights_only=True)`` accepts."""
+    numpy_state = np.random.get_state(legacy=False)
+    return {
+        "python": random.getstate(),
+        "numpy": {"key": torch.from_numpy(numpy_state["state"]["key"].astype(np.int64)),
+                  "pos": numpy_state["state"]["pos"], "has_gauss": numpy_state["has_gauss"],
+                  "gauss": numpy_state["gauss"]},
+        "torch": torch.get_rng_state(),
+        "cuda": torch.cuda.get_rng_state(device) if device.type == "cuda" else None,
+    }
+
+
+def _set_rng_state(state: dict[str, Any], device: torch.device) -> None:
+    random.setstate(state["python"])
+    numpy_state = state["numpy"]
+    np.random.set_state({"bit_generator": "MT19937",
+                         "state": {"key": numpy_state["key"].numpy().astype(np.uint32), "pos": numpy_state["pos"]},
+                         "has_gauss": numpy_state["has_gauss"], "gauss": numpy_state["gauss"]})
+    torch.set_rng_state(state["torch"])
+    if state["cuda"] is not None and device.type == "cuda":
+        torch.cuda.set_rng_state(state["cuda"], device)
+
+
+@contextlib.contextmanager
+def _preserved_rng(device: torch.device) -> Iterator[None]:
+    """Evaluation may draw random numbers without shifting training's streams."""
+    state = _rng_state(device)
+    try:
+        yield
+    finally:
+        _set_rng_state(state, device)
+
+
+def _all_gather(obj: Any, env: _Env) -> list[Any]:
+    gathered: list[Any] = [obj] * env.world_size
+    if env.world_size > 1:
+        dist.all_gather_object(gathered, obj)
+    return gathered
+
+
+def _barrier(env: _Env) -> None:
+    if env.world_size > 1:
+        dist.barrier()
+
+
+def _atomic_save(obj: Any, path: Path) -> None:
+    with atomic_file(path) as tmp, open(tmp, "wb") as handle:
+        torch.save(obj, handle)  # through a handle: the bytes must not depend on the temp file's name

@@ -1,0 +1,137 @@
+"""The smoke profile through the real DAG, with Snakemake and with DVC, in a fresh copy of the project.
+
+Checks: outputs exist and are read by the next stage; one MLflow parent run per
+invocation with one nested run per stage; a second run does no work; changing
+one stage's params re-runs that stage (and its dependents) only.
+"""
+
+import json
+import os
+import shutil
+import sqlite3
+import subprocess
+from pathlib import Path
+
+import pytest
+import yaml
+
+from orbis2.config import load_config
+from orbis2.data.shards import Clip, iter_samples, load_manifest, shard_paths, verify_shards
+from orbis2.latents import LatentWindowDataset, open_cache
+from orbis2.models.tokenizer import load_tokenizer
+
+from conftest import ROOT
+
+pytestmark = pytest.mark.slow
+
+
+def project_copy(dest: Path) -> Path:
+    """Tracked and untracked-but-not-ignored files, as a fresh clone would have them, in a new git repo."""
+    files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=ROOT, capture_output=True,
+                           text=True, check=True).stdout.split()
+    for name in files:
+        if (ROOT / name).is_file():
+            (dest / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(ROOT / name, dest / name)
+    params = yaml.safe_load((dest / "params.yaml").read_text())
+    params["profile"] = "smoke"
+    (dest / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    for cmd in (["git", "init", "-q"], ["git", "add", "-A"], ["git", "commit", "-qm", "copy"]):
+        subprocess.run(cmd, cwd=dest, check=True, capture_output=True)
+    return dest
+
+
+def run(cmd: list[str], cwd: Path) -> str:
+    env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{cwd / 'mlflow.db'}"}
+    env.pop("ORBIS2_PIPELINE_ID", None)
+    proc = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, f"{' '.join(cmd)} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
+    return proc.stdout + proc.stderr
+
+
+def mlflow_runs(db: Path) -> list[tuple[str, str, str | None]]:
+    """(run id, run name, parent run id) of every run in the store."""
+    with sqlite3.connect(db) as con:
+        names = dict(con.execute("select run_uuid, name from runs"))
+        parents = dict(con.execute("select run_uuid, value from tags where key = 'mlflow.parentRunId'"))
+    return [(r, n, parents.get(r)) for r, n in names.items()]
+
+
+STAGES = ["assets", "latents", "shards", "tokenizer_abstract", "tokenizer_detail", "town"]
+
+
+def check_outputs(root: Path) -> None:
+    """Every stage's output exists and the next stage could read it."""
+    verify_shards(root / "data/shards")
+    manifest = load_manifest(root / "data/shards")
+    assert set(manifest["splits"]) == {"train", "val", "turns", "heldout", "probe"}
+    clip = Clip.from_sample(next(iter_samples(shard_paths(root / "data/shards", "probe")[0])))
+    assert clip.frames([0]).shape == (1, 72, 128, 3) and clip.labels is not None
+    assert (root / "reports/town_contact_sheet.png").stat().st_size > 10_000
+    detail = load_tokenizer(root / "data/tokenizers/detail/tokenizer.pt")
+    abstract = load_tokenizer(root / "data/tokenizers/abstract/tokenizer.pt")
+    cache = open_cache(root / "data/latents", detail.checksum, abstract.checksum)
+    window = LatentWindowDataset(cache, "train", load_config(root / "params.yaml").data)[0]
+    assert window["detail"].shape[:2] == (10, 16) and window["abstract"].shape[:2] == (6, 16)
+    for name in ("tokenizer_detail", "tokenizer_abstract"):
+        assert json.loads((root / f"reports/{name}.json").read_text())["steps"] == 30
+
+
+def set_param(root: Path, section: str, key: str, value) -> None:
+    params = yaml.safe_load((root / "params.yaml").read_text())
+    params[section]["all"][key] = value
+    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+
+
+def test_snakemake_smoke_dag(tmp_path):
+    root = project_copy(tmp_path)
+    run(["snakemake", "--cores", "2"], root)
+    check_outputs(root)
+    runs = mlflow_runs(root / "mlflow.db")
+    parents = [r for r in runs if r[2] is None]
+    assert len(parents) == 1 and sorted(n for _, n, p in runs if p == parents[0][0]) == STAGES
+
+    assert "Nothing to be done" in run(["snakemake", "--cores", "2"], root)
+
+    set_param(root, "latents", "batch_size", 16)
+    out = run(["snakemake", "--cores", "2"], root)
+    assert "rule latents:" in out and "rule tokenizer_detail:" not in out and "rule town:" not in out
+    assert len([r for r in mlflow_runs(root / "mlflow.db") if r[2] is None]) == 2  # one parent per invocation
+
+
+def test_dvc_repro_smoke_dag(tmp_path):
+    root = project_copy(tmp_path)
+    out = run(["dvc", "repro"], root)
+    assert all(f"Running stage '{name}'" in out for name in STAGES)
+    check_outputs(root)
+
+    out = run(["dvc", "repro"], root)
+    assert "Running stage" not in out
+
+    set_param(root, "latents", "batch_size", 16)
+    out = run(["dvc", "repro"], root)
+    assert "Running stage 'latents'" in out and "Running stage 'tokenizer_detail'" not in out
+    runs = mlflow_runs(root / "mlflow.db")
+    parents = [r for r in runs if r[2] is None]
+    assert len(parents) == 2
+    assert sorted(n for _, n, p in runs if p is not None) == sorted(STAGES + ["latents"])
+
+
+def test_import_source_feeds_the_shards(tmp_path, make_video):
+    """With data.all.source = import, both tools build the shards from your videos, not the town."""
+    root = project_copy(tmp_path / "project")
+    videos = root / "data" / "videos"
+    for i in range(2):
+        make_video(f"drive{i}.mp4", 80, fps=20, folder=videos)  # 4 s -> one 3 s smoke clip each
+    params = yaml.safe_load((root / "params.yaml").read_text())
+    params["data"]["all"]["source"] = "import"
+    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+
+    out = run(["dvc", "repro", "shards"], root)
+    assert "Running stage 'pipelines/import/dvc.yaml:import'" in out and "stage 'town'" not in out
+    manifest = load_manifest(root / "data/shards")
+    assert manifest["source"] == "import" and manifest["splits"]["train"]["samples"] == 2
+
+    shutil.rmtree(root / "data/shards")
+    out = run(["snakemake", "--cores", "2", "data/shards"], root)
+    assert "rule shards:" in out and "rule town:" not in out

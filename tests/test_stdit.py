@@ -1,0 +1,241 @@
+"""ST-DiT predictor: causality, per-frame noise levels, initialisation, conditioning, presets, overfitting."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from orbis2.flow import teacher_forcing_loss
+from orbis2.models.stdit import STDIT_PRESETS, SteeringEmbedder, build_stdit, patchify, stdit_config, unpatchify
+
+C, H, W = 4, 3, 5  # latent channels and a small latent grid for the fast tests
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny tensors: one thread avoids contention on a shared CPU and is several times faster."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def n_params(module: torch.nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())
+
+
+def latents(b: int, f: int, seed: int, c: int = C, h: int = H, w: int = W) -> torch.Tensor:
+    return torch.randn(b, f, c, h, w, generator=torch.Generator().manual_seed(seed))
+
+
+def randomized(model: torch.nn.Module, seed: int = 0) -> torch.nn.Module:
+    """Give the zero-initialised parameters (adaLN, final layer, biases) random values, so outputs are non-trivial."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in model.parameters():
+            if not p.any():
+                p.copy_(torch.randn(p.shape, generator=g) * 0.1)
+    return model
+
+
+def detail_inputs(b: int, f: int, seed: int, c_a: int = 3, grid=(H, W)):
+    cond = latents(b, f, seed, c_a, *grid)
+    mask = torch.zeros(b, f, dtype=torch.bool)
+    mask[:, [f // 2 - 1, f - 1]] = True  # the last context frame and the last predicted frame
+    return {"cond_frames": cond * mask[:, :, None, None, None], "cond_mask": mask}
+
+
+@pytest.mark.parametrize("causal", [True, False])
+def test_causal_temporal_attention_hides_the_future(causal):
+    torch.manual_seed(0)
+    model = randomized(build_stdit("smoke", C, causal=causal)).eval()
+    x, tau = latents(2, 5, 1), torch.rand(2, 5)
+    changed_x, changed_tau = x.clone(), tau.clone()
+    changed_x[:, 3] += 1.0
+    changed_tau[:, 4] = 0.9
+    with torch.no_grad():
+        out = model(x, tau, frame_rate=2.0)
+        out_changed = model(changed_x, changed_tau, frame_rate=2.0)
+    past = (out[:, :3] - out_changed[:, :3]).abs().max().item()
+    assert (out[:, 3:] - out_changed[:, 3:]).abs().max() > 1e-3
+    if causal:
+        assert past < 1e-6
+    else:
+        assert past > 1e-3
+
+
+def test_noise_level_is_embedded_per_frame():
+    torch.manual_seed(0)
+    model = randomized(build_stdit("smoke", C, causal=True)).eval()
+    x, tau = latents(2, 4, 1), torch.full((2, 4), 0.5)
+    changed = tau.clone()
+    changed[:, 2] = 0.1
+    with torch.no_grad():
+        out, out_changed = model(x, tau), model(x, changed)
+        single = [model(x[:, :1], torch.full((2, 1), t)) for t in (0.0, 1.0)]
+    assert torch.equal(out[:, :2], out_changed[:, :2])  # causal: earlier frames do not see it
+    assert (out[:, 2] - out_changed[:, 2]).abs().max() > 1e-3
+    assert (single[0] - single[1]).abs().max() > 1e-3  # one frame, no temporal mixing: tau still acts
+    with pytest.raises(ValueError, match="one noise level per frame"):
+        model(x, torch.rand(2))
+
+
+def test_fresh_model_outputs_zero_and_conditioning_paths_learn():
+    torch.manual_seed(0)
+    model = build_stdit("smoke", C, causal=False, abstract_channels=3)
+    x, tau, cond = latents(2, 6, 1), torch.rand(2, 6), detail_inputs(2, 6, 2)
+    out = model(x, tau, **cond)
+    assert out.shape == x.shape and torch.count_nonzero(out) == 0
+    for block in model.blocks:  # gates of the abstract paths are small but open
+        gate = torch.sigmoid(block.cond_modulation[-1].bias[2 * model.hidden_size :])
+        assert torch.all((gate > 0.05) & (gate < 0.3))
+        assert torch.all(torch.tanh(block.cross_gate) > 0.05)
+
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+    target = latents(2, 6, 3)
+    for _ in range(2):
+        optimizer.zero_grad()
+        ((model(x, tau, **cond) - target) ** 2).mean().backward()
+        optimizer.step()
+    grads = {name: p.grad for name, p in model.named_parameters()}
+    for name in ("abstract.patchify.weight", "abstract.frame_position.0.weight",
+                 "blocks.0.cond_modulation.1.weight", "blocks.0.cross_attn.kv.weight", "blocks.0.cross_gate"):
+        assert grads[name].abs().sum() > 0, name
+    with torch.no_grad():
+        other = {**cond, "cond_frames": cond["cond_frames"] + detail_inputs(2, 6, 4)["cond_frames"]}
+        assert (model(x, tau, **cond) - model(x, tau, **other)).abs().max() > 0
+
+
+def test_steering_embedder_missing_values_and_dropout():
+    torch.manual_seed(0)
+    embedder = SteeringEmbedder(hidden_size=16, num_features=2, max_len=8)
+    torch.nn.init.normal_(embedder.no_value)
+    torch.nn.init.normal_(embedder.position)
+    torch.nn.init.normal_(embedder.out.weight, std=0.3)
+    torch.nn.init.normal_(embedder.null)
+    steering = torch.randn(3, 5, 2)
+    steering[0] = float("nan")
+    steering[1, :, 0] = float("nan")
+    tokens = embedder.tokens(steering)
+    torch.testing.assert_close(tokens[0], embedder.no_value.sum(0) + embedder.position[:5])
+    yaw_only = embedder.feature_mlps[1](steering[1, :, 1:])
+    torch.testing.assert_close(tokens[1], embedder.no_value[0] + yaw_only + embedder.position[:5])
+    assert torch.isfinite(tokens).all()
+
+    drop = torch.tensor([False, True, False])
+    emb = embedder(steering, drop)
+    assert torch.equal(emb[1], embedder.null.detach()) and not torch.equal(emb[0], emb[1])
+    assert (embedder(steering.flip(1))[2] - emb[2]).abs().max() > 1e-4  # the order of the sequence matters
+
+    fresh = SteeringEmbedder(16, 2, 8)
+    assert torch.count_nonzero(fresh(steering)) == 0  # a new embedder leaves the predictor unchanged
+
+
+def test_steered_model_uses_the_null_path_without_steering():
+    torch.manual_seed(0)
+    model = randomized(build_stdit("smoke", C, causal=True, steering=True)).eval()
+    x, tau = latents(2, 3, 1), torch.rand(2, 3)
+    steering = torch.randn(2, 5, 2)
+    with torch.no_grad():
+        unsteered = model(x, tau)
+        dropped = model(x, tau, steering=steering, steering_drop=torch.tensor([True, True]))
+        steered = model(x, tau, steering=steering)
+    assert torch.equal(unsteered, dropped)
+    assert (steered - unsteered).abs().max() > 1e-4
+    with pytest.raises(ValueError, match="without steering"):
+        build_stdit("smoke", C, causal=True)(x, tau, steering=steering)
+
+
+def test_abstract_conditioning_resizes_grids_and_checks_slots():
+    torch.manual_seed(0)
+    model = randomized(build_stdit("smoke", C, causal=False, abstract_channels=3)).eval()
+    x, tau = latents(2, 4, 1), torch.rand(2, 4)
+    with torch.no_grad():
+        out = model(x, tau, **detail_inputs(2, 4, 2, grid=(2, 3)))
+    assert out.shape == x.shape and torch.isfinite(out).all()
+    bad = detail_inputs(2, 4, 2)
+    bad["cond_mask"][0, 0] = True
+    with pytest.raises(ValueError, match="same number of conditioned slots"):
+        model(x, tau, **bad)
+    with pytest.raises(ValueError, match="needs cond_frames"):
+        model(x, tau)
+
+
+@pytest.mark.parametrize("preset", ["smoke", "default"])
+def test_preset_shapes_and_probe_features(preset):
+    torch.manual_seed(0)
+    abstract = build_stdit(preset, 16, causal=True, steering=True)
+    detail = build_stdit(preset, 16, causal=False, abstract_channels=16)
+    d, depth = STDIT_PRESETS[preset]["hidden_size"], STDIT_PRESETS[preset]["depth"]
+    with torch.no_grad():
+        x = latents(1, 6, 1, 16, 9, 16)
+        assert abstract(x, torch.rand(1, 6), frame_rate=2.0, steering=torch.randn(1, 5, 2)).shape == x.shape
+        x = latents(1, 10, 2, 16, 9, 16)
+        cond = detail_inputs(1, 10, 3, 16, (9, 16))
+        assert detail(x, torch.rand(1, 10), frame_rate=10.0, **cond).shape == x.shape
+        features = detail(x, torch.rand(1, 10), **cond, features_from_block=min(4, depth))
+        assert features.shape == (1, 10, d, 9, 16)
+        # The linear-probe protocol: the image alone as the target frame, no context.
+        single = abstract(x[:, :1], torch.zeros(1, 1), features_from_block=1)
+        assert single.shape == (1, 1, d, 9, 16)
+    with pytest.raises(ValueError, match="features_from_block"):
+        abstract(x[:, :1], torch.zeros(1, 1), features_from_block=depth + 1)
+
+
+def test_patches_and_probe_features_keep_the_grid_layout():
+    x = latents(2, 3, 1, 4, 6, 8)
+    tokens = patchify(x, 2)
+    assert tokens.shape == (2, 3, 12, 16) and torch.equal(unpatchify(tokens, 2, 4, 6, 8), x)
+    assert torch.equal(tokens[0, 0, 1, :4], x[0, 0, :, 0, 2])  # token 1 = patch row 0, column 1
+    torch.manual_seed(0)
+    model = randomized(build_stdit("smoke", 4, causal=True, patch_size=2)).eval()
+    seen = []
+    model.final_layer.register_forward_hook(lambda module, args, out: seen.append(args[0]))
+    tau = torch.rand(2, 3)
+    with torch.no_grad():
+        model(x, tau)
+        features = model(x, tau, features_from_block=1)
+    assert features.shape == (2, 3, 64, 3, 4)
+    torch.testing.assert_close(features[:, :, :, 1, 2], seen[0][:, :, 1 * 4 + 2])
+
+
+def test_paper_preset_parameter_counts():
+    with torch.device("meta"):
+        abstract = n_params(build_stdit("paper", 16, causal=True))
+        detail = n_params(build_stdit("paper", 16, causal=False, abstract_channels=16))
+    assert abs(abstract / 512e6 - 1) < 0.05
+    assert abs(detail / 555e6 - 1) < 0.05
+    assert abs((detail - abstract) / 43e6 - 1) < 0.1  # the paper's extra conditioning parameters
+
+
+def test_preset_overrides_are_checked():
+    assert stdit_config("smoke", depth=3)["depth"] == 3
+    with pytest.raises(KeyError, match="unknown ST-DiT setting"):
+        stdit_config("smoke", hiden_size=3)
+    with pytest.raises(KeyError, match="unknown ST-DiT preset"):
+        build_stdit("huge", 16, causal=True)
+
+
+def test_smoke_model_overfits_a_fixed_batch_with_teacher_forcing():
+    torch.manual_seed(0)
+    model = build_stdit("smoke", C, causal=True)
+    frames = latents(4, 4, 1)
+    context, target = frames[:, :3], frames[:, 3:]
+
+    def evaluate() -> float:
+        with torch.no_grad():
+            g = torch.Generator().manual_seed(123)
+            return sum(teacher_forcing_loss(model, context, target, g)[0].item() for _ in range(8)) / 8
+
+    initial = evaluate()
+    optimizer = torch.optim.Adam(model.parameters(), lr=2e-3)
+    g = torch.Generator().manual_seed(7)
+    for _ in range(250):
+        optimizer.zero_grad()
+        loss, _ = teacher_forcing_loss(model, context, target, g)
+        loss.backward()
+        optimizer.step()
+    final = evaluate()
+    assert math.isfinite(final) and final < 0.3 * initial, (initial, final)
