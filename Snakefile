@@ -23,7 +23,8 @@ def section(name):
 
 rule all:
     input:
-        "data/latents",
+        "data/predictors/detail",
+        "data/predictors/action",
 
 
 rule town:
@@ -147,3 +148,93 @@ rule latents:
         latents=section("latents"),
     shell:
         "python stages/latents.py --profile {params.profile}"
+
+
+rule abstract_df:
+    threads: workflow.cores  # uses every core itself; run nothing beside it
+    input:
+        "stages/abstract_df.py",
+        "src/orbis2/tasks/predictors.py",
+        "src/orbis2/models/stdit.py",
+        "src/orbis2/flow.py",
+        "src/orbis2/train.py",
+        "data/latents",
+        "data/tokenizers/detail",
+        "data/tokenizers/abstract",
+    output:
+        directory("data/predictors/abstract_df"),
+        "reports/abstract_df.json",
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        abstract_df=section("abstract_df"),
+    shell:
+        f"{TRAIN_LAUNCHER} stages/abstract_df.py --profile {{params.profile}}"
+
+
+rule abstract_tf:
+    threads: workflow.cores  # uses every core itself; run nothing beside it
+    input:
+        "stages/abstract_tf.py",
+        "src/orbis2/tasks/predictors.py",
+        "src/orbis2/models/stdit.py",
+        "src/orbis2/flow.py",
+        "src/orbis2/train.py",
+        "data/latents",
+        "data/tokenizers/detail",
+        "data/tokenizers/abstract",
+        "data/predictors/abstract_df",
+    output:
+        directory("data/predictors/abstract_tf"),
+        "reports/abstract_tf.json",
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        abstract_tf=section("abstract_tf"),
+    shell:
+        f"{TRAIN_LAUNCHER} stages/abstract_tf.py --profile {{params.profile}}"
+
+
+rule detail:
+    threads: workflow.cores  # uses every core itself; run nothing beside it
+    input:
+        "stages/detail.py",
+        "src/orbis2/tasks/predictors.py",
+        "src/orbis2/models/stdit.py",
+        "src/orbis2/flow.py",
+        "src/orbis2/train.py",
+        "data/latents",
+        "data/tokenizers/detail",
+        "data/tokenizers/abstract",
+    output:
+        directory("data/predictors/detail"),
+        "reports/detail.json",
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        detail=section("detail"),
+    shell:
+        f"{TRAIN_LAUNCHER} stages/detail.py --profile {{params.profile}}"
+
+
+rule action:
+    threads: workflow.cores  # uses every core itself; run nothing beside it
+    input:
+        "stages/action.py",
+        "src/orbis2/tasks/predictors.py",
+        "src/orbis2/models/stdit.py",
+        "src/orbis2/flow.py",
+        "src/orbis2/train.py",
+        "data/latents",
+        "data/tokenizers/detail",
+        "data/tokenizers/abstract",
+        "data/predictors/abstract_tf",
+    output:
+        directory("data/predictors/action"),
+        "reports/action.json",
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        action=section("action"),
+    shell:
+        f"{TRAIN_LAUNCHER} stages/action.py --profile {{params.profile}}"

@@ -71,7 +71,8 @@ def both():
 
 def test_snakefile_and_dvc_yaml_agree(both):
     dvc, snake = both
-    assert {"town", "import", "shards", "assets", "tokenizer_detail", "tokenizer_abstract", "latents"} <= set(dvc)
+    assert {"town", "import", "shards", "assets", "tokenizer_detail", "tokenizer_abstract", "latents",
+            "abstract_df", "abstract_tf", "detail", "action"} <= set(dvc)
     assert drift(dvc, snake) == []
 
 

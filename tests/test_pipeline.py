@@ -6,10 +6,12 @@ one stage's params re-runs that stage (and its dependents) only.
 """
 
 import json
+import math
 import os
 import shutil
 import sqlite3
 import subprocess
+from collections import Counter
 from pathlib import Path
 
 import pytest
@@ -18,6 +20,7 @@ import yaml
 from orbis2.config import load_config
 from orbis2.data.shards import Clip, iter_samples, load_manifest, shard_paths, verify_shards
 from orbis2.latents import LatentWindowDataset, open_cache
+from orbis2.models.stdit import load_predictor
 from orbis2.models.tokenizer import load_tokenizer
 
 from conftest import ROOT
@@ -57,7 +60,8 @@ def mlflow_runs(db: Path) -> list[tuple[str, str, str | None]]:
     return [(r, n, parents.get(r)) for r, n in names.items()]
 
 
-STAGES = ["assets", "latents", "shards", "tokenizer_abstract", "tokenizer_detail", "town"]
+PREDICTORS = ["abstract_df", "abstract_tf", "detail", "action"]
+STAGES = sorted(["assets", "latents", "shards", "tokenizer_abstract", "tokenizer_detail", "town", *PREDICTORS])
 
 
 def check_outputs(root: Path) -> None:
@@ -75,6 +79,15 @@ def check_outputs(root: Path) -> None:
     assert window["detail"].shape[:2] == (10, 16) and window["abstract"].shape[:2] == (6, 16)
     for name in ("tokenizer_detail", "tokenizer_abstract"):
         assert json.loads((root / f"reports/{name}.json").read_text())["steps"] == 30
+    smoke = load_config(root / "params.yaml")
+    for name in PREDICTORS:
+        predictor = load_predictor(root / f"data/predictors/{name}/predictor.pt")
+        assert predictor.meta["stage"] == name and predictor.meta["tokenizers"]["abstract"]["checksum"] == \
+            abstract.checksum
+        report = json.loads((root / f"reports/{name}.json").read_text())
+        assert report["steps"] == smoke.section(name).train.steps and math.isfinite(report["val_loss"])
+        assert report["val_loss_init"] > 0
+    assert load_predictor(root / "data/predictors/action/predictor.pt").model.steering is not None
 
 
 def set_param(root: Path, section: str, key: str, value) -> None:
@@ -114,7 +127,8 @@ def test_dvc_repro_smoke_dag(tmp_path):
     runs = mlflow_runs(root / "mlflow.db")
     parents = [r for r in runs if r[2] is None]
     assert len(parents) == 2
-    assert sorted(n for _, n, p in runs if p is not None) == sorted(STAGES + ["latents"])
+    rerun = Counter(n for _, n, p in runs if p is not None) - Counter(STAGES)
+    assert "latents" in rerun and set(rerun) <= {"latents", *PREDICTORS}  # predictors only if the latents changed
 
 
 def test_import_source_feeds_the_shards(tmp_path, make_video):

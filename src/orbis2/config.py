@@ -231,6 +231,98 @@ class LatentsConfig:
         _positive(self, where, "batch_size")
 
 
+STDIT_PRESET_NAMES = ("smoke", "default", "paper")
+
+
+@dataclass(frozen=True)
+class PredictorConfig:
+    """A predictor training stage (paper Sec. 3.3-3.4): network size, optimisation, data and validation.
+
+    ``model`` overrides the ST-DiT preset (e.g. a narrower ``hidden_size`` for a
+    CPU budget). ``init_from`` names the predictor stage whose weights start this
+    one, or null for a fresh network: the training-strategy ablation (TF only,
+    DF only, DF+TF; paper Table "df_tf") is this parameter, not another script.
+    ``val_batches`` batches of the val split, with fixed noise, give the
+    validation loss. EMA is ``train.ema_decay``.
+    """
+
+    preset: str
+    train: TrainConfig
+    model: dict[str, int | float] = field(default_factory=dict)
+    init_from: str | None = None
+    anchor_stride: int = 1
+    val_batches: int = 4
+
+    INIT_SOURCES: typing.ClassVar[tuple[str, ...]] = ()
+
+    def validate(self, where: str) -> None:
+        from orbis2.models.stdit import stdit_config
+
+        if self.preset not in STDIT_PRESET_NAMES:
+            raise ConfigError(f"{where}.preset = {self.preset!r} must be one of {list(STDIT_PRESET_NAMES)}")
+        try:
+            stdit_config(self.preset, **self.model)
+        except KeyError as err:
+            raise ConfigError(f"{where}.model: {err.args[0]}") from err
+        if self.init_from is not None and self.init_from not in self.INIT_SOURCES:
+            allowed = [*self.INIT_SOURCES, None]
+            raise ConfigError(f"{where}.init_from = {self.init_from!r} must be one of {allowed}")
+        _positive(self, where, "anchor_stride", "val_batches")
+
+
+@dataclass(frozen=True)
+class TeacherForcingConfig(PredictorConfig):
+    """Teacher forcing (paper eq. 1) with the reference code's context augmentation.
+
+    Per sample, with ``context_noise_prob`` the clean context gets
+    ``context_noise_std`` Gaussian noise, and with ``context_drop_prob`` it is
+    replaced by the null context (the authors' code, "Predictor": 0.5 / 0.1 / 0.2).
+    """
+
+    context_noise_prob: float = 0.5
+    context_noise_std: float = 0.1
+    context_drop_prob: float = 0.2
+
+    INIT_SOURCES: typing.ClassVar[tuple[str, ...]] = ("abstract_df",)
+
+    def validate(self, where: str) -> None:
+        super().validate(where)
+        for name in ("context_noise_prob", "context_drop_prob"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ConfigError(f"{where}.{name} must lie in [0, 1]")
+        if self.context_noise_std < 0:
+            raise ConfigError(f"{where}.context_noise_std must be >= 0")
+
+
+@dataclass(frozen=True)
+class DetailPredictorConfig(TeacherForcingConfig):
+    """The detail predictor F_L: teacher forcing from scratch, conditioned on abstract latents."""
+
+    INIT_SOURCES: typing.ClassVar[tuple[str, ...]] = ()
+
+
+@dataclass(frozen=True)
+class ActionConfig(TeacherForcingConfig):
+    """The steering fine-tune of the abstract predictor (paper "Action-conditioning").
+
+    Steering features are speed and yaw rate divided by ``speed_scale`` (m/s) and
+    ``yaw_rate_scale`` (rad/s), so the embedder sees roughly unit-scale values;
+    ``steering_dropout`` of the samples train the unconditional path.
+    """
+
+    steering_dropout: float = 0.1
+    speed_scale: float = 10.0
+    yaw_rate_scale: float = 0.5
+
+    INIT_SOURCES: typing.ClassVar[tuple[str, ...]] = ("abstract_tf", "abstract_df")
+
+    def validate(self, where: str) -> None:
+        super().validate(where)
+        if not 0 <= self.steering_dropout < 1:
+            raise ConfigError(f"{where}.steering_dropout must lie in [0, 1)")
+        _positive(self, where, "speed_scale", "yaw_rate_scale")
+
+
 def _tokenizer_common(cfg: Any, where: str) -> None:
     if cfg.preset not in TOKENIZER_PRESETS:
         raise ConfigError(f"{where}.preset = {cfg.preset!r} must be one of {list(TOKENIZER_PRESETS)}")
@@ -250,11 +342,23 @@ class PipelineConfig:
     tokenizer_detail: DetailTokenizerConfig
     tokenizer_abstract: AbstractTokenizerConfig
     latents: LatentsConfig
+    abstract_df: PredictorConfig
+    abstract_tf: TeacherForcingConfig
+    detail: DetailPredictorConfig
+    action: ActionConfig
 
     def section(self, name: str) -> Any:
         return getattr(self, SECTION_ATTRS.get(name, name))
 
     def validate(self) -> None:
+        d = self.data
+        abstract_ahead = (d.abstract_window - d.abstract_context) * d.abstract_stride
+        if abstract_ahead != (d.detail_window - d.detail_context) * d.detail_stride:
+            raise ConfigError(
+                f"data.{self.profile}: the abstract prediction ({d.abstract_window - d.abstract_context} frames at "
+                f"{d.abstract_hz} Hz) must end on the last detail prediction ({d.detail_window - d.detail_context} "
+                f"frames at {d.detail_hz} Hz): the detail predictor is conditioned on that abstract subgoal"
+            )
         min_clip = self.data.window_span_frames / self.data.fps
         for split, seconds in self.shards.clip_seconds.items():
             if seconds < min_clip:
@@ -333,6 +437,10 @@ SECTION_TYPES: dict[str, type] = {
     "tokenizer_detail": DetailTokenizerConfig,
     "tokenizer_abstract": AbstractTokenizerConfig,
     "latents": LatentsConfig,
+    "abstract_df": PredictorConfig,
+    "abstract_tf": TeacherForcingConfig,
+    "detail": DetailPredictorConfig,
+    "action": ActionConfig,
 }
 
 

@@ -72,7 +72,7 @@ def teacher_forcing_loss(
     """Eq. 1: clean context at tau = 0, one tau ~ U[0, 1] per sample for all target frames.
 
     ``context`` [B, F_c, ...] and ``target`` [B, F_t, ...] are packed on the
-    frame axis; the MSE is on the target frames only (REFERENCE_NOTES
+    frame axis; the MSE is on the target frames only (the authors' code,
     "Predictor"). Per sample, with ``context_noise_prob`` the context gets
     ``context_noise_std`` * N(0, 1) added (it stays at tau = 0), and with
     ``context_drop_prob`` it is replaced by the null context (``null_context``),

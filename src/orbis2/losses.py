@@ -1,6 +1,6 @@
 """Losses and image metrics as pure functions (no module state).
 
-Images are in [-1, 1] throughout the project (REFERENCE_NOTES "Tokenizer");
+Images are in [-1, 1] throughout the project (the authors' code, "Tokenizer");
 the metrics map them to [0, 1] first so PSNR and SSIM use the usual data range.
 """
 

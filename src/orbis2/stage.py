@@ -46,14 +46,18 @@ def stage_main(name: str, sections: list[str], body: StageBody,
     print(f"[{name}] {summary} ({time.perf_counter() - started:.1f} s, profile {cfg.profile})")
 
 
-def training_dir(name: str, cfg: PipelineConfig, sections: list[str]) -> Path:
+def training_dir(name: str, cfg: PipelineConfig, sections: list[str], inputs: dict | None = None) -> Path:
     """Where a training stage keeps checkpoints: ``data/runs/<stage>-<profile>-<params hash>``.
 
     Outside the stage's declared outputs, because Snakemake and DVC delete those
-    before re-running a stage; keyed by the resolved params, so a killed run
-    resumes while a changed config starts afresh.
+    before re-running a stage; keyed by the resolved params (and ``inputs``, e.g.
+    checksums of upstream weights), so a killed run resumes while a changed config
+    or input starts afresh.
     """
-    blob = json.dumps({s: as_dict(cfg.section(s)) for s in sections}, sort_keys=True).encode()
+    key = {s: as_dict(cfg.section(s)) for s in sections}
+    if inputs:
+        key["inputs"] = inputs
+    blob = json.dumps(key, sort_keys=True).encode()
     return Path("data/runs") / f"{name}-{cfg.profile}-{hashlib.sha256(blob).hexdigest()[:12]}"
 
 

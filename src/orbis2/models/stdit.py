@@ -15,7 +15,7 @@ Inputs are latent frames ``x`` [B, F, C, h, w] with one noise level per frame
 tau = 0) and diffusion forcing (independent tau per frame). It returns the
 flow-matching velocity [B, F, C, h, w] (``orbis2.flow``).
 
-Block layout follows the reference STDiT (REFERENCE_NOTES "Predictor"): spatial
+Block layout follows the reference STDiT (the authors' code, "Predictor"): spatial
 attention, spatial MLP, temporal attention, temporal MLP, each with its own
 adaLN-Zero shift/scale/gate. With hidden 768, depth 24 that gives the paper's
 512M parameters; the abstract conditioning adds the paper's 43M because its
@@ -26,12 +26,16 @@ path and the cross-attention fit that budget.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from functools import lru_cache
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from orbis2.errors import OrbisError
+from orbis2.io import atomic_file, sha256_file
 from orbis2.models.tokenizer import sincos_pos_embed_2d
 
 # Initial gates of the abstract conditioning paths: small but non-zero (paper Appendix "Model details").
@@ -162,7 +166,7 @@ class NoiseLevelEmbedder(nn.Module):
 
 
 class SteeringEmbedder(nn.Module):
-    """Steering sequence [B, S, K] (e.g. speed and yaw rate; NaN = missing) -> [B, D] (REFERENCE_NOTES "Steering").
+    """Steering sequence [B, S, K] (e.g. speed and yaw rate; NaN = missing) -> [B, D] (the authors' code, "Steering").
 
     Each element's token is the sum over features of a small MLP (1 -> D -> D)
     of that value, or of a learned "no value" embedding where it is NaN, plus a
@@ -226,7 +230,7 @@ class AbstractConditioner(nn.Module):
     Paper Appendix "Detailed short-horizon predictor": a linear patchify (resized
     to the detail grid first if the grids differ), zero where ``cond_mask`` says
     the slot carries no latent, plus a learned frame-position MLP of i/(F-1) for
-    every slot (REFERENCE_NOTES "Hierarchy wiring") and the fixed 2-D sin-cos
+    every slot (the authors' code, "Hierarchy wiring") and the fixed 2-D sin-cos
     position, so the cross-attention keys know where each token lies.
     """
 
@@ -332,7 +336,7 @@ class STDiT(nn.Module):
     """The ST-DiT velocity network (see the module docstring).
 
     Token positions: fixed 2-D sin-cos over the patch grid, a learned frame
-    embedding and a sinusoidal frame-rate encoding (REFERENCE_NOTES "Predictor").
+    embedding and a sinusoidal frame-rate encoding (the authors' code, "Predictor").
     Frame embeddings are aligned to the last frame (frame i of F uses slot
     max_frames - F + i, as in the reference code), so the predicted frame has
     the same embedding whatever the context length, including the linear-probe
@@ -579,3 +583,40 @@ def build_stdit(
         steering=steering,
         **cfg,
     )
+
+
+# --------------------------------------------------------------------------- files
+
+
+@dataclass
+class PredictorFile:
+    """A trained predictor as rollouts and evaluation load it.
+
+    ``build`` holds the :func:`build_stdit` arguments; ``meta`` what the weights
+    mean: which latents (tokenizer checksums, scales), rates and windows.
+    """
+
+    model: STDiT
+    build: dict
+    meta: dict
+    checksum: str
+
+
+def save_predictor(path: Path, model: nn.Module, build: dict, meta: dict) -> None:
+    """Write ``{build, meta, state_dict}`` atomically; same content, same bytes."""
+    blob = {"build": build, "meta": meta, "state_dict": model.state_dict()}
+    with atomic_file(Path(path)) as tmp, open(tmp, "wb") as handle:
+        torch.save(blob, handle)
+
+
+def load_predictor(path: Path, device: str | torch.device = "cpu") -> PredictorFile:
+    """Rebuild the architecture from the file, load the weights strictly, eval mode, frozen."""
+    path = Path(path)
+    if not path.is_file():
+        raise OrbisError(f"{path}: predictor checkpoint not found; run its training stage first")
+    blob = torch.load(path, map_location=device, weights_only=True)
+    build = dict(blob["build"])
+    model = build_stdit(**build)
+    model.load_state_dict(blob["state_dict"])
+    model.to(device).eval().requires_grad_(False)
+    return PredictorFile(model, blob["build"], blob["meta"], sha256_file(path))

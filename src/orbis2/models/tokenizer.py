@@ -10,7 +10,7 @@ Two tokenizers share the blocks below (paper Sec. 3.2 and Appendix "Tokenizer"):
   eq. 3) and a lightweight decoder D_H as a weak reconstruction regulariser.
 
 The world model consumes the *continuous* normalised latent of ``encode``; the
-quantiser only regularises it (REFERENCE_NOTES "Tokenizer").
+quantiser only regularises it (the authors' code, "Tokenizer").
 """
 
 from __future__ import annotations
@@ -109,7 +109,7 @@ class Block(nn.Module):
 class ViTEncoder(nn.Module):
     """ViT over a fixed (H, W) image returning patch tokens as [B, D, H/p, W/p].
 
-    No CLS token: only patch tokens are used downstream (REFERENCE_NOTES
+    No CLS token: only patch tokens are used downstream (the authors' code,
     "Tokenizer"). The position embedding is the 2-D sin-cos table of the
     (non-square) grid, frozen like MAE's unless ``learn_pos_embed``. Module
     names follow MAE's checkpoint so ``load_mae_encoder`` is a near-identity map.
@@ -231,7 +231,7 @@ def codebook_usage(indices: torch.Tensor, codebook_size: int) -> dict[str, float
 
 
 class VectorQuantizer(nn.Module):
-    """Cosine-similarity VQ over L2-normalised latents (REFERENCE_NOTES "Tokenizer").
+    """Cosine-similarity VQ over L2-normalised latents (the authors' code, "Tokenizer").
 
     Input: latents already L2-normalised along channels. The codebook is
     normalised on every use, so nearest-by-cosine equals nearest-by-L2 and the
@@ -561,7 +561,7 @@ class AbstractTokenizer(nn.Module):
 
 # --------------------------------------------------------------------------- presets
 
-# Shared by every preset unless overridden: reference values (REFERENCE_NOTES "Tokenizer").
+# Shared by every preset unless overridden: reference values (the authors' code, "Tokenizer").
 _COMMON = {
     "latent_dim": 16,
     "beta": 0.25,

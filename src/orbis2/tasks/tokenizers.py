@@ -263,7 +263,7 @@ class DetailGAN(nn.Module):
 
 
 class DetailTokenizerTask(_TokenizerTask):
-    """E_L with the VQGAN objective (REFERENCE_NOTES "Tokenizer"); LPIPS is left out (no VGG weights offline)."""
+    """E_L with the VQGAN objective (the authors' code, "Tokenizer"); LPIPS is left out (no VGG weights offline)."""
 
     cfg: DetailTokenizerConfig
 
@@ -397,7 +397,7 @@ def latent_scale(model: nn.Module, frames: Iterable[torch.Tensor]) -> float:
     The world model adds unit-variance noise to scaled latents; scaling them to unit
     variance makes a noise level mean the same for every tokenizer (the latent
     diffusion "scale factor"). An L2-normalised 16-d latent has a per-element std near
-    1/4, so the scale comes out near 4 (REFERENCE_NOTES: about 4 and 3.45).
+    1/4, so the scale comes out near 4 (the authors' code: about 4 and 3.45).
     """
     device = next(model.parameters()).device
     total = square = count = 0.0

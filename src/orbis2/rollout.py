@@ -1,0 +1,196 @@
+"""Autoregressive rollouts: the cascaded hierarchical one and single-branch baselines.
+
+Protocol (paper Appendix "Inference protocol", the authors' code, "Hierarchy
+wiring"): per step the abstract predictor samples one latent at 2 Hz from its
+5-frame context (15 NFE); the detail predictor samples the next 5 frames at
+10 Hz from its 5-frame context (30 NFE), conditioned on the last abstract
+context latent (aligned with its last context frame) and the predicted one
+(aligned with its last target frame). Then both windows slide: the detail
+context takes the 5 new frames, the abstract context the predicted latent. One
+step therefore advances 0.5 s at both rates, which is what keeps the two
+windows aligned for any rollout length.
+
+The window bookkeeping is pure (:func:`rollout_schedule`) and uses the same
+``window_indices`` as training, so a rollout sees its frames at exactly the
+offsets the predictors were trained on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from orbis2.config import DataConfig
+from orbis2.data.shards import window_indices
+from orbis2.flow import ModelFn, euler_sample
+
+StepCallback = Callable[[int], None]
+
+
+@dataclass(frozen=True)
+class ScheduleStep:
+    """Native frame indices of one rollout step."""
+
+    detail_context: tuple[int, ...]
+    detail_target: tuple[int, ...]
+    abstract_context: tuple[int, ...]
+    abstract_target: int
+    steering: tuple[int, ...]  # odometry samples conditioning this step's abstract prediction
+
+
+def check_step_alignment(data: DataConfig) -> None:
+    """One step must advance both windows by the same time, or they drift apart over a rollout."""
+    detail_advance = (data.detail_window - data.detail_context) * data.detail_stride
+    abstract_advance = (data.abstract_window - data.abstract_context) * data.abstract_stride
+    if detail_advance != abstract_advance:
+        raise ValueError(
+            f"a rollout step advances the detail window by {detail_advance} native frames but the abstract "
+            f"window by {abstract_advance}; the windows must cover the same time per step"
+        )
+
+
+def first_context_end(data: DataConfig) -> int:
+    """Earliest native index of the last context frame: the abstract context reaches furthest back."""
+    detail, abstract = window_indices(data, 0)
+    return -int(min(detail.min(), abstract.min()))
+
+
+def rollout_schedule(data: DataConfig, context_end: int, steps: int) -> list[ScheduleStep]:
+    """Per step, the native frame indices of both windows, with the last real context frame at ``context_end``.
+
+    Step k is a training window anchored ``k`` steps (0.5 s each) later; its
+    context frames after ``context_end`` are earlier steps' predictions. The
+    steering samples are the native odometry rows from the last abstract context
+    frame up to (not including) the subgoal, i.e. the motion the subgoal
+    should reflect, anchored at the last context frame (the authors' code, "Steering").
+    """
+    check_step_alignment(data)
+    if context_end < first_context_end(data):
+        raise ValueError(f"context_end = {context_end} leaves no room for the context windows "
+                         f"(needs >= {first_context_end(data)})")
+    advance = (data.detail_window - data.detail_context) * data.detail_stride
+    schedule = []
+    for k in range(steps):
+        anchor = context_end + k * advance
+        detail, abstract = window_indices(data, anchor)
+        target = int(abstract[data.abstract_context])
+        schedule.append(ScheduleStep(
+            detail_context=tuple(int(i) for i in detail[: data.detail_context]),
+            detail_target=tuple(int(i) for i in detail[data.detail_context:]),
+            abstract_context=tuple(int(i) for i in abstract[: data.abstract_context]),
+            abstract_target=target,
+            steering=tuple(range(anchor, target)),
+        ))
+    return schedule
+
+
+def steering_sequences(schedule: list[ScheduleStep], speed: np.ndarray, yaw_rate: np.ndarray,
+                       speed_norm: float = 1.0, yaw_rate_norm: float = 1.0) -> torch.Tensor:
+    """Per-step steering [steps, S, 2] (speed / speed_norm, yaw rate / yaw_rate_norm) from native-rate odometry."""
+    index = np.array([step.steering for step in schedule])
+    values = np.stack([np.asarray(speed)[index] / speed_norm, np.asarray(yaw_rate)[index] / yaw_rate_norm], axis=-1)
+    return torch.from_numpy(values).float()
+
+
+def _slide(context: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
+    """Append ``new`` frames to the context window and drop as many of its oldest frames."""
+    return torch.cat([context, new], dim=1)[:, -context.shape[1]:]
+
+
+def _step_steering(steering: torch.Tensor | None, k: int, batch: int, steps: int) -> dict:
+    if steering is None:
+        return {}
+    if steering.ndim != 4 or steering.shape[:2] != (batch, steps):
+        raise ValueError(f"steering must be [B, steps, S, K] = [{batch}, {steps}, S, K], got {list(steering.shape)}")
+    return {"steering": steering[:, k]}
+
+
+def detail_conditioning(last_context: torch.Tensor, subgoal: torch.Tensor, n_context: int,
+                        n_target: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """cond_frames [B, F, C_a, h_a, w_a] and cond_mask [B, F] of one detail window.
+
+    The last abstract context latent sits at the last context slot and the
+    subgoal at the last target slot; other slots carry zeros (the authors' code,
+    "Hierarchy wiring").
+    """
+    b = last_context.shape[0]
+    frames = n_context + n_target
+    cond = last_context.new_zeros((b, frames, *last_context.shape[1:]))
+    cond[:, n_context - 1] = last_context
+    cond[:, frames - 1] = subgoal
+    mask = torch.zeros(b, frames, dtype=torch.bool, device=last_context.device)
+    mask[:, [n_context - 1, frames - 1]] = True
+    return cond, mask
+
+
+@torch.no_grad()
+def cascaded_rollout(
+    abstract_model: ModelFn,
+    detail_model: ModelFn,
+    detail_context: torch.Tensor,
+    abstract_context: torch.Tensor,
+    steps: int,
+    generator: torch.Generator,
+    abstract_nfe: int = 15,
+    detail_nfe: int = 30,
+    frames_per_step: int = 5,
+    abstract_hz: float = 2.0,
+    detail_hz: float = 10.0,
+    steering: torch.Tensor | None = None,
+    on_step: StepCallback | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Hierarchical rollout; returns detail latents [B, frames_per_step * steps, ...] and subgoals [B, steps, ...].
+
+    ``detail_context`` [B, 5, C, h, w] and ``abstract_context`` [B, 5, C_a, h_a, w_a]
+    are scaled latents whose last frames show the same instant. ``steering``
+    [B, steps, S, 2] conditions the abstract predictor step by step (None:
+    unconditional). ``on_step(k)`` is called after step k (progress bars).
+    """
+    b = detail_context.shape[0]
+    n_context = detail_context.shape[1]
+    details, subgoals = [], []
+    for k in range(steps):
+        subgoal = euler_sample(abstract_model, abstract_context, 1, abstract_nfe, generator,
+                               frame_rate=abstract_hz, **_step_steering(steering, k, b, steps))
+        cond_frames, cond_mask = detail_conditioning(abstract_context[:, -1], subgoal[:, 0], n_context,
+                                                     frames_per_step)
+        new = euler_sample(detail_model, detail_context, frames_per_step, detail_nfe, generator,
+                           frame_rate=detail_hz, cond_frames=cond_frames, cond_mask=cond_mask)
+        detail_context = _slide(detail_context, new)
+        abstract_context = _slide(abstract_context, subgoal)
+        details.append(new)
+        subgoals.append(subgoal)
+        if on_step is not None:
+            on_step(k)
+    return torch.cat(details, dim=1), torch.cat(subgoals, dim=1)
+
+
+@torch.no_grad()
+def flat_rollout(
+    model: ModelFn,
+    context: torch.Tensor,
+    steps: int,
+    frames_per_step: int,
+    nfe: int,
+    frame_rate: float,
+    generator: torch.Generator,
+    steering: torch.Tensor | None = None,
+    on_step: StepCallback | None = None,
+) -> torch.Tensor:
+    """Single-branch baseline: the same sliding window, no abstract conditioning.
+
+    Returns [B, frames_per_step * steps, ...].
+    """
+    b = context.shape[0]
+    frames = []
+    for k in range(steps):
+        new = euler_sample(model, context, frames_per_step, nfe, generator, frame_rate=frame_rate,
+                           **_step_steering(steering, k, b, steps))
+        context = _slide(context, new)
+        frames.append(new)
+        if on_step is not None:
+            on_step(k)
+    return torch.cat(frames, dim=1)

@@ -1,0 +1,392 @@
+"""Training the two predictors of the hierarchy (paper Sec. 3.3-3.4) with the shared loop.
+
+Four stages, one task class, chosen by ``STAGES[stage]``:
+
+- ``abstract_df``: the abstract predictor F_H (causal, 6 frames at 2 Hz) pre-trained
+  with diffusion forcing (eq. 2): an independent tau per frame, loss on every frame.
+- ``abstract_tf``: F_H fine-tuned with teacher forcing (eq. 1): 5 clean context
+  frames, 1 target; starts from ``init_from`` (``abstract_df``, or null for the
+  "TF only" ablation).
+- ``detail``: the detail predictor F_L (bidirectional, 10 frames at 10 Hz, 5 + 5)
+  with teacher forcing, conditioned on the ground-truth abstract latents of its
+  last context frame and of the subgoal aligned with its last predicted frame
+  (paper eq. for F_L; the authors' code, "Hierarchy wiring").
+- ``action``: F_H with a steering embedder, fine-tuned with teacher forcing from
+  ``abstract_tf``; only the abstract level is steered (paper "Action-conditioning").
+
+Batches come from :class:`~orbis2.latents.LatentWindowDataset` (already scaled
+latents). All randomness of a training step comes from a generator seeded by
+``(seed, rank, step)``, so a resumed run draws what an uninterrupted one would.
+The validation loss uses fixed val windows and a fixed generator: it is
+comparable across steps and with the network at initialisation
+(``val_loss_init``), which :meth:`PredictorTask.build_model` rebuilds exactly
+because it is a pure function of the config.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch import nn
+
+from orbis2.config import (
+    ActionConfig,
+    DataConfig,
+    PipelineConfig,
+    PredictorConfig,
+    TeacherForcingConfig,
+)
+from orbis2.data.shards import window_indices, window_span
+from orbis2.errors import OrbisError
+from orbis2.flow import diffusion_forcing_loss, teacher_forcing_loss
+from orbis2.io import sha256_file
+from orbis2.latents import LatentCache, LatentWindowDataset, open_cache
+from orbis2.models.stdit import build_stdit, load_predictor, save_predictor
+from orbis2.stage import publish_training, training_dir
+from orbis2.tracking import StageRun
+from orbis2.train import DataSpec, load_weights, train
+
+LATENTS = Path("data/latents")
+TOKENIZERS = {"detail": Path("data/tokenizers/detail/tokenizer.pt"),
+              "abstract": Path("data/tokenizers/abstract/tokenizer.pt")}
+# Offset of the validation generator's seed from the training seed: a different stream, fixed across steps.
+VAL_SEED_OFFSET = 7919
+STEERING_FEATURES = ("speed", "yaw_rate")
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """What distinguishes the four predictor stages."""
+
+    level: str  # "abstract" or "detail": which latents the predictor models
+    objective: str  # "diffusion_forcing" or "teacher_forcing"
+    steering: bool = False
+
+
+STAGES = {
+    "abstract_df": StageSpec("abstract", "diffusion_forcing"),
+    "abstract_tf": StageSpec("abstract", "teacher_forcing"),
+    "detail": StageSpec("detail", "teacher_forcing"),
+    "action": StageSpec("abstract", "teacher_forcing", steering=True),
+}
+
+
+def predictor_path(stage: str) -> Path:
+    return Path("data/predictors") / stage / "predictor.pt"
+
+
+# --------------------------------------------------------------------------- conditioning
+
+
+def detail_condition_slots(data: DataConfig) -> dict[int, int]:
+    """Detail frame slot -> abstract window index of the latent placed there.
+
+    The last detail context frame gets the last abstract context latent (same
+    native frame) and the last predicted detail frame gets the abstract subgoal
+    (the predicted abstract frame); every other slot gets none.
+    """
+    detail, abstract = window_indices(data, 0)
+    slots = {data.detail_context - 1: data.abstract_context - 1, data.detail_window - 1: data.abstract_window - 1}
+    for slot, index in slots.items():
+        if detail[slot] != abstract[index]:
+            raise OrbisError(f"detail slot {slot} (native frame {detail[slot]}) and abstract index {index} "
+                             f"(native frame {abstract[index]}) are not the same frame; check the data section")
+    return slots
+
+
+def detail_condition(abstract: torch.Tensor, data: DataConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """Abstract window [B, A, C, h, w] -> ``cond_frames`` [B, F_detail, C, h, w] and ``cond_mask`` [B, F_detail]."""
+    b = abstract.shape[0]
+    frames = abstract.new_zeros(b, data.detail_window, *abstract.shape[2:])
+    mask = torch.zeros(b, data.detail_window, dtype=torch.bool, device=abstract.device)
+    for slot, index in detail_condition_slots(data).items():
+        frames[:, slot] = abstract[:, index]
+        mask[:, slot] = True
+    return frames, mask
+
+
+def steering_interval(data: DataConfig) -> slice:
+    """Rows of the native odometry span (``item["odometry"]``) that drive the ego from the last
+    context frame to the predicted one: row k holds the controls over [t_k, t_k+1), so the
+    predicted frame's own row is excluded."""
+    detail, abstract = window_indices(data, 0)
+    first = int(window_span(detail, abstract)[0])
+    return slice(int(abstract[data.abstract_context - 1]) - first, int(abstract[-1]) - first)
+
+
+def steering_features(odometry: torch.Tensor, has_odometry: torch.Tensor, data: DataConfig,
+                      cfg: ActionConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """Native odometry span [B, S, 2] -> unit-scale steering [B, T, 2] and ``unknown`` [B].
+
+    Speed and yaw rate over the predicted interval, divided by the configured
+    scales. A sample without odometry, or with any NaN in the interval, is
+    ``unknown``: it must run unconditionally (its values are zeroed).
+    """
+    values = odometry[:, steering_interval(data)]
+    values = values / values.new_tensor([cfg.speed_scale, cfg.yaw_rate_scale])
+    unknown = ~has_odometry.bool() | torch.isnan(values).flatten(1).any(dim=1)
+    return torch.where(unknown[:, None, None], torch.zeros_like(values), values), unknown
+
+
+# --------------------------------------------------------------------------- data
+
+
+def collate(items: list[dict[str, Any]]) -> dict[str, torch.Tensor]:
+    """Stack the tensors the predictors use."""
+    return {"detail": torch.stack([i["detail"] for i in items]),
+            "abstract": torch.stack([i["abstract"] for i in items]),
+            "odometry": torch.stack([i["odometry"] for i in items]),
+            "has_odometry": torch.tensor([i["has_odometry"] for i in items])}
+
+
+def window_batches(dataset: LatentWindowDataset, spec: DataSpec) -> Iterator[dict[str, torch.Tensor]]:
+    """Endless train batches of this rank from batch ``spec.start`` on; a pure function of the spec.
+
+    Each epoch is a permutation drawn from ``(seed, epoch)``, shared by all ranks,
+    of which each rank keeps every ``world_size``-th window; skipping to ``start``
+    reads no windows.
+    """
+    n = len(dataset)
+    per_epoch = (n // spec.world_size) // spec.batch_size
+    if per_epoch == 0:
+        raise OrbisError(f"the {dataset.split} split gives {n} windows, fewer than one batch of {spec.batch_size} "
+                         f"per process; lower the batch size or anchor_stride, or add data")
+    first_epoch, offset = divmod(spec.start, per_epoch)
+    for epoch in itertools.count(first_epoch):
+        order = np.random.default_rng([spec.seed, epoch]).permutation(n)[spec.rank::spec.world_size]
+        for b in range(offset, per_epoch):
+            yield collate([dataset[int(i)] for i in order[b * spec.batch_size:(b + 1) * spec.batch_size]])
+        offset = 0
+
+
+def step_generator(seed: int, rank: int, step: int, device: torch.device) -> torch.Generator:
+    """The noise source of one training step: independent of the global RNG, so resuming replays it."""
+    generator = torch.Generator(device)
+    generator.manual_seed(int(np.random.SeedSequence([seed, rank, step]).generate_state(1)[0]))
+    return generator
+
+
+# --------------------------------------------------------------------------- task
+
+
+class PredictorTask:
+    """One predictor stage: model (optionally initialised from another stage), batches, loss, validation."""
+
+    def __init__(self, stage: str, cfg: PredictorConfig, data: DataConfig, cache: LatentCache,
+                 init_state: dict[str, torch.Tensor] | None = None):
+        if stage not in STAGES:
+            raise ValueError(f"unknown predictor stage {stage!r}; choose from {sorted(STAGES)}")
+        self.stage, self.spec, self.cfg, self.data, self.cache = stage, STAGES[stage], cfg, data, cache
+        self.init_state = init_state
+        self.train_set = LatentWindowDataset(cache, "train", data, cfg.anchor_stride)
+        self.val_set = LatentWindowDataset(cache, "val", data, cfg.anchor_stride)
+        self.frame_rate = float(data.abstract_hz if self.spec.level == "abstract" else data.detail_hz)
+        self._val: list[dict[str, torch.Tensor]] | None = None
+        self._val_init: float | None = None
+
+    @property
+    def rank(self) -> int:
+        """This process's rank; read when used, since :func:`train` joins the process group after construction."""
+        return dist.get_rank() if dist.is_initialized() else 0
+
+    @property
+    def build(self) -> dict[str, Any]:
+        """The :func:`build_stdit` arguments, as :func:`save_predictor` records them."""
+        shapes = self.cache.meta["tokenizers"]
+        detail = self.spec.level == "detail"
+        return {"preset": self.cfg.preset, "latent_channels": shapes[self.spec.level]["shape"][0],
+                "causal": not detail, "abstract_channels": shapes["abstract"]["shape"][0] if detail else None,
+                "steering": self.spec.steering, **self.cfg.model}
+
+    def build_model(self) -> nn.Module:
+        """A pure function of the config: seeded from ``train.seed``, then ``init_state`` loaded if given.
+
+        A steered model loads an unsteered state with only the steering embedder
+        left at its initialisation, whose output starts at zero: the fine-tune
+        starts from exactly the pre-trained predictor.
+        """
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(self.cfg.train.seed)
+            model = build_stdit(**self.build)
+        if self.init_state is not None:
+            missing, unexpected = model.load_state_dict(self.init_state, strict=False)
+            stray = [k for k in missing if not (self.spec.steering and k.startswith("steering."))]
+            if stray or unexpected:
+                raise OrbisError(f"{self.stage}: the {self.cfg.init_from} weights do not fit this predictor "
+                                 f"(missing {stray[:5]}, unexpected {unexpected[:5]}); re-run {self.cfg.init_from} "
+                                 f"with the same preset and model overrides")
+        return model
+
+    def batches(self, spec: DataSpec) -> Iterator[dict[str, torch.Tensor]]:
+        return window_batches(self.train_set, spec)
+
+    def objective(self, model: nn.Module, batch: dict[str, torch.Tensor], generator: torch.Generator,
+                  augment: bool) -> tuple[torch.Tensor, dict[str, float]]:
+        """The flow-matching loss of this stage; ``augment`` switches on context noise/drop and steering dropout."""
+        frames = batch[self.spec.level]
+        cond: dict[str, Any] = {"frame_rate": self.frame_rate}
+        if self.spec.level == "detail":
+            cond["cond_frames"], cond["cond_mask"] = detail_condition(batch["abstract"], self.data)
+        if self.spec.objective == "diffusion_forcing":
+            return diffusion_forcing_loss(model, frames, generator, **cond)
+        cfg = self.cfg
+        assert isinstance(cfg, TeacherForcingConfig)
+        n_context = self.data.detail_context if self.spec.level == "detail" else self.data.abstract_context
+        metrics: dict[str, float] = {}
+        if self.spec.steering:
+            assert isinstance(cfg, ActionConfig)
+            cond["steering"], unknown = steering_features(batch["odometry"], batch["has_odometry"], self.data, cfg)
+            dropped = torch.rand(len(frames), generator=generator, device=generator.device).to(frames.device)
+            cond["steering_drop"] = unknown | (dropped < (cfg.steering_dropout if augment else 0.0))
+            metrics = {"steering_unknown": unknown.float().mean().item(),
+                       "steering_dropped": cond["steering_drop"].float().mean().item()}
+        loss, tf_metrics = teacher_forcing_loss(
+            model, frames[:, :n_context], frames[:, n_context:], generator,
+            context_noise_prob=cfg.context_noise_prob if augment else 0.0, context_noise_std=cfg.context_noise_std,
+            context_drop_prob=cfg.context_drop_prob if augment else 0.0, **cond)
+        return loss, {**tf_metrics, **metrics}
+
+    def loss(self, model: nn.Module, batch: dict[str, torch.Tensor], step: int) -> tuple[torch.Tensor, dict]:
+        device = batch[self.spec.level].device
+        return self.objective(model, batch, step_generator(self.cfg.train.seed, self.rank, step, device), True)
+
+    def val_windows(self) -> list[dict[str, torch.Tensor]]:
+        """``val_batches`` batches of val windows spread evenly over the split; the same every call."""
+        if self._val is None:
+            size = self.cfg.train.batch_size
+            count = min(len(self.val_set), self.cfg.val_batches * size)
+            if count == 0:
+                raise OrbisError(f"{self.cache.root}: the val split gives no windows; add val data or lower "
+                                 f"anchor_stride")
+            picks = np.linspace(0, len(self.val_set) - 1, count).round().astype(int)
+            self._val = [collate([self.val_set[int(i)] for i in picks[s:s + size]]) for s in range(0, count, size)]
+        return self._val
+
+    @torch.no_grad()
+    def val_loss(self, model: nn.Module) -> float:
+        """Mean un-augmented loss over :meth:`val_windows` with noise from one fixed generator."""
+        device = next(model.parameters()).device
+        generator = torch.Generator(device)
+        generator.manual_seed(self.cfg.train.seed + VAL_SEED_OFFSET)
+        losses, weights = [], []
+        for batch in self.val_windows():
+            batch = {k: v.to(device) for k, v in batch.items()}
+            losses.append(self.objective(model, batch, generator, augment=False)[0].item())
+            weights.append(len(batch["has_odometry"]))
+        return float(np.average(losses, weights=weights))
+
+    def evaluate(self, model: nn.Module, step: int) -> dict[str, float]:
+        """``val_loss``; the first call also logs ``val_loss_init``, the same loss of the untrained network."""
+        metrics = {"val_loss": self.val_loss(model)}
+        if self._val_init is None:
+            self._val_init = self.init_val_loss(next(model.parameters()).device)
+            metrics["val_loss_init"] = self._val_init
+        return metrics
+
+    def init_val_loss(self, device: torch.device) -> float:
+        return self.val_loss(self.build_model().to(device).eval())
+
+
+# --------------------------------------------------------------------------- stage
+
+
+def tokenizer_checksums(detail: Path, abstract: Path) -> tuple[str, str]:
+    """SHA-256 of the tokenizer files (what ``load_tokenizer(...).checksum`` gives) without loading the networks."""
+    for path in (detail, abstract):
+        if not path.is_file():
+            raise OrbisError(f"{path}: tokenizer checkpoint not found; run its training stage first")
+    return sha256_file(detail), sha256_file(abstract)
+
+
+def load_init_state(stage: str, source: str, cache: LatentCache) -> dict[str, torch.Tensor]:
+    """The weights of the published predictor of stage ``source``, refusing one trained on other latents."""
+    loaded = load_predictor(predictor_path(source))
+    for kind in ("detail", "abstract"):
+        theirs = loaded.meta["tokenizers"][kind]["checksum"]
+        if theirs != cache.meta["tokenizers"][kind]["checksum"]:
+            raise OrbisError(f"{predictor_path(source)} was trained on latents of another {kind} tokenizer; "
+                             f"re-run `{source}` before `{stage}`")
+    return loaded.model.state_dict()
+
+
+def train_predictor(stage: str, cfg: PipelineConfig, cache: LatentCache, out_dir: Path,
+                    logger: Any = None) -> dict[str, float]:
+    """A predictor stage: train (resuming), then measure the final val loss and write ``predictor.pt``.
+
+    Returns the final metrics on rank 0 and ``{}`` on other ranks (under torchrun).
+    """
+    pc: PredictorConfig = cfg.section(stage)
+    init_state = None if pc.init_from is None else load_init_state(stage, pc.init_from, cache)
+    task = PredictorTask(stage, pc, cfg.data, cache, init_state)
+    result = train(task, pc.train, Path(out_dir), logger)
+    if task.rank != 0:
+        return {}
+    device = torch.device("cuda", torch.cuda.current_device()) if torch.cuda.is_available() else torch.device("cpu")
+    model = task.build_model()
+    model.load_state_dict(load_weights(result.model_path))
+    model.to(device).eval()
+    metrics = {"val_loss": task.val_loss(model), "val_loss_init": task.init_val_loss(device), "steps": result.step,
+               "parameters": sum(p.numel() for p in model.parameters())}
+    save_predictor(Path(out_dir) / "predictor.pt", model, task.build, predictor_meta(stage, cfg, cache, metrics))
+    return metrics
+
+
+def predictor_meta(stage: str, cfg: PipelineConfig, cache: LatentCache, metrics: dict[str, float]) -> dict:
+    """What the weights mean: which latents, which rates and windows, how they were trained."""
+    spec, pc, d = STAGES[stage], cfg.section(stage), cfg.data
+    level_window = {"abstract": (d.abstract_window, d.abstract_context), "detail": (d.detail_window, d.detail_context)}
+    meta = {
+        "stage": stage, "level": spec.level, "objective": spec.objective, "init_from": pc.init_from,
+        "tokenizers": {kind: {"checksum": cache.meta["tokenizers"][kind]["checksum"],
+                              "scale": cache.meta["tokenizers"][kind]["scale"]} for kind in ("detail", "abstract")},
+        "frame_rate": d.abstract_hz if spec.level == "abstract" else d.detail_hz,
+        "rates": {"fps": d.fps, "detail_hz": d.detail_hz, "abstract_hz": d.abstract_hz},
+        "windows": {level: {"window": w, "context": c} for level, (w, c) in level_window.items()},
+        "metrics": metrics,
+    }
+    if spec.level == "detail":
+        meta["condition_slots"] = {str(slot): index for slot, index in detail_condition_slots(d).items()}
+    if spec.steering:
+        interval = steering_interval(d)
+        meta["steering"] = {"features": list(STEERING_FEATURES), "scale": [pc.speed_scale, pc.yaw_rate_scale],
+                            "steps": interval.stop - interval.start,
+                            "interval": "native odometry rows from the last context frame up to the predicted one"}
+    return meta
+
+
+def stage_sections(stage: str) -> list[str]:
+    """The params.yaml sections a predictor stage reads."""
+    return ["data", stage]
+
+
+def run_stage(stage: str, cfg: PipelineConfig, run: StageRun) -> str:
+    """The body of ``stages/<stage>.py``: train in data/runs/, publish predictor.pt and reports/<stage>.json.
+
+    The run folder is keyed by the params and by the upstream files (the latent
+    cache's meta, which names the tokenizers and shards, and the ``init_from``
+    predictor): a retrained upstream starts a fresh run instead of resuming one
+    that trained on other inputs.
+    """
+    cache = open_cache(LATENTS, *tokenizer_checksums(TOKENIZERS["detail"], TOKENIZERS["abstract"]))
+    init_from = cfg.section(stage).init_from
+    inputs = {"latents": sha256_file(LATENTS / "meta.json")}
+    if init_from is not None:
+        source = predictor_path(init_from)
+        if not source.is_file():
+            raise OrbisError(f"{source}: not found; `{stage}` starts from it (init_from), run `{init_from}` first")
+        inputs[init_from] = sha256_file(source)
+    work = training_dir(stage, cfg, stage_sections(stage), inputs)
+    metrics = train_predictor(stage, cfg, cache, work, run)
+    if not metrics:
+        return "training rank done; rank 0 writes the outputs"
+    run.log_metrics(metrics, step=int(metrics["steps"]))
+    out = predictor_path(stage)
+    publish_training(work, out.parent, [out.name], Path("reports") / f"{stage}.json", metrics, run)
+    return (f"{metrics['steps']} steps, {metrics['parameters'] / 1e6:.2f}M parameters, val loss "
+            f"{metrics['val_loss']:.4f} (at initialisation {metrics['val_loss_init']:.4f}) -> {out}")

@@ -1,0 +1,159 @@
+"""Predictor tasks: each overfits a tiny batch, hierarchy and steering inputs, initialisation, resumable data."""
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from orbis2.config import TrainConfig
+from orbis2.latents import FORMAT, LatentWindowDataset, open_cache
+from orbis2.tasks.predictors import (
+    PredictorTask,
+    detail_condition,
+    detail_condition_slots,
+    steering_features,
+    window_batches,
+)
+from orbis2.train import DataSpec, train
+
+C, H, W = 4, 3, 4
+SPAN = 26  # native frames of one training window (smoke data section)
+
+
+def write_cache(root, clips: dict[str, list[int]], odometry=None):
+    """A latent cache in the `latents` stage's format: smooth moving latents, odometry row r = (r, -r / 10)."""
+    meta = {"format": FORMAT, "dtype": "float16", "data": {"source": "town", "fps": 10, "width": 128, "height": 72},
+            "tokenizers": {kind: {"checksum": kind * 8, "scale": 1.0, "file": None, "shape": [C, H, W]}
+                           for kind in ("detail", "abstract")},
+            "splits": {}}
+    grid = np.arange(C * H * W).reshape(C, H, W) / (C * H * W)
+    for split, lengths in clips.items():
+        frames, index, offset = sum(lengths), {}, 0
+        folder = root / split
+        folder.mkdir(parents=True)
+        t = np.arange(frames)[:, None, None, None]
+        for kind, phase in (("detail", 0.0), ("abstract", 1.0)):
+            np.save(folder / f"{kind}.npy", np.sin(0.3 * t + 6 * grid + phase).astype(np.float16))
+        rows = np.arange(frames, dtype=np.float32)
+        np.save(folder / "odometry.npy", np.stack([rows, -rows / 10], 1) if odometry is None else odometry)
+        for i, length in enumerate(lengths):
+            index[f"{split}-{i:03d}"] = {"offset": offset, "length": length, "has_odometry": True, "episode": i,
+                                         "start_frame": 0}
+            offset += length
+        (folder / "index.json").write_text(json.dumps(index))
+        meta["splits"][split] = {"frames": frames, "clips": len(lengths)}
+    (root / "meta.json").write_text(json.dumps(meta))
+    return open_cache(root)
+
+
+@pytest.fixture(scope="module")
+def tiny_cache(tmp_path_factory):
+    """One train clip of 4 windows (one batch), one val clip."""
+    return write_cache(tmp_path_factory.mktemp("cache"), {"train": [SPAN + 3], "val": [SPAN + 5]})
+
+
+def tiny_cfg(smoke_cfg, stage, **changes):
+    cfg = smoke_cfg.section(stage)
+    train_cfg = TrainConfig(steps=80, batch_size=4, lr=0.003, warmup_steps=5, log_every=1, eval_every=80,
+                            checkpoint_every=1000, seed=3)
+    return dataclasses.replace(cfg, **{"train": train_cfg, "init_from": None, "val_batches": 1, **changes})
+
+
+@pytest.mark.parametrize("stage", ["abstract_df", "abstract_tf", "detail", "action"])
+def test_each_task_overfits_a_tiny_batch(stage, tiny_cache, smoke_cfg, tmp_path):
+    torch.set_num_threads(1)
+    changes = {"context_noise_prob": 0.0, "context_drop_prob": 0.0} if stage != "abstract_df" else {}
+    task = PredictorTask(stage, tiny_cfg(smoke_cfg, stage, **changes), smoke_cfg.data, tiny_cache)
+    result = train(task, task.cfg.train, tmp_path)
+    losses = [m["loss"] for _, m in result.history if "loss" in m]
+    first, last = np.mean(losses[:10]), np.mean(losses[-10:])
+    assert last < 0.5 * first, (first, last)
+    final = dict(result.history[-1][1])
+    assert final["val_loss"] < final["val_loss_init"]
+
+
+def test_validation_loss_is_fixed_and_init_is_the_untrained_network(tiny_cache, smoke_cfg):
+    task = PredictorTask("abstract_tf", tiny_cfg(smoke_cfg, "abstract_tf"), smoke_cfg.data, tiny_cache)
+    model = task.build_model().eval()
+    first = task.evaluate(model, 0)
+    assert first["val_loss"] == task.val_loss(model) == first["val_loss_init"]
+    assert "val_loss_init" not in task.evaluate(model, 1)  # logged once
+
+
+def test_detail_condition_slots(smoke_cfg):
+    # detail frames: anchor + (i - 4) at 10 Hz; abstract: anchor + 5 (j - 4) at 2 Hz.
+    # Slot 4 (anchor) <- abstract 4 (anchor); slot 9 (anchor + 5) <- abstract 5 (anchor + 5).
+    assert detail_condition_slots(smoke_cfg.data) == {4: 4, 9: 5}
+    abstract = torch.arange(6.0).reshape(1, 6, 1, 1, 1).expand(2, 6, C, H, W)
+    frames, mask = detail_condition(abstract, smoke_cfg.data)
+    assert frames.shape == (2, 10, C, H, W)
+    assert mask[0].tolist() == [False] * 4 + [True] + [False] * 4 + [True]
+    assert (frames[:, 4] == 4).all() and (frames[:, 9] == 5).all()
+    assert (frames[:, [0, 1, 2, 3, 5, 6, 7, 8]] == 0).all()
+
+
+def test_action_features_from_odometry(smoke_cfg):
+    cfg = smoke_cfg.action
+    rows = torch.arange(SPAN, dtype=torch.float32)
+    odometry = torch.stack([rows, -rows / 10], 1).expand(3, SPAN, 2).clone()  # row r: speed r, yaw rate -r/10
+    odometry[1, 22, 1] = math.nan
+    has = torch.tensor([True, True, False])
+    values, unknown = steering_features(odometry, has, smoke_cfg.data, cfg)
+    # The last context frame is native row 20 (4 abstract steps of 5 frames), the predicted one row 25;
+    # rows 20..24 hold the controls that drive the ego from one to the other.
+    speed = torch.tensor([20.0, 21, 22, 23, 24]) / cfg.speed_scale
+    yaw = -torch.tensor([2.0, 2.1, 2.2, 2.3, 2.4]) / cfg.yaw_rate_scale
+    assert torch.allclose(values[0], torch.stack([speed, yaw], 1))
+    assert unknown.tolist() == [False, True, True]
+    assert (values[1:] == 0).all()
+
+
+def test_unknown_steering_runs_unconditionally(tiny_cache, smoke_cfg):
+    cfg = tiny_cfg(smoke_cfg, "action", steering_dropout=0.0)
+    task = PredictorTask("action", cfg, smoke_cfg.data, tiny_cache)
+    model = task.build_model()
+    for p in model.parameters():  # a trained network: the zero-initialised paths carry signal
+        torch.nn.init.normal_(p, std=0.1)
+    batch = task.val_windows()[0]
+    x, tau = batch["abstract"], torch.rand(len(batch["abstract"]), 6)
+    values, _ = steering_features(batch["odometry"], batch["has_odometry"], smoke_cfg.data, cfg)
+    unconditional = model(x, tau, frame_rate=2.0)
+    unknown = torch.ones(len(x), dtype=torch.bool)
+    assert torch.equal(model(x, tau, frame_rate=2.0, steering=values, steering_drop=unknown), unconditional)
+    assert not torch.allclose(model(x, tau, frame_rate=2.0, steering=values, steering_drop=~unknown), unconditional)
+
+
+def test_fine_tunes_start_from_their_source(tiny_cache, smoke_cfg):
+    df = PredictorTask("abstract_df", tiny_cfg(smoke_cfg, "abstract_df"), smoke_cfg.data, tiny_cache)
+    source = df.build_model()
+    for p in source.parameters():
+        p.data.normal_()
+    state = source.state_dict()
+    tf_cfg = tiny_cfg(smoke_cfg, "abstract_tf", init_from="abstract_df")
+    tf = PredictorTask("abstract_tf", tf_cfg, smoke_cfg.data, tiny_cache, state).build_model()
+    assert all(torch.equal(v, state[k]) for k, v in tf.state_dict().items())
+    scratch = PredictorTask("abstract_tf", tiny_cfg(smoke_cfg, "abstract_tf"), smoke_cfg.data, tiny_cache)
+    assert not torch.equal(scratch.build_model().x_embedder.weight, state["x_embedder.weight"])
+
+    action_cfg = tiny_cfg(smoke_cfg, "action", init_from="abstract_tf")
+    action = PredictorTask("action", action_cfg, smoke_cfg.data, tiny_cache, tf.state_dict()).build_model()
+    x, tau = torch.randn(2, 6, C, H, W), torch.rand(2, 6)
+    steering = torch.randn(2, 6, 2)
+    assert torch.allclose(action(x, tau, frame_rate=2.0, steering=steering), tf(x, tau, frame_rate=2.0))
+
+
+def test_batch_stream_resumes(tmp_path, smoke_cfg):
+    cache = write_cache(tmp_path, {"train": [SPAN + 6, SPAN + 4], "val": [SPAN]})
+    dataset = LatentWindowDataset(cache, "train", smoke_cfg.data)
+    assert len(dataset) == 12  # 3 batches of 4 per epoch
+    fresh = window_batches(dataset, DataSpec(0, 1, 4, seed=5, start=0, num_workers=0))
+    head = [next(fresh) for _ in range(8)]
+    resumed = window_batches(dataset, DataSpec(0, 1, 4, seed=5, start=5, num_workers=0))
+    for expected in head[5:]:
+        got = next(resumed)
+        assert all(torch.equal(got[k], expected[k]) for k in expected)
+    epoch = torch.cat([b["odometry"][:, 0, 0] for b in head[:3]])  # every window once per epoch
+    assert sorted(epoch.tolist()) == sorted(float(dataset.clips[c]["offset"] + a - 20) for c, a in dataset.items)
