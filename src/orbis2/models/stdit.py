@@ -36,6 +36,7 @@ from torch import nn
 
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file, sha256_file
+from orbis2.models import preset_config
 from orbis2.models.tokenizer import sincos_pos_embed_2d
 
 # Initial gates of the abstract conditioning paths: small but non-zero (paper Appendix "Model details").
@@ -552,14 +553,7 @@ STDIT_PRESETS: dict[str, dict] = {
 
 def stdit_config(preset: str, **overrides) -> dict:
     """A preset's settings with ``overrides`` applied; unknown names raise."""
-    if preset not in STDIT_PRESETS:
-        raise KeyError(f"unknown ST-DiT preset {preset!r}; choose from {sorted(STDIT_PRESETS)}")
-    cfg = dict(STDIT_PRESETS[preset])
-    unknown = set(overrides) - set(cfg)
-    if unknown:
-        raise KeyError(f"unknown ST-DiT setting(s) {sorted(unknown)}; known: {sorted(cfg)}")
-    cfg.update(overrides)
-    return cfg
+    return preset_config(STDIT_PRESETS, "ST-DiT", preset, overrides)
 
 
 def build_stdit(

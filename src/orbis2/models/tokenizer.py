@@ -26,6 +26,7 @@ from torch import nn
 
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file, sha256_file
+from orbis2.models import preset_config
 
 # --------------------------------------------------------------------------- ViT encoder
 
@@ -631,14 +632,7 @@ TOKENIZER_PRESETS: dict[str, dict] = {
 
 def tokenizer_config(preset: str, **overrides) -> dict:
     """A preset's settings with ``overrides`` applied; unknown names raise."""
-    if preset not in TOKENIZER_PRESETS:
-        raise KeyError(f"unknown tokenizer preset {preset!r}; choose from {sorted(TOKENIZER_PRESETS)}")
-    cfg = dict(TOKENIZER_PRESETS[preset])
-    unknown = set(overrides) - set(cfg)
-    if unknown:
-        raise KeyError(f"unknown tokenizer setting(s) {sorted(unknown)}; known: {sorted(cfg)}")
-    cfg.update(overrides)
-    return cfg
+    return preset_config(TOKENIZER_PRESETS, "tokenizer", preset, overrides)
 
 
 def _encoder(cfg: dict) -> ViTEncoder:
