@@ -8,6 +8,8 @@
 # the profile), so changing them re-runs that stage and its dependents only.
 
 from orbis2.config import resolve_section
+from orbis2.eval.stages import probe_targets
+from orbis2.eval.systems import MAIN_SYSTEMS, SYSTEMS
 
 configfile: "params.yaml"
 
@@ -23,8 +25,7 @@ def section(name):
 
 rule all:
     input:
-        "data/predictors/detail",
-        "data/predictors/action",
+        "reports/main_table.csv",
 
 
 rule town:
@@ -150,91 +151,171 @@ rule latents:
         "python stages/latents.py --profile {params.profile}"
 
 
-rule abstract_df:
+# Every predictor, main and ablation, is one stage script given the predictor's
+# name; its init_from (params.yaml) adds the weights it starts from as an input.
+# Rules made in a loop pass their name through {rule}: a shell command reads loop
+# variables only when it runs, after the loop has moved on.
+PREDICTORS = ["abstract_df", "abstract_tf", "detail", "action",
+              "abstract_tf_only", "flat_detail", "flat_abstract", "top_detail", "detail_on_detail"]
+PREDICTOR_CODE = ["stages/predictor.py", "src/orbis2/tasks/predictors.py", "src/orbis2/models/stdit.py",
+                  "src/orbis2/flow.py", "src/orbis2/train.py"]
+
+for predictor in PREDICTORS:
+    init_from = section(predictor).get("init_from")
+
+    rule:
+        name: predictor
+        threads: workflow.cores  # uses every core itself; run nothing beside it
+        input:
+            *PREDICTOR_CODE,
+            "data/latents",
+            "data/tokenizers/detail",
+            "data/tokenizers/abstract",
+            *([f"data/predictors/{init_from}"] if init_from else []),
+        output:
+            directory(f"data/predictors/{predictor}"),
+            f"reports/{predictor}.json",
+        params:
+            profile=PROFILE,
+            data=section("data"),
+            **{predictor: section(predictor)},
+        shell:
+            f"{TRAIN_LAUNCHER} stages/predictor.py {{rule}} --profile {{params.profile}}"
+
+
+# --------------------------------------------------------------------------- evaluation and reports
+
+EVAL_CODE = ["src/orbis2/eval/stages.py", "src/orbis2/eval/systems.py", "src/orbis2/rollout.py"]
+TOKENIZER_DIRS = ["data/tokenizers/detail", "data/tokenizers/abstract"]
+MAIN_PROBES = ["abstract_tf", "flat_detail", "flat_abstract"]
+
+for system in SYSTEMS:
+
+    rule:
+        name: f"eval_fvd_{system}"
+        threads: workflow.cores  # uses every core itself; run nothing beside it
+        input:
+            "stages/eval_fvd.py",
+            *EVAL_CODE,
+            "src/orbis2/eval/fvd.py",
+            "data/latents",
+            "data/shards",
+            "data/assets",
+            *TOKENIZER_DIRS,
+            *[f"data/predictors/{stage}" for stage in SYSTEMS[system].stages],
+        output:
+            f"reports/eval/fvd_{system}.json",
+            directory(f"reports/eval/media/{system}"),
+        params:
+            profile=PROFILE,
+            data=section("data"),
+            assets=section("assets"),
+            evaluation=section("evaluation"),
+        shell:
+            "python stages/eval_fvd.py {rule} --profile {params.profile}"
+
+
+for target in probe_targets():
+
+    rule:
+        name: f"eval_probe_{target}"
+        threads: 1  # light: a frozen network's features and a 1x1 conv; two run side by side
+        input:
+            "stages/eval_probe.py",
+            "src/orbis2/eval/stages.py",
+            "src/orbis2/eval/probe.py",
+            "src/orbis2/data/probes.py",
+            "data/shards",
+            *TOKENIZER_DIRS,
+            *(["data/assets"] if target == "teacher" else []),
+            *([] if target in ("abstract_tokenizer", "teacher") else [f"data/predictors/{target}"]),
+        output:
+            f"reports/eval/probe_{target}.json",
+        params:
+            profile=PROFILE,
+            data=section("data"),
+            evaluation=section("evaluation"),
+        shell:
+            "python stages/eval_probe.py {rule} --profile {params.profile}"
+
+
+rule eval_steering:
     threads: workflow.cores  # uses every core itself; run nothing beside it
     input:
-        "stages/abstract_df.py",
-        "src/orbis2/tasks/predictors.py",
-        "src/orbis2/models/stdit.py",
-        "src/orbis2/flow.py",
-        "src/orbis2/train.py",
+        "stages/eval_steering.py",
+        *EVAL_CODE,
+        "src/orbis2/eval/odometry.py",
         "data/latents",
-        "data/tokenizers/detail",
-        "data/tokenizers/abstract",
+        "data/shards",
+        *TOKENIZER_DIRS,
+        "data/predictors/detail",
+        "data/predictors/action",
     output:
-        directory("data/predictors/abstract_df"),
-        "reports/abstract_df.json",
+        "reports/eval/steering.json",
+        "reports/eval/steering_strip.png",
     params:
         profile=PROFILE,
         data=section("data"),
-        abstract_df=section("abstract_df"),
+        town=section("town"),
+        evaluation=section("evaluation"),
     shell:
-        f"{TRAIN_LAUNCHER} stages/abstract_df.py --profile {{params.profile}}"
+        "python stages/eval_steering.py --profile {params.profile}"
 
 
-rule abstract_tf:
-    threads: workflow.cores  # uses every core itself; run nothing beside it
+rule eval_speed:
+    threads: workflow.cores  # timings need the machine to themselves
     input:
-        "stages/abstract_tf.py",
-        "src/orbis2/tasks/predictors.py",
-        "src/orbis2/models/stdit.py",
-        "src/orbis2/flow.py",
-        "src/orbis2/train.py",
+        "stages/eval_speed.py",
+        *EVAL_CODE,
+        "src/orbis2/eval/speed.py",
         "data/latents",
-        "data/tokenizers/detail",
-        "data/tokenizers/abstract",
-        "data/predictors/abstract_df",
+        *TOKENIZER_DIRS,
+        *sorted({f"data/predictors/{s}" for name in MAIN_SYSTEMS for s in SYSTEMS[name].stages}),
     output:
-        directory("data/predictors/abstract_tf"),
-        "reports/abstract_tf.json",
+        "reports/eval/speed.json",
     params:
         profile=PROFILE,
         data=section("data"),
-        abstract_tf=section("abstract_tf"),
+        evaluation=section("evaluation"),
     shell:
-        f"{TRAIN_LAUNCHER} stages/abstract_tf.py --profile {{params.profile}}"
+        "python stages/eval_speed.py --profile {params.profile}"
 
 
-rule detail:
-    threads: workflow.cores  # uses every core itself; run nothing beside it
+rule report_main:
     input:
-        "stages/detail.py",
-        "src/orbis2/tasks/predictors.py",
-        "src/orbis2/models/stdit.py",
-        "src/orbis2/flow.py",
-        "src/orbis2/train.py",
-        "data/latents",
-        "data/tokenizers/detail",
-        "data/tokenizers/abstract",
+        "stages/report.py",
+        "src/orbis2/eval/report.py",
+        *[f"reports/eval/fvd_{name}.json" for name in MAIN_SYSTEMS],
+        *[f"reports/eval/probe_{target}.json" for target in MAIN_PROBES],
+        "reports/eval/steering.json",
+        "reports/eval/speed.json",
     output:
-        directory("data/predictors/detail"),
-        "reports/detail.json",
+        "reports/main_table.csv",
+        "reports/steering.csv",
+        "reports/speed.csv",
+        "reports/summary.md",
     params:
         profile=PROFILE,
         data=section("data"),
-        detail=section("detail"),
+        evaluation=section("evaluation"),
     shell:
-        f"{TRAIN_LAUNCHER} stages/detail.py --profile {{params.profile}}"
+        "python stages/report.py main --profile {params.profile}"
 
 
-rule action:
-    threads: workflow.cores  # uses every core itself; run nothing beside it
+rule report_all:
     input:
-        "stages/action.py",
-        "src/orbis2/tasks/predictors.py",
-        "src/orbis2/models/stdit.py",
-        "src/orbis2/flow.py",
-        "src/orbis2/train.py",
-        "data/latents",
-        "data/tokenizers/detail",
-        "data/tokenizers/abstract",
-        "data/predictors/abstract_tf",
+        "stages/report.py",
+        "src/orbis2/eval/report.py",
+        *[f"reports/eval/fvd_{name}.json" for name in SYSTEMS],
+        *[f"reports/eval/media/{name}" for name in SYSTEMS],
+        *[f"reports/eval/probe_{target}.json" for target in probe_targets()],
+        "reports/eval/steering.json",
+        "reports/eval/speed.json",
     output:
-        directory("data/predictors/action"),
-        "reports/action.json",
+        directory("reports/all"),
     params:
         profile=PROFILE,
         data=section("data"),
-        action=section("action"),
+        evaluation=section("evaluation"),
     shell:
-        f"{TRAIN_LAUNCHER} stages/action.py --profile {{params.profile}}"
+        "python stages/report.py all --profile {params.profile}"

@@ -48,7 +48,8 @@ def snakemake_rules(root: Path = ROOT) -> dict[str, dict]:
         for rule in workflow.rules:
             if rule.name == "all":
                 continue
-            rules[rule.name] = {"cmd": rule.shellcmd.replace("{params.profile}", profile),
+            cmd = rule.shellcmd.replace("{params.profile}", profile).replace("{rule}", rule.name)
+            rules[rule.name] = {"cmd": cmd,
                                 "deps": {str(f) for f in rule.input}, "outs": {str(f) for f in rule.output},
                                 "params": set(rule.params.keys())}
         return rules

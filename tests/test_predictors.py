@@ -1,4 +1,4 @@
-"""Predictor tasks: each overfits a tiny batch, hierarchy and steering inputs, initialisation, resumable data."""
+"""Predictor tasks: each overfits a tiny batch, hierarchy and steering inputs, initialisation, resume, DDP."""
 
 import dataclasses
 import json
@@ -11,13 +11,14 @@ import torch
 from orbis2.config import TrainConfig
 from orbis2.latents import FORMAT, LatentWindowDataset, open_cache
 from orbis2.tasks.predictors import (
+    STAGES,
     PredictorTask,
     detail_condition,
     detail_condition_slots,
     steering_features,
     window_batches,
 )
-from orbis2.train import DataSpec, train
+from orbis2.train import DataSpec, load_weights, spawn_cpu_processes, train
 
 C, H, W = 4, 3, 4
 SPAN = 26  # native frames of one training window (smoke data section)
@@ -62,7 +63,7 @@ def tiny_cfg(smoke_cfg, stage, **changes):
     return dataclasses.replace(cfg, **{"train": train_cfg, "init_from": None, "val_batches": 1, **changes})
 
 
-@pytest.mark.parametrize("stage", ["abstract_df", "abstract_tf", "detail", "action"])
+@pytest.mark.parametrize("stage", sorted(STAGES))
 def test_each_task_overfits_a_tiny_batch(stage, tiny_cache, smoke_cfg, tmp_path):
     torch.set_num_threads(1)
     changes = {"context_noise_prob": 0.0, "context_drop_prob": 0.0} if stage != "abstract_df" else {}
@@ -157,3 +158,68 @@ def test_batch_stream_resumes(tmp_path, smoke_cfg):
         assert all(torch.equal(got[k], expected[k]) for k in expected)
     epoch = torch.cat([b["odometry"][:, 0, 0] for b in head[:3]])  # every window once per epoch
     assert sorted(epoch.tolist()) == sorted(float(dataset.clips[c]["offset"] + a - 20) for c, a in dataset.items)
+
+
+def test_variants_read_their_own_latents_and_window(tiny_cache, smoke_cfg):
+    """Each ablation models the latents and rate its spec names, with the matching network."""
+    shapes = {"abstract_df": (6, True, None), "detail": (10, False, C), "flat_detail": (10, False, None),
+              "flat_abstract": (10, False, None), "top_detail": (6, True, None), "detail_on_detail": (10, False, C)}
+    for stage, (frames, causal, cond) in shapes.items():
+        task = PredictorTask(stage, tiny_cfg(smoke_cfg, stage), smoke_cfg.data, tiny_cache)
+        batch = task.val_windows()[0]
+        assert batch[task.spec.batch_key].shape[1] == frames, stage
+        assert (task.build["causal"], task.build["abstract_channels"]) == (causal, cond), stage
+    batch = PredictorTask("flat_abstract", tiny_cfg(smoke_cfg, "flat_abstract"), smoke_cfg.data,
+                          tiny_cache).val_windows()[0]
+    # Same native frames, other latent space: the fast abstract window's frames 4 and 9 are the slow window's 4 and 5.
+    assert torch.equal(batch["abstract_fast"][:, [4, 9]], batch["abstract"][:, [4, 5]])
+    assert torch.equal(batch["detail_slow"][:, [4, 5]], batch["detail"][:, [4, 9]])
+
+
+class Killed(RuntimeError):
+    """Stands in for the process being killed mid-run."""
+
+
+class KilledAt(PredictorTask):
+    def __init__(self, *args, kill_at: int):
+        super().__init__(*args)
+        self.kill_at = kill_at
+
+    def loss(self, model, batch, step):
+        if step == self.kill_at:
+            raise Killed(step)
+        return super().loss(model, batch, step)
+
+
+def test_predictor_resumes_bit_identically_after_a_kill(tiny_cache, smoke_cfg, tmp_path):
+    torch.set_num_threads(1)
+    cfg = tiny_cfg(smoke_cfg, "detail")
+    cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, steps=12, checkpoint_every=5, eval_every=0))
+    args = ("detail", cfg, smoke_cfg.data, tiny_cache)
+    train(PredictorTask(*args), cfg.train, tmp_path / "straight")
+    with pytest.raises(Killed):
+        train(KilledAt(*args, kill_at=8), cfg.train, tmp_path / "killed")
+    resumed = train(PredictorTask(*args), cfg.train, tmp_path / "killed")
+    assert (resumed.start_step, resumed.step) == (5, 12)
+    straight, killed = (load_weights(tmp_path / name / "model.pt") for name in ("straight", "killed"))
+    assert all(torch.equal(straight[k], killed[k]) for k in straight)
+
+
+def _ddp_predictor(cache_root, cfg, data, out_dir):
+    torch.set_num_threads(1)
+    result = train(PredictorTask("abstract_tf", cfg, data, open_cache(cache_root)), cfg.train, out_dir)
+    return result.history
+
+
+def test_predictor_trains_under_ddp_on_two_processes(tmp_path, smoke_cfg):
+    """Two gloo ranks split each batch, agree on every training metric, and rank 0 writes weights that improved."""
+    cache = write_cache(tmp_path / "cache", {"train": [SPAN + 7], "val": [SPAN + 5]})  # 8 windows: 2 x 4 per epoch
+    cfg = tiny_cfg(smoke_cfg, "abstract_tf", context_noise_prob=0.0, context_drop_prob=0.0)
+    cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, steps=30, eval_every=30))
+    rank0, rank1 = spawn_cpu_processes(_ddp_predictor, 2, cache.root, cfg, smoke_cfg.data, tmp_path / "ddp",
+                                       timeout_s=300)
+    steps = [[entry for entry in history if "loss" in entry[1]] for history in (rank0, rank1)]
+    assert steps[0] == steps[1] and len(steps[0]) == 30  # training metrics are averaged over ranks
+    final = dict(rank0[-1][1])  # validation runs on rank 0 only
+    assert final["val_loss"] < final["val_loss_init"]
+    assert (tmp_path / "ddp" / "model.pt").is_file()

@@ -323,6 +323,94 @@ class ActionConfig(TeacherForcingConfig):
         _positive(self, where, "speed_scale", "yaw_rate_scale")
 
 
+@dataclass(frozen=True)
+class ProbeSettings:
+    """Linear probes (paper appendix "Linear probing details"): AdamW 1e-3 / 1e-4 on a 1x1 conv head.
+
+    Training lengths are epochs over the probe's train frames (segmentation, depth).
+    ``block_main`` is the k-th block from the end probed for the main models (4th in
+    the paper), ``block_ablation`` the one for ablation models (2nd); both are clamped
+    to the network's depth. ``test_fraction`` of the probe episodes are held out for
+    the metrics. ``standardize`` fixes per-channel feature statistics from the train
+    frames before the head (still a linear probe; see ``orbis2.eval.probe``).
+
+    Default data: the town's labelled ``probe`` split for both tasks. The paper's:
+    ``cityscapes`` (root of leftImg8bit/ and gtFine/; train -> val) for segmentation
+    and ``kitti`` (raw-data root) with the Eigen split files ``kitti_train_split`` /
+    ``kitti_test_split`` (and ``kitti_depth`` if the annotated depth is a separate
+    tree) for depth; ``max_frames`` caps each side (evenly spread). See
+    ``orbis2.data.probes`` for the layouts.
+    """
+
+    seg_epochs: int = 100
+    depth_epochs: int = 10
+    batch_size: int = 8
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    block_main: int = 4
+    block_ablation: int = 2
+    test_fraction: float = 0.25
+    standardize: bool = True
+    seed: int = 0
+    cityscapes: str | None = None
+    kitti: str | None = None
+    kitti_depth: str | None = None
+    kitti_train_split: str | None = None
+    kitti_test_split: str | None = None
+    max_frames: int | None = None
+
+    def validate(self, where: str) -> None:
+        if self.kitti is not None and (self.kitti_train_split is None or self.kitti_test_split is None):
+            raise ConfigError(f"{where}.kitti needs kitti_train_split and kitti_test_split (Eigen split files)")
+        _positive(self, where, "seg_epochs", "depth_epochs", "batch_size", "lr", "block_main", "block_ablation")
+        if not 0 < self.test_fraction < 1:
+            raise ConfigError(f"{where}.test_fraction must lie in (0, 1)")
+
+
+@dataclass(frozen=True)
+class EvaluationConfig:
+    """The ``eval_*`` stages (paper Sec. 4.3 and 5).
+
+    FVD over ``seconds`` of rollout on each split in ``fvd_splits``; chunked FVD
+    over ``chunk_seconds`` windows of ``long_seconds`` rollouts on ``long_split``
+    (whose first ``seconds`` also give that split's FVD). ``starts_per_clip``
+    context positions per evaluation clip, evenly spread. ``top_nfe`` and
+    ``bottom_nfe`` are the Euler steps of the top (abstract, 2 Hz) and bottom
+    (detail, 10 Hz; also flat) predictors. Steering: ``steering_seconds`` rollouts
+    of ``steering_split`` clips under each mode of ``steering_modes``.
+    """
+
+    seed: int
+    probe: ProbeSettings
+    seconds: float = 6.0
+    long_seconds: float = 16.0
+    chunk_seconds: float = 4.0
+    fvd_splits: list[str] = field(default_factory=lambda: ["val", "heldout", "turns"])
+    long_split: str = "turns"
+    starts_per_clip: int = 1
+    top_nfe: int = 15
+    bottom_nfe: int = 30
+    batch_size: int = 8
+    steering_split: str = "turns"
+    steering_seconds: float = 6.0
+    steering_modes: dict[str, list[float]] = field(default_factory=lambda: {
+        "original": [1.0, 1.0], "speed_x0.5": [0.5, 1.0], "speed_x1.5": [1.5, 1.0],
+        "yaw_rate_x0.5": [1.0, 0.5], "yaw_rate_x1.5": [1.0, 1.5]})
+    inverse_dynamics: str = "opencv"
+    speed_seconds: float = 2.0
+    speed_repeats: int = 2
+
+    def validate(self, where: str) -> None:
+        _positive(self, where, "seconds", "long_seconds", "chunk_seconds", "starts_per_clip", "top_nfe",
+                  "bottom_nfe", "batch_size", "steering_seconds", "speed_seconds", "speed_repeats")
+        self.probe.validate(f"{where}.probe")
+        if self.long_seconds < 2 * self.chunk_seconds:
+            raise ConfigError(f"{where}.long_seconds must hold at least two chunks of chunk_seconds for FVD-slope")
+        for mode, scales in self.steering_modes.items():
+            if len(scales) != 2 or min(scales) <= 0:
+                raise ConfigError(f"{where}.steering_modes.{mode} must be [speed scale, yaw-rate scale], both > 0")
+
+
 def _tokenizer_common(cfg: Any, where: str) -> None:
     if cfg.preset not in TOKENIZER_PRESETS:
         raise ConfigError(f"{where}.preset = {cfg.preset!r} must be one of {list(TOKENIZER_PRESETS)}")
@@ -346,6 +434,12 @@ class PipelineConfig:
     abstract_tf: TeacherForcingConfig
     detail: DetailPredictorConfig
     action: ActionConfig
+    abstract_tf_only: TeacherForcingConfig
+    flat_detail: TeacherForcingConfig
+    flat_abstract: TeacherForcingConfig
+    top_detail: TeacherForcingConfig
+    detail_on_detail: DetailPredictorConfig
+    evaluation: EvaluationConfig
 
     def section(self, name: str) -> Any:
         return getattr(self, SECTION_ATTRS.get(name, name))
@@ -441,6 +535,12 @@ SECTION_TYPES: dict[str, type] = {
     "abstract_tf": TeacherForcingConfig,
     "detail": DetailPredictorConfig,
     "action": ActionConfig,
+    "abstract_tf_only": TeacherForcingConfig,
+    "flat_detail": TeacherForcingConfig,
+    "flat_abstract": TeacherForcingConfig,
+    "top_detail": TeacherForcingConfig,
+    "detail_on_detail": DetailPredictorConfig,
+    "evaluation": EvaluationConfig,
 }
 
 

@@ -293,6 +293,9 @@ def open_cache(root: str | Path, detail_checksum: str | None = None,
 class LatentWindowDataset(Dataset):
     """Two-rate latent windows at every valid (clip, anchor) of a split: the windows of ``clip_window``.
 
+    An item holds ``detail`` (10 Hz window) and ``abstract`` (2 Hz window) latents, plus
+    ``detail_slow`` and ``abstract_fast``: each latent space at the other rate's frames.
+
     Map-style, so ``DistributedSampler`` and DataLoader workers partition it exactly. ``anchor_stride``
     keeps every n-th anchor of a clip (neighbouring anchors overlap almost completely).
     """
@@ -327,5 +330,8 @@ class LatentWindowDataset(Dataset):
             return torch.from_numpy(arrays[kind][base + idx].astype(np.float32)).mul_(self.scales[kind])
 
         odometry = arrays["odometry"]
-        return _item(self.keys[c], anchor, latent("detail", detail), latent("abstract", abstract),
+        item = _item(self.keys[c], anchor, latent("detail", detail), latent("abstract", abstract),
                      odometry[base + detail], odometry[base + abstract], odometry[base + span], clip["has_odometry"])
+        # The same frames in the other latent space, for the hierarchy ablations' flat and top predictors.
+        item["detail_slow"], item["abstract_fast"] = latent("detail", abstract), latent("abstract", detail)
+        return item

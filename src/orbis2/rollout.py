@@ -141,28 +141,35 @@ def cascaded_rollout(
     detail_hz: float = 10.0,
     steering: torch.Tensor | None = None,
     on_step: StepCallback | None = None,
+    top_frames_per_step: int = 1,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Hierarchical rollout; returns detail latents [B, frames_per_step * steps, ...] and subgoals [B, steps, ...].
+    """Hierarchical rollout; returns detail latents [B, frames_per_step * steps, ...] and the top
+    predictor's frames [B, top_frames_per_step * steps, ...].
 
     ``detail_context`` [B, 5, C, h, w] and ``abstract_context`` [B, 5, C_a, h_a, w_a]
     are scaled latents whose last frames show the same instant. ``steering``
     [B, steps, S, 2] conditions the abstract predictor step by step (None:
     unconditional). ``on_step(k)`` is called after step k (progress bars).
+
+    The top predictor is the paper's abstract one by default (1 frame at 2 Hz per
+    step). The hierarchy ablations put other top predictors here: detail latents
+    at 2 Hz (Exp. 4), or abstract latents at 10 Hz (Exp. 5, ``top_frames_per_step``
+    = 5, ``abstract_hz`` = 10); the subgoal is always the top's last new frame.
     """
     b = detail_context.shape[0]
     n_context = detail_context.shape[1]
     details, subgoals = [], []
     for k in range(steps):
-        subgoal = euler_sample(abstract_model, abstract_context, 1, abstract_nfe, generator,
-                               frame_rate=abstract_hz, **_step_steering(steering, k, b, steps))
-        cond_frames, cond_mask = detail_conditioning(abstract_context[:, -1], subgoal[:, 0], n_context,
+        top = euler_sample(abstract_model, abstract_context, top_frames_per_step, abstract_nfe, generator,
+                           frame_rate=abstract_hz, **_step_steering(steering, k, b, steps))
+        cond_frames, cond_mask = detail_conditioning(abstract_context[:, -1], top[:, -1], n_context,
                                                      frames_per_step)
         new = euler_sample(detail_model, detail_context, frames_per_step, detail_nfe, generator,
                            frame_rate=detail_hz, cond_frames=cond_frames, cond_mask=cond_mask)
         detail_context = _slide(detail_context, new)
-        abstract_context = _slide(abstract_context, subgoal)
+        abstract_context = _slide(abstract_context, top)
         details.append(new)
-        subgoals.append(subgoal)
+        subgoals.append(top)
         if on_step is not None:
             on_step(k)
     return torch.cat(details, dim=1), torch.cat(subgoals, dim=1)

@@ -1,18 +1,27 @@
-"""Training the two predictors of the hierarchy (paper Sec. 3.3-3.4) with the shared loop.
+"""Training the predictors of the hierarchy (paper Sec. 3.3-3.4) and of its ablations with the shared loop.
 
-Four stages, one task class, chosen by ``STAGES[stage]``:
+One task class; what distinguishes the stages is their :class:`StageSpec` in ``STAGES``
+and their params.yaml section (same name):
 
 - ``abstract_df``: the abstract predictor F_H (causal, 6 frames at 2 Hz) pre-trained
   with diffusion forcing (eq. 2): an independent tau per frame, loss on every frame.
 - ``abstract_tf``: F_H fine-tuned with teacher forcing (eq. 1): 5 clean context
-  frames, 1 target; starts from ``init_from`` (``abstract_df``, or null for the
-  "TF only" ablation).
+  frames, 1 target; starts from ``init_from`` (``abstract_df``).
 - ``detail``: the detail predictor F_L (bidirectional, 10 frames at 10 Hz, 5 + 5)
   with teacher forcing, conditioned on the ground-truth abstract latents of its
   last context frame and of the subgoal aligned with its last predicted frame
   (paper eq. for F_L; the authors' code, "Hierarchy wiring").
 - ``action``: F_H with a steering embedder, fine-tuned with teacher forcing from
   ``abstract_tf``; only the abstract level is steered (paper "Action-conditioning").
+
+Ablations (paper Tables 3 and 4), the same code with another spec:
+
+- ``abstract_tf_only``: F_H trained with teacher forcing alone (``init_from: null``).
+- ``flat_detail`` / ``flat_abstract``: single-branch 10 Hz predictors of detail or
+  abstract latents (hierarchy Exps. 1 and 2); ``flat_abstract`` is also Exp. 5's
+  10 Hz top predictor.
+- ``top_detail``: a 2 Hz top predictor of detail latents, and ``detail_on_detail``
+  the bottom predictor conditioned on detail-latent subgoals (Exp. 4).
 
 Batches come from :class:`~orbis2.latents.LatentWindowDataset` (already scaled
 latents). All randomness of a training step comes from a generator seeded by
@@ -62,19 +71,53 @@ STEERING_FEATURES = ("speed", "yaw_rate")
 
 @dataclass(frozen=True)
 class StageSpec:
-    """What distinguishes the four predictor stages."""
+    """What distinguishes the predictor stages.
+
+    ``rate`` picks the window: ``slow`` is the abstract_hz one (5 context frames,
+    1 predicted; causal, as the paper's top predictor), ``fast`` the detail_hz one
+    (5 + 5; bidirectional). ``condition`` names the latents of the slow subgoals a
+    bottom predictor is conditioned on (None: a flat or top predictor).
+    """
 
     level: str  # "abstract" or "detail": which latents the predictor models
+    rate: str  # "slow" or "fast"
     objective: str  # "diffusion_forcing" or "teacher_forcing"
+    condition: str | None = None
     steering: bool = False
+
+    @property
+    def causal(self) -> bool:
+        return self.rate == "slow"
+
+    @property
+    def batch_key(self) -> str:
+        return window_key(self.level, self.rate)
 
 
 STAGES = {
-    "abstract_df": StageSpec("abstract", "diffusion_forcing"),
-    "abstract_tf": StageSpec("abstract", "teacher_forcing"),
-    "detail": StageSpec("detail", "teacher_forcing"),
-    "action": StageSpec("abstract", "teacher_forcing", steering=True),
+    "abstract_df": StageSpec("abstract", "slow", "diffusion_forcing"),
+    "abstract_tf": StageSpec("abstract", "slow", "teacher_forcing"),
+    "detail": StageSpec("detail", "fast", "teacher_forcing", condition="abstract"),
+    "action": StageSpec("abstract", "slow", "teacher_forcing", steering=True),
+    "abstract_tf_only": StageSpec("abstract", "slow", "teacher_forcing"),
+    "flat_detail": StageSpec("detail", "fast", "teacher_forcing"),
+    "flat_abstract": StageSpec("abstract", "fast", "teacher_forcing"),
+    "top_detail": StageSpec("detail", "slow", "teacher_forcing"),
+    "detail_on_detail": StageSpec("detail", "fast", "teacher_forcing", condition="detail"),
 }
+
+
+def window_key(level: str, rate: str) -> str:
+    """The :class:`LatentWindowDataset` item key of ``level`` latents in the ``rate`` window."""
+    return {("detail", "fast"): "detail", ("abstract", "slow"): "abstract",
+            ("detail", "slow"): "detail_slow", ("abstract", "fast"): "abstract_fast"}[level, rate]
+
+
+def rate_geometry(data: DataConfig, rate: str) -> tuple[int, int, int]:
+    """(frames per second, window length, context length) of the ``slow`` or ``fast`` window."""
+    if rate == "slow":
+        return data.abstract_hz, data.abstract_window, data.abstract_context
+    return data.detail_hz, data.detail_window, data.detail_context
 
 
 def predictor_path(stage: str) -> Path:
@@ -101,7 +144,10 @@ def detail_condition_slots(data: DataConfig) -> dict[int, int]:
 
 
 def detail_condition(abstract: torch.Tensor, data: DataConfig) -> tuple[torch.Tensor, torch.Tensor]:
-    """Abstract window [B, A, C, h, w] -> ``cond_frames`` [B, F_detail, C, h, w] and ``cond_mask`` [B, F_detail]."""
+    """Slow window [B, A, C, h, w] -> ``cond_frames`` [B, F_detail, C, h, w] and ``cond_mask`` [B, F_detail].
+
+    The slow window holds abstract latents (the hierarchy) or detail ones (Exp. 4's bottom predictor).
+    """
     b = abstract.shape[0]
     frames = abstract.new_zeros(b, data.detail_window, *abstract.shape[2:])
     mask = torch.zeros(b, data.detail_window, dtype=torch.bool, device=abstract.device)
@@ -139,8 +185,8 @@ def steering_features(odometry: torch.Tensor, has_odometry: torch.Tensor, data: 
 
 def collate(items: list[dict[str, Any]]) -> dict[str, torch.Tensor]:
     """Stack the tensors the predictors use."""
-    return {"detail": torch.stack([i["detail"] for i in items]),
-            "abstract": torch.stack([i["abstract"] for i in items]),
+    return {**{key: torch.stack([i[key] for i in items])
+               for key in ("detail", "abstract", "detail_slow", "abstract_fast")},
             "odometry": torch.stack([i["odometry"] for i in items]),
             "has_odometry": torch.tensor([i["has_odometry"] for i in items])}
 
@@ -186,7 +232,7 @@ class PredictorTask:
         self.init_state = init_state
         self.train_set = LatentWindowDataset(cache, "train", data, cfg.anchor_stride)
         self.val_set = LatentWindowDataset(cache, "val", data, cfg.anchor_stride)
-        self.frame_rate = float(data.abstract_hz if self.spec.level == "abstract" else data.detail_hz)
+        self.frame_rate = float(rate_geometry(data, self.spec.rate)[0])
         self._val: list[dict[str, torch.Tensor]] | None = None
         self._val_init: float | None = None
 
@@ -198,10 +244,9 @@ class PredictorTask:
     @property
     def build(self) -> dict[str, Any]:
         """The :func:`build_stdit` arguments, as :func:`save_predictor` records them."""
-        shapes = self.cache.meta["tokenizers"]
-        detail = self.spec.level == "detail"
+        shapes, condition = self.cache.meta["tokenizers"], self.spec.condition
         return {"preset": self.cfg.preset, "latent_channels": shapes[self.spec.level]["shape"][0],
-                "causal": not detail, "abstract_channels": shapes["abstract"]["shape"][0] if detail else None,
+                "causal": self.spec.causal, "abstract_channels": shapes[condition]["shape"][0] if condition else None,
                 "steering": self.spec.steering, **self.cfg.model}
 
     def build_model(self) -> nn.Module:
@@ -229,15 +274,16 @@ class PredictorTask:
     def objective(self, model: nn.Module, batch: dict[str, torch.Tensor], generator: torch.Generator,
                   augment: bool) -> tuple[torch.Tensor, dict[str, float]]:
         """The flow-matching loss of this stage; ``augment`` switches on context noise/drop and steering dropout."""
-        frames = batch[self.spec.level]
+        frames = batch[self.spec.batch_key]
         cond: dict[str, Any] = {"frame_rate": self.frame_rate}
-        if self.spec.level == "detail":
-            cond["cond_frames"], cond["cond_mask"] = detail_condition(batch["abstract"], self.data)
+        if self.spec.condition is not None:
+            subgoals = batch[window_key(self.spec.condition, "slow")]
+            cond["cond_frames"], cond["cond_mask"] = detail_condition(subgoals, self.data)
         if self.spec.objective == "diffusion_forcing":
             return diffusion_forcing_loss(model, frames, generator, **cond)
         cfg = self.cfg
         assert isinstance(cfg, TeacherForcingConfig)
-        n_context = self.data.detail_context if self.spec.level == "detail" else self.data.abstract_context
+        n_context = rate_geometry(self.data, self.spec.rate)[2]
         metrics: dict[str, float] = {}
         if self.spec.steering:
             assert isinstance(cfg, ActionConfig)
@@ -253,7 +299,7 @@ class PredictorTask:
         return loss, {**tf_metrics, **metrics}
 
     def loss(self, model: nn.Module, batch: dict[str, torch.Tensor], step: int) -> tuple[torch.Tensor, dict]:
-        device = batch[self.spec.level].device
+        device = batch[self.spec.batch_key].device
         return self.objective(model, batch, step_generator(self.cfg.train.seed, self.rank, step, device), True)
 
     def val_windows(self) -> list[dict[str, torch.Tensor]]:
@@ -341,16 +387,19 @@ def predictor_meta(stage: str, cfg: PipelineConfig, cache: LatentCache, metrics:
     """What the weights mean: which latents, which rates and windows, how they were trained."""
     spec, pc, d = STAGES[stage], cfg.section(stage), cfg.data
     level_window = {"abstract": (d.abstract_window, d.abstract_context), "detail": (d.detail_window, d.detail_context)}
+    rate, window, context = rate_geometry(d, spec.rate)
     meta = {
-        "stage": stage, "level": spec.level, "objective": spec.objective, "init_from": pc.init_from,
+        "stage": stage, "level": spec.level, "rate": spec.rate, "objective": spec.objective, "init_from": pc.init_from,
+        "condition": spec.condition,
         "tokenizers": {kind: {"checksum": cache.meta["tokenizers"][kind]["checksum"],
                               "scale": cache.meta["tokenizers"][kind]["scale"]} for kind in ("detail", "abstract")},
-        "frame_rate": d.abstract_hz if spec.level == "abstract" else d.detail_hz,
+        "frame_rate": rate,
+        "window": {"window": window, "context": context},
         "rates": {"fps": d.fps, "detail_hz": d.detail_hz, "abstract_hz": d.abstract_hz},
         "windows": {level: {"window": w, "context": c} for level, (w, c) in level_window.items()},
         "metrics": metrics,
     }
-    if spec.level == "detail":
+    if spec.condition is not None:
         meta["condition_slots"] = {str(slot): index for slot, index in detail_condition_slots(d).items()}
     if spec.steering:
         interval = steering_interval(d)

@@ -1,0 +1,675 @@
+"""The paper's tables, figures and a summary built from the evaluation JSON files.
+
+Every table is a list of ordered rows built by a pure function from the dict
+``load_eval`` returns; the writers only serialise them. A metric cell always
+comes with the sample count it was measured on (``<metric>_n``), and a metric
+that an input lacks stops the report with an ``OrbisError`` naming the file and
+the stage that writes it, so no table is ever padded with guesses. The only
+``NA`` cells are values the compression stage itself reports as null (not
+measured).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from orbis2.errors import OrbisError
+from orbis2.io import atomic_file
+
+FVD_MODELS = ("flat_detail", "flat_abstract", "hierarchical", "top_detail", "top_abstract_10hz")
+PROBE_TARGETS = (
+    "abstract_tokenizer",
+    "teacher",
+    "abstract_df",
+    "abstract_tf",
+    "abstract_tf_only",
+    "detail",
+    "flat_detail",
+    "flat_abstract",
+    "top_detail",
+    "detail_on_detail",
+    "abstract_full",
+    "abstract_tokenizer_full",
+)
+FVD_SPLITS = ("val", "heldout", "turns")
+STEERING_MODES = ("original", "speed_x0.5", "speed_x1.5", "yaw_rate_x0.5", "yaw_rate_x1.5")
+MAIN_MODELS = ("flat_detail", "flat_abstract", "hierarchical")
+# The hierarchy is probed at its abstract (top) predictor, as in the paper.
+MAIN_PROBE = {"flat_detail": "flat_detail", "flat_abstract": "flat_abstract", "hierarchical": "abstract_tf"}
+TRAINING_ROWS = (
+    ("abstract tokenizer", "abstract_tokenizer"),
+    ("TF only", "abstract_tf_only"),
+    ("DF only", "abstract_df"),
+    ("DF + TF", "abstract_tf"),
+    ("teacher", "teacher"),
+)
+# Table 3: (exp, branch, abstraction, frame rate, probed target, model whose rollout gives the FVD).
+HIERARCHY_LAYOUT = (
+    (1, "single", "detail", "detail_hz", "flat_detail", "flat_detail"),
+    (2, "single", "abstract", "detail_hz", "flat_abstract", "flat_abstract"),
+    (3, "top", "abstract", "abstract_hz", "abstract_tf", "hierarchical"),
+    (3, "bottom", "detail", "detail_hz", "detail", "hierarchical"),
+    (4, "top", "detail", "abstract_hz", "top_detail", "top_detail"),
+    (4, "bottom", "detail", "detail_hz", "detail_on_detail", "top_detail"),
+    (5, "top", "abstract", "detail_hz", "flat_abstract", "top_abstract_10hz"),
+    (5, "bottom", "detail", "detail_hz", "detail", "top_abstract_10hz"),
+)
+SPEED_MODELS = ("hierarchical", "flat_detail", "flat_abstract")
+NA = "NA"
+
+MAIN_CSV = "main_table.csv"
+STEERING_CSV = "steering.csv"
+SPEED_CSV = "speed.csv"
+HIERARCHY_CSV = "hierarchy_ablation.csv"
+TRAINING_CSV = "training_ablation.csv"
+COMPRESSION_CSV = "compression_ablation.csv"
+SUMMARY_MD = "summary.md"
+FIGURES = "figures"
+FIG_CHUNKED = "fvd_chunked.png"
+FIG_BLOCKS = "probe_per_block.png"
+FIG_BUBBLE = "bubble_params_fvd_miou.png"
+
+HOLDS, FAILS, UNMEASURED = "holds", "does not hold", "not measured"
+
+Row = dict[str, Any]
+
+
+# ---------------------------------------------------------------- loading
+
+
+def _file_and_stage(kind: str, name: str | None) -> tuple[str, str]:
+    if kind in ("fvd", "probe"):
+        return f"{kind}_{name}.json", f"eval_{kind}_{name}"
+    return f"{kind}.json", f"eval_{kind}"
+
+
+def load_eval(folder: str | Path) -> dict:
+    """Every evaluation JSON present in ``folder``, keyed by kind and name; absent files are simply absent."""
+    folder = Path(folder)
+    evals: dict = {"folder": str(folder), "fvd": {}, "probe": {}}
+    for kind, names, key in (("fvd", FVD_MODELS, "model"), ("probe", PROBE_TARGETS, "target")):
+        for name in names:
+            path = folder / f"{kind}_{name}.json"
+            if path.exists():
+                data = _read_json(path)
+                if data.get(key) != name:
+                    found = data.get(key)
+                    raise OrbisError(f"{path} says {key}={found!r}, expected {name!r}: re-run eval_{kind}_{name}")
+                evals[kind][name] = data
+    for kind in ("steering", "speed", "compression"):
+        path = folder / f"{kind}.json"
+        if path.exists():
+            evals[kind] = _read_json(path)
+    return evals
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise OrbisError(f"cannot read {path}: {err}; re-run the stage that writes it") from err
+    if not isinstance(data, dict):
+        raise OrbisError(f"{path} holds {type(data).__name__}, expected a JSON object; re-run the stage that writes it")
+    return data
+
+
+def _where(evals: Mapping, kind: str, name: str | None = None) -> str:
+    file, stage = _file_and_stage(kind, name)
+    return f"{Path(evals.get('folder', 'reports/eval')) / file} (written by stage {stage})"
+
+
+def _doc(evals: Mapping, kind: str, name: str | None = None) -> dict:
+    """The parsed file, or an error naming it and the stage that produces it."""
+    doc = evals.get(kind, {}).get(name) if name is not None else evals.get(kind)
+    if doc is None:
+        raise OrbisError(f"missing {_where(evals, kind, name)}: run that stage first")
+    return doc
+
+
+def _has(evals: Mapping, kind: str, name: str | None = None) -> bool:
+    return (evals.get(kind, {}).get(name) if name is not None else evals.get(kind)) is not None
+
+
+def _get(evals: Mapping, kind: str, name: str | None, *keys: str | int) -> Any:
+    """A value deep in a file; missing or null is an error (strict: no blank metric cells)."""
+    value: Any = _doc(evals, kind, name)
+    for i, key in enumerate(keys):
+        try:
+            value = value[key]
+        except (KeyError, IndexError, TypeError):
+            value = None
+        if value is None:
+            path = ".".join(str(k) for k in keys[: i + 1])
+            raise OrbisError(f"{_where(evals, kind, name)} has no value for {path}: re-run that stage")
+    return value
+
+
+# ---------------------------------------------------------------- tables
+
+
+def _probe_cells(evals: Mapping, target: str) -> Row:
+    return {
+        "probe_target": target,
+        "miou": _get(evals, "probe", target, "segmentation", "miou"),
+        "miou_n": _get(evals, "probe", target, "segmentation", "test_frames"),
+        "rmse": _get(evals, "probe", target, "depth", "rmse"),
+        "rmse_n": _get(evals, "probe", target, "depth", "test_frames"),
+    }
+
+
+def _rollout_cells(evals: Mapping, model: str) -> Row:
+    if _get(evals, "fvd", model, "chunked", "split") != "turns":
+        raise OrbisError(f"{_where(evals, 'fvd', model)}: chunked FVD must be on the turns split; re-run it")
+    return {
+        "fvd_model": model,
+        "fvd_16s": _get(evals, "fvd", model, "chunked", "fvd_16s"),
+        "fvd_16s_n": _get(evals, "fvd", model, "chunked", "videos"),
+        "fvd_slope": _get(evals, "fvd", model, "chunked", "fvd_slope"),
+        "fvd_slope_n": _get(evals, "fvd", model, "chunked", "videos"),
+    }
+
+
+def main_table(evals: Mapping) -> list[Row]:
+    """Table 1: FVD on three splits, FVD-slope on turns and the linear probes, per main model."""
+    rows = []
+    for model in MAIN_MODELS:
+        row: Row = {
+            "model": model,
+            "label": _get(evals, "fvd", model, "label"),
+            "parameters": _get(evals, "fvd", model, "parameters"),
+        }
+        for split in FVD_SPLITS:
+            row[f"fvd_{split}"] = _get(evals, "fvd", model, "fvd", split, "fvd")
+            row[f"fvd_{split}_n"] = _get(evals, "fvd", model, "fvd", split, "videos")
+        rollout = _rollout_cells(evals, model)
+        row["fvd_slope_turns"] = rollout["fvd_slope"]
+        row["fvd_slope_turns_n"] = rollout["fvd_slope_n"]
+        row.update(_probe_cells(evals, MAIN_PROBE[model]))
+        rows.append(row)
+    return rows
+
+
+def steering_table(evals: Mapping) -> list[Row]:
+    """Table 2: ADE per steering mode, then the odometry on real and on shuffled videos as floor and chance."""
+    rows: list[Row] = [
+        {
+            "mode": mode,
+            "kind": "generated",
+            "ade": _get(evals, "steering", None, "modes", mode, "ade"),
+            "ade_n": _get(evals, "steering", None, "modes", mode, "samples"),
+        }
+        for mode in STEERING_MODES
+    ]
+    videos = _get(evals, "steering", None, "odometry_sanity", "videos")
+    for mode, key in (("real_videos", "real_ade"), ("shuffled_videos", "shuffled_ade")):
+        rows.append(
+            {
+                "mode": mode,
+                "kind": "odometry_sanity",
+                "ade": _get(evals, "steering", None, "odometry_sanity", key),
+                "ade_n": videos,
+            }
+        )
+    return rows
+
+
+def speed_table(evals: Mapping) -> list[Row]:
+    """Table 5: frames per second and peak memory per model, on the device that measured them."""
+    device = _get(evals, "speed", None, "device")
+    kind = _get(evals, "speed", None, "memory_kind")
+    return [
+        {
+            "model": model,
+            "fps": _get(evals, "speed", None, "models", model, "fps"),
+            "fps_n": _get(evals, "speed", None, "models", model, "frames"),
+            "peak_memory_mb": _get(evals, "speed", None, "models", model, "peak_memory_mb"),
+            "memory_kind": kind,
+            "parameters": _get(evals, "speed", None, "models", model, "parameters"),
+            "device": device,
+        }
+        for model in SPEED_MODELS
+    ]
+
+
+def hierarchy_table(evals: Mapping, detail_hz: float = 10.0, abstract_hz: float = 2.0) -> list[Row]:
+    """Table 3 (Exps 1-5): each predictor's probes and its system's long-horizon FVD on turns.
+
+    A two-branch experiment has one FVD, that of its cascaded rollout; both of
+    its rows carry it, with ``fvd_model`` naming the rollout it comes from.
+    """
+    rows = []
+    rates = {"detail_hz": detail_hz, "abstract_hz": abstract_hz}
+    for exp, branch, abstraction, rate, target, model in HIERARCHY_LAYOUT:
+        row: Row = {"exp": exp, "branch": branch, "abstraction": abstraction, "frame_rate_hz": rates[rate]}
+        row.update(_probe_cells(evals, target))
+        row.update(_rollout_cells(evals, model))
+        rows.append(row)
+    return rows
+
+
+def training_table(evals: Mapping) -> list[Row]:
+    """Table 4: probes of the abstract branch under each training strategy, against tokenizer and teacher."""
+    rows = []
+    for name, target in TRAINING_ROWS:
+        row: Row = {"model": name}
+        row.update(_probe_cells(evals, target))
+        row["val_loss"] = _get(evals, "probe", target, "segmentation", "val_loss")
+        rows.append(row)
+    return rows
+
+
+def compression_table(evals: Mapping) -> list[Row]:
+    """Compressed against full-dimension abstract latents; a null the stage reports stays visible as NA."""
+    source = _get(evals, "compression", None, "rows")
+    if not isinstance(source, list) or len(source) < 2:
+        raise OrbisError(f"{_where(evals, 'compression')} needs at least two rows (compressed and full)")
+    rows = []
+    for i, entry in enumerate(source):
+        row: Row = {}
+        for key in ("variant", "latent_dim"):
+            row[key] = _get(evals, "compression", None, "rows", i, key)
+        for metric in ("fvd_16s", "fvd_slope", "miou", "rmse"):
+            if metric not in entry:
+                raise OrbisError(f"{_where(evals, 'compression')} row {i} has no {metric} (null if not measured)")
+            row[metric] = NA if entry[metric] is None else entry[metric]
+            row[f"{metric}_n"] = entry.get(f"{metric}_n", NA)
+        rows.append(row)
+    return rows
+
+
+# ---------------------------------------------------------------- claims
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.6g}" if math.isfinite(value) else str(value)
+    return str(value)
+
+
+def claim_training(evals: Mapping) -> tuple[str, str]:
+    """(1) DF+TF probes better than TF only and DF only on both segmentation and depth."""
+    needed = ("abstract_tf", "abstract_tf_only", "abstract_df")
+    if not all(_has(evals, "probe", t) for t in needed):
+        return UNMEASURED, "needs " + ", ".join(f"eval_probe_{t}" for t in needed)
+    cells = {t: _probe_cells(evals, t) for t in needed}
+    best, others = cells["abstract_tf"], [cells["abstract_tf_only"], cells["abstract_df"]]
+    ok = all(best["miou"] > o["miou"] and best["rmse"] < o["rmse"] for o in others)
+    text = "mIoU / RMSE: " + ", ".join(
+        f"{label} {_fmt(cells[t]['miou'])} / {_fmt(cells[t]['rmse'])}"
+        for label, t in (("TF only", "abstract_tf_only"), ("DF only", "abstract_df"), ("DF+TF", "abstract_tf"))
+    )
+    return (HOLDS if ok else FAILS), text + " (DF+TF must have the highest mIoU and the lowest RMSE)"
+
+
+def claim_hierarchy_slope(evals: Mapping) -> tuple[str, str]:
+    """(2) The hierarchy has the lowest FVD-slope on turns among the main-table models."""
+    if not all(_has(evals, "fvd", m) for m in MAIN_MODELS):
+        return UNMEASURED, "needs " + ", ".join(f"eval_fvd_{m}" for m in MAIN_MODELS)
+    slopes = {m: _get(evals, "fvd", m, "chunked", "fvd_slope") for m in MAIN_MODELS}
+    ok = all(slopes["hierarchical"] < v for m, v in slopes.items() if m != "hierarchical")
+    text = "FVD-slope on turns: " + ", ".join(f"{m} {_fmt(v)}" for m, v in slopes.items())
+    return (HOLDS if ok else FAILS), text
+
+
+def claim_compression(evals: Mapping) -> tuple[str, str]:
+    """(3) Compressed abstract latents roll out more stably (lower FVD-slope) than full-dimension ones."""
+    if not _has(evals, "compression"):
+        return UNMEASURED, "needs eval_compression"
+    rows = sorted(compression_table(evals), key=lambda r: r["latent_dim"])
+    small, large = rows[0], rows[-1]
+    if small["latent_dim"] == large["latent_dim"]:
+        raise OrbisError(f"{_where(evals, 'compression')}: the rows must differ in latent_dim")
+    if NA in (small["fvd_slope"], large["fvd_slope"]):
+        return UNMEASURED, "the compression stage reports a null FVD-slope"
+    ok = small["fvd_slope"] < large["fvd_slope"]
+    text = (
+        f"FVD-slope with {small['latent_dim']}-d latents {_fmt(small['fvd_slope'])}, "
+        f"with {large['latent_dim']}-d latents {_fmt(large['fvd_slope'])}"
+    )
+    return (HOLDS if ok else FAILS), text
+
+
+def claim_steering(evals: Mapping) -> tuple[str, str]:
+    """(4) Every mode beats chance (shuffled videos) and the original is nearer the odometry floor than chance.
+
+    "Small" for the original ADE is read as below the midpoint between the ADE
+    of the odometry on real videos (its own error floor) and on shuffled ones.
+    """
+    if not _has(evals, "steering"):
+        return UNMEASURED, "needs eval_steering"
+    ades = {m: _get(evals, "steering", None, "modes", m, "ade") for m in STEERING_MODES}
+    real = _get(evals, "steering", None, "odometry_sanity", "real_ade")
+    shuffled = _get(evals, "steering", None, "odometry_sanity", "shuffled_ade")
+    midpoint = (real + shuffled) / 2.0
+    ok = all(v < shuffled for v in ades.values()) and ades["original"] < midpoint
+    text = (
+        "ADE: "
+        + ", ".join(f"{m} {_fmt(v)}" for m, v in ades.items())
+        + f"; odometry on real videos {_fmt(real)}, on shuffled videos {_fmt(shuffled)} "
+        + f"(every mode must be below {_fmt(shuffled)}, the original below {_fmt(midpoint)})"
+    )
+    return (HOLDS if ok else FAILS), text
+
+
+def claim_speed(evals: Mapping) -> tuple[str, str]:
+    """(5) The hierarchy generates frames faster than the flat detail-level model."""
+    if not _has(evals, "speed"):
+        return UNMEASURED, "needs eval_speed"
+    ours = _get(evals, "speed", None, "models", "hierarchical", "fps")
+    flat = _get(evals, "speed", None, "models", "flat_detail", "fps")
+    device = _get(evals, "speed", None, "device")
+    return (HOLDS if ours > flat else FAILS), f"fps on {device}: hierarchical {_fmt(ours)}, flat_detail {_fmt(flat)}"
+
+
+CLAIMS: tuple[tuple[str, Callable[[Mapping], tuple[str, str]]], ...] = (
+    ("DF+TF gives the best representations among TF only, DF only and DF+TF", claim_training),
+    ("the hierarchy has the lowest FVD-slope among the main-table models", claim_hierarchy_slope),
+    ("compression stabilises abstract rollouts (lower FVD-slope than full latents)", claim_compression),
+    ("steering follows counterfactual commands", claim_steering),
+    ("the hierarchy is faster than the flat detail baseline", claim_speed),
+)
+
+
+def check_claims(evals: Mapping) -> list[tuple[str, str, str]]:
+    """(claim, verdict, evidence) for each of the paper's claims, in the paper's order."""
+    return [(claim, *fn(evals)) for claim, fn in CLAIMS]
+
+
+# ---------------------------------------------------------------- writers
+
+
+def _cell(value: Any) -> str:
+    return repr(value) if isinstance(value, float) else str(value)
+
+
+def write_csv(rows: Sequence[Row], path: str | Path) -> None:
+    """Header row plus one line per row; floats are written with ``repr`` so they read back exactly."""
+    if not rows:
+        raise ValueError(f"no rows to write to {path}")
+    header = list(rows[0])
+    with atomic_file(Path(path)) as tmp:
+        with open(tmp, "w", newline="") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(header)
+            for row in rows:
+                writer.writerow([_cell(row[key]) for key in header])
+
+
+def markdown_table(rows: Sequence[Row]) -> str:
+    header = list(rows[0])
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(_fmt(row[key]) for key in header) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def summary_markdown(tables: Sequence[tuple[str, Sequence[Row]]], evals: Mapping, setup: Mapping) -> str:
+    """The tables, the claims checked against them, then the setup that produced them."""
+    parts = ["# Orbis 2 evaluation summary", ""]
+    for title, rows in tables:
+        parts += [f"## {title}", "", markdown_table(rows), ""]
+    parts += ["## Reading", ""]
+    for i, (claim, verdict, evidence) in enumerate(check_claims(evals), start=1):
+        parts.append(f"{i}. {claim}: **{verdict}**. {evidence}.")
+    parts += ["", "## Setup", ""]
+    for key, value in setup.items():
+        shown = json.dumps(value, sort_keys=True) if isinstance(value, (dict, list, tuple)) else _fmt(value)
+        parts.append(f"- {key}: {shown}")
+    return "\n".join(parts) + "\n"
+
+
+def _tables(evals: Mapping, full: bool, detail_hz: float, abstract_hz: float) -> list[tuple[str, str, list[Row]]]:
+    """(title, file name, rows) of every table; ``full`` makes the ablations required, else they join when present."""
+    tables = [
+        ("Main results (Table 1)", MAIN_CSV, main_table(evals)),
+        ("Steering (Table 2)", STEERING_CSV, steering_table(evals)),
+        ("Speed and memory (Table 5)", SPEED_CSV, speed_table(evals)),
+    ]
+    hierarchy_ready = all(_has(evals, "fvd", e[5]) and _has(evals, "probe", e[4]) for e in HIERARCHY_LAYOUT)
+    if full or hierarchy_ready:
+        rows = hierarchy_table(evals, detail_hz, abstract_hz)
+        tables.append(("Hierarchy design study (Table 3)", HIERARCHY_CSV, rows))
+    if full or all(_has(evals, "probe", t) for _, t in TRAINING_ROWS):
+        tables.append(("Training strategy (Table 4)", TRAINING_CSV, training_table(evals)))
+    if _has(evals, "compression"):
+        tables.append(("Latent compression", COMPRESSION_CSV, compression_table(evals)))
+    return tables
+
+
+def _write_tables(
+    csv_tables: Sequence[tuple[str, str, list[Row]]],
+    summary_tables: Sequence[tuple[str, str, list[Row]]],
+    evals: Mapping,
+    out_dir: Path,
+    setup: Mapping,
+) -> list[Path]:
+    summary = summary_markdown([(title, rows) for title, _, rows in summary_tables], evals, setup)
+    written = []
+    for _, name, rows in csv_tables:
+        write_csv(rows, out_dir / name)
+        written.append(out_dir / name)
+    with atomic_file(out_dir / SUMMARY_MD) as tmp:
+        tmp.write_text(summary)
+    return written + [out_dir / SUMMARY_MD]
+
+
+def write_main_report(
+    evals: Mapping, out_dir: str | Path, setup: Mapping, detail_hz: float = 10.0, abstract_hz: float = 2.0
+) -> list[Path]:
+    """main_table.csv, steering.csv, speed.csv and a summary.md of what is available; returns the paths.
+
+    Only the three main tables are written as CSV; ablation tables whose inputs
+    all exist are shown in the summary too, and claims without inputs read
+    "not measured".
+    """
+    tables = _tables(evals, False, detail_hz, abstract_hz)
+    return _write_tables(tables[:3], tables, evals, Path(out_dir), setup)
+
+
+def write_full_report(
+    evals: Mapping, out_dir: str | Path, setup: Mapping, detail_hz: float = 10.0, abstract_hz: float = 2.0
+) -> list[Path]:
+    """Every table, the ablations and the JSON-driven figures, with a summary covering all of them.
+
+    compression.json is optional: without it compression_ablation.csv is not
+    written (a stale one is removed) and the summary marks claim 3 not measured.
+    Everything is checked before the first file is written.
+    """
+    out_dir = Path(out_dir)
+    tables = _tables(evals, True, detail_hz, abstract_hz)
+    _per_block_targets(evals)
+    written = _write_tables(tables, tables, evals, out_dir, setup)
+    if not _has(evals, "compression"):
+        (out_dir / COMPRESSION_CSV).unlink(missing_ok=True)
+    figures = out_dir / FIGURES
+    plot_chunked_fvd(evals, figures / FIG_CHUNKED)
+    plot_probe_blocks(evals, figures / FIG_BLOCKS)
+    plot_bubble(evals, figures / FIG_BUBBLE)
+    return written + [figures / FIG_CHUNKED, figures / FIG_BLOCKS, figures / FIG_BUBBLE]
+
+
+# ---------------------------------------------------------------- figures
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: str | Path) -> None:
+    plt = _pyplot()
+    try:
+        with atomic_file(Path(path)) as tmp:
+            fig.savefig(tmp, format="png", dpi=120, bbox_inches="tight")
+    finally:
+        plt.close(fig)
+
+
+def plot_chunked_fvd(evals: Mapping, path: str | Path, models: Sequence[str] = FVD_MODELS) -> None:
+    """Fig. 4: FVD of each consecutive window of the long turns rollouts, one line per model."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    for model in models:
+        chunks = _get(evals, "fvd", model, "chunked", "chunks")
+        ends = [_get(evals, "fvd", model, "chunked", "chunks", i, "end_s") for i in range(len(chunks))]
+        fvds = [_get(evals, "fvd", model, "chunked", "chunks", i, "fvd") for i in range(len(chunks))]
+        ax.plot(ends, fvds, marker="o", label=_get(evals, "fvd", model, "label"))
+    ax.set_xlabel("end of window (s)")
+    ax.set_ylabel("FVD")
+    ax.set_title("FVD over consecutive windows (turns)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    _save(fig, path)
+
+
+def _per_block_targets(evals: Mapping) -> list[str]:
+    targets = [t for t in PROBE_TARGETS if _has(evals, "probe", t) and _doc(evals, "probe", t).get("per_block")]
+    if not targets:
+        raise OrbisError(
+            f"no probe file in {evals.get('folder', 'reports/eval')} has per_block results: "
+            "run an eval_probe_<target> stage with per-block probing"
+        )
+    return targets
+
+
+def plot_probe_blocks(evals: Mapping, path: str | Path) -> None:
+    """Fig. 5: segmentation mIoU and depth RMSE of a probe on every block, one line per probed model."""
+    targets = _per_block_targets(evals)
+    plt = _pyplot()
+    fig, (ax_miou, ax_rmse) = plt.subplots(1, 2, figsize=(9, 3.6))
+    for target in targets:
+        blocks = _get(evals, "probe", target, "per_block")
+        cells = [
+            tuple(_get(evals, "probe", target, "per_block", i, key) for key in ("block", "miou", "rmse"))
+            for i in range(len(blocks))
+        ]
+        cells.sort()
+        label = _get(evals, "probe", target, "label")
+        ax_miou.plot([c[0] for c in cells], [c[1] for c in cells], marker="o", label=label)
+        ax_rmse.plot([c[0] for c in cells], [c[2] for c in cells], marker="o", label=label)
+    for ax, name in ((ax_miou, "segmentation mIoU (higher is better)"), (ax_rmse, "depth RMSE (lower is better)")):
+        ax.set_xlabel("predictor block")
+        ax.set_title(name)
+        ax.grid(alpha=0.3)
+    ax_miou.legend(fontsize=8)
+    _save(fig, path)
+
+
+def plot_bubble(evals: Mapping, path: str | Path, x_metric: str = "fvd_slope") -> None:
+    """Fig. 2: long-horizon FVD against segmentation mIoU, bubble area proportional to parameters.
+
+    ``x_metric`` is ``fvd_slope`` (turns) or one of ``fvd_val``, ``fvd_heldout``, ``fvd_turns``.
+    """
+    rows = main_table(evals)
+    key = "fvd_slope_turns" if x_metric == "fvd_slope" else x_metric
+    if key not in rows[0] or not key.startswith("fvd"):
+        raise ValueError(f"x_metric must be fvd_slope, fvd_val, fvd_heldout or fvd_turns, got {x_metric!r}")
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(5.5, 4.2))
+    largest = max(r["parameters"] for r in rows)
+    for row in rows:
+        ax.scatter(row[key], row["miou"], s=2000.0 * row["parameters"] / largest, alpha=0.5)
+        ax.annotate(f"{row['label']}\n{row['parameters'] / 1e6:.1f}M", (row[key], row["miou"]), ha="center", fontsize=8)
+    ax.set_xlabel("FVD-slope on turns" if x_metric == "fvd_slope" else x_metric.replace("_", " "))
+    ax.set_ylabel("segmentation mIoU")
+    ax.set_title("bubble area: parameters")
+    ax.grid(alpha=0.3)
+    ax.margins(0.25)
+    _save(fig, path)
+
+
+def _check_frames(frames: np.ndarray, what: str) -> np.ndarray:
+    frames = np.asarray(frames)
+    if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[-1] != 3:
+        raise ValueError(f"{what} must be uint8 [T, H, W, 3], got {frames.dtype} {frames.shape}")
+    return frames
+
+
+def save_rollout_grid(
+    frames: Sequence[np.ndarray], labels: Sequence[str], times: Sequence[float], path: str | Path
+) -> None:
+    """Appendix grid: one row of frames per model, one column per time (frames[i] is uint8 [T, H, W, 3])."""
+    if len(frames) != len(labels) or not frames:
+        raise ValueError(f"need one label per model row, got {len(frames)} rows and {len(labels)} labels")
+    rows = [_check_frames(f, f"frames of {label}") for f, label in zip(frames, labels)]
+    for f, label in zip(rows, labels):
+        if len(f) != len(times):
+            raise ValueError(f"{label} has {len(f)} frames for {len(times)} time columns")
+    plt = _pyplot()
+    h, w = rows[0].shape[1:3]
+    fig, axes = plt.subplots(len(rows), len(times), figsize=(1.8 * len(times) * w / h, 1.8 * len(rows)), squeeze=False)
+    for r, (f, label) in enumerate(zip(rows, labels)):
+        for c, t in enumerate(times):
+            ax = axes[r][c]
+            ax.imshow(f[c])
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(f"{t:g} s", fontsize=8)
+            if c == 0:
+                ax.set_ylabel(label, fontsize=8)
+    _save(fig, path)
+
+
+def save_steering_strip(
+    frames: Sequence[np.ndarray],
+    modes: Sequence[str],
+    times: Sequence[float],
+    commanded: Sequence[np.ndarray],
+    path: str | Path,
+    estimated: Sequence[np.ndarray] | None = None,
+) -> None:
+    """Counterfactual steering figure: per mode a row of frames and a top-down plot of its trajectory.
+
+    ``commanded[i]`` (and ``estimated[i]``, the odometry of the generated video)
+    are [K, 2] positions in metres, x forward and y to the left.
+    """
+    if not (len(frames) == len(modes) == len(commanded)) or not frames:
+        raise ValueError("need one frame row, mode name and commanded trajectory per mode")
+    if estimated is not None and len(estimated) != len(modes):
+        raise ValueError("need one estimated trajectory per mode")
+    rows = [_check_frames(f, f"frames of {mode}") for f, mode in zip(frames, modes)]
+    for f, mode in zip(rows, modes):
+        if len(f) != len(times):
+            raise ValueError(f"{mode} has {len(f)} frames for {len(times)} time columns")
+    plt = _pyplot()
+    h, w = rows[0].shape[1:3]
+    fig, axes = plt.subplots(
+        len(rows),
+        len(times) + 1,
+        figsize=(1.8 * (len(times) * w / h + 1), 1.8 * len(rows)),
+        squeeze=False,
+        gridspec_kw={"width_ratios": [w / h] * len(times) + [1]},
+    )
+    for r, (f, mode) in enumerate(zip(rows, modes)):
+        for c, t in enumerate(times):
+            ax = axes[r][c]
+            ax.imshow(f[c])
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(f"{t:g} s", fontsize=8)
+            if c == 0:
+                ax.set_ylabel(mode, fontsize=8)
+        ax = axes[r][-1]
+        plan = np.asarray(commanded[r], dtype=float)
+        # top-down view: forward is up, left is left
+        ax.plot(-plan[:, 1], plan[:, 0], color="tab:blue", label="commanded")
+        if estimated is not None:
+            est = np.asarray(estimated[r], dtype=float)
+            ax.plot(-est[:, 1], est[:, 0], color="tab:orange", linestyle="--", label="estimated")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.tick_params(labelsize=6)
+        if r == 0:
+            ax.set_title("trajectory (m)", fontsize=8)
+            ax.legend(fontsize=6)
+    _save(fig, path)

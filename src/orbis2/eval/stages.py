@@ -1,0 +1,481 @@
+"""Bodies of the evaluation stages: FVD per system, steering ADE, speed and memory, probes, reports.
+
+Every stage reads the trained artifacts, measures, and writes one JSON file under
+``reports/eval/`` (the contract :mod:`orbis2.eval.report` reads), plus figures and
+videos that it logs to the stage's MLflow run. Randomness comes from
+``evaluation.seed`` only, and every figure records its sample count and seed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from orbis2.assets import ensure_asset
+from orbis2.config import PipelineConfig
+from orbis2.data.probes import cityscapes_frames, kitti_eigen_frames, split_by_episode, town_probe_frames
+from orbis2.data.shards import Clip, iter_samples, load_manifest, shard_paths
+from orbis2.data.video import write_video
+from orbis2.errors import OrbisError
+from orbis2.eval.fvd import FeatureStats, cached_stats, chunk_windows, clip_stats, fvd_slope, video_fvd
+from orbis2.eval.odometry import camera_intrinsics, get_inverse_dynamics, integrate_controls, trajectory_ade
+from orbis2.eval.probe import ProbeConfig, predictor_features, run_probe, teacher_features, tokenizer_features
+from orbis2.eval.report import load_eval, save_rollout_grid, save_steering_strip, write_full_report, write_main_report
+from orbis2.eval.speed import measure
+from orbis2.eval.systems import (
+    SYSTEMS,
+    TOKENIZERS,
+    LoadedSystem,
+    Sample,
+    contexts_for,
+    eval_samples,
+    generated_indices,
+    load_system,
+    predictor_file,
+    rollout_steps,
+)
+from orbis2.io import atomic_dir, write_json
+from orbis2.latents import LatentCache, open_cache
+from orbis2.models.i3d import load_i3d
+from orbis2.models.stdit import load_predictor
+from orbis2.models.teachers import build_teacher
+from orbis2.models.tokenizer import load_tokenizer
+from orbis2.rollout import rollout_schedule, steering_sequences
+from orbis2.tasks.predictors import STAGES
+from orbis2.tasks.tokenizers import TEACHER_ASSETS, asset_path
+from orbis2.tracking import StageRun
+
+LATENTS = Path("data/latents")
+SHARDS = Path("data/shards")
+EVAL = Path("reports/eval")
+# Real-data I3D statistics, keyed by the shards' hashes; outside every stage's outputs so they survive re-runs.
+STATS_CACHE = Path("data/eval_cache")
+# Times (s) of the frames shown in the qualitative rollout grid and the steering strip.
+GRID_TIMES = (0.5, 4.0, 8.0, 12.0, 16.0)
+
+
+def device() -> torch.device:
+    return torch.device("cuda") if torch.cuda.is_available() else torch.device("cpu")
+
+
+def generator(seed: int, dev: torch.device) -> torch.Generator:
+    return torch.Generator(dev).manual_seed(seed)
+
+
+# --------------------------------------------------------------------------- real data
+
+
+def split_clips(split: str) -> dict[str, Clip]:
+    """Every clip of a split's shards by key (JPEGs stay compressed until frames are asked for)."""
+    return {clip.key: clip for path in shard_paths(SHARDS, split)
+            for clip in (Clip.from_sample(s, str(path)) for s in iter_samples(path))}
+
+
+def split_hash(split: str) -> str:
+    """A digest of a split's shards (their SHA-256 from the manifest): the key of cached real statistics."""
+    shards = load_manifest(SHARDS)["splits"][split]["shards"]
+    return hashlib.sha256("".join(s["sha256"] for s in shards).encode()).hexdigest()[:16]
+
+
+def real_videos(clips: dict[str, Clip], samples: list[Sample], indices: list[np.ndarray]) -> np.ndarray:
+    """Ground-truth RGB frames [N, T, H, W, 3] of each sample at the given native indices."""
+    return np.stack([clips[s.key].frames(idx) for s, idx in zip(samples, indices)])
+
+
+def real_stats(split: str, what: str, compute) -> FeatureStats:
+    """I3D statistics of real videos, cached under the split's shard hash and a description of the videos."""
+    return cached_stats(STATS_CACHE, f"{split}|{split_hash(split)}|{what}", compute)
+
+
+# --------------------------------------------------------------------------- rollouts
+
+
+def generate(system: LoadedSystem, cache: LatentCache, split: str, samples: list[Sample], steps: int,
+             cfg: PipelineConfig, dev: torch.device, steering: torch.Tensor | None = None,
+             desc: str = "") -> torch.Tensor:
+    """Rollout latents [N, 5 * steps, ...] of ``samples``, in batches of ``evaluation.batch_size``."""
+    ev = cfg.evaluation
+    gen = generator(ev.seed, dev)
+    out = []
+    batches = range(0, len(samples), ev.batch_size)
+    for start in tqdm(batches, desc=desc or f"{system.name} {split}", unit="batch"):
+        part = samples[start:start + ev.batch_size]
+        contexts = contexts_for(system, cache, split, cfg.data, part, dev)
+        steer = None if steering is None else steering[start:start + ev.batch_size].to(dev)
+        out.append(system.rollout(contexts, steps, gen, ev.top_nfe, ev.bottom_nfe, steer).cpu())
+    return torch.cat(out)
+
+
+def true_latents(cache: LatentCache, split: str, level: str, samples: list[Sample], indices: list[np.ndarray]):
+    arrays = cache.arrays(split)
+    rows = [s.offset + idx for s, idx in zip(samples, indices)]
+    return torch.from_numpy(np.stack([arrays[level][r] for r in rows]).astype(np.float32)) * cache.scale(level)
+
+
+def load_fvd_network(cfg: PipelineConfig, dev: torch.device):
+    path = ensure_asset("i3d_kinetics400", Path(cfg.assets.dir), cfg.assets.local.get("i3d_kinetics400"),
+                        download=False)
+    return load_i3d(path).to(dev).eval()
+
+
+def fvd_record(result, seconds: float) -> dict[str, Any]:
+    return {"fvd": result.value, "videos": result.n_videos, "frames": result.frames, "seconds": seconds,
+            "resolution": [224, 224], "source_resolution": list(result.resolution), "seed": result.seed}
+
+
+def run_fvd(name: str, cfg: PipelineConfig, run: StageRun) -> str:
+    """FVD over ``seconds`` on each split, chunked FVD and FVD-slope over ``long_seconds`` on ``long_split``.
+
+    The long split's FVD uses the first ``seconds`` of its long rollouts (same
+    contexts, same distribution as separate short rollouts). Also records, on the
+    first split, the per-frame latent MSE of the first 4 s of rollout against the
+    truth and against repeating the last context frame: a trivial baseline that a
+    world model must beat.
+    """
+    ev, dev = cfg.evaluation, device()
+    system = load_system(name, dev)
+    cache = open_cache(LATENTS)
+    i3d = load_fvd_network(cfg, dev)
+    record: dict[str, Any] = {"model": name, "label": SYSTEMS[name].label, "parameters": system.parameters,
+                              "predictors": SYSTEMS[name].stages, "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe},
+                              "fvd": {}}
+    media = EVAL / "media" / name
+    with atomic_dir(media) as tmp:
+        for split in ev.fvd_splits:
+            fvd_split(split, system, cache, i3d, record, tmp, cfg, dev)
+    for video in sorted(media.glob("*.mp4")):
+        run.log_artifact(video, "videos")
+    write_json(EVAL / f"fvd_{name}.json", record)
+    run.log_artifact(EVAL / f"fvd_{name}.json")
+    run.log_metrics({f"fvd_{split}": v["fvd"] for split, v in record["fvd"].items()})
+    if "chunked" in record:
+        run.log_metrics({"fvd_slope": record["chunked"]["fvd_slope"]})
+    splits = ", ".join(f"{s} {v['fvd']:.1f} (n={v['videos']})" for s, v in record["fvd"].items())
+    slope = f"; FVD-slope {record['chunked']['fvd_slope']:.1f}" if "chunked" in record else ""
+    return f"{name}: FVD {splits}{slope}"
+
+
+def fvd_split(split: str, system: LoadedSystem, cache: LatentCache, i3d, record: dict[str, Any], media: Path,
+              cfg: PipelineConfig, dev: torch.device) -> None:
+    """Roll out one split, add its FVD (and, for the long split, chunked FVD) to ``record``; save a sample video."""
+    ev, data = cfg.evaluation, cfg.data
+    long = split == ev.long_split
+    steps = rollout_steps(data, ev.long_seconds if long else ev.seconds)
+    n_short, n_long = round(ev.seconds * data.detail_hz), round(ev.long_seconds * data.detail_hz)
+    samples = eval_samples(cache, split, data, steps, ev.starts_per_clip)
+    indices = [generated_indices(data, s.context_end, steps) for s in samples]
+    latents = generate(system, cache, split, samples, steps, cfg, dev)
+    if split == ev.fvd_splits[0]:
+        record["latent_mse"] = latent_baseline(system, cache, split, samples, indices, latents, data)
+    fake = system.decode(latents)
+    clips = split_clips(split)
+    what = f"{len(samples)}x{ev.starts_per_clip}starts|{steps}steps|{data.width}x{data.height}"
+    real = real_stats(split, f"{what}|first{n_short}",
+                      lambda: clip_stats(real_videos(clips, samples, [i[:n_short] for i in indices]), i3d))
+    record["fvd"][split] = fvd_record(video_fvd(real, fake[:, :n_short], i3d, seed=ev.seed), ev.seconds)
+    if long:
+        record["chunked"] = chunked_record(split, samples, indices, fake[:, :n_long], clips, what, i3d, cfg)
+        save_grid_frames(media / "grid.npz", fake[0], data.detail_hz)
+    write_video(media / f"{split}.mp4", fake[0], data.detail_hz)
+
+
+def chunked_record(split: str, samples: list[Sample], indices: list[np.ndarray], fake: np.ndarray,
+                   clips: dict[str, Clip], what: str, i3d, cfg: PipelineConfig) -> dict[str, Any]:
+    """Chunked FVD over consecutive ``chunk_seconds`` windows, FVD over the whole span, and the FVD-slope."""
+    ev, data = cfg.evaluation, cfg.data
+
+    def fvd_of(window: slice) -> float:
+        real = real_stats(split, f"{what}|frames{window.start}-{window.stop}",
+                          lambda: clip_stats(real_videos(clips, samples, [i[window] for i in indices]), i3d))
+        return video_fvd(real, fake[:, window], i3d, seed=ev.seed).value
+
+    windows = chunk_windows(fake.shape[1], data.detail_hz, ev.chunk_seconds)
+    chunks = [{"start_s": w.start / data.detail_hz, "end_s": w.stop / data.detail_hz, "fvd": fvd_of(w)}
+              for w in windows]
+    return {"split": split, "seconds": len(windows) * ev.chunk_seconds, "chunk_seconds": ev.chunk_seconds,
+            "videos": len(samples), "seed": ev.seed, "chunks": chunks,
+            "fvd_16s": fvd_of(slice(0, windows[-1].stop)), "fvd_slope": fvd_slope([c["fvd"] for c in chunks])}
+
+
+def latent_baseline(system: LoadedSystem, cache: LatentCache, split: str, samples: list[Sample],
+                    indices: list[np.ndarray], latents: torch.Tensor, data) -> dict[str, Any]:
+    """Per-frame MSE of the first 4 s of rollout vs. the true latents, and of repeating the last context frame."""
+    frames = min(latents.shape[1], round(4.0 * data.detail_hz))
+    level = system.output_level
+    truth = true_latents(cache, split, level, samples, [i[:frames] for i in indices])
+    last = true_latents(cache, split, level, samples, [np.array([s.context_end]) for s in samples])
+    return {"level": level, "seconds": frames / data.detail_hz, "videos": len(samples),
+            "rollout": float(((latents[:, :frames] - truth) ** 2).mean()),
+            "repeat_last": float(((last - truth) ** 2).mean())}
+
+
+def save_grid_frames(path: Path, frames: np.ndarray, fps: float) -> None:
+    """The frames of one long rollout at ``GRID_TIMES`` (those it reaches), for the report's qualitative grid."""
+    times = [t for t in GRID_TIMES if round(t * fps) <= len(frames)]
+    picks = [max(0, round(t * fps) - 1) for t in times]
+    np.savez_compressed(path, frames=frames[picks], times=np.array(times))
+
+
+# --------------------------------------------------------------------------- steering
+
+
+def run_steering(cfg: PipelineConfig, run: StageRun) -> str:
+    """Counterfactual steering ADE (paper Table 2, appendix "Counterfactual steering").
+
+    Rollouts of the hierarchical model with the steered top predictor (``action``)
+    on ``steering_split`` clips, under each mode's scaling of the clip's own speed
+    and yaw rate; inverse dynamics (visual odometry) recovers the trajectory of
+    each generated video, which is scale-aligned by least squares to the
+    commanded trajectory before the ADE in metres. The first frame is the decoded
+    last context frame, where both trajectories start. Sanity: the same odometry
+    on the real videos of those spans, in order and with shuffled frames.
+    """
+    ev, data = cfg.evaluation, cfg.data
+    if data.detail_stride != 1:
+        raise OrbisError(f"data.{cfg.profile}: the steering evaluation compares odometry at the video rate and needs "
+                         f"fps == detail_hz (got {data.fps} and {data.detail_hz})")
+    dev = device()
+    system = load_system("hierarchical", dev, top_override="action")
+    steer_meta = system.top.meta.get("steering")
+    if steer_meta is None:
+        raise OrbisError("data/predictors/action/predictor.pt is not steered; re-run the `action` stage")
+    cache = open_cache(LATENTS)
+    steps = rollout_steps(data, ev.steering_seconds)
+    split = ev.steering_split
+    samples = eval_samples(cache, split, data, steps, ev.starts_per_clip)
+    indices = [generated_indices(data, s.context_end, steps) for s in samples]
+    odometry = cache.arrays(split)["odometry"]
+    K = camera_intrinsics(data.width, data.height, cfg.town.hfov_deg)
+    inverse = get_inverse_dynamics(ev.inverse_dynamics)
+    first = true_latents(cache, split, "detail", samples, [np.array([s.context_end]) for s in samples])
+    first_frames = system.decode(first)  # [N, 1, H, W, 3]
+    speed_norm, yaw_norm = steer_meta["scale"]
+    modes: dict[str, Any] = {}
+    strip = {}
+    for mode, (speed_scale, yaw_scale) in ev.steering_modes.items():
+        controls, steering = [], []
+        for s in samples:
+            rows = odometry[s.offset: s.offset + s.context_end + steps * 5 + 1].astype(np.float64)
+            speed, yaw = rows[:, 0] * speed_scale, rows[:, 1] * yaw_scale
+            schedule = rollout_schedule(data, s.context_end, steps)
+            steering.append(steering_sequences(schedule, speed, yaw, speed_norm, yaw_norm))
+            controls.append((speed[s.context_end:], yaw[s.context_end:]))
+        latents = generate(system, cache, split, samples, steps, cfg, dev, torch.stack(steering), desc=mode)
+        videos = np.concatenate([first_frames, system.decode(latents)], axis=1)
+        ades = [trajectory_ade(v, sp, yw, data.detail_hz, K, inverse)["ade"] for v, (sp, yw) in zip(videos, controls)]
+        modes[mode] = {"ade": float(np.mean(ades)), "samples": len(samples), "speed_scale": speed_scale,
+                       "yaw_rate_scale": yaw_scale}
+        sp, yw = controls[0]
+        strip[mode] = (videos[0], integrate_controls(sp[:videos.shape[1] - 1], yw[:videos.shape[1] - 1],
+                                                     1.0 / data.detail_hz))
+    sanity = odometry_sanity(split, samples, indices, odometry, K, inverse, data)
+    record = {"split": split, "seconds": ev.steering_seconds, "samples": len(samples), "seed": ev.seed,
+              "inverse_dynamics": ev.inverse_dynamics, "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe},
+              "modes": modes, "odometry_sanity": sanity}
+    write_json(EVAL / "steering.json", record)
+    run.log_artifact(EVAL / "steering.json")
+    save_strip(strip, data.detail_hz, run)
+    run.log_metrics({f"ade_{m}": v["ade"] for m, v in modes.items()})
+    return ("ADE " + ", ".join(f"{m} {v['ade']:.2f} m" for m, v in modes.items())
+            + f" (n={len(samples)}); odometry on real video {sanity['real_ade']:.2f} m, "
+              f"shuffled {sanity['shuffled_ade']:.2f} m")
+
+
+def odometry_sanity(split: str, samples: list[Sample], indices: list[np.ndarray], odometry: np.ndarray, K,
+                    inverse, data) -> dict[str, Any]:
+    """Visual odometry on the real videos of the evaluated spans, in order and with a fixed frame shuffle."""
+    clips = split_clips(split)
+    rng = np.random.default_rng(0)
+    real, shuffled = [], []
+    for s, idx in zip(samples, indices):
+        span = np.concatenate([[s.context_end], idx])
+        video = clips[s.key].frames(span)
+        rows = odometry[s.offset + s.context_end: s.offset + span[-1]].astype(np.float64)
+        real.append(trajectory_ade(video, rows[:, 0], rows[:, 1], data.detail_hz, K, inverse)["ade"])
+        order = rng.permutation(len(video))
+        shuffled.append(trajectory_ade(video[order], rows[:, 0], rows[:, 1], data.detail_hz, K, inverse)["ade"])
+    return {"real_ade": float(np.mean(real)), "shuffled_ade": float(np.mean(shuffled)), "videos": len(samples)}
+
+
+def save_strip(strip: dict[str, tuple[np.ndarray, np.ndarray]], fps: float, run: StageRun) -> None:
+    frames = next(iter(strip.values()))[0]
+    times = [t for t in (0.0, 2.0, 4.0, 6.0) if round(t * fps) < len(frames)]
+    picks = [round(t * fps) for t in times]
+    path = EVAL / "steering_strip.png"
+    save_steering_strip([v[picks] for v, _ in strip.values()], list(strip), times,
+                        [path_ for _, path_ in strip.values()], path)
+    run.log_artifact(path)
+
+
+# --------------------------------------------------------------------------- speed
+
+
+def run_speed(cfg: PipelineConfig, run: StageRun) -> str:
+    """Frames per second and peak memory of the main systems' rollouts, one after another in one process.
+
+    Batch 1, ``speed_seconds`` of rollout from a val context with the evaluation's
+    NFE, the last-decoded frames included (generation as a user sees it).
+    """
+    ev, data = cfg.evaluation, cfg.data
+    dev = device()
+    cache = open_cache(LATENTS)
+    steps = rollout_steps(data, ev.speed_seconds)
+    models = {}
+    for name in ("hierarchical", "flat_detail", "flat_abstract"):
+        system = load_system(name, dev)
+        sample = eval_samples(cache, "val", data, steps, 1)[:1]
+        contexts = contexts_for(system, cache, "val", data, sample, dev)
+
+        def one_rollout(system=system, contexts=contexts) -> int:
+            latents = system.rollout(contexts, steps, generator(ev.seed, dev), ev.top_nfe, ev.bottom_nfe)
+            return system.decode(latents).shape[1]
+
+        result = measure(one_rollout, warmup=1, repeats=ev.speed_repeats, device=dev)
+        models[name] = {"fps": result["fps"], "peak_memory_mb": result["peak_memory_mb"],
+                        "parameters": system.parameters, "frames": result["frames"],
+                        "memory_kind": result["memory_kind"]}
+        del system, contexts
+    record = {"device": torch.cuda.get_device_name() if dev.type == "cuda" else f"cpu ({torch.get_num_threads()} "
+              f"threads)", "memory_kind": next(iter(models.values()))["memory_kind"], "batch": 1,
+              "seconds": steps * 0.5, "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe}, "models": models}
+    write_json(EVAL / "speed.json", record)
+    run.log_artifact(EVAL / "speed.json")
+    run.log_metrics({f"fps_{m}": v["fps"] for m, v in models.items()})
+    return ", ".join(f"{m} {v['fps']:.2f} frames/s, {v['peak_memory_mb']:.0f} MB" for m, v in models.items())
+
+
+# --------------------------------------------------------------------------- linear probes
+
+# Probe targets beyond the predictors: the abstract tokenizer's latent and the frozen teacher.
+REPRESENTATIONS = ("abstract_tokenizer", "teacher")
+# The main model's predictors are probed at ``block_main`` (the paper's 4th from the end), ablations at
+# ``block_ablation``; these also get a per-block curve (paper Fig. 5).
+MAIN_PROBES = ("abstract_tf", "detail")
+PER_BLOCK = ("abstract_df", "abstract_tf_only", "abstract_tf", "flat_detail")
+
+
+def probe_targets() -> list[str]:
+    return [*REPRESENTATIONS, *(s for s in STAGES if s != "action")]
+
+
+def probe_sets(cfg: PipelineConfig) -> list[tuple[str, list, list]]:
+    """(name, train frames, test frames) per probe data source.
+
+    The town's labelled ``probe`` split (divided by episode) serves both tasks unless
+    Cityscapes and/or KITTI are configured, which then take over segmentation and/or
+    depth (paper appendix "Linear probing details").
+    """
+    ps, size = cfg.evaluation.probe, (cfg.data.width, cfg.data.height)
+    sets = []
+    if ps.cityscapes is not None:
+        sets.append(("cityscapes", cityscapes_frames(ps.cityscapes, "train", size, ps.max_frames),
+                     cityscapes_frames(ps.cityscapes, "val", size, ps.max_frames)))
+    if ps.kitti is not None:
+        sets.append(("kitti eigen", kitti_eigen_frames(ps.kitti, ps.kitti_train_split, size, ps.kitti_depth,
+                                                       ps.max_frames),
+                     kitti_eigen_frames(ps.kitti, ps.kitti_test_split, size, ps.kitti_depth, ps.max_frames)))
+    if len(sets) < 2:
+        train, test = split_by_episode(town_probe_frames(SHARDS, "probe", size), ps.test_fraction, ps.seed)
+        sets.append(("town probe split", train, test))
+    return sets
+
+
+def probe_all(feature_fn, sets: list[tuple[str, list, list]], cfg) -> dict[str, Any]:
+    """Segmentation from the first source with semantics, depth from the first with depth."""
+    out: dict[str, Any] = {"segmentation": None, "depth": None, "data": {}}
+    for name, train, test in sets:
+        result = run_probe(feature_fn, train, test, cfg)
+        for task in ("segmentation", "depth"):
+            if out[task] is None and result[task] is not None:
+                out[task] = result[task]
+                out["data"][task] = name
+    return out
+
+
+def run_probe_stage(target: str, cfg: PipelineConfig, run: StageRun) -> str:
+    """Linear probes of one representation (paper appendix "Linear probing details").
+
+    Predictors follow the null-context protocol of :func:`orbis2.eval.probe.predictor_features`;
+    the k-th block from the end is clamped to the network's depth.
+    """
+    if target not in probe_targets():
+        raise OrbisError(f"unknown probe target {target!r}; choose from {probe_targets()}")
+    ps, dev = cfg.evaluation.probe, device()
+    probe_cfg = ProbeConfig(seg_epochs=ps.seg_epochs, depth_epochs=ps.depth_epochs, batch_size=ps.batch_size,
+                            lr=ps.lr, weight_decay=ps.weight_decay, seed=ps.seed, standardize=ps.standardize,
+                            device=str(dev))
+    sets = probe_sets(cfg)
+    record: dict[str, Any] = {"target": target, "block": None}
+    if target == "abstract_tokenizer":
+        record["label"] = "Abstract tokenizer"
+        result = probe_all(tokenizer_features(load_tokenizer(TOKENIZERS["abstract"], dev)), sets, probe_cfg)
+    elif target == "teacher":
+        tc = cfg.tokenizer_abstract
+        teacher = build_teacher(tc.teacher, asset_path(Path(cfg.assets.dir), TEACHER_ASSETS[tc.teacher])).to(dev)
+        record["label"] = f"Teacher ({tc.teacher})"
+        result = probe_all(teacher_features(teacher), sets, probe_cfg)
+    else:
+        predictor = load_predictor(predictor_file(target), dev)
+        tokenizer = load_tokenizer(TOKENIZERS[predictor.meta["level"]], dev)
+        depth = len(predictor.model.blocks)
+        wanted = ps.block_main if target in MAIN_PROBES else ps.block_ablation
+        block = min(wanted, depth)
+        record.update(label=target, block=block, depth=depth)
+        result = probe_all(predictor_features(predictor, tokenizer, block), sets, probe_cfg)
+        if target in PER_BLOCK:
+            record["per_block"] = []
+            for k in range(1, depth + 1):
+                r = result if k == block else probe_all(predictor_features(predictor, tokenizer, k), sets, probe_cfg)
+                record["per_block"].append({"block": k, "miou": r["segmentation"]["miou"],
+                                            "rmse": r["depth"]["rmse"]})
+    record.update(segmentation=result["segmentation"], depth=result["depth"], data=result["data"])
+    write_json(EVAL / f"probe_{target}.json", record)
+    run.log_artifact(EVAL / f"probe_{target}.json")
+    run.log_metrics({"miou": result["segmentation"]["miou"], "depth_rmse": result["depth"]["rmse"]})
+    return (f"{target}: mIoU {result['segmentation']['miou']:.3f} ({result['data']['segmentation']}), depth RMSE "
+            f"{result['depth']['rmse']:.2f} m ({result['data']['depth']})")
+
+
+# --------------------------------------------------------------------------- reports
+
+
+def report_setup(cfg: PipelineConfig) -> dict[str, Any]:
+    """What the summary states about how the numbers were made."""
+    ev = cfg.evaluation
+    return {"profile": cfg.profile, "resolution": f"{cfg.data.width}x{cfg.data.height}",
+            "evaluation seed": ev.seed, "NFE (top / bottom)": f"{ev.top_nfe} / {ev.bottom_nfe}",
+            "FVD rollouts": f"{ev.seconds} s on {', '.join(ev.fvd_splits)}; chunked {ev.long_seconds} s on "
+                            f"{ev.long_split} in {ev.chunk_seconds} s chunks",
+            "starts per clip": ev.starts_per_clip, "steering": f"{ev.steering_seconds} s on {ev.steering_split}",
+            "probe": f"town probe split, {ev.probe.seg_epochs} / {ev.probe.depth_epochs} epochs, "
+                     f"seed {ev.probe.seed}",
+            "training seeds": {s: cfg.section(s).train.seed for s in ("abstract_df", "abstract_tf", "detail",
+                                                                       "action", "flat_detail", "flat_abstract")}}
+
+
+def run_report(scope: str, cfg: PipelineConfig, run: StageRun) -> str:
+    """``main``: main_table/steering/speed CSVs and summary.md in reports/; ``all``: every table and figure in
+    reports/all/ (with the qualitative rollout grid from the FVD stages' saved frames)."""
+
+    evals = load_eval(EVAL)
+    setup, rates = report_setup(cfg), {"detail_hz": cfg.data.detail_hz, "abstract_hz": cfg.data.abstract_hz}
+    if scope == "main":
+        written = write_main_report(evals, Path("reports"), setup, **rates)
+    else:
+        with atomic_dir(Path("reports/all")) as tmp:
+            write_full_report(evals, tmp, setup, **rates)
+            grids = [(n, np.load(EVAL / "media" / n / "grid.npz")) for n in SYSTEMS
+                     if (EVAL / "media" / n / "grid.npz").is_file()]
+            if grids:
+                times = min((g["times"] for _, g in grids), key=len)
+                save_rollout_grid([g["frames"][:len(times)] for _, g in grids], [SYSTEMS[n].label for n, _ in grids],
+                                  list(times), tmp / "figures" / "rollout_grid.png")
+        written = sorted(p for p in Path("reports/all").rglob("*") if p.is_file())
+    for path in written:
+        run.log_artifact(path, None if scope == "main" else "all")
+    return f"{len(written)} files: " + ", ".join(p.name for p in written)

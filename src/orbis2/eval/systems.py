@@ -1,0 +1,196 @@
+"""World-model systems as the evaluation runs them: which predictors, their contexts, rollouts, decoding.
+
+A *system* is a flat predictor or a top predictor cascaded into a bottom one
+(paper Fig. 1 and Table 3):
+
+==================  =========================================  ==========================
+system              top predictor                              bottom / flat predictor
+==================  =========================================  ==========================
+hierarchical        ``abstract_tf`` (abstract, 2 Hz; ours)     ``detail`` (detail, 10 Hz)
+flat_detail         -                                          ``flat_detail`` (Exp. 1)
+flat_abstract       -                                          ``flat_abstract`` (Exp. 2)
+top_detail          ``top_detail`` (detail, 2 Hz)              ``detail_on_detail`` (Exp. 4)
+top_abstract_10hz   ``flat_abstract`` (abstract, 10 Hz)        ``detail`` (Exp. 5)
+==================  =========================================  ==========================
+
+Exp. 5's bottom predictor is the hierarchy's own ``detail`` predictor: both are
+trained on ground-truth abstract latents of the same two frames, so their
+training is identical; only the top predictor feeding them differs. Contexts
+come from the latent cache (the tokenizers' encodings of the real frames), and
+rollouts are decoded by the tokenizer of the bottom predictor's latents (the
+abstract tokenizer's weak decoder for ``flat_abstract``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from orbis2.config import DataConfig
+from orbis2.errors import OrbisError
+from orbis2.latents import LatentCache
+from orbis2.models.stdit import PredictorFile, load_predictor
+from orbis2.models.tokenizer import TokenizerFile, load_tokenizer
+from orbis2.rollout import ScheduleStep, cascaded_rollout, first_context_end, flat_rollout, rollout_schedule
+
+PREDICTORS = Path("data/predictors")
+TOKENIZERS = {kind: Path(f"data/tokenizers/{kind}/tokenizer.pt") for kind in ("detail", "abstract")}
+
+
+@dataclass(frozen=True)
+class System:
+    """Names the predictor stages of one evaluated system."""
+
+    label: str
+    bottom: str
+    top: str | None = None
+
+    @property
+    def stages(self) -> list[str]:
+        return [s for s in (self.top, self.bottom) if s is not None]
+
+
+SYSTEMS = {
+    "flat_detail": System("Flat detail-level (10 Hz)", "flat_detail"),
+    "flat_abstract": System("Flat abstract-level (10 Hz)", "flat_abstract"),
+    "hierarchical": System("Hierarchical (ours)", "detail", "abstract_tf"),
+    "top_detail": System("Top detail 2 Hz -> bottom detail 10 Hz", "detail_on_detail", "top_detail"),
+    "top_abstract_10hz": System("Top abstract 10 Hz -> bottom detail 10 Hz", "detail", "flat_abstract"),
+}
+MAIN_SYSTEMS = ("flat_detail", "flat_abstract", "hierarchical")
+
+
+def predictor_file(stage: str) -> Path:
+    return PREDICTORS / stage / "predictor.pt"
+
+
+@dataclass
+class LoadedSystem:
+    """A system's networks on one device, checked to share the tokenizers they were trained with."""
+
+    name: str
+    system: System
+    bottom: PredictorFile
+    top: PredictorFile | None
+    tokenizers: dict[str, TokenizerFile]
+
+    @property
+    def output_level(self) -> str:
+        """Which latents the system generates, hence which tokenizer decodes them."""
+        return self.bottom.meta["level"]
+
+    @property
+    def parameters(self) -> int:
+        nets = [self.bottom.model] + ([self.top.model] if self.top is not None else [])
+        return sum(p.numel() for net in nets for p in net.parameters())
+
+    def _frames_per_step(self, predictor: PredictorFile) -> int:
+        window = predictor.meta["window"]
+        return window["window"] - window["context"]
+
+    def context_indices(self, predictor: PredictorFile, step: ScheduleStep) -> tuple[int, ...]:
+        """Native frame indices of a predictor's context at one rollout step (its rate's window)."""
+        return step.abstract_context if predictor.meta["rate"] == "slow" else step.detail_context
+
+    @torch.no_grad()
+    def rollout(self, contexts: dict[str, torch.Tensor], steps: int, generator: torch.Generator, top_nfe: int,
+                bottom_nfe: int, steering: torch.Tensor | None = None) -> torch.Tensor:
+        """Latents [B, 5 * steps, C, h, w] of ``output_level`` from the contexts (keys ``bottom`` and ``top``)."""
+        bottom_rate = float(self.bottom.meta["frame_rate"])
+        if self.top is None:
+            if steering is not None:
+                raise OrbisError(f"{self.name}: flat systems are not steered")
+            return flat_rollout(self.bottom.model, contexts["bottom"], steps, self._frames_per_step(self.bottom),
+                                bottom_nfe, bottom_rate, generator)
+        details, _ = cascaded_rollout(
+            self.top.model, self.bottom.model, contexts["bottom"], contexts["top"], steps, generator,
+            abstract_nfe=top_nfe, detail_nfe=bottom_nfe, frames_per_step=self._frames_per_step(self.bottom),
+            abstract_hz=float(self.top.meta["frame_rate"]), detail_hz=bottom_rate, steering=steering,
+            top_frames_per_step=self._frames_per_step(self.top))
+        return details
+
+    @torch.no_grad()
+    def decode(self, latents: torch.Tensor, chunk: int = 16) -> np.ndarray:
+        """Scaled latents [B, T, C, h, w] -> RGB uint8 [B, T, H, W, 3] through the output level's tokenizer."""
+        tokenizer = self.tokenizers[self.output_level]
+        b, t = latents.shape[:2]
+        images = [tokenizer.model.decode(part / tokenizer.scale) for part in latents.flatten(0, 1).split(chunk)]
+        frames = ((torch.cat(images).clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8).permute(0, 2, 3, 1)
+        return frames.cpu().numpy().reshape(b, t, *frames.shape[1:])
+
+
+def load_system(name: str, device: torch.device | str = "cpu", top_override: str | None = None) -> LoadedSystem:
+    """Load a system's predictors and both tokenizers; ``top_override`` swaps the top (e.g. the steered ``action``)."""
+    if name not in SYSTEMS:
+        raise OrbisError(f"unknown system {name!r}; choose from {sorted(SYSTEMS)}")
+    system = SYSTEMS[name]
+    tokenizers = {kind: load_tokenizer(path, device) for kind, path in TOKENIZERS.items()}
+    top_stage = top_override or system.top
+    loaded = {stage: load_predictor(predictor_file(stage), device) for stage in {system.bottom, top_stage} if stage}
+    for stage, predictor in loaded.items():
+        for kind, tokenizer in tokenizers.items():
+            if predictor.meta["tokenizers"][kind]["checksum"] != tokenizer.checksum:
+                raise OrbisError(f"{predictor_file(stage)} was trained on latents of another {kind} tokenizer than "
+                                 f"{TOKENIZERS[kind]}; re-run `{stage}`")
+    return LoadedSystem(name, system, loaded[system.bottom], loaded.get(top_stage), tokenizers)
+
+
+# --------------------------------------------------------------------------- evaluation samples
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One rollout to evaluate: a clip of the cache and the native index of its last context frame."""
+
+    key: str
+    offset: int  # row of the clip's first frame in the split's cache arrays
+    context_end: int
+
+
+def rollout_steps(data: DataConfig, seconds: float) -> int:
+    """Rollout steps (0.5 s each with the paper's windows) that cover ``seconds``."""
+    advance = (data.detail_window - data.detail_context) * data.detail_stride / data.fps
+    return int(np.ceil(seconds / advance - 1e-9))
+
+
+def eval_samples(cache: LatentCache, split: str, data: DataConfig, steps: int, starts_per_clip: int) -> list[Sample]:
+    """Every clip of the split long enough for ``steps``, with ``starts_per_clip`` evenly spread starts."""
+    index = cache.index(split)
+    first = first_context_end(data)
+    generated = rollout_schedule(data, first, steps)[-1].detail_target[-1] - first
+    samples = []
+    for key in sorted(index, key=lambda k: index[k]["offset"]):
+        entry = index[key]
+        last = entry["length"] - 1 - generated
+        if last < first:
+            continue
+        for end in np.unique(np.linspace(first, last, starts_per_clip).round().astype(int)):
+            samples.append(Sample(key, int(entry["offset"]), int(end)))
+    if not samples:
+        raise OrbisError(f"{cache.root}: no clip of the {split} split is long enough for {steps} rollout steps after "
+                         f"its context; lower evaluation.seconds or use longer clips")
+    return samples
+
+
+def contexts_for(system: LoadedSystem, cache: LatentCache, split: str, data: DataConfig, samples: list[Sample],
+                 device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
+    """The real-frame context latents (scaled) of each predictor of the system, batched over ``samples``."""
+    arrays = cache.arrays(split)
+    out = {}
+    for role, predictor in (("bottom", system.bottom), ("top", system.top)):
+        if predictor is None:
+            continue
+        level = predictor.meta["level"]
+        rows = [s.offset + np.array(system.context_indices(predictor, rollout_schedule(data, s.context_end, 1)[0]))
+                for s in samples]
+        latents = np.stack([arrays[level][r] for r in rows]).astype(np.float32)
+        out[role] = torch.from_numpy(latents).mul_(cache.scale(level)).to(device)
+    return out
+
+
+def generated_indices(data: DataConfig, context_end: int, steps: int) -> np.ndarray:
+    """Native indices of the frames a rollout generates, in order."""
+    return np.array([i for step in rollout_schedule(data, context_end, steps) for i in step.detail_target])

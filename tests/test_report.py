@@ -1,0 +1,349 @@
+"""Report: evaluation JSON files in, the paper's tables, figures and a checked summary out."""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from orbis2.errors import OrbisError
+from orbis2.eval import report
+
+SETUP = {"profile": "smoke", "seed": 7, "fvd_videos": 12}
+
+FVD = {  # model: (parameters, fvd val, heldout, turns, fvd_16s, slope)
+    "flat_detail": (20_000_000, 170.5, 200.25, 210.0, 300.0, 101.63),
+    "flat_abstract": (21_000_000, 490.04, 500.0, 510.0, 520.0, 48.38),
+    "hierarchical": (41_000_000, 98.97, 98.01, 187.53, 209.15, 46.45),
+    "top_detail": (40_000_000, 120.0, 130.0, 140.0, 207.71, 81.4),
+    "top_abstract_10hz": (40_000_000, 400.0, 410.0, 420.0, 551.38, 137.07),
+}
+PROBES = {  # target: (miou, val loss, rmse)
+    "abstract_tokenizer": (57.19, 0.265, 4.574),
+    "teacher": (60.01, 0.284, 3.89),
+    "abstract_df": (58.03, 0.254, 4.274),
+    "abstract_tf": (58.29, 0.25, 4.157),
+    "abstract_tf_only": (55.01, 0.27, 4.355),
+    "detail": (31.97, 0.4, 6.396),
+    "flat_detail": (32.72, 0.41, 6.107),
+    "flat_abstract": (47.88, 0.3, 4.624),
+    "top_detail": (41.02, 0.35, 5.256),
+    "detail_on_detail": (25.52, 0.45, 6.514),
+    "abstract_full": (50.0, 0.3, 4.8),
+    "abstract_tokenizer_full": (59.0, 0.26, 4.0),
+}
+
+
+def fvd_doc(model: str) -> dict:
+    params, val, heldout, turns, fvd16, slope = FVD[model]
+    split = lambda v, n: {"fvd": v, "videos": n, "frames": 16, "seconds": 6.0, "resolution": [224, 224], "seed": 3}
+    chunks = [{"start_s": 4.0 * i, "end_s": 4.0 * (i + 1), "fvd": fvd16 / 2 + slope * i} for i in range(4)]
+    return {
+        "model": model,
+        "label": model.replace("_", " ").title(),
+        "parameters": params,
+        "fvd": {"val": split(val, 40), "heldout": split(heldout, 41), "turns": split(turns, 42)},
+        "chunked": {
+            "split": "turns",
+            "seconds": 16.0,
+            "chunk_seconds": 4.0,
+            "videos": 43,
+            "seed": 3,
+            "chunks": chunks,
+            "fvd_16s": fvd16,
+            "fvd_slope": slope,
+        },
+    }
+
+
+def probe_doc(target: str) -> dict:
+    miou, loss, rmse = PROBES[target]
+    doc = {
+        "target": target,
+        "label": target.replace("_", " "),
+        "block": 3,
+        "segmentation": {"miou": miou, "val_loss": loss, "test_frames": 50, "train_frames": 200},
+        "depth": {"rmse": rmse, "test_frames": 51},
+    }
+    if target in ("abstract_df", "abstract_tf_only"):
+        doc["per_block"] = [{"block": k, "miou": miou - 3 + k, "rmse": rmse + 1 - 0.2 * k} for k in range(5)]
+    return doc
+
+
+def steering_doc() -> dict:
+    ades = {"original": 1.2, "speed_x0.5": 2.18, "speed_x1.5": 0.53, "yaw_rate_x0.5": 1.65, "yaw_rate_x1.5": 0.73}
+    return {
+        "split": "turns",
+        "seconds": 6.0,
+        "samples": 20,
+        "seed": 5,
+        "inverse_dynamics": "opencv",
+        "modes": {mode: {"ade": ade, "samples": 20 + i} for i, (mode, ade) in enumerate(ades.items())},
+        "odometry_sanity": {"real_ade": 0.4, "shuffled_ade": 4.0, "videos": 30},
+    }
+
+
+def speed_doc() -> dict:
+    models = {"hierarchical": 3.64, "flat_detail": 0.7, "flat_abstract": 1.5}
+    return {
+        "device": "cpu",
+        "memory_kind": "cpu_peak_rss",
+        "models": {
+            m: {"fps": fps, "peak_memory_mb": 900.5, "parameters": FVD[m][0], "frames": 60} for m, fps in models.items()
+        },
+    }
+
+
+def compression_doc() -> dict:
+    rows = [
+        {"variant": "compressed (16-d)", "latent_dim": 16, "fvd_16s": 200.0, "fvd_slope": 40.0, "miou": 58.3},
+        {"variant": "full (teacher dim)", "latent_dim": 768, "fvd_16s": 600.0, "fvd_slope": 150.0, "miou": None},
+    ]
+    for row in rows:
+        row["rmse"] = None
+    return {"rows": rows}
+
+
+def write_evals(folder: Path, skip: tuple[str, ...] = ()) -> Path:
+    docs = {f"fvd_{m}": fvd_doc(m) for m in FVD} | {f"probe_{t}": probe_doc(t) for t in PROBES}
+    docs |= {"steering": steering_doc(), "speed": speed_doc(), "compression": compression_doc()}
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, doc in docs.items():
+        if name not in skip:
+            (folder / f"{name}.json").write_text(json.dumps(doc))
+    return folder
+
+
+@pytest.fixture
+def evals(tmp_path):
+    return report.load_eval(write_evals(tmp_path / "eval"))
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def verdicts(evals: dict) -> list[str]:
+    return [verdict for _, verdict, _ in report.check_claims(evals)]
+
+
+def summary_verdicts(path: Path) -> list[str]:
+    return re.findall(r"^\d\. .*?: \*\*(.+?)\*\*", path.read_text(), flags=re.M)
+
+
+def test_load_eval_reads_every_file(evals):
+    assert set(evals["fvd"]) == set(report.FVD_MODELS)
+    assert set(evals["probe"]) == set(report.PROBE_TARGETS)
+    assert {"steering", "speed", "compression"} <= set(evals)
+
+
+def test_load_eval_rejects_a_file_under_the_wrong_name(tmp_path):
+    folder = write_evals(tmp_path / "eval")
+    (folder / "fvd_hierarchical.json").write_text(json.dumps(fvd_doc("flat_detail")))
+    with pytest.raises(OrbisError, match="eval_fvd_hierarchical"):
+        report.load_eval(folder)
+
+
+def test_main_report_tables_round_trip(evals, tmp_path):
+    out = tmp_path / "reports"
+    written = report.write_main_report(evals, out, SETUP)
+    assert sorted(p.name for p in written) == ["main_table.csv", "speed.csv", "steering.csv", "summary.md"]
+
+    main = read_csv(out / "main_table.csv")
+    assert [r["model"] for r in main] == ["flat_detail", "flat_abstract", "hierarchical"]
+    assert list(main[0]) == [
+        "model", "label", "parameters",
+        "fvd_val", "fvd_val_n", "fvd_heldout", "fvd_heldout_n", "fvd_turns", "fvd_turns_n",
+        "fvd_slope_turns", "fvd_slope_turns_n", "probe_target", "miou", "miou_n", "rmse", "rmse_n",
+    ]  # fmt: skip
+    ours = main[2]
+    assert int(ours["parameters"]) == FVD["hierarchical"][0]
+    assert [float(ours[f"fvd_{s}"]) for s in ("val", "heldout", "turns")] == list(FVD["hierarchical"][1:4])
+    assert [int(ours[f"fvd_{s}_n"]) for s in ("val", "heldout", "turns")] == [40, 41, 42]
+    assert float(ours["fvd_slope_turns"]) == FVD["hierarchical"][5] and ours["fvd_slope_turns_n"] == "43"
+    # the hierarchy is probed at its abstract predictor, flat models at themselves
+    assert ours["probe_target"] == "abstract_tf" and float(ours["miou"]) == PROBES["abstract_tf"][0]
+    assert float(ours["rmse"]) == PROBES["abstract_tf"][2] and ours["rmse_n"] == "51"
+    assert float(main[1]["miou"]) == PROBES["flat_abstract"][0]
+
+    steering = read_csv(out / "steering.csv")
+    assert list(steering[0]) == ["mode", "kind", "ade", "ade_n"]
+    assert [r["mode"] for r in steering] == [*report.STEERING_MODES, "real_videos", "shuffled_videos"]
+    assert float(steering[1]["ade"]) == 2.18 and steering[1]["ade_n"] == "21"
+    assert float(steering[-1]["ade"]) == 4.0 and steering[-1]["ade_n"] == "30"
+
+    speed = read_csv(out / "speed.csv")
+    assert list(speed[0]) == ["model", "fps", "fps_n", "peak_memory_mb", "memory_kind", "parameters", "device"]
+    assert [(r["model"], float(r["fps"])) for r in speed] == [
+        ("hierarchical", 3.64),
+        ("flat_detail", 0.7),
+        ("flat_abstract", 1.5),
+    ]
+    assert speed[0]["memory_kind"] == "cpu_peak_rss" and speed[0]["device"] == "cpu"
+
+    summary = (out / "summary.md").read_text()
+    for heading in ("## Main results", "## Steering", "## Speed", "## Reading", "## Setup"):
+        assert heading in summary
+    assert "- profile: smoke" in summary and "- fvd_videos: 12" in summary
+    assert summary_verdicts(out / "summary.md") == ["holds"] * 5
+    assert not (out / "hierarchy_ablation.csv").exists()
+
+
+def test_main_report_marks_absent_ablations_not_measured(tmp_path):
+    folder = write_evals(tmp_path / "eval", skip=("probe_abstract_df", "compression"))
+    report.write_main_report(report.load_eval(folder), tmp_path / "out", SETUP)
+    assert summary_verdicts(tmp_path / "out" / "summary.md") == [
+        "not measured",
+        "holds",
+        "not measured",
+        "holds",
+        "holds",
+    ]
+    assert "## Training strategy" not in (tmp_path / "out" / "summary.md").read_text()
+
+
+def test_full_report_ablations_and_figures(evals, tmp_path):
+    out = tmp_path / "reports"
+    written = report.write_full_report(evals, out, SETUP, detail_hz=10, abstract_hz=2)
+    names = {p.relative_to(out).as_posix() for p in written}
+    assert names == {
+        "main_table.csv", "steering.csv", "speed.csv", "summary.md",
+        "hierarchy_ablation.csv", "training_ablation.csv", "compression_ablation.csv",
+        "figures/fvd_chunked.png", "figures/probe_per_block.png", "figures/bubble_params_fvd_miou.png",
+    }  # fmt: skip
+
+    hierarchy = read_csv(out / "hierarchy_ablation.csv")
+    assert [(r["exp"], r["branch"], r["abstraction"], float(r["frame_rate_hz"])) for r in hierarchy] == [
+        ("1", "single", "detail", 10.0),
+        ("2", "single", "abstract", 10.0),
+        ("3", "top", "abstract", 2.0),
+        ("3", "bottom", "detail", 10.0),
+        ("4", "top", "detail", 2.0),
+        ("4", "bottom", "detail", 10.0),
+        ("5", "top", "abstract", 10.0),
+        ("5", "bottom", "detail", 10.0),
+    ]
+    assert [r["probe_target"] for r in hierarchy] == [row[4] for row in report.HIERARCHY_LAYOUT]
+    exp4_bottom = hierarchy[5]
+    assert float(exp4_bottom["miou"]) == PROBES["detail_on_detail"][0]
+    assert float(exp4_bottom["fvd_16s"]) == FVD["top_detail"][4] and float(exp4_bottom["fvd_slope"]) == 81.4
+    assert exp4_bottom["fvd_16s_n"] == exp4_bottom["fvd_slope_n"] == "43"
+    assert float(hierarchy[6]["fvd_16s"]) == FVD["top_abstract_10hz"][4]
+
+    training = read_csv(out / "training_ablation.csv")
+    assert list(training[0]) == ["model", "probe_target", "miou", "miou_n", "rmse", "rmse_n", "val_loss"]
+    assert [r["probe_target"] for r in training] == [
+        "abstract_tokenizer",
+        "abstract_tf_only",
+        "abstract_df",
+        "abstract_tf",
+        "teacher",
+    ]
+    assert float(training[3]["val_loss"]) == 0.25 and training[3]["miou_n"] == "50"
+
+    compression = read_csv(out / "compression_ablation.csv")
+    assert [r["latent_dim"] for r in compression] == ["16", "768"]
+    assert float(compression[0]["fvd_slope"]) == 40.0
+    assert compression[1]["miou"] == "NA"  # the stage reported null: not measured
+
+    for png in sorted((out / "figures").iterdir()):
+        with Image.open(png) as image:
+            assert image.format == "PNG" and min(image.size) > 50
+
+    summary = (out / "summary.md").read_text()
+    for heading in ("## Hierarchy design study", "## Training strategy", "## Latent compression"):
+        assert heading in summary
+    assert summary_verdicts(out / "summary.md") == ["holds"] * 5
+
+
+def _set(evals: dict, path: tuple, value) -> None:
+    node = evals
+    for key in path[:-1]:
+        node = node[key]
+    node[path[-1]] = value
+
+
+@pytest.mark.parametrize(
+    "claim, path, value",
+    [
+        (0, ("probe", "abstract_df", "segmentation", "miou"), 60.0),  # DF only better mIoU than DF+TF
+        (0, ("probe", "abstract_tf_only", "depth", "rmse"), 4.0),  # TF only better RMSE
+        (1, ("fvd", "flat_abstract", "chunked", "fvd_slope"), 40.0),  # flat abstract more stable
+        (2, ("compression", "rows", 0, "fvd_slope"), 200.0),  # compressed less stable than full
+        (3, ("steering", "modes", "yaw_rate_x1.5", "ade"), 4.5),  # one mode at chance level
+        (3, ("steering", "modes", "original", "ade"), 3.0),  # original nearer chance than floor
+        (4, ("speed", "models", "flat_detail", "fps"), 5.0),  # flat detail faster
+    ],
+)
+def test_each_claim_flips_with_the_numbers(evals, tmp_path, claim, path, value):
+    assert verdicts(evals)[claim] == "holds"
+    _set(evals, path, value)
+    expected = ["holds"] * 5
+    expected[claim] = "does not hold"
+    assert verdicts(evals) == expected
+    report.write_full_report(evals, tmp_path / "out", SETUP)
+    assert summary_verdicts(tmp_path / "out" / "summary.md") == expected
+
+
+def test_null_compression_slope_is_not_measured(evals):
+    _set(evals, ("compression", "rows", 1, "fvd_slope"), None)
+    assert verdicts(evals)[2] == "not measured"
+
+
+@pytest.mark.parametrize(
+    "missing, stage, writer",
+    [
+        ("fvd_hierarchical", "eval_fvd_hierarchical", report.write_main_report),
+        ("probe_abstract_tf", "eval_probe_abstract_tf", report.write_main_report),
+        ("steering", "eval_steering", report.write_main_report),
+        ("speed", "eval_speed", report.write_main_report),
+        ("fvd_top_detail", "eval_fvd_top_detail", report.write_full_report),
+        ("probe_teacher", "eval_probe_teacher", report.write_full_report),
+    ],
+)
+def test_missing_input_names_file_and_stage(tmp_path, missing, stage, writer):
+    folder = write_evals(tmp_path / "eval", skip=(missing,))
+    evals = report.load_eval(folder)
+    with pytest.raises(OrbisError, match=re.escape(f"{missing}.json (written by stage {stage})")):
+        writer(evals, tmp_path / "out", SETUP)
+    assert not (tmp_path / "out").exists()  # checked before anything is written
+
+
+def test_missing_metric_is_an_error_not_a_blank(evals, tmp_path):
+    evals["probe"]["flat_detail"]["depth"] = None
+    with pytest.raises(OrbisError, match=r"probe_flat_detail\.json .*depth"):
+        report.write_main_report(evals, tmp_path / "out", SETUP)
+
+
+def test_full_report_without_compression_drops_that_table(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "compression_ablation.csv").write_text("stale\n")
+    evals = report.load_eval(write_evals(tmp_path / "eval", skip=("compression",)))
+    report.write_full_report(evals, out, SETUP)
+    assert not (out / "compression_ablation.csv").exists()
+    assert summary_verdicts(out / "summary.md")[2] == "not measured"
+
+
+def test_rollout_grid_and_steering_strip_are_pngs(tmp_path):
+    rng = np.random.default_rng(0)
+    times = [0.5, 4.0, 8.0]
+    frames = [rng.integers(0, 255, (3, 36, 64, 3), dtype=np.uint8) for _ in range(2)]
+    report.save_rollout_grid(frames, ["Exp. 1", "Exp. 3 (ours)"], times, tmp_path / "grid.png")
+    t = np.linspace(0, 6, 13)[:, None]
+    plans = [np.hstack([5 * t, 0.1 * k * t**2]) for k in range(len(report.STEERING_MODES))]
+    modes_frames = [rng.integers(0, 255, (3, 36, 64, 3), dtype=np.uint8) for _ in report.STEERING_MODES]
+    report.save_steering_strip(
+        modes_frames, report.STEERING_MODES, times, plans, tmp_path / "strip.png", estimated=[p * 0.9 for p in plans]
+    )
+    for name in ("grid.png", "strip.png"):
+        with Image.open(tmp_path / name) as image:
+            assert image.format == "PNG"
+    with pytest.raises(ValueError, match="uint8"):
+        report.save_rollout_grid([f.astype(np.float32) for f in frames], ["a", "b"], times, tmp_path / "bad.png")
