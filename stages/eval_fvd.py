@@ -1,5 +1,5 @@
 """Stage `eval_fvd_<system>`: FVD over rollouts on each evaluation split, chunked FVD and FVD-slope
--> reports/eval/fvd_<system>.json (+ sample videos, frames for the qualitative grid).
+-> reports/eval/fvd_<system>.json, reports/eval/media/<system>/ (sample videos, frames for the grid).
 
     python stages/eval_fvd.py hierarchical --profile default
 
@@ -11,24 +11,17 @@ import sys
 
 from orbis2.eval.stages import run_fvd
 from orbis2.eval.systems import SYSTEMS
-from orbis2.stage import stage_main
-
-SECTIONS = ["data", "assets", "evaluation"]
+from orbis2.stage import named_stage_main
 
 
-def main(argv: list[str]) -> None:
-    if argv and argv[0].startswith("eval_fvd_"):  # the DAG passes the stage name
-        argv = [argv[0][len("eval_fvd_"):], *argv[1:]]
-    if not argv or argv[0] not in SYSTEMS:
-        sys.exit(f"usage: python stages/eval_fvd.py <system> [--profile P]; <system> is one of {', '.join(SYSTEMS)}")
-    name = argv[0]
-
+def body(name: str):
     def run(cfg, args, run):
         """Roll out one system on the evaluation splits and measure FVD, chunked FVD and FVD-slope."""
         return run_fvd(name, cfg, run)
 
-    stage_main(f"eval_fvd_{name}", SECTIONS, run, argv=argv[1:])
+    return run
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    named_stage_main("eval_fvd.py", "eval_fvd_", list(SYSTEMS), ["data", "assets", "evaluation"], body,
+                     sys.argv[1:])

@@ -13,23 +13,18 @@ are published atomically at the end.
 
 import sys
 
-from orbis2.stage import stage_main
+from orbis2.stage import named_stage_main
 from orbis2.tasks.predictors import STAGES, run_stage, stage_sections
 
 
-def main(argv: list[str]) -> None:
-    if not argv or argv[0] not in STAGES:
-        given = repr(argv[0]) if argv else "nothing"
-        sys.exit(f"usage: python stages/predictor.py <predictor> [--profile P]; <predictor> is one of "
-                 f"{', '.join(STAGES)} (got {given})")
-    stage = argv[0]
-
+def body(stage: str):
     def run(cfg, args, run):
         """Train one predictor and publish predictor.pt with its validation loss."""
         return run_stage(stage, cfg, run)
 
-    stage_main(stage, stage_sections(stage), run, argv=argv[1:])
+    return run
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    stage = sys.argv[1] if len(sys.argv) > 1 else ""
+    named_stage_main("predictor.py", "", list(STAGES), stage_sections(stage), body, sys.argv[1:])

@@ -7,22 +7,16 @@
 import sys
 
 from orbis2.eval.stages import run_report
-from orbis2.stage import stage_main
-
-SCOPES = ("main", "all")
+from orbis2.stage import named_stage_main
 
 
-def main(argv: list[str]) -> None:
-    if not argv or argv[0] not in SCOPES:
-        sys.exit("usage: python stages/report.py main|all [--profile P]")
-    scope = argv[0]
-
+def body(scope: str):
     def run(cfg, args, run):
         """Write the report tables, figures and summary."""
         return run_report(scope, cfg, run)
 
-    stage_main(f"report_{scope}", ["data", "evaluation"], run, argv=argv[1:])
+    return run
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    named_stage_main("report.py", "report_", ["main", "all"], ["data", "evaluation"], body, sys.argv[1:])

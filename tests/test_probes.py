@@ -271,7 +271,7 @@ def models(tmp_path_factory):
         model = build_stdit(**build)
         for block in model.blocks:
             torch.nn.init.normal_(block.adaLN_modulation[-1].weight, std=0.05)
-        meta = {"level": level, "frame_rate": 2.0 if level == "abstract" else 10.0, "windows": windows,
+        meta = {"level": level, "frame_rate": 2.0 if level == "abstract" else 10.0, "window": windows[level],
                 "tokenizers": {level: {"checksum": tokenizers[level].checksum, "scale": tokenizers[level].scale}}}
         save_predictor(root / f"{level}.pt", model, build, meta)
         predictors[level] = load_predictor(root / f"{level}.pt")

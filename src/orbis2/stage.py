@@ -46,6 +46,22 @@ def stage_main(name: str, sections: list[str], body: StageBody,
     print(f"[{name}] {summary} ({time.perf_counter() - started:.1f} s, profile {cfg.profile})")
 
 
+def named_stage_main(script: str, prefix: str, names: list[str], sections: list[str],
+                     body_for: Callable[[str], StageBody], argv: list[str]) -> None:
+    """``python stages/<script> <name> [--profile P]``: one script serving a family of stages.
+
+    The DAG passes the full stage name (``<prefix><name>``, e.g. ``eval_fvd_hierarchical``);
+    by hand the short name is enough.
+    """
+    if argv and argv[0].startswith(prefix) and argv[0][len(prefix):] in names:
+        argv = [argv[0][len(prefix):], *argv[1:]]
+    if not argv or argv[0] not in names:
+        given = repr(argv[0]) if argv else "nothing"
+        sys.exit(f"usage: python stages/{script} <name> [--profile P]; <name> is one of {', '.join(names)} "
+                 f"(got {given})")
+    stage_main(f"{prefix}{argv[0]}", sections, body_for(argv[0]), argv=argv[1:])
+
+
 def training_dir(name: str, cfg: PipelineConfig, sections: list[str], inputs: dict | None = None) -> Path:
     """Where a training stage keeps checkpoints: ``data/runs/<stage>-<profile>-<params hash>``.
 

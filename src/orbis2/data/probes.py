@@ -53,15 +53,7 @@ class ProbeFrame:
 
 def resize_label(label: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """Nearest-neighbour version of ``resize_cover``: the same scale and centre crop, no blending."""
-    width, height = size
-    h, w = label.shape[:2]
-    if (w, h) == (width, height):
-        return label
-    scale = max(width / w, height / h)
-    new_w, new_h = max(width, round(w * scale)), max(height, round(h * scale))
-    resized = cv2.resize(label, (new_w, new_h), interpolation=cv2.INTER_NEAREST)
-    x0, y0 = (new_w - width) // 2, (new_h - height) // 2
-    return np.ascontiguousarray(resized[y0 : y0 + height, x0 : x0 + width])
+    return resize_cover(label, size, nearest=True)
 
 
 def _frame(image: np.ndarray, semantic: np.ndarray | None, depth: np.ndarray | None, size: tuple[int, int] | None,

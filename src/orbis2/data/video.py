@@ -92,15 +92,18 @@ def read_video(path: Path, stride: int = 1, size: tuple[int, int] | None = None)
     return np.stack(frames)
 
 
-def resize_cover(frame: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Scale so the frame covers ``size=(W, H)``, then centre-crop (keeps the aspect ratio)."""
+def resize_cover(frame: np.ndarray, size: tuple[int, int], nearest: bool = False) -> np.ndarray:
+    """Scale so the frame covers ``size=(W, H)``, then centre-crop (keeps the aspect ratio).
+
+    ``nearest`` samples without blending, for label maps (class ids, depth).
+    """
     width, height = size
     h, w = frame.shape[:2]
     if (w, h) == (width, height):
         return frame
     scale = max(width / w, height / h)
     new_w, new_h = max(width, round(w * scale)), max(height, round(h * scale))
-    interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
+    interp = cv2.INTER_NEAREST if nearest else cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
     resized = cv2.resize(frame, (new_w, new_h), interpolation=interp)
     x0, y0 = (new_w - width) // 2, (new_h - height) // 2
     return np.ascontiguousarray(resized[y0 : y0 + height, x0 : x0 + width])

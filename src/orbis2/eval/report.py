@@ -594,19 +594,17 @@ def _check_frames(frames: np.ndarray, what: str) -> np.ndarray:
     return frames
 
 
-def save_rollout_grid(
-    frames: Sequence[np.ndarray], labels: Sequence[str], times: Sequence[float], path: str | Path
-) -> None:
-    """Appendix grid: one row of frames per model, one column per time (frames[i] is uint8 [T, H, W, 3])."""
-    if len(frames) != len(labels) or not frames:
-        raise ValueError(f"need one label per model row, got {len(frames)} rows and {len(labels)} labels")
+def _frame_rows(frames: Sequence[np.ndarray], labels: Sequence[str], times: Sequence[float]) -> list[np.ndarray]:
+    """Checked uint8 frame rows, one frame per time column."""
     rows = [_check_frames(f, f"frames of {label}") for f, label in zip(frames, labels)]
     for f, label in zip(rows, labels):
         if len(f) != len(times):
             raise ValueError(f"{label} has {len(f)} frames for {len(times)} time columns")
-    plt = _pyplot()
-    h, w = rows[0].shape[1:3]
-    fig, axes = plt.subplots(len(rows), len(times), figsize=(1.8 * len(times) * w / h, 1.8 * len(rows)), squeeze=False)
+    return rows
+
+
+def _draw_frame_rows(axes, rows: list[np.ndarray], labels: Sequence[str], times: Sequence[float]) -> None:
+    """Frames into the first ``len(times)`` columns, times as column titles, labels as row titles."""
     for r, (f, label) in enumerate(zip(rows, labels)):
         for c, t in enumerate(times):
             ax = axes[r][c]
@@ -617,6 +615,19 @@ def save_rollout_grid(
                 ax.set_title(f"{t:g} s", fontsize=8)
             if c == 0:
                 ax.set_ylabel(label, fontsize=8)
+
+
+def save_rollout_grid(
+    frames: Sequence[np.ndarray], labels: Sequence[str], times: Sequence[float], path: str | Path
+) -> None:
+    """Appendix grid: one row of frames per model, one column per time (frames[i] is uint8 [T, H, W, 3])."""
+    if len(frames) != len(labels) or not frames:
+        raise ValueError(f"need one label per model row, got {len(frames)} rows and {len(labels)} labels")
+    rows = _frame_rows(frames, labels, times)
+    plt = _pyplot()
+    h, w = rows[0].shape[1:3]
+    fig, axes = plt.subplots(len(rows), len(times), figsize=(1.8 * len(times) * w / h, 1.8 * len(rows)), squeeze=False)
+    _draw_frame_rows(axes, rows, labels, times)
     _save(fig, path)
 
 
@@ -637,10 +648,7 @@ def save_steering_strip(
         raise ValueError("need one frame row, mode name and commanded trajectory per mode")
     if estimated is not None and len(estimated) != len(modes):
         raise ValueError("need one estimated trajectory per mode")
-    rows = [_check_frames(f, f"frames of {mode}") for f, mode in zip(frames, modes)]
-    for f, mode in zip(rows, modes):
-        if len(f) != len(times):
-            raise ValueError(f"{mode} has {len(f)} frames for {len(times)} time columns")
+    rows = _frame_rows(frames, modes, times)
     plt = _pyplot()
     h, w = rows[0].shape[1:3]
     fig, axes = plt.subplots(
@@ -650,16 +658,8 @@ def save_steering_strip(
         squeeze=False,
         gridspec_kw={"width_ratios": [w / h] * len(times) + [1]},
     )
-    for r, (f, mode) in enumerate(zip(rows, modes)):
-        for c, t in enumerate(times):
-            ax = axes[r][c]
-            ax.imshow(f[c])
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if r == 0:
-                ax.set_title(f"{t:g} s", fontsize=8)
-            if c == 0:
-                ax.set_ylabel(mode, fontsize=8)
+    _draw_frame_rows(axes, rows, modes, times)
+    for r in range(len(rows)):
         ax = axes[r][-1]
         plan = np.asarray(commanded[r], dtype=float)
         # top-down view: forward is up, left is left
