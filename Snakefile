@@ -10,6 +10,14 @@
 from orbis2.config import resolve_section
 from orbis2.eval.stages import probe_targets
 from orbis2.eval.systems import MAIN_SYSTEMS, SYSTEMS
+from orbis2.latents import LATENT_SETS
+from orbis2.tasks.predictors import STAGES
+
+
+def latent_inputs(name):
+    """The cache folder and tokenizer folders of a LATENT_SETS entry."""
+    latents = LATENT_SETS[name]
+    return [str(latents.root), *(str(path.parent) for path in latents.tokenizers.values())]
 
 configfile: "params.yaml"
 
@@ -133,6 +141,28 @@ rule tokenizer_abstract:
         f"{TRAIN_LAUNCHER} stages/tokenizer_abstract.py --profile {{params.profile}}"
 
 
+rule tokenizer_abstract_full:
+    threads: workflow.cores  # uses every core itself; run nothing beside it
+    input:
+        "stages/tokenizer_abstract.py",
+        "src/orbis2/tasks/tokenizers.py",
+        "src/orbis2/models/tokenizer.py",
+        "src/orbis2/models/teachers.py",
+        "src/orbis2/losses.py",
+        "src/orbis2/train.py",
+        "data/shards",
+        "data/assets",
+    output:
+        directory("data/tokenizers/abstract_full"),
+        "reports/tokenizer_abstract_full.json",
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        tokenizer_abstract_full=section("tokenizer_abstract_full"),
+    shell:
+        f"{TRAIN_LAUNCHER} stages/tokenizer_abstract.py tokenizer_abstract_full --profile {{params.profile}}"
+
+
 rule latents:
     threads: workflow.cores  # uses every core itself; run nothing beside it
     input:
@@ -151,16 +181,32 @@ rule latents:
         "python stages/latents.py --profile {params.profile}"
 
 
+rule latents_full:
+    threads: workflow.cores  # uses every core itself; run nothing beside it
+    input:
+        "stages/latents.py",
+        "src/orbis2/latents.py",
+        "data/shards",
+        "data/tokenizers/detail",
+        "data/tokenizers/abstract_full",
+    output:
+        directory("data/latents_full"),
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        latents=section("latents"),
+    shell:
+        "python stages/latents.py latents_full --profile {params.profile}"
+
+
 # Every predictor, main and ablation, is one stage script given the predictor's
 # name; its init_from (params.yaml) adds the weights it starts from as an input.
 # Rules made in a loop pass their name through {rule}: a shell command reads loop
 # variables only when it runs, after the loop has moved on.
-PREDICTORS = ["abstract_df", "abstract_tf", "detail", "action",
-              "abstract_tf_only", "flat_detail", "flat_abstract", "top_detail", "detail_on_detail"]
 PREDICTOR_CODE = ["stages/predictor.py", "src/orbis2/tasks/predictors.py", "src/orbis2/models/stdit.py",
                   "src/orbis2/flow.py", "src/orbis2/train.py"]
 
-for predictor in PREDICTORS:
+for predictor in STAGES:
     init_from = section(predictor).get("init_from")
 
     rule:
@@ -168,9 +214,7 @@ for predictor in PREDICTORS:
         threads: workflow.cores  # uses every core itself; run nothing beside it
         input:
             *PREDICTOR_CODE,
-            "data/latents",
-            "data/tokenizers/detail",
-            "data/tokenizers/abstract",
+            *latent_inputs(STAGES[predictor].latents),
             *([f"data/predictors/{init_from}"] if init_from else []),
         output:
             directory(f"data/predictors/{predictor}"),
@@ -198,10 +242,9 @@ for system in SYSTEMS:
             "stages/eval_fvd.py",
             *EVAL_CODE,
             "src/orbis2/eval/fvd.py",
-            "data/latents",
+            *latent_inputs(SYSTEMS[system].latents),
             "data/shards",
             "data/assets",
-            *TOKENIZER_DIRS,
             *[f"data/predictors/{stage}" for stage in SYSTEMS[system].stages],
         output:
             f"reports/eval/fvd_{system}.json",
@@ -226,9 +269,9 @@ for target in probe_targets():
             "src/orbis2/eval/probe.py",
             "src/orbis2/data/probes.py",
             "data/shards",
-            *TOKENIZER_DIRS,
+            *(latent_inputs("full" if target.endswith("_full") else "compressed")[1:]),
             *(["data/assets"] if target == "teacher" else []),
-            *([] if target in ("abstract_tokenizer", "teacher") else [f"data/predictors/{target}"]),
+            *([f"data/predictors/{target}"] if target in STAGES else []),
         output:
             f"reports/eval/probe_{target}.json",
         params:
@@ -310,6 +353,7 @@ rule report_all:
         *[f"reports/eval/media/{name}" for name in SYSTEMS],
         *[f"reports/eval/probe_{target}.json" for target in probe_targets()],
         "reports/eval/steering.json",
+        "reports/eval/steering_strip.png",
         "reports/eval/speed.json",
     output:
         directory("reports/all"),

@@ -1,26 +1,44 @@
-"""Stage `latents`: both tokenizers encode every frame of data/shards once -> data/latents (fp16 memory maps)."""
+"""Stage `latents`: both tokenizers encode every frame of data/shards once -> data/latents (fp16 memory maps).
 
+    python stages/latents.py                 # detail + 16-d abstract latents -> data/latents
+    python stages/latents.py latents_full    # detail + uncompressed abstract latents -> data/latents_full
+
+The uncompressed cache (compression ablation) skips the probe split, which only
+the tokenizers' probes read, from the frames.
+"""
+
+import sys
 from pathlib import Path
 
-from orbis2.latents import build_latent_cache
+from orbis2.data.shards import load_manifest
+from orbis2.latents import LATENT_SETS, build_latent_cache
 from orbis2.stage import stage_main
 
 SHARDS = Path("data/shards")
-DETAIL = Path("data/tokenizers/detail/tokenizer.pt")
-ABSTRACT = Path("data/tokenizers/abstract/tokenizer.pt")
-OUT = Path("data/latents")
+VARIANTS = {"latents": "compressed", "latents_full": "full"}
 
 
-def run(cfg, args, run):
-    """Encode every native frame of every clip with the detail and abstract tokenizers, once."""
-    meta = build_latent_cache(SHARDS, OUT, DETAIL, ABSTRACT, cfg.latents.batch_size)
-    frames = {split: info["frames"] for split, info in meta["splits"].items()}
-    mb = sum(f.stat().st_size for f in OUT.rglob("*") if f.is_file()) / 2**20
-    run.log_metrics({"frames_encoded": sum(frames.values()), "mb_written": mb,
-                     **{f"{split}_frames": n for split, n in frames.items()}})
-    run.log_artifact(OUT / "meta.json")
-    return f"{sum(frames.values())} frames encoded {frames}, {mb:.1f} MB written -> {OUT}"
+def body(name: str):
+    latents = LATENT_SETS[VARIANTS[name]]
+
+    def run(cfg, args, run):
+        """Encode every native frame of every clip with the detail and abstract tokenizers, once."""
+        splits = None
+        if name == "latents_full":
+            splits = [s for s in load_manifest(SHARDS)["splits"] if s != "probe"]
+        meta = build_latent_cache(SHARDS, latents.root, latents.tokenizers["detail"], latents.tokenizers["abstract"],
+                                  cfg.latents.batch_size, splits)
+        frames = {split: info["frames"] for split, info in meta["splits"].items()}
+        mb = sum(f.stat().st_size for f in latents.root.rglob("*") if f.is_file()) / 2**20
+        run.log_metrics({"frames_encoded": sum(frames.values()), "mb_written": mb,
+                         **{f"{split}_frames": n for split, n in frames.items()}})
+        run.log_artifact(latents.root / "meta.json")
+        return f"{sum(frames.values())} frames encoded {frames}, {mb:.1f} MB written -> {latents.root}"
+
+    return run
 
 
 if __name__ == "__main__":
-    stage_main("latents", ["data", "latents"], run)
+    argv = sys.argv[1:]
+    name = argv.pop(0) if argv and argv[0] in VARIANTS else "latents"
+    stage_main(name, ["data", "latents"], body(name), argv=argv)

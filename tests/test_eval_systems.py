@@ -47,7 +47,7 @@ def test_every_system_rolls_out_from_cache_contexts(name, tmp_path, smoke_cfg):
     cache = write_cache(tmp_path, {"val": [60, 60]})
     specs = {"abstract_tf": ("abstract", "slow"), "detail": ("detail", "fast", True), "flat_detail": ("detail", "fast"),
              "flat_abstract": ("abstract", "fast"), "top_detail": ("detail", "slow"),
-             "detail_on_detail": ("detail", "fast", True)}
+             "detail_on_detail": ("detail", "fast", True), "flat_abstract_full": ("abstract", "fast")}
     system = SYSTEMS[name]
     top = predictor(*specs[system.top]) if system.top else None
     loaded = LoadedSystem(name, system, predictor(*specs[system.bottom]), top, {})

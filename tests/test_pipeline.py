@@ -67,9 +67,11 @@ PREDICTORS = sorted(STAGE_SPECS)
 STAGES = sorted(name for name in dvc_stages() if name != "import")  # the whole DAG on the embedded town
 TARGETS = ["reports/main_table.csv", "reports/all"]
 ABLATION_ONLY = {"abstract_tf_only", "top_detail", "detail_on_detail", "eval_fvd_top_detail",
-                 "eval_fvd_top_abstract_10hz", "report_all",
+                 "eval_fvd_top_abstract_10hz", "report_all", "tokenizer_abstract_full", "latents_full",
+                 "flat_abstract_full", "eval_fvd_flat_abstract_full",
                  *(f"eval_probe_{t}" for t in ("abstract_tokenizer", "teacher", "abstract_df", "abstract_tf_only",
-                                               "detail", "top_detail", "detail_on_detail"))}
+                                               "detail", "top_detail", "detail_on_detail", "abstract_tokenizer_full",
+                                               "flat_abstract_full"))}
 MAIN_STAGES = sorted(set(STAGES) - ABLATION_ONLY)  # what reports/main_table.csv needs
 
 
@@ -89,10 +91,12 @@ def check_outputs(root: Path, full: bool = True) -> None:
     for name in ("tokenizer_detail", "tokenizer_abstract"):
         assert json.loads((root / f"reports/{name}.json").read_text())["steps"] == 30
     smoke = load_config(root / "params.yaml")
+    full_abstract = load_tokenizer(root / "data/tokenizers/abstract_full/tokenizer.pt") if full else None
     for name in PREDICTORS if full else sorted(set(PREDICTORS) & set(MAIN_STAGES)):
         predictor = load_predictor(root / f"data/predictors/{name}/predictor.pt")
+        expected = full_abstract if STAGE_SPECS[name].latents == "full" else abstract
         assert predictor.meta["stage"] == name and predictor.meta["tokenizers"]["abstract"]["checksum"] == \
-            abstract.checksum
+            expected.checksum
         report = json.loads((root / f"reports/{name}.json").read_text())
         assert report["steps"] == smoke.section(name).train.steps and math.isfinite(report["val_loss"])
         assert report["val_loss_init"] > 0
@@ -110,8 +114,9 @@ def check_reports(root: Path, full: bool) -> None:
             assert math.isfinite(float(row[column])) and int(row[f"{column}_n"]) >= 2, (row["model"], column)
     for name in ("steering.csv", "speed.csv", "summary.md"):
         assert (root / "reports" / name).stat().st_size > 100
-    for name in ("hierarchy_ablation.csv", "training_ablation.csv", "summary.md", "figures/fvd_chunked.png",
-                 "figures/probe_per_block.png", "figures/bubble_params_fvd_miou.png", "figures/rollout_grid.png"):
+    for name in ("hierarchy_ablation.csv", "training_ablation.csv", "compression_ablation.csv", "summary.md",
+                 "figures/fvd_chunked.png", "figures/probe_per_block.png", "figures/bubble_params_fvd_miou.png",
+                 "figures/rollout_grid.png", "figures/steering_strip.png"):
         assert not full or (root / "reports/all" / name).stat().st_size > 100, name
     fvd = json.loads((root / "reports/eval/fvd_hierarchical.json").read_text())
     assert len(fvd["chunked"]["chunks"]) == 2 and fvd["fvd"]["val"]["videos"] == 2

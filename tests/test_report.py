@@ -34,7 +34,7 @@ PROBES = {  # target: (miou, val loss, rmse)
     "flat_abstract": (47.88, 0.3, 4.624),
     "top_detail": (41.02, 0.35, 5.256),
     "detail_on_detail": (25.52, 0.45, 6.514),
-    "abstract_full": (50.0, 0.3, 4.8),
+    "flat_abstract_full": (50.0, 0.3, 4.8),
     "abstract_tokenizer_full": (59.0, 0.26, 4.0),
 }
 
@@ -347,3 +347,19 @@ def test_rollout_grid_and_steering_strip_are_pngs(tmp_path):
             assert image.format == "PNG"
     with pytest.raises(ValueError, match="uint8"):
         report.save_rollout_grid([f.astype(np.float32) for f in frames], ["a", "b"], times, tmp_path / "bad.png")
+
+
+def test_compression_rows_come_from_the_flat_abstract_models(evals):
+    """Compressed vs full: each row reads its own flat abstract model's rollouts and probes."""
+    evals = {**evals, "fvd": dict(evals["fvd"]), "probe": dict(evals["probe"])}
+    full = fvd_doc("flat_abstract") | {"model": "flat_abstract_full", "latent_channels": 768}
+    full["chunked"] = {**full["chunked"], "fvd_slope": 99.0}
+    evals["fvd"]["flat_abstract"] = evals["fvd"]["flat_abstract"] | {"latent_channels": 16}
+    evals["fvd"]["flat_abstract_full"] = full
+    rows = report.compression_from_evals(evals)["rows"]
+    assert [(r["variant"], r["latent_dim"]) for r in rows] == [("compressed", 16), ("full (teacher dim)", 768)]
+    assert rows[1]["fvd_slope"] == 99.0 and rows[0]["fvd_slope"] == FVD["flat_abstract"][5]
+    assert rows[1]["miou"] == evals["probe"]["flat_abstract_full"]["segmentation"]["miou"]
+    del evals["fvd"]["flat_abstract_full"]
+    with pytest.raises(OrbisError, match="eval_fvd_flat_abstract_full"):
+        report.compression_from_evals(evals)

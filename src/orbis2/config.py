@@ -429,6 +429,7 @@ class PipelineConfig:
     assets: AssetsConfig
     tokenizer_detail: DetailTokenizerConfig
     tokenizer_abstract: AbstractTokenizerConfig
+    tokenizer_abstract_full: AbstractTokenizerConfig
     latents: LatentsConfig
     abstract_df: PredictorConfig
     abstract_tf: TeacherForcingConfig
@@ -439,6 +440,7 @@ class PipelineConfig:
     flat_abstract: TeacherForcingConfig
     top_detail: TeacherForcingConfig
     detail_on_detail: DetailPredictorConfig
+    flat_abstract_full: TeacherForcingConfig
     evaluation: EvaluationConfig
 
     def section(self, name: str) -> Any:
@@ -530,6 +532,7 @@ SECTION_TYPES: dict[str, type] = {
     "assets": AssetsConfig,
     "tokenizer_detail": DetailTokenizerConfig,
     "tokenizer_abstract": AbstractTokenizerConfig,
+    "tokenizer_abstract_full": AbstractTokenizerConfig,
     "latents": LatentsConfig,
     "abstract_df": PredictorConfig,
     "abstract_tf": TeacherForcingConfig,
@@ -540,6 +543,7 @@ SECTION_TYPES: dict[str, type] = {
     "flat_abstract": TeacherForcingConfig,
     "top_detail": TeacherForcingConfig,
     "detail_on_detail": DetailPredictorConfig,
+    "flat_abstract_full": TeacherForcingConfig,
     "evaluation": EvaluationConfig,
 }
 

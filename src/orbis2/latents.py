@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +54,25 @@ FORMAT = 1
 KINDS = ("detail", "abstract")
 META = "meta.json"
 INDEX = "index.json"
+
+
+@dataclass(frozen=True)
+class LatentSet:
+    """Where one pair of tokenizers and the cache of their latents live (the DAG's paths)."""
+
+    root: Path
+    tokenizers: dict[str, Path]
+
+
+_DETAIL_TOKENIZER = Path("data/tokenizers/detail/tokenizer.pt")
+# "compressed": the paper's 16-d abstract latents; "full": the uncompressed teacher-dimensional ones
+# (tokenizer_abstract_full, compress: false), for the compression ablation.
+LATENT_SETS = {
+    "compressed": LatentSet(Path("data/latents"), {"detail": _DETAIL_TOKENIZER,
+                                                   "abstract": Path("data/tokenizers/abstract/tokenizer.pt")}),
+    "full": LatentSet(Path("data/latents_full"), {"detail": _DETAIL_TOKENIZER,
+                                                  "abstract": Path("data/tokenizers/abstract_full/tokenizer.pt")}),
+}
 
 
 class LatentCacheError(OrbisError):

@@ -23,6 +23,8 @@ from orbis2.errors import OrbisError
 from orbis2.io import atomic_file
 
 FVD_MODELS = ("flat_detail", "flat_abstract", "hierarchical", "top_detail", "top_abstract_10hz")
+# Read when present; the compression table needs them (compression_from_evals).
+COMPRESSION_MODELS = ("flat_abstract_full",)
 PROBE_TARGETS = (
     "abstract_tokenizer",
     "teacher",
@@ -34,7 +36,7 @@ PROBE_TARGETS = (
     "flat_abstract",
     "top_detail",
     "detail_on_detail",
-    "abstract_full",
+    "flat_abstract_full",
     "abstract_tokenizer_full",
 )
 FVD_SPLITS = ("val", "heldout", "turns")
@@ -93,7 +95,7 @@ def load_eval(folder: str | Path) -> dict:
     """Every evaluation JSON present in ``folder``, keyed by kind and name; absent files are simply absent."""
     folder = Path(folder)
     evals: dict = {"folder": str(folder), "fvd": {}, "probe": {}}
-    for kind, names, key in (("fvd", FVD_MODELS, "model"), ("probe", PROBE_TARGETS, "target")):
+    for kind, names, key in (("fvd", FVD_MODELS + COMPRESSION_MODELS, "model"), ("probe", PROBE_TARGETS, "target")):
         for name in names:
             path = folder / f"{kind}_{name}.json"
             if path.exists():
@@ -281,6 +283,25 @@ def compression_table(evals: Mapping) -> list[Row]:
             row[f"{metric}_n"] = entry.get(f"{metric}_n", NA)
         rows.append(row)
     return rows
+
+
+def compression_from_evals(evals: Mapping) -> dict:
+    """The compression ablation's rows from the flat abstract models on compressed and on full latents.
+
+    Rollout stability is their 16-s FVD and FVD-slope on the long split; representation
+    quality the probes of those predictors. Raises like every table when an input is missing.
+    """
+    rows = []
+    for variant, model in (("compressed", "flat_abstract"), ("full (teacher dim)", "flat_abstract_full")):
+        probe = _probe_cells(evals, model)
+        rows.append({"variant": variant, "latent_dim": _get(evals, "fvd", model, "latent_channels"),
+                     "fvd_16s": _get(evals, "fvd", model, "chunked", "fvd_16s"),
+                     "fvd_16s_n": _get(evals, "fvd", model, "chunked", "videos"),
+                     "fvd_slope": _get(evals, "fvd", model, "chunked", "fvd_slope"),
+                     "fvd_slope_n": _get(evals, "fvd", model, "chunked", "videos"),
+                     "miou": probe["miou"], "miou_n": probe["miou_n"], "rmse": probe["rmse"],
+                     "rmse_n": probe["rmse_n"]})
+    return {"rows": rows}
 
 
 # ---------------------------------------------------------------- claims

@@ -9,6 +9,7 @@ videos that it logs to the stage's MLflow run. Randomness comes from
 from __future__ import annotations
 
 import hashlib
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -25,11 +26,17 @@ from orbis2.errors import OrbisError
 from orbis2.eval.fvd import FeatureStats, cached_stats, chunk_windows, clip_stats, fvd_slope, video_fvd
 from orbis2.eval.odometry import camera_intrinsics, get_inverse_dynamics, integrate_controls, trajectory_ade
 from orbis2.eval.probe import ProbeConfig, predictor_features, run_probe, teacher_features, tokenizer_features
-from orbis2.eval.report import load_eval, save_rollout_grid, save_steering_strip, write_full_report, write_main_report
+from orbis2.eval.report import (
+    compression_from_evals,
+    load_eval,
+    save_rollout_grid,
+    save_steering_strip,
+    write_full_report,
+    write_main_report,
+)
 from orbis2.eval.speed import measure
 from orbis2.eval.systems import (
     SYSTEMS,
-    TOKENIZERS,
     LoadedSystem,
     Sample,
     contexts_for,
@@ -40,7 +47,7 @@ from orbis2.eval.systems import (
     rollout_steps,
 )
 from orbis2.io import atomic_dir, write_json
-from orbis2.latents import LatentCache, open_cache
+from orbis2.latents import LATENT_SETS, LatentCache, open_cache
 from orbis2.models.i3d import load_i3d
 from orbis2.models.stdit import load_predictor
 from orbis2.models.teachers import build_teacher
@@ -50,7 +57,7 @@ from orbis2.tasks.predictors import STAGES
 from orbis2.tasks.tokenizers import TEACHER_ASSETS, asset_path
 from orbis2.tracking import StageRun
 
-LATENTS = Path("data/latents")
+LATENTS = LATENT_SETS["compressed"].root
 SHARDS = Path("data/shards")
 EVAL = Path("reports/eval")
 # Real-data I3D statistics, keyed by the shards' hashes; outside every stage's outputs so they survive re-runs.
@@ -139,9 +146,10 @@ def run_fvd(name: str, cfg: PipelineConfig, run: StageRun) -> str:
     """
     ev, dev = cfg.evaluation, device()
     system = load_system(name, dev)
-    cache = open_cache(LATENTS)
+    cache = open_cache(LATENT_SETS[system.system.latents].root)
     i3d = load_fvd_network(cfg, dev)
     record: dict[str, Any] = {"model": name, "label": SYSTEMS[name].label, "parameters": system.parameters,
+                              "latent_channels": system.bottom.model.latent_channels,
                               "predictors": SYSTEMS[name].stages, "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe},
                               "fvd": {}}
     media = EVAL / "media" / name
@@ -351,8 +359,8 @@ def run_speed(cfg: PipelineConfig, run: StageRun) -> str:
 
 # --------------------------------------------------------------------------- linear probes
 
-# Probe targets beyond the predictors: the abstract tokenizer's latent and the frozen teacher.
-REPRESENTATIONS = ("abstract_tokenizer", "teacher")
+# Probe targets beyond the predictors: the abstract tokenizers' latents and the frozen teacher.
+REPRESENTATIONS = ("abstract_tokenizer", "abstract_tokenizer_full", "teacher")
 # The main model's predictors are probed at ``block_main`` (the paper's 4th from the end), ablations at
 # ``block_ablation``; these also get a per-block curve (paper Fig. 5).
 MAIN_PROBES = ("abstract_tf", "detail")
@@ -411,9 +419,11 @@ def run_probe_stage(target: str, cfg: PipelineConfig, run: StageRun) -> str:
                             device=str(dev))
     sets = probe_sets(cfg)
     record: dict[str, Any] = {"target": target, "block": None}
-    if target == "abstract_tokenizer":
-        record["label"] = "Abstract tokenizer"
-        result = probe_all(tokenizer_features(load_tokenizer(TOKENIZERS["abstract"], dev)), sets, probe_cfg)
+    if target in ("abstract_tokenizer", "abstract_tokenizer_full"):
+        latents = "full" if target.endswith("_full") else "compressed"
+        record["label"] = f"Abstract tokenizer ({latents})"
+        tokenizer = load_tokenizer(LATENT_SETS[latents].tokenizers["abstract"], dev)
+        result = probe_all(tokenizer_features(tokenizer), sets, probe_cfg)
     elif target == "teacher":
         tc = cfg.tokenizer_abstract
         teacher = build_teacher(tc.teacher, asset_path(Path(cfg.assets.dir), TEACHER_ASSETS[tc.teacher])).to(dev)
@@ -421,7 +431,7 @@ def run_probe_stage(target: str, cfg: PipelineConfig, run: StageRun) -> str:
         result = probe_all(teacher_features(teacher), sets, probe_cfg)
     else:
         predictor = load_predictor(predictor_file(target), dev)
-        tokenizer = load_tokenizer(TOKENIZERS[predictor.meta["level"]], dev)
+        tokenizer = load_tokenizer(LATENT_SETS[STAGES[target].latents].tokenizers[predictor.meta["level"]], dev)
         depth = len(predictor.model.blocks)
         wanted = ps.block_main if target in MAIN_PROBES else ps.block_ablation
         block = min(wanted, depth)
@@ -460,15 +470,17 @@ def report_setup(cfg: PipelineConfig) -> dict[str, Any]:
 
 def run_report(scope: str, cfg: PipelineConfig, run: StageRun) -> str:
     """``main``: main_table/steering/speed CSVs and summary.md in reports/; ``all``: every table and figure in
-    reports/all/ (with the qualitative rollout grid from the FVD stages' saved frames)."""
+    reports/all/, with the qualitative rollout grid (from the FVD stages' saved frames) and the steering strip."""
 
     evals = load_eval(EVAL)
     setup, rates = report_setup(cfg), {"detail_hz": cfg.data.detail_hz, "abstract_hz": cfg.data.abstract_hz}
     if scope == "main":
         written = write_main_report(evals, Path("reports"), setup, **rates)
     else:
+        evals["compression"] = compression_from_evals(evals)
         with atomic_dir(Path("reports/all")) as tmp:
             write_full_report(evals, tmp, setup, **rates)
+            shutil.copy2(EVAL / "steering_strip.png", tmp / "figures" / "steering_strip.png")
             grids = [(n, np.load(EVAL / "media" / n / "grid.npz")) for n in SYSTEMS
                      if (EVAL / "media" / n / "grid.npz").is_file()]
             if grids:

@@ -11,6 +11,7 @@ flat_detail         -                                          ``flat_detail`` (
 flat_abstract       -                                          ``flat_abstract`` (Exp. 2)
 top_detail          ``top_detail`` (detail, 2 Hz)              ``detail_on_detail`` (Exp. 4)
 top_abstract_10hz   ``flat_abstract`` (abstract, 10 Hz)        ``detail`` (Exp. 5)
+flat_abstract_full  -                                          ``flat_abstract_full``
 ==================  =========================================  ==========================
 
 Exp. 5's bottom predictor is the hierarchy's own ``detail`` predictor: both are
@@ -18,7 +19,8 @@ trained on ground-truth abstract latents of the same two frames, so their
 training is identical; only the top predictor feeding them differs. Contexts
 come from the latent cache (the tokenizers' encodings of the real frames), and
 rollouts are decoded by the tokenizer of the bottom predictor's latents (the
-abstract tokenizer's weak decoder for ``flat_abstract``).
+abstract tokenizer's weak decoder for ``flat_abstract``). ``flat_abstract_full``
+runs on the uncompressed abstract latents (compression ablation).
 """
 
 from __future__ import annotations
@@ -31,13 +33,12 @@ import torch
 
 from orbis2.config import DataConfig
 from orbis2.errors import OrbisError
-from orbis2.latents import LatentCache
+from orbis2.latents import LATENT_SETS, LatentCache
 from orbis2.models.stdit import PredictorFile, load_predictor
 from orbis2.models.tokenizer import TokenizerFile, load_tokenizer
 from orbis2.rollout import ScheduleStep, cascaded_rollout, first_context_end, flat_rollout, rollout_schedule
 
 PREDICTORS = Path("data/predictors")
-TOKENIZERS = {kind: Path(f"data/tokenizers/{kind}/tokenizer.pt") for kind in ("detail", "abstract")}
 
 
 @dataclass(frozen=True)
@@ -47,6 +48,7 @@ class System:
     label: str
     bottom: str
     top: str | None = None
+    latents: str = "compressed"  # the LATENT_SETS entry its predictors were trained on
 
     @property
     def stages(self) -> list[str]:
@@ -59,6 +61,8 @@ SYSTEMS = {
     "hierarchical": System("Hierarchical (ours)", "detail", "abstract_tf"),
     "top_detail": System("Top detail 2 Hz -> bottom detail 10 Hz", "detail_on_detail", "top_detail"),
     "top_abstract_10hz": System("Top abstract 10 Hz -> bottom detail 10 Hz", "detail", "flat_abstract"),
+    "flat_abstract_full": System("Flat abstract-level (10 Hz), uncompressed latents", "flat_abstract_full",
+                                 latents="full"),
 }
 MAIN_SYSTEMS = ("flat_detail", "flat_abstract", "hierarchical")
 
@@ -127,14 +131,15 @@ def load_system(name: str, device: torch.device | str = "cpu", top_override: str
     if name not in SYSTEMS:
         raise OrbisError(f"unknown system {name!r}; choose from {sorted(SYSTEMS)}")
     system = SYSTEMS[name]
-    tokenizers = {kind: load_tokenizer(path, device) for kind, path in TOKENIZERS.items()}
+    paths = LATENT_SETS[system.latents].tokenizers
+    tokenizers = {kind: load_tokenizer(path, device) for kind, path in paths.items()}
     top_stage = top_override or system.top
     loaded = {stage: load_predictor(predictor_file(stage), device) for stage in {system.bottom, top_stage} if stage}
     for stage, predictor in loaded.items():
         for kind, tokenizer in tokenizers.items():
             if predictor.meta["tokenizers"][kind]["checksum"] != tokenizer.checksum:
                 raise OrbisError(f"{predictor_file(stage)} was trained on latents of another {kind} tokenizer than "
-                                 f"{TOKENIZERS[kind]}; re-run `{stage}`")
+                                 f"{paths[kind]}; re-run `{stage}`")
     return LoadedSystem(name, system, loaded[system.bottom], loaded.get(top_stage), tokenizers)
 
 

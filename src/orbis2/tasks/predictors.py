@@ -22,6 +22,8 @@ Ablations (paper Tables 3 and 4), the same code with another spec:
   10 Hz top predictor.
 - ``top_detail``: a 2 Hz top predictor of detail latents, and ``detail_on_detail``
   the bottom predictor conditioned on detail-latent subgoals (Exp. 4).
+- ``flat_abstract_full``: ``flat_abstract`` on the uncompressed, teacher-dimensional
+  abstract latents (the compression ablation).
 
 Batches come from :class:`~orbis2.latents.LatentWindowDataset` (already scaled
 latents). All randomness of a training step comes from a generator seeded by
@@ -55,15 +57,12 @@ from orbis2.data.shards import window_indices, window_span
 from orbis2.errors import OrbisError
 from orbis2.flow import diffusion_forcing_loss, teacher_forcing_loss
 from orbis2.io import sha256_file
-from orbis2.latents import LatentCache, LatentWindowDataset, open_cache
+from orbis2.latents import LATENT_SETS, LatentCache, LatentWindowDataset, open_cache
 from orbis2.models.stdit import build_stdit, load_predictor, save_predictor
 from orbis2.stage import publish_training, training_dir
 from orbis2.tracking import StageRun
 from orbis2.train import DataSpec, load_weights, train
 
-LATENTS = Path("data/latents")
-TOKENIZERS = {"detail": Path("data/tokenizers/detail/tokenizer.pt"),
-              "abstract": Path("data/tokenizers/abstract/tokenizer.pt")}
 # Offset of the validation generator's seed from the training seed: a different stream, fixed across steps.
 VAL_SEED_OFFSET = 7919
 STEERING_FEATURES = ("speed", "yaw_rate")
@@ -84,6 +83,7 @@ class StageSpec:
     objective: str  # "diffusion_forcing" or "teacher_forcing"
     condition: str | None = None
     steering: bool = False
+    latents: str = "compressed"  # which LATENT_SETS entry it trains on
 
     @property
     def causal(self) -> bool:
@@ -104,6 +104,7 @@ STAGES = {
     "flat_abstract": StageSpec("abstract", "fast", "teacher_forcing"),
     "top_detail": StageSpec("detail", "slow", "teacher_forcing"),
     "detail_on_detail": StageSpec("detail", "fast", "teacher_forcing", condition="detail"),
+    "flat_abstract_full": StageSpec("abstract", "fast", "teacher_forcing", latents="full"),
 }
 
 
@@ -422,9 +423,10 @@ def run_stage(stage: str, cfg: PipelineConfig, run: StageRun) -> str:
     predictor): a retrained upstream starts a fresh run instead of resuming one
     that trained on other inputs.
     """
-    cache = open_cache(LATENTS, *tokenizer_checksums(TOKENIZERS["detail"], TOKENIZERS["abstract"]))
+    latents = LATENT_SETS[STAGES[stage].latents]
+    cache = open_cache(latents.root, *tokenizer_checksums(latents.tokenizers["detail"], latents.tokenizers["abstract"]))
     init_from = cfg.section(stage).init_from
-    inputs = {"latents": sha256_file(LATENTS / "meta.json")}
+    inputs = {"latents": sha256_file(latents.root / "meta.json")}
     if init_from is not None:
         source = predictor_path(init_from)
         if not source.is_file():

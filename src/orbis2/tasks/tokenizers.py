@@ -502,12 +502,13 @@ def train_detail_tokenizer(cfg: PipelineConfig, shards_root: Path, out_dir: Path
 
 
 def train_abstract_tokenizer(cfg: PipelineConfig, shards_root: Path, out_dir: Path, assets_dir: Path,
-                             logger: Any = None) -> dict[str, float]:
+                             logger: Any = None, section: str = "tokenizer_abstract") -> dict[str, float]:
     """The `tokenizer_abstract` stage: train against the configured teacher, then latent scale and ``tokenizer.pt``.
 
-    Returns the final metrics on rank 0 and ``{}`` on other ranks, like :func:`train_detail_tokenizer`.
+    ``section`` picks the params (``tokenizer_abstract_full``: the uncompressed variant). Returns the
+    final metrics on rank 0 and ``{}`` on other ranks, like :func:`train_detail_tokenizer`.
     """
-    tc, out_dir = cfg.tokenizer_abstract, Path(out_dir)
+    tc, out_dir = cfg.section(section), Path(out_dir)
     teacher = build_teacher(tc.teacher, asset_path(assets_dir, TEACHER_ASSETS[tc.teacher]))
     preset = tokenizer_config(tc.preset)
     (height, width), patch = preset["image_size"], preset["patch_size"]
