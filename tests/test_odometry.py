@@ -15,6 +15,7 @@ from orbis2.eval.odometry import (
     ade,
     align_scale,
     camera_intrinsics,
+    endpoint_angle,
     get_inverse_dynamics,
     integrate_controls,
     trajectory_ade,
@@ -130,3 +131,11 @@ def test_trajectory_ade_accepts_custom_model_and_checks_lengths():
         trajectory_ade(frames, speed[:5], yaw_rate[:5], FPS, np.eye(3), model=perfect)
     with pytest.raises(OrbisError, match="returned"):
         trajectory_ade(frames, speed, yaw_rate, FPS, np.eye(3), model=lambda f, K: reference[:5])
+
+
+def test_endpoint_angle_is_signed_and_scale_free():
+    left = integrate_controls(np.full(20, 5.0), np.full(20, 0.3), 0.1)
+    assert endpoint_angle(left) > 0 and endpoint_angle(left * [1, -1]) == -endpoint_angle(left)
+    assert endpoint_angle(left * 7.0) == pytest.approx(endpoint_angle(left))
+    harder = integrate_controls(np.full(20, 5.0), np.full(20, 0.45), 0.1)
+    assert endpoint_angle(harder) > endpoint_angle(left)

@@ -83,7 +83,8 @@ def steering_doc() -> dict:
         "samples": 20,
         "seed": 5,
         "inverse_dynamics": "opencv",
-        "modes": {mode: {"ade": ade, "samples": 20 + i} for i, (mode, ade) in enumerate(ades.items())},
+        "modes": {mode: {"ade": ade, "samples": 20 + i, "turn_deg": 10.0 + 10 * i, "commanded_turn_deg": 12.0 + 10 * i}
+                  for i, (mode, ade) in enumerate(ades.items())},
         "odometry_sanity": {"real_ade": 0.4, "shuffled_ade": 4.0, "videos": 30},
     }
 
@@ -173,7 +174,7 @@ def test_main_report_tables_round_trip(evals, tmp_path):
     assert float(main[1]["miou"]) == PROBES["flat_abstract"][0]
 
     steering = read_csv(out / "steering.csv")
-    assert list(steering[0]) == ["mode", "kind", "ade", "ade_n"]
+    assert list(steering[0]) == ["mode", "kind", "ade", "ade_n", "turn_deg", "commanded_turn_deg"]
     assert [r["mode"] for r in steering] == [*report.STEERING_MODES, "real_videos", "shuffled_videos"]
     assert float(steering[1]["ade"]) == 2.18 and steering[1]["ade_n"] == "21"
     assert float(steering[-1]["ade"]) == 4.0 and steering[-1]["ade_n"] == "30"
@@ -278,6 +279,7 @@ def _set(evals: dict, path: tuple, value) -> None:
         (2, ("compression", "rows", 0, "fvd_slope"), 200.0),  # compressed less stable than full
         (3, ("steering", "modes", "yaw_rate_x1.5", "ade"), 4.5),  # one mode at chance level
         (3, ("steering", "modes", "original", "ade"), 3.0),  # original nearer chance than floor
+        (3, ("steering", "modes", "yaw_rate_x1.5", "turn_deg"), 5.0),  # x1.5 turns less than x0.5
         (4, ("speed", "models", "flat_detail", "fps"), 5.0),  # flat detail faster
     ],
 )

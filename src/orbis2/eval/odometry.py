@@ -352,6 +352,15 @@ def _step_lengths(motions: list, cfg: OpenCVOdometry) -> np.ndarray:
 INVERSE_DYNAMICS: dict[str, Callable[[], InverseDynamics]] = {"opencv": OpenCVOdometry}
 
 
+def endpoint_angle(trajectory: np.ndarray) -> float:
+    """Direction (degrees, left positive) of a trajectory's end point seen from its start: how far it turned.
+
+    Scale-free, so it compares monocular odometry (unknown scale) with commanded paths directly.
+    """
+    x, y = np.asarray(trajectory, np.float64)[-1] - np.asarray(trajectory, np.float64)[0]
+    return math.degrees(math.atan2(y, x))
+
+
 def get_inverse_dynamics(name: str) -> InverseDynamics:
     """The inverse-dynamics model registered under ``name`` ("opencv" ships with the project)."""
     factory = INVERSE_DYNAMICS.get(name)
@@ -372,7 +381,7 @@ def trajectory_ade(frames: np.ndarray, speed, yaw_rate, fps: float, K: np.ndarra
     The controls are integrated at the video rate (row k acts over [t_k, t_{k+1})) and the
     reference is sampled at the T frames, i.e. the first T integrated points; at least T - 1
     control rows are needed. ``model`` defaults to :class:`OpenCVOdometry`. Returns
-    ``{"ade": metres, "scale": fitted s*, "frames": T}``.
+    ``{"ade": metres, "scale": fitted s*, "frames": T, "estimated": [T, 2] (unscaled), "reference": [T, 2]}``.
     """
     frames = np.asarray(frames)
     T = len(frames)
@@ -387,4 +396,5 @@ def trajectory_ade(frames: np.ndarray, speed, yaw_rate, fps: float, K: np.ndarra
     if estimated.shape != (T, 2):
         raise OrbisError(f"inverse-dynamics model returned {estimated.shape}, expected {(T, 2)}")
     estimated = estimated - estimated[0]
-    return {"ade": ade(estimated, reference), "scale": align_scale(estimated, reference), "frames": T}
+    return {"ade": ade(estimated, reference), "scale": align_scale(estimated, reference), "frames": T,
+            "estimated": estimated, "reference": reference[:T]}

@@ -205,6 +205,10 @@ def steering_table(evals: Mapping) -> list[Row]:
             "kind": "generated",
             "ade": _get(evals, "steering", None, "modes", mode, "ade"),
             "ade_n": _get(evals, "steering", None, "modes", mode, "samples"),
+            # How far the video turns (odometry end point, degrees, the clip's turn direction positive) next to
+            # the command: a scale-free check that counterfactuals move the rollout the right way.
+            "turn_deg": _get(evals, "steering", None, "modes", mode, "turn_deg"),
+            "commanded_turn_deg": _get(evals, "steering", None, "modes", mode, "commanded_turn_deg"),
         }
         for mode in STEERING_MODES
     ]
@@ -216,6 +220,8 @@ def steering_table(evals: Mapping) -> list[Row]:
                 "kind": "odometry_sanity",
                 "ade": _get(evals, "steering", None, "odometry_sanity", key),
                 "ade_n": videos,
+                "turn_deg": NA,
+                "commanded_turn_deg": NA,
             }
         )
     return rows
@@ -357,7 +363,8 @@ def claim_compression(evals: Mapping) -> tuple[str, str]:
 
 
 def claim_steering(evals: Mapping) -> tuple[str, str]:
-    """(4) Every mode beats chance (shuffled videos) and the original is nearer the odometry floor than chance.
+    """(4) Every mode beats chance (shuffled videos), the original is nearer the odometry floor than chance,
+    and the videos turn further under yaw rate x1.5 than under x0.5.
 
     "Small" for the original ADE is read as below the midpoint between the ADE
     of the odometry on real videos (its own error floor) and on shuffled ones.
@@ -365,15 +372,19 @@ def claim_steering(evals: Mapping) -> tuple[str, str]:
     if not _has(evals, "steering"):
         return UNMEASURED, "needs eval_steering"
     ades = {m: _get(evals, "steering", None, "modes", m, "ade") for m in STEERING_MODES}
+    turns = {m: _get(evals, "steering", None, "modes", m, "turn_deg") for m in ("yaw_rate_x0.5", "yaw_rate_x1.5")}
     real = _get(evals, "steering", None, "odometry_sanity", "real_ade")
     shuffled = _get(evals, "steering", None, "odometry_sanity", "shuffled_ade")
     midpoint = (real + shuffled) / 2.0
-    ok = all(v < shuffled for v in ades.values()) and ades["original"] < midpoint
+    ok = (all(v < shuffled for v in ades.values()) and ades["original"] < midpoint
+          and turns["yaw_rate_x1.5"] > turns["yaw_rate_x0.5"])
     text = (
         "ADE: "
         + ", ".join(f"{m} {_fmt(v)}" for m, v in ades.items())
         + f"; odometry on real videos {_fmt(real)}, on shuffled videos {_fmt(shuffled)} "
-        + f"(every mode must be below {_fmt(shuffled)}, the original below {_fmt(midpoint)})"
+        + f"(every mode must be below {_fmt(shuffled)}, the original below {_fmt(midpoint)}); "
+        + f"turn under yaw rate x0.5 {_fmt(turns['yaw_rate_x0.5'])} deg, x1.5 {_fmt(turns['yaw_rate_x1.5'])} deg "
+        + "(x1.5 must turn further)"
     )
     return (HOLDS if ok else FAILS), text
 

@@ -24,7 +24,13 @@ from orbis2.data.shards import Clip, iter_samples, load_manifest, shard_paths
 from orbis2.data.video import write_video
 from orbis2.errors import OrbisError
 from orbis2.eval.fvd import FeatureStats, cached_stats, chunk_windows, clip_stats, fvd_slope, video_fvd
-from orbis2.eval.odometry import camera_intrinsics, get_inverse_dynamics, integrate_controls, trajectory_ade
+from orbis2.eval.odometry import (
+    camera_intrinsics,
+    endpoint_angle,
+    get_inverse_dynamics,
+    integrate_controls,
+    trajectory_ade,
+)
 from orbis2.eval.probe import ProbeConfig, predictor_features, run_probe, teacher_features, tokenizer_features
 from orbis2.eval.report import (
     compression_from_evals,
@@ -275,9 +281,15 @@ def run_steering(cfg: PipelineConfig, run: StageRun) -> str:
             controls.append((speed[s.context_end:], yaw[s.context_end:]))
         latents = generate(system, cache, split, samples, steps, cfg, dev, torch.stack(steering), desc=mode)
         videos = np.concatenate([first_frames, system.decode(latents)], axis=1)
-        ades = [trajectory_ade(v, sp, yw, data.detail_hz, K, inverse)["ade"] for v, (sp, yw) in zip(videos, controls)]
-        modes[mode] = {"ade": float(np.mean(ades)), "samples": len(samples), "speed_scale": speed_scale,
-                       "yaw_rate_scale": yaw_scale}
+        scored = [trajectory_ade(v, sp, yw, data.detail_hz, K, inverse) for v, (sp, yw) in zip(videos, controls)]
+        # Turn statistic, signed so that the clip's own turn direction is positive: a model that steers
+        # turns further under yaw rate x1.5 than x0.5, whatever the odometry's scale.
+        sign = [np.sign(endpoint_angle(r["reference"])) or 1.0 for r in scored]
+        modes[mode] = {"ade": float(np.mean([r["ade"] for r in scored])), "samples": len(samples),
+                       "speed_scale": speed_scale, "yaw_rate_scale": yaw_scale,
+                       "turn_deg": float(np.mean([g * endpoint_angle(r["estimated"]) for g, r in zip(sign, scored)])),
+                       "commanded_turn_deg": float(np.mean([g * endpoint_angle(r["reference"])
+                                                            for g, r in zip(sign, scored)]))}
         sp, yw = controls[0]
         strip[mode] = (videos[0], integrate_controls(sp[:videos.shape[1] - 1], yw[:videos.shape[1] - 1],
                                                      1.0 / data.detail_hz))
@@ -289,7 +301,7 @@ def run_steering(cfg: PipelineConfig, run: StageRun) -> str:
     run.log_artifact(EVAL / "steering.json")
     save_strip(strip, data.detail_hz, run)
     run.log_metrics({f"ade_{m}": v["ade"] for m, v in modes.items()})
-    return ("ADE " + ", ".join(f"{m} {v['ade']:.2f} m" for m, v in modes.items())
+    return ("ADE (turn) " + ", ".join(f"{m} {v['ade']:.2f} m ({v['turn_deg']:.0f} deg)" for m, v in modes.items())
             + f" (n={len(samples)}); odometry on real video {sanity['real_ade']:.2f} m, "
               f"shuffled {sanity['shuffled_ade']:.2f} m")
 
