@@ -8,6 +8,7 @@ videos that it logs to the stage's MLflow run. Randomness comes from
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import shutil
 from pathlib import Path
@@ -427,9 +428,9 @@ def run_probe_stage(target: str, cfg: PipelineConfig, run: StageRun) -> str:
     if target not in probe_targets():
         raise OrbisError(f"unknown probe target {target!r}; choose from {probe_targets()}")
     ps, dev = cfg.evaluation.probe, device()
-    probe_cfg = ProbeConfig(seg_epochs=ps.seg_epochs, depth_epochs=ps.depth_epochs, batch_size=ps.batch_size,
-                            lr=ps.lr, weight_decay=ps.weight_decay, seed=ps.seed, standardize=ps.standardize,
-                            device=str(dev))
+    # The params section carries every training setting of the probe module's config (plus data and blocks).
+    shared = {f.name for f in dataclasses.fields(ProbeConfig)} & {f.name for f in dataclasses.fields(ps)}
+    probe_cfg = ProbeConfig(**{name: getattr(ps, name) for name in shared}, device=str(dev))
     sets = probe_sets(cfg)
     record: dict[str, Any] = {"target": target, "block": None}
     if target in ("abstract_tokenizer", "abstract_tokenizer_full"):
