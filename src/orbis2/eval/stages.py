@@ -46,6 +46,7 @@ from orbis2.eval.systems import (
     SYSTEMS,
     LoadedSystem,
     Sample,
+    cache_latents,
     contexts_for,
     eval_samples,
     generated_indices,
@@ -123,12 +124,6 @@ def generate(system: LoadedSystem, cache: LatentCache, split: str, samples: list
         steer = None if steering is None else steering[start:start + ev.batch_size].to(dev)
         out.append(system.rollout(contexts, steps, gen, ev.top_nfe, ev.bottom_nfe, steer).cpu())
     return torch.cat(out)
-
-
-def true_latents(cache: LatentCache, split: str, level: str, samples: list[Sample], indices: list[np.ndarray]):
-    arrays = cache.arrays(split)
-    rows = [s.offset + idx for s, idx in zip(samples, indices)]
-    return torch.from_numpy(np.stack([arrays[level][r] for r in rows]).astype(np.float32)) * cache.scale(level)
 
 
 def load_fvd_network(cfg: PipelineConfig, dev: torch.device):
@@ -222,8 +217,8 @@ def latent_baseline(system: LoadedSystem, cache: LatentCache, split: str, sample
     """Per-frame MSE of the first 4 s of rollout vs. the true latents, and of repeating the last context frame."""
     frames = min(latents.shape[1], round(4.0 * data.detail_hz))
     level = system.output_level
-    truth = true_latents(cache, split, level, samples, [i[:frames] for i in indices])
-    last = true_latents(cache, split, level, samples, [np.array([s.context_end]) for s in samples])
+    truth = cache_latents(cache, split, level, samples, [i[:frames] for i in indices])
+    last = cache_latents(cache, split, level, samples, [np.array([s.context_end]) for s in samples])
     return {"level": level, "seconds": frames / data.detail_hz, "videos": len(samples),
             "rollout": float(((latents[:, :frames] - truth) ** 2).mean()),
             "repeat_last": float(((last - truth) ** 2).mean())}
@@ -267,7 +262,7 @@ def run_steering(cfg: PipelineConfig, run: StageRun) -> str:
     odometry = cache.arrays(split)["odometry"]
     K = camera_intrinsics(data.width, data.height, cfg.town.hfov_deg)
     inverse = get_inverse_dynamics(ev.inverse_dynamics)
-    first = true_latents(cache, split, "detail", samples, [np.array([s.context_end]) for s in samples])
+    first = cache_latents(cache, split, "detail", samples, [np.array([s.context_end]) for s in samples])
     first_frames = system.decode(first)  # [N, 1, H, W, 3]
     speed_norm, yaw_norm = steer_meta["scale"]
     modes: dict[str, Any] = {}

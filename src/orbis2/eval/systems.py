@@ -183,17 +183,22 @@ def eval_samples(cache: LatentCache, split: str, data: DataConfig, steps: int, s
 def contexts_for(system: LoadedSystem, cache: LatentCache, split: str, data: DataConfig, samples: list[Sample],
                  device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
     """The real-frame context latents (scaled) of each predictor of the system, batched over ``samples``."""
-    arrays = cache.arrays(split)
     out = {}
     for role, predictor in (("bottom", system.bottom), ("top", system.top)):
         if predictor is None:
             continue
-        level = predictor.meta["level"]
-        rows = [s.offset + np.array(system.context_indices(predictor, rollout_schedule(data, s.context_end, 1)[0]))
-                for s in samples]
-        latents = np.stack([arrays[level][r] for r in rows]).astype(np.float32)
-        out[role] = torch.from_numpy(latents).mul_(cache.scale(level)).to(device)
+        indices = [np.array(system.context_indices(predictor, rollout_schedule(data, s.context_end, 1)[0]))
+                   for s in samples]
+        out[role] = cache_latents(cache, split, predictor.meta["level"], samples, indices).to(device)
     return out
+
+
+def cache_latents(cache: LatentCache, split: str, level: str, samples: list[Sample],
+                  indices: list[np.ndarray]) -> torch.Tensor:
+    """Scaled cached latents [N, T, ...] of ``level`` at each sample's clip-relative native ``indices``."""
+    arrays = cache.arrays(split)
+    rows = [s.offset + np.asarray(idx) for s, idx in zip(samples, indices)]
+    return torch.from_numpy(np.stack([arrays[level][r] for r in rows]).astype(np.float32)) * cache.scale(level)
 
 
 def generated_indices(data: DataConfig, context_end: int, steps: int) -> np.ndarray:
