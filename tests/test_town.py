@@ -168,7 +168,7 @@ def test_ego_behaviour_stops_turns_and_stays_in_bounds(town, tracks):
     assert sum(s >= FPS for s in stops) >= 2
     assert max(turns) > 60 and sum(t > 60 for t in turns) >= 2
     for tr in tracks:
-        assert np.all(tr.speed >= 0) and np.all(tr.speed <= 12.0)
+        assert np.all(tr.speed >= 0) and np.all(tr.speed <= town.style.cruise_ms[1])
         assert tr.speed.max() > 5.0  # it does cruise
         assert np.all(np.abs(np.diff(tr.speed)) * FPS <= 4.5 + 1e-9)  # bounded accel / braking
         assert np.all(np.abs(tr.yaw_rate) < 2.0)
@@ -220,3 +220,28 @@ def test_heldout_style_looks_different(town, heldout):
 def test_unknown_style_is_rejected():
     with pytest.raises(ValueError, match="unknown town style"):
         Town.generate("mars", 0)
+
+
+def test_world_turns_often_and_both_ways():
+    """The ego turns in a large share of frames, left and right alike, at urban speeds."""
+    from orbis2.data.motion import motion_statistics
+
+    town = Town.generate("default", 3)
+    tracks = [simulate_ego(town, seed, 20.0, FPS) for seed in range(16)]
+    m = motion_statistics(np.concatenate([t.speed for t in tracks]), np.concatenate([t.yaw_rate for t in tracks]))
+    assert m["turning"] >= 0.12
+    assert 0.6 <= m["left_right_ratio"] <= 1.6
+    assert 5.5 <= m["speed_moving_mean"] <= 14.0  # cruising 8-14 m/s, slower on turn arcs
+    assert m["stopped"] <= 0.2
+
+
+def test_motion_statistics_known_answer():
+    from orbis2.data.motion import motion_statistics
+
+    speed = np.array([0.0, 5.0, 10.0, 10.0])
+    yaw = np.array([0.0, 0.1, -0.1, 0.01])
+    m = motion_statistics(speed, yaw)
+    assert m["turning"] == 0.5 and m["left"] == 0.25 and m["right"] == 0.25 and m["left_right_ratio"] == 1.0
+    assert m["stopped"] == 0.25 and m["speed_moving_mean"] == pytest.approx(25 / 3)
+    assert sum(v for k, v in m.items() if k.startswith("speed_hist")) == pytest.approx(1.0)
+    assert sum(v for k, v in m.items() if k.startswith("yaw_hist")) == pytest.approx(1.0)

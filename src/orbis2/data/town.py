@@ -92,7 +92,7 @@ class TownStyle:
     """
 
     blocks_per_axis: tuple[int, int] = (5, 7)
-    block_size_m: tuple[float, float] = (40.0, 90.0)
+    block_size_m: tuple[float, float] = (30.0, 60.0)
     lane_width_m: float = 3.5
     sidewalk_m: float = 3.0
     kerb_height_m: float = 0.15
@@ -140,8 +140,17 @@ class TownStyle:
         (0.85, 0.85, 0.85), (0.60, 0.61, 0.63), (0.08, 0.08, 0.09), (0.30, 0.31, 0.33),
         (0.62, 0.08, 0.07), (0.10, 0.22, 0.52), (0.06, 0.10, 0.26), (0.18, 0.32, 0.20),
         (0.70, 0.62, 0.48), (0.85, 0.68, 0.10))
-    car_spacing_m: tuple[float, float] = (60.0, 170.0)
+    car_spacing_m: tuple[float, float] = (120.0, 300.0)
     car_speed_ms: tuple[float, float] = (5.5, 9.0)
+    # Ego driving: cruise speed per leg, how often it goes straight at a junction (left and right
+    # share the rest equally) and how often it stops at a junction without being forced to.
+    # Tuned for a world that turns often, both ways (left arcs are wider and take longer, so
+    # right turns are drawn a little more often to balance the turning frames).
+    cruise_ms: tuple[float, float] = (8.0, 14.0)
+    straight_weight: float = 0.15
+    right_share: float = 0.56
+    stop_prob: float = 0.05
+    stop_wait_s: tuple[float, float] = (0.3, 1.5)
     sky_zenith_rgb: tuple[float, float, float] = (0.28, 0.47, 0.80)
     sky_horizon_rgb: tuple[float, float, float] = (0.74, 0.83, 0.93)
     cloud_cover: float = 0.45
@@ -1813,11 +1822,10 @@ def integrate_odometry(speed, yaw_rate, fps, x0=0.0, y0=0.0, yaw0=0.0):
     return x, y, yaw
 
 
-_V_MAX = 12.0
-_A_ACCEL, _A_BRAKE, _A_PLAN = 1.8, 4.5, 2.5  # m/s^2: accelerate, strongest braking, planned braking
+_A_ACCEL, _A_BRAKE, _A_PLAN = 2.5, 4.5, 2.5  # m/s^2: accelerate, strongest braking, planned braking
 _EGO_HALF_LEN = 2.3
 _ROUTE_DS = 0.2  # m between route polyline points
-_V_TURN_LEFT, _V_TURN_RIGHT = 5.0, 3.8  # m/s on the turn arcs (radius 1.5 and 1 lane widths)
+_V_TURN_LEFT, _V_TURN_RIGHT = 4.5, 3.2  # m/s on the turn arcs (radius 1.5 and 1 lane widths)
 
 
 @dataclass
@@ -1839,7 +1847,7 @@ def _plan_route(town: Town, rng: np.random.Generator, length: float, ds: float =
     Lanes are the right-hand lane centres (lane width = road half width ``hw``). Turns are quarter
     circles tangent to both lane centres: radius hw for right turns, 1.5 hw for left turns.
     """
-    hw = town.half_width
+    hw, st = town.half_width, town.style
     roads = (town.road_y, town.road_x)  # axis-0 roads run along x and sit at y = road_y[j]
     along = (town.road_x, town.road_y)  # junction coordinates along each axis
 
@@ -1876,16 +1884,16 @@ def _plan_route(town: Town, rng: np.random.Generator, length: float, ds: float =
         options, weights = [], []
         if 0 <= nxt + d < len(along[axis]):
             options.append(0)
-            weights.append(0.45)
-        for sign in (1, -1):  # left, right: onto crossing road `nxt` of the other axis
+            weights.append(st.straight_weight)
+        for sign, share in ((1, 1.0 - st.right_share), (-1, st.right_share)):  # left, right
             new_d = int(round((np.array([-h[1], h[0]]) * sign)[1 - axis]))
             if 0 <= road + new_d < len(along[1 - axis]):
                 options.append(sign)
-                weights.append(0.275)
+                weights.append((1.0 - st.straight_weight) * share)
         choice = options[rng.choice(len(options), p=np.asarray(weights) / np.sum(weights))]
         nodes.append({"stop_xy": lane_point(axis, road, d, node_s - d * (hw + 6.3)), "ij": ij,
-                      "lane": (axis, road, d), "stop": rng.random() < 0.45, "wait": rng.uniform(0.8, 3.0),
-                      "cruise": rng.uniform(6.0, _V_MAX), "first": count})
+                      "lane": (axis, road, d), "stop": rng.random() < st.stop_prob, "wait": rng.uniform(*st.stop_wait_s),
+                      "cruise": rng.uniform(*st.cruise_ms), "first": count})
         if choice == 0:
             end = lane_point(axis, road, d, node_s + d * (hw + 1.0))
             add_line(cur, end, (axis, road, d))
@@ -1958,12 +1966,12 @@ def simulate_ego(town: Town, seed: int, duration_s: float, fps: int) -> EgoTrack
     dt = 1.0 / fps
     steps = int(round(duration_s * fps))
     rng = _rng(seed, town.seed, town._salt, 7)
-    route = _plan_route(town, rng, _V_MAX * duration_s + 120.0)
+    route = _plan_route(town, rng, town.style.cruise_ms[1] * duration_s + 120.0)
     lane_cache: dict = {}
     x0, y0 = route.xy[0]
     yaw0 = float(route.heading[0])
     x, y, yaw = float(x0), float(y0), yaw0
-    cruise = rng.uniform(6.0, _V_MAX)
+    cruise = rng.uniform(*town.style.cruise_ms)
     v = cruise * rng.uniform(0.5, 1.0)
     speed = np.zeros(steps)
     yaw_rate = np.zeros(steps)
@@ -1999,7 +2007,7 @@ def simulate_ego(town: Town, seed: int, duration_s: float, fps: int) -> EgoTrack
                         d_stop > v * v / (2 * _A_BRAKE) + 0.3):
                     # Give way: stop if crossing traffic will be in the junction when we get there.
                     t_arr = t + d_stop / max(v, 2.0)
-                    nd["active"] = _junction_busy(town, nd["ij"], nd["lane"], t_arr - 1.0, t_arr + 5.0)
+                    nd["active"] = _junction_busy(town, nd["ij"], nd["lane"], t_arr - 0.3, t_arr + 2.0)
                 if nd.get("active"):
                     gap = max(d_stop, 0.0)
                     v_t = min(v_t, math.sqrt(2 * _A_PLAN * gap), gap + 0.1)
@@ -2007,7 +2015,7 @@ def simulate_ego(town: Town, seed: int, duration_s: float, fps: int) -> EgoTrack
                     if gap < 0.3 and v <= _A_BRAKE * dt:
                         v_t = 0.0
                         waited += dt
-                        clear = not _junction_busy(town, nd["ij"], nd["lane"], t, t + 4.5)
+                        clear = not _junction_busy(town, nd["ij"], nd["lane"], t, t + 2.5)
                         if waited >= nd["wait"] and (clear or waited > 6.0):
                             nd["active"] = False
                             nd["released"] = True
@@ -2015,7 +2023,7 @@ def simulate_ego(town: Town, seed: int, duration_s: float, fps: int) -> EgoTrack
         lane = route.lane[idx]
         if lane[0] >= 0:
             v_t = min(v_t, _follow_speed(town, lane_cache, lane, x, y, t))
-        v_new = min(max(v + min(max(v_t - v, -_A_BRAKE * dt), _A_ACCEL * dt), 0.0), _V_MAX)
+        v_new = min(max(v + min(max(v_t - v, -_A_BRAKE * dt), _A_ACCEL * dt), 0.0), town.style.cruise_ms[1])
         if stopping and v_t == 0.0:
             v_new = 0.0
         # Steering: curvature feed-forward + critically damped heading / lateral feedback.
@@ -2048,7 +2056,7 @@ def _follow_speed(town: Town, cache: dict, lane, x: float, y: float, t: float) -
     gap, vc = _lane_along(town, cache, lane, x, y, t)
     ahead = (gap > -1.0) & (gap < 60.0)
     if not np.any(ahead):
-        return _V_MAX
+        return town.style.cruise_ms[1]
     g, v = gap[ahead], vc[ahead]
     lim = np.minimum(v + 0.5 * (g - 7.0), np.sqrt(v * v + 2 * 3.0 * np.maximum(g - 4.0, 0.0)))
     return float(max(np.min(lim), 0.0))

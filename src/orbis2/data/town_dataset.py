@@ -25,7 +25,8 @@ import numpy as np
 from tqdm import tqdm
 
 from orbis2.config import SPLITS, DataConfig, TownConfig
-from orbis2.data.episodes import EpisodeRecord, RawIndex, write_labels, write_odometry
+from orbis2.data.episodes import EpisodeRecord, RawIndex, read_odometry, write_labels, write_odometry
+from orbis2.data.motion import motion_statistics
 from orbis2.data.town import Camera, Town, render_episode, simulate_ego
 from orbis2.data.video import write_video
 from orbis2.io import atomic_file
@@ -136,6 +137,16 @@ def build_town_dataset(root: Path, data: DataConfig, cfg: TownConfig) -> RawInde
                       "mount_height_m": cfg.mount_height_m}, records)
     index.write(root)
     return index
+
+
+def split_motion_statistics(root: Path, index: RawIndex) -> dict[str, dict[str, float]]:
+    """`motion_statistics` of every split's odometry (the world's speeds and turns, per split)."""
+    stats = {}
+    for split in sorted({e.split for e in index.episodes}):
+        odo = [read_odometry(root / split / f"{e.stem}.parquet") for e in index.split(split)]
+        stats[split] = motion_statistics(np.concatenate([o["speed"] for o in odo]),
+                                         np.concatenate([o["yaw_rate"] for o in odo]))
+    return stats
 
 
 # --------------------------------------------------------------------------- previews
