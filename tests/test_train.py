@@ -255,3 +255,22 @@ def test_gan_task_steps_generator_and_discriminator_separately(tmp_path):
     assert set(checkpoint["optimizers"]) == {"main", "disc"}
     disc_lr = checkpoint["optimizers"]["disc"]["param_groups"][0]["lr"]
     assert disc_lr == pytest.approx(0.5 * lr_at(119, config(steps=120, lr=2e-2)))
+
+
+def test_ema_warmup_follows_training_over_short_runs(tmp_path):
+    """After a short run the EMA weights sit closer to the trained weights than to the initialisation."""
+    from orbis2.train import ema_decay_at
+
+    assert ema_decay_at(0, 0.9999) == pytest.approx(0.1)
+    assert ema_decay_at(10_000, 0.99) == 0.99
+    task = Regression()
+    cfg = config(steps=40, ema_decay=0.999, lr=2e-2)
+    torch.manual_seed(cfg.seed)  # as the loop does before building the model
+    init = {k: v.clone() for k, v in task.build_model().state_dict().items()}
+    out = tmp_path / "short"
+    train(task, cfg, out)
+    state = saved_state(out)
+    ema, raw = state["model"], state["raw"]
+    to_raw = sum(float((ema[k] - raw[k]).pow(2).sum()) for k in raw if raw[k].is_floating_point())
+    to_init = sum(float((ema[k] - init[k]).pow(2).sum()) for k in raw if raw[k].is_floating_point())
+    assert to_raw < to_init
