@@ -88,7 +88,9 @@ def test_keys_offsets_and_meta_round_trip(setup):
     assert cache.splits == ["train", "val"]
     assert meta["shards"]["manifest_sha256"] == sha256_file(tmp / "shards" / MANIFEST)
     assert meta["tokenizers"]["detail"]["checksum"] == sha256_file(tmp / "detail.pt") == detail.checksum
-    assert (cache.scale("detail"), cache.scale("abstract")) == (DETAIL_SCALE, ABSTRACT_SCALE)
+    z = torch.from_numpy(cache.arrays("val")["abstract"][:3].astype(np.float32))
+    torch.testing.assert_close(cache.normalize("abstract", z), abstract.normalize(z))
+    torch.testing.assert_close(cache.normalize("detail", z), z * DETAIL_SCALE)
     assert meta["data"]["fps"] == 10 and meta["data"]["width"] == 128
 
 
@@ -127,7 +129,8 @@ def test_pickled_dataset_maps_instead_of_copying(setup, smoke_cfg):
     ds = LatentWindowDataset(tmp / "cache", "train", smoke_cfg.data)
     item = ds[7]
     blob = pickle.dumps(ds)  # what spawn-started DataLoader workers receive
-    assert len(blob) < 20_000
+    norm_bytes = sum(t.numel() * t.element_size() for t in ds.cache.norm.values())  # fixed size, not data
+    assert len(blob) < 20_000 + norm_bytes
     torch.testing.assert_close(pickle.loads(blob)[7]["detail"], item["detail"])
 
 
@@ -148,3 +151,19 @@ def test_failure_mid_way_leaves_nothing(setup, tmp_path):
         build_latent_cache(tmp / "shards", tmp_path / "out" / "latents", detail, abstract, batch_size=8)
     assert calls["n"] == 4
     assert list((tmp_path / "out").iterdir()) == []
+
+
+def test_normalisation_round_trips_through_decoding(setup):
+    """normalize -> denormalize -> decode gives the frames decoding the raw latent gives."""
+    tmp, _, detail, _ = setup
+    g = torch.Generator().manual_seed(0)
+    shift = torch.randn(16, 9, 16, generator=g)
+    scale = torch.rand(16, generator=g) + 0.5
+    save_tokenizer(tmp / "normed.pt", "detail", detail.model, scale, {"preset": "smoke"}, shift=shift)
+    tok = load_tokenizer(tmp / "normed.pt")
+    z = detail.model.encode(torch.rand(2, 3, 72, 128, generator=g) * 2 - 1)
+    x = tok.normalize(z)
+    torch.testing.assert_close(x, (z - shift) * scale[:, None, None])
+    torch.testing.assert_close(tok.denormalize(x), z, rtol=1e-5, atol=1e-5)
+    with torch.no_grad():
+        torch.testing.assert_close(tok.model.decode(tok.denormalize(x)), tok.model.decode(z), rtol=1e-4, atol=1e-4)

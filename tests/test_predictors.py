@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from orbis2.config import TrainConfig
-from orbis2.latents import FORMAT, LatentWindowDataset, open_cache
+from orbis2.latents import FORMAT, NORMALIZATION, LatentWindowDataset, open_cache
 from orbis2.tasks.predictors import (
     STAGES,
     PredictorTask,
@@ -27,7 +27,7 @@ SPAN = 26  # native frames of one training window (smoke data section)
 def write_cache(root, clips: dict[str, list[int]], odometry=None):
     """A latent cache in the `latents` stage's format: smooth moving latents, odometry row r = (r, -r / 10)."""
     meta = {"format": FORMAT, "dtype": "float16", "data": {"source": "town", "fps": 10, "width": 128, "height": 72},
-            "tokenizers": {kind: {"checksum": kind * 8, "scale": 1.0, "file": None, "shape": [C, H, W]}
+            "tokenizers": {kind: {"checksum": kind * 8, "file": None, "shape": [C, H, W]}
                            for kind in ("detail", "abstract")},
             "splits": {}}
     grid = np.arange(C * H * W).reshape(C, H, W) / (C * H * W)
@@ -47,6 +47,9 @@ def write_cache(root, clips: dict[str, list[int]], odometry=None):
         (folder / "index.json").write_text(json.dumps(index))
         meta["splits"][split] = {"frames": frames, "clips": len(lengths)}
     (root / "meta.json").write_text(json.dumps(meta))
+    np.savez(root / NORMALIZATION, **{f"{kind}_{part}": value for kind in ("detail", "abstract")
+                                      for part, value in (("shift", np.zeros((C, H, W), np.float32)),
+                                                          ("scale", np.ones((C, 1, 1), np.float32)))})
     return open_cache(root)
 
 

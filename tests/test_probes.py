@@ -272,20 +272,21 @@ def models(tmp_path_factory):
         for block in model.blocks:
             torch.nn.init.normal_(block.adaLN_modulation[-1].weight, std=0.05)
         meta = {"level": level, "frame_rate": 2.0 if level == "abstract" else 10.0, "window": windows[level],
-                "tokenizers": {level: {"checksum": tokenizers[level].checksum, "scale": tokenizers[level].scale}}}
+                "tokenizers": {level: {"checksum": tokenizers[level].checksum}}}
         save_predictor(root / f"{level}.pt", model, build, meta)
         predictors[level] = load_predictor(root / f"{level}.pt")
     images = torch.rand(3, 3, 72, 128, generator=torch.Generator().manual_seed(1)) * 2 - 1
     return tokenizers, predictors, images
 
 
-def test_tokenizer_features_are_the_scaled_latent(models):
+def test_tokenizer_features_are_the_raw_or_normalised_latent(models):
     tokenizers, _, images = models
     features = tokenizer_features(tokenizers["abstract"])(images)
     assert features.shape == (3, 16, 9, 16)
     with torch.no_grad():
-        expected = tokenizers["abstract"].model.encode(images) * 3.0
+        expected = tokenizers["abstract"].model.encode(images)
     torch.testing.assert_close(features, expected)
+    torch.testing.assert_close(tokenizer_features(tokenizers["abstract"], normalized=True)(images), expected * 3.0)
 
 
 def test_teacher_features_resize_to_the_requested_input(models):
@@ -306,7 +307,7 @@ def test_predictor_features_null_context_protocol(models, level):
     assert not torch.allclose(predictor_features(predictor, tokenizer, block=2)(images), last)
     # by hand: the scaled latent tiled over every predicted slot, tau = 0, last slot's tokens
     slots = 1 if level == "abstract" else 5
-    z = tokenizer.model.encode(images) * tokenizer.scale
+    z = tokenizer.normalize(tokenizer.model.encode(images))
     x = z[:, None].repeat(1, slots, 1, 1, 1)
     cond = {}
     if level == "detail":

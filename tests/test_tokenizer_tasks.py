@@ -19,7 +19,7 @@ from orbis2.tasks.tokenizers import (
     DetailTokenizerTask,
     frame_batches,
     image_batches,
-    latent_scale,
+    latent_statistics,
     read_frames,
     train_detail_tokenizer,
 )
@@ -103,10 +103,19 @@ class IdentityEncoder(nn.Module):
         return images
 
 
-def test_latent_scale_is_one_over_std():
+def test_latent_statistics_global_and_per_position():
     g = torch.Generator().manual_seed(0)
-    frames = [3.0 + 0.5 * torch.randn(8, 3, 16, 16, generator=g) for _ in range(4)]
-    assert latent_scale(IdentityEncoder(), frames) == pytest.approx(2.0, rel=0.02)
+    template = torch.randn(3, 16, 16, generator=g)
+    spread = torch.tensor([0.5, 1.0, 2.0])[:, None, None]
+    frames = [template + spread * torch.randn(8, 3, 16, 16, generator=g) for _ in range(8)]
+    scale, shift, stats = latent_statistics(IdentityEncoder(), frames, per_position=False)
+    assert shift is None and float(scale) == pytest.approx(stats["latent_scale"])
+    expected_var = 1.0 + float(spread.square().mean())  # template variance + mean noise variance
+    assert stats["latent_scale"] == pytest.approx(expected_var ** -0.5, rel=0.1)
+    assert stats["template_share"] == pytest.approx(1.0 / expected_var, rel=0.15)
+    scale, shift, _ = latent_statistics(IdentityEncoder(), frames, per_position=True)
+    assert float(((shift - template) / spread).abs().max()) < 0.6  # 64 samples: standard error 1/8 of the spread
+    torch.testing.assert_close(scale, 1.0 / spread.flatten(), rtol=0.08, atol=0)
 
 
 def tiny_train(**overrides) -> TrainConfig:
@@ -157,7 +166,7 @@ def test_detail_tokenizer_stage_trains_saves_and_resumes(shard_root, smoke_cfg, 
     assert (out / "samples" / "step_000008.png").is_file() and (out / "checkpoints" / "last.pt").is_file()
 
     saved = load_tokenizer(out / "tokenizer.pt")
-    assert saved.kind == "detail" and saved.scale == pytest.approx(metrics["latent_scale"])
+    assert saved.kind == "detail" and saved.scale.shape == (16, 1, 1) and saved.shift.shape == (16, 9, 16)
     trained = build_detail_tokenizer(tc.preset).eval()
     trained.load_state_dict({k[len("tokenizer."):]: v for k, v in load_weights(out / "model.pt").items()
                              if k.startswith("tokenizer.")})

@@ -174,8 +174,8 @@ def rollout_command(args: argparse.Namespace) -> str:
         path = (x, y)
 
     first = schedule[0]
-    detail_ctx = encode_frames(detail_tok, frames[list(first.detail_context)]) * detail_tok.scale
-    abstract_ctx = encode_frames(abstract_tok, frames[list(first.abstract_context)]) * abstract_tok.scale
+    detail_ctx = detail_tok.normalize(encode_frames(detail_tok, frames[list(first.detail_context)]))
+    abstract_ctx = abstract_tok.normalize(encode_frames(abstract_tok, frames[list(first.abstract_context)]))
     generator = torch.Generator(device=device).manual_seed(args.seed)
     with tqdm(total=steps, desc="rollout", unit="step") as bar:
         details, _ = cascaded_rollout(
@@ -187,7 +187,7 @@ def rollout_command(args: argparse.Namespace) -> str:
     generated = []
     with torch.inference_mode():
         for chunk in details[0].split(8):
-            generated.append(_to_uint8(detail_tok.model.decode(chunk / detail_tok.scale)))
+            generated.append(_to_uint8(detail_tok.model.decode(detail_tok.denormalize(chunk))))
     context_frames = frames[list(first.detail_context)]
     video = np.concatenate([context_frames, np.concatenate(generated)])
     indices = np.array(list(first.detail_context) + [i for s in schedule for i in s.detail_target])

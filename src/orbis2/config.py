@@ -189,6 +189,7 @@ class DetailTokenizerConfig:
     eval_images: int = 64
     fid_images: int = 256
     scale_images: int = 256
+    latent_norm: str = "per_position"  # or "global": the paper's single scale factor
 
     def validate(self, where: str) -> None:
         _tokenizer_common(self, where)
@@ -210,6 +211,7 @@ class AbstractTokenizerConfig:
     frames_per_clip: int = 4
     eval_images: int = 64
     scale_images: int = 256
+    latent_norm: str = "per_position"  # or "global": the paper's single scale factor
 
     def validate(self, where: str) -> None:
         _tokenizer_common(self, where)
@@ -415,6 +417,8 @@ def _tokenizer_common(cfg: Any, where: str) -> None:
     if cfg.preset not in TOKENIZER_PRESETS:
         raise ConfigError(f"{where}.preset = {cfg.preset!r} must be one of {list(TOKENIZER_PRESETS)}")
     _positive(cfg, where, "frames_per_clip", "eval_images", "scale_images")
+    if cfg.latent_norm not in ("per_position", "global"):
+        raise ConfigError(f"{where}.latent_norm = {cfg.latent_norm!r} must be 'per_position' or 'global'")
 
 
 @dataclass(frozen=True)

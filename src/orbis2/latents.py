@@ -4,7 +4,8 @@ Training the predictors re-reads the same frames for thousands of steps; decodin
 JPEGs and running two ViT encoders per step would cost far more than the predictor
 itself. The ``latents`` stage therefore encodes every frame once and stores
 
-    <root>/meta.json                   scales, tokenizer checksums, shards manifest hash, geometry
+    <root>/meta.json                   tokenizer checksums, shards manifest hash, geometry
+    <root>/normalization.npz           each tokenizer's latent normalisation (shift, scale)
     <root>/<split>/detail.npy          float16 [N_frames, C, h, w]     (unscaled detail latent)
     <root>/<split>/abstract.npy        float16 [N_frames, C', h', w']  (unscaled abstract latent)
     <root>/<split>/odometry.npy        float32 [N_frames, 2]           (speed, yaw rate)
@@ -19,7 +20,9 @@ exactly. Every worker process maps the same files, so the OS page cache holds
 one copy of the cache however many workers and ranks read it. The shard keys
 survive in ``index.json``, so every cached frame traces back to its sample in
 ``data/shards``. fp16 halves the footprint; the latents are L2-normalised
-(|x| <= 1), where fp16 keeps about three significant digits.
+(|x| <= 1), where fp16 keeps about three significant digits. They are stored as the
+tokenizers encode them; readers apply the tokenizer's normalisation (``TokenizerFile.normalize``:
+per-position mean removed, per-channel unit variance) on the fly.
 """
 
 from __future__ import annotations
@@ -50,10 +53,11 @@ from orbis2.errors import OrbisError
 from orbis2.io import atomic_dir, sha256_file, write_json
 from orbis2.models.tokenizer import TokenizerFile, load_tokenizer
 
-FORMAT = 1
+FORMAT = 2
 KINDS = ("detail", "abstract")
 META = "meta.json"
 INDEX = "index.json"
+NORMALIZATION = "normalization.npz"
 
 
 @dataclass(frozen=True)
@@ -98,8 +102,8 @@ def encode_frames(tokenizer: TokenizerFile, frames: np.ndarray) -> torch.Tensor:
 def encode_window(window: dict[str, Any], detail: TokenizerFile, abstract: TokenizerFile) -> dict[str, Any]:
     """Encode one ``clip_window`` on the fly into the item ``LatentWindowDataset`` serves from the cache."""
     return _item(window["key"], window["anchor"],
-                 encode_frames(detail, window["detail_frames"]) * detail.scale,
-                 encode_frames(abstract, window["abstract_frames"]) * abstract.scale,
+                 detail.normalize(encode_frames(detail, window["detail_frames"])),
+                 abstract.normalize(encode_frames(abstract, window["abstract_frames"])),
                  window["detail_odometry"], window["abstract_odometry"], window["odometry"],
                  window["has_odometry"])
 
@@ -193,8 +197,7 @@ def build_latent_cache(shards_root: str | Path, out_root: str | Path, detail: To
         "dtype": "float16",
         "shards": {"root": str(shards_root), "manifest_sha256": sha256_file(shards_root / MANIFEST)},
         "data": {key: manifest[key] for key in ("source", "fps", "width", "height")},
-        "tokenizers": {kind: {"checksum": tokenizers[kind].checksum, "scale": float(tokenizers[kind].scale),
-                              "file": files[kind], "build": tokenizers[kind].build, "shape": list(shapes[kind])}
+        "tokenizers": {kind: {"checksum": tokenizers[kind].checksum, "file": files[kind], "build": tokenizers[kind].build, "shape": list(shapes[kind])}
                        for kind in KINDS},
         "splits": {},
     }
@@ -224,6 +227,8 @@ def build_latent_cache(shards_root: str | Path, out_root: str | Path, detail: To
                                        f"shards hold {offset}; re-run the `shards` stage")
             write_json(tmp / split / INDEX, index)
             meta["splits"][split] = {"frames": frames, "clips": len(index)}
+        np.savez(tmp / NORMALIZATION, **{f"{kind}_{part}": getattr(tokenizers[kind], part).cpu().numpy()
+                                         for kind in KINDS for part in ("shift", "scale")})
         write_json(tmp / META, meta)
     return meta
 
@@ -241,9 +246,17 @@ class LatentCache:
     def __init__(self, root: Path, meta: dict[str, Any]):
         self.root, self.meta = root, meta
         self._arrays: dict[str, dict[str, np.ndarray]] = {}
+        path = root / NORMALIZATION
+        try:
+            with np.load(path) as norm:
+                self.norm = {key: torch.from_numpy(norm[key]) for key in norm.files}
+        except (OSError, ValueError) as err:
+            raise LatentCacheError(f"{path}: unreadable ({err}); re-run the `latents` stage") from err
 
-    def scale(self, kind: str) -> float:
-        return self.meta["tokenizers"][kind]["scale"]
+    def normalize(self, kind: str, z: np.ndarray | torch.Tensor) -> torch.Tensor:
+        """Cached latents ``[..., C, h, w]`` as the predictors see them (the tokenizer's normalisation)."""
+        z = torch.as_tensor(np.asarray(z, np.float32) if isinstance(z, np.ndarray) else z, dtype=torch.float32)
+        return (z - self.norm[f"{kind}_shift"]) * self.norm[f"{kind}_scale"]
 
     @property
     def splits(self) -> list[str]:
@@ -328,7 +341,6 @@ class LatentWindowDataset(Dataset):
         if anchor_stride < 1:
             raise ValueError(f"anchor_stride must be >= 1, got {anchor_stride}")
         self.split, self.data = split, data
-        self.scales = {kind: self.cache.scale(kind) for kind in KINDS}
         index = self.cache.index(split)
         self.keys = sorted(index, key=lambda k: index[k]["offset"])
         self.clips = [index[k] for k in self.keys]
@@ -347,7 +359,7 @@ class LatentWindowDataset(Dataset):
         base = clip["offset"]  # row of the clip's first frame
 
         def latent(kind: str, idx: np.ndarray) -> torch.Tensor:
-            return torch.from_numpy(arrays[kind][base + idx].astype(np.float32)).mul_(self.scales[kind])
+            return self.cache.normalize(kind, arrays[kind][base + idx])
 
         odometry = arrays["odometry"]
         item = _item(self.keys[c], anchor, latent("detail", detail), latent("abstract", abstract),

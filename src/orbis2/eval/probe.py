@@ -315,14 +315,19 @@ def _device(module: nn.Module) -> torch.device:
     return next(module.parameters()).device
 
 
-def tokenizer_features(tokenizer: TokenizerFile) -> FeatureFn:
-    """The tokenizer's latent times its scale: exactly what the predictors see."""
+def tokenizer_features(tokenizer: TokenizerFile, normalized: bool = False) -> FeatureFn:
+    """The tokenizer's latent; ``normalized``: after its normalisation, exactly what the predictors see.
+
+    The tokenizer's own probe reads the raw latent: removing the per-position mean would take
+    away the position cue a 1x1 probe has no other way to get.
+    """
     model = tokenizer.model.eval()
     device = _device(model)
 
     def features(images: torch.Tensor) -> torch.Tensor:
         with torch.inference_mode():
-            return model.encode(images.to(device)) * tokenizer.scale
+            z = model.encode(images.to(device))
+            return tokenizer.normalize(z) if normalized else z
 
     return features
 
@@ -379,7 +384,7 @@ def predictor_features(predictor: PredictorFile, tokenizer: TokenizerFile, block
         raise OrbisError(f"slots = {slots}; the {level} predictor has {predicted} predicted-frame slots")
     frame_rate, device = float(meta["frame_rate"]), _device(model)
     abstract_channels = predictor.build.get("abstract_channels")
-    encode = tokenizer_features(tokenizer)
+    encode = tokenizer_features(tokenizer, normalized=True)
 
     def features(images: torch.Tensor) -> torch.Tensor:
         z = encode(images).to(device)

@@ -118,10 +118,10 @@ class LoadedSystem:
 
     @torch.no_grad()
     def decode(self, latents: torch.Tensor, chunk: int = 16) -> np.ndarray:
-        """Scaled latents [B, T, C, h, w] -> RGB uint8 [B, T, H, W, 3] through the output level's tokenizer."""
+        """Normalised latents [B, T, C, h, w] -> RGB uint8 [B, T, H, W, 3] through the output level's tokenizer."""
         tokenizer = self.tokenizers[self.output_level]
         b, t = latents.shape[:2]
-        images = [tokenizer.model.decode(part / tokenizer.scale) for part in latents.flatten(0, 1).split(chunk)]
+        images = [tokenizer.model.decode(tokenizer.denormalize(part)) for part in latents.flatten(0, 1).split(chunk)]
         frames = ((torch.cat(images).clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8).permute(0, 2, 3, 1)
         return frames.cpu().numpy().reshape(b, t, *frames.shape[1:])
 
@@ -195,10 +195,10 @@ def contexts_for(system: LoadedSystem, cache: LatentCache, split: str, data: Dat
 
 def cache_latents(cache: LatentCache, split: str, level: str, samples: list[Sample],
                   indices: list[np.ndarray]) -> torch.Tensor:
-    """Scaled cached latents [N, T, ...] of ``level`` at each sample's clip-relative native ``indices``."""
+    """Normalised cached latents [N, T, ...] of ``level`` at each sample's clip-relative native ``indices``."""
     arrays = cache.arrays(split)
     rows = [s.offset + np.asarray(idx) for s, idx in zip(samples, indices)]
-    return torch.from_numpy(np.stack([arrays[level][r] for r in rows]).astype(np.float32)) * cache.scale(level)
+    return cache.normalize(level, np.stack([arrays[level][r] for r in rows]))
 
 
 def generated_indices(data: DataConfig, context_end: int, steps: int) -> np.ndarray:

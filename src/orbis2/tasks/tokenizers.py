@@ -391,25 +391,40 @@ class AbstractTokenizerTask(_TokenizerTask):
 
 
 @torch.no_grad()
-def latent_scale(model: nn.Module, frames: Iterable[torch.Tensor]) -> float:
-    """1 / std of ``model.encode`` over all elements (every channel and position) of the given image batches.
+def latent_statistics(model: nn.Module, frames: Iterable[torch.Tensor], per_position: bool = True
+                      ) -> tuple[torch.Tensor, torch.Tensor | None, dict[str, float]]:
+    """``(scale, shift, metrics)`` normalising ``model.encode`` over the given image batches.
 
-    The world model adds unit-variance noise to scaled latents; scaling them to unit
-    variance makes a noise level mean the same for every tokenizer (the latent
-    diffusion "scale factor"). An L2-normalised 16-d latent has a per-element std near
-    1/4, so the scale comes out near 4 (the authors' code: about 4 and 3.45).
+    The world model adds unit-variance noise to normalised latents. The paper scales each latent
+    by one global factor, 1 / std over all elements (the latent diffusion "scale factor"; about
+    4 for an L2-normalised 16-d latent). With ``per_position`` (this pipeline's default) the
+    dataset's per-position, per-channel mean (a fixed template that carried ~99% of the abstract
+    latent's energy) is removed first and each channel is scaled to unit variance, so that what
+    varies between frames is what the predictors see at unit scale. ``metrics``: ``template_share``
+    (share of the latent's energy in that mean) and ``latent_scale`` (the global factor).
     """
     device = next(model.parameters()).device
-    total = square = count = 0.0
+    total = square = None
+    count = 0
     for images in frames:
         z = model.encode(images.to(device)).double()
-        total, square, count = total + z.sum().item(), square + z.square().sum().item(), count + z.numel()
+        total = z.sum(0) if total is None else total + z.sum(0)
+        square = z.square().sum(0) if square is None else square + z.square().sum(0)
+        count += len(z)
     if count == 0:
-        raise OrbisError("latent_scale needs at least one frame")
-    std = math.sqrt(max(square / count - (total / count) ** 2, 0.0))
-    if std == 0:
+        raise OrbisError("latent statistics need at least one frame")
+    mean = total / count
+    energy = float((square / count).mean())
+    global_var = float((square / count).mean() - mean.mean() ** 2)
+    if global_var <= 0:
         raise OrbisError("the encoded latent is constant (std 0); the tokenizer has collapsed, train it again")
-    return 1.0 / std
+    metrics = {"latent_scale": 1.0 / math.sqrt(global_var), "template_share": float(mean.square().mean()) / energy}
+    if not per_position:
+        return torch.tensor(metrics["latent_scale"]), None, metrics
+    channel_var = (square / count - mean.square()).clamp_min(0).mean(dim=(1, 2))
+    if float(channel_var.min()) <= 0:
+        raise OrbisError("a latent channel never varies (std 0); the tokenizer has collapsed, train it again")
+    return channel_var.rsqrt().float(), mean.float(), metrics
 
 
 def load_fid_network(path: Path, device: torch.device | str = "cpu") -> torch.jit.ScriptModule:
@@ -491,13 +506,14 @@ def train_detail_tokenizer(cfg: PipelineConfig, shards_root: Path, out_dir: Path
     model = _final_model(task, result.model_path)
     tokenizer = model.tokenizer
     metrics = task.evaluate(model, result.step)
-    scale = latent_scale(tokenizer, frame_batches(shards_root, "train", tc.scale_images, tc.train.batch_size,
-                                                  tc.train.seed))
+    scale, shift, stats = latent_statistics(tokenizer, frame_batches(shards_root, "train", tc.scale_images,
+                                                                     tc.train.batch_size, tc.train.seed),
+                                            tc.latent_norm == "per_position")
     fid = reconstruction_fid(tokenizer, inception, frame_batches(shards_root, "val", tc.fid_images,
                                                                  tc.train.batch_size, tc.train.seed))
-    metrics.update(rfid=fid, latent_scale=scale, steps=result.step)
+    metrics.update(rfid=fid, steps=result.step, **stats)
     save_tokenizer(out_dir / "tokenizer.pt", "detail", tokenizer, scale, {"preset": tc.preset},
-                   {"metrics": metrics})
+                   {"metrics": metrics}, shift)
     return metrics
 
 
@@ -519,10 +535,11 @@ def train_abstract_tokenizer(cfg: PipelineConfig, shards_root: Path, out_dir: Pa
         return {}
     model = _final_model(task, result.model_path)
     metrics = task.evaluate(model, result.step)
-    scale = latent_scale(model, frame_batches(shards_root, "train", tc.scale_images, tc.train.batch_size,
-                                              tc.train.seed))
-    metrics.update(latent_scale=scale, steps=result.step)
+    scale, shift, stats = latent_statistics(model, frame_batches(shards_root, "train", tc.scale_images,
+                                                                 tc.train.batch_size, tc.train.seed),
+                                            tc.latent_norm == "per_position")
+    metrics.update(steps=result.step, **stats)
     build = {"preset": tc.preset, "teacher_dim": model.teacher_dim, "compress": tc.compress}
     save_tokenizer(out_dir / "tokenizer.pt", "abstract", model, scale, build,
-                   {"metrics": metrics, "teacher": tc.teacher})
+                   {"metrics": metrics, "teacher": tc.teacher}, shift)
     return metrics
