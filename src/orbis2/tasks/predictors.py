@@ -25,7 +25,7 @@ Ablations (paper Tables 3 and 4), the same code with another spec:
 - ``flat_abstract_full``: ``flat_abstract`` on the uncompressed, teacher-dimensional
   abstract latents (the compression ablation).
 
-Batches come from :class:`~orbis2.latents.LatentWindowDataset` (already scaled
+Batches come from :class:`~orbis2.latents.LatentWindowDataset` (already normalised
 latents). All randomness of a training step comes from a generator seeded by
 ``(seed, rank, step)``, so a resumed run draws what an uninterrupted one would.
 The validation loss uses fixed val windows and a fixed generator: it is
@@ -392,8 +392,7 @@ def predictor_meta(stage: str, cfg: PipelineConfig, cache: LatentCache, metrics:
     meta = {
         "stage": stage, "level": spec.level, "rate": spec.rate, "objective": spec.objective, "init_from": pc.init_from,
         "condition": spec.condition,
-        "tokenizers": {kind: {"checksum": cache.meta["tokenizers"][kind]["checksum"],
-                              "scale": cache.meta["tokenizers"][kind]["scale"]} for kind in ("detail", "abstract")},
+        "tokenizers": {kind: {"checksum": cache.meta["tokenizers"][kind]["checksum"]} for kind in ("detail", "abstract")},
         "frame_rate": rate,
         "window": {"window": window, "context": context},
         "rates": {"fps": d.fps, "detail_hz": d.detail_hz, "abstract_hz": d.abstract_hz},
