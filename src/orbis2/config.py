@@ -205,6 +205,7 @@ class AbstractTokenizerConfig:
     preset: str
     train: TrainConfig
     teacher: str = "inception"
+    teacher_layer: str = "mixed_7"  # inception only: which 768-channel map the encoder aligns to
     alignment: str = "l2"
     rec_weight: float = 0.1
     compress: bool = True
@@ -217,6 +218,8 @@ class AbstractTokenizerConfig:
         _tokenizer_common(self, where)
         if self.teacher not in ("inception", "dinov2"):
             raise ConfigError(f"{where}.teacher = {self.teacher!r} must be 'inception' or 'dinov2'")
+        if self.teacher_layer not in ("mixed_3", "mixed_4", "mixed_5", "mixed_6", "mixed_7"):
+            raise ConfigError(f"{where}.teacher_layer = {self.teacher_layer!r} must be one of mixed_3 .. mixed_7")
         if self.alignment not in ("l2", "cosine"):
             raise ConfigError(f"{where}.alignment = {self.alignment!r} must be 'l2' or 'cosine'")
         if self.rec_weight < 0:

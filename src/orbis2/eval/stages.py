@@ -435,7 +435,8 @@ def run_probe_stage(target: str, cfg: PipelineConfig, run: StageRun) -> str:
         result = probe_all(tokenizer_features(tokenizer), sets, probe_cfg)
     elif target == "teacher":
         tc = cfg.tokenizer_abstract
-        teacher = build_teacher(tc.teacher, asset_path(Path(cfg.assets.dir), TEACHER_ASSETS[tc.teacher])).to(dev)
+        teacher = build_teacher(tc.teacher, asset_path(Path(cfg.assets.dir), TEACHER_ASSETS[tc.teacher]),
+                                tc.teacher_layer).to(dev)
         record["label"] = f"Teacher ({tc.teacher})"
         result = probe_all(teacher_features(teacher), sets, probe_cfg)
     else:

@@ -525,7 +525,7 @@ def train_abstract_tokenizer(cfg: PipelineConfig, shards_root: Path, out_dir: Pa
     final metrics on rank 0 and ``{}`` on other ranks, like :func:`train_detail_tokenizer`.
     """
     tc, out_dir = cfg.section(section), Path(out_dir)
-    teacher = build_teacher(tc.teacher, asset_path(assets_dir, TEACHER_ASSETS[tc.teacher]))
+    teacher = build_teacher(tc.teacher, asset_path(assets_dir, TEACHER_ASSETS[tc.teacher]), tc.teacher_layer)
     preset = tokenizer_config(tc.preset)
     (height, width), patch = preset["image_size"], preset["patch_size"]
     size = (height // patch * DINOV2_PATCH, width // patch * DINOV2_PATCH) if tc.teacher == "dinov2" else None
