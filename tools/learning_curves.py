@@ -2,6 +2,7 @@
 
     python tools/learning_curves.py detail --steps 3000 --eval-every 250 --lr 1e-3 --batch 8 \
         --out reports/learning_curves/detail.json [--profile default] [--hidden 128] [--ema 0.999]
+    python tools/learning_curves.py plot reports/learning_curves/*.json --out reports/learning_curves.png
 
 Trains one predictor stage of the registry on the existing latent cache (``data/latents``) with
 the shared training loop and, every ``--eval-every`` steps, measures on fixed val windows with
@@ -129,7 +130,39 @@ def _per_clip(values: np.ndarray, clips: list[str]) -> dict[str, float]:
     return {c: float(np.mean([v for v, k in zip(values, clips) if k == c])) for c in sorted(set(clips))}
 
 
+def plot(paths: list[Path], out: Path) -> None:
+    """One panel per curve file: every measured MSE against training samples."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = [json.loads(p.read_text()) | {"name": p.stem} for p in paths]
+    fig, axes = plt.subplots(1, len(runs), figsize=(4.2 * len(runs), 3.4), squeeze=False)
+    for ax, run in zip(axes[0], runs):
+        samples = [r["samples"] for r in run["curve"]]
+        for key in sorted(k for k in run["curve"][0] if k.startswith("mse_") and k != "mse_zero"):
+            style = "--" if key == "mse_repeat" else "-"
+            ax.plot(samples, [r[key] for r in run["curve"]], style, label=key[4:].replace("_", " "))
+        t = run["train"]
+        ax.set_title(f"{run['name']}: lr {t['lr']:g}, batch {t['batch_size']}", fontsize=9)
+        ax.set_xlabel("training samples")
+        ax.set_ylim(0, None)
+        ax.legend(fontsize=7)
+    axes[0][0].set_ylabel("one-step latent MSE (val)")
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+
+
 def main(argv: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "plot":
+        parser = argparse.ArgumentParser(prog="learning_curves.py plot")
+        parser.add_argument("curves", type=Path, nargs="+")
+        parser.add_argument("--out", type=Path, required=True)
+        args = parser.parse_args(argv[1:])
+        return plot(args.curves, args.out)
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("stage", choices=sorted(STAGES))
     parser.add_argument("--profile", default=None)
