@@ -100,10 +100,11 @@ def test_invocation_key_under_dvc_names_the_call(tmp_path, monkeypatch):
     monkeypatch.setenv("DVC_ROOT", str(tmp_path))
     lock = tmp_path / ".dvc/tmp/lock"
     lock.parent.mkdir(parents=True)
-    lock.write_text(" 4242\n")
+    lock.write_text(f" {os.getpid()}\n")  # DVC's own pid, as zc.lockfile writes it
     first = invocation_key()
-    assert first == invocation_key() and "4242" in first
-    os.utime(lock, ns=(1, 1))  # the next `dvc repro` rewrites the lock
+    lock.write_text(f" {os.getpid()}\n")  # DVC rewrites the lock between stages of one call
+    assert first == invocation_key() and f":{os.getpid()}:" in first
+    lock.write_text(f" {os.getppid()}\n")  # another call
     assert invocation_key() != first
     monkeypatch.setenv("ORBIS2_PIPELINE_ID", "given")
     assert invocation_key() == "given"

@@ -47,8 +47,8 @@ def invocation_key() -> str:
     1. ``ORBIS2_PIPELINE_ID``: the Snakefile sets it once per ``snakemake`` call and
        every job inherits it (on Slurm through ``sbatch --export=ALL``); set it
        yourself for ``dvc repro`` (``ORBIS2_PIPELINE_ID=$(uuidgen) dvc repro``).
-    2. Under ``dvc repro`` without it: DVC holds ``.dvc/tmp/lock`` for the whole
-       call and writes its pid into it, so pid + the lock's mtime name the call.
+    2. Under ``dvc repro`` without it: DVC writes its pid into ``.dvc/tmp/lock``
+       while it runs; that pid and the process's start time name the call.
     3. Otherwise this process alone (a stage run by hand).
     """
     explicit = os.environ.get(PIPELINE_ENV)
@@ -56,9 +56,20 @@ def invocation_key() -> str:
         return explicit
     if os.environ.get("DVC_ROOT"):
         lock = Path(os.environ["DVC_ROOT"]) / ".dvc" / "tmp" / "lock"
-        with contextlib.suppress(OSError):
-            return f"dvc:{socket.gethostname()}:{lock.read_text().strip()}:{lock.stat().st_mtime_ns}"
+        with contextlib.suppress(OSError, ValueError):
+            pid = int(lock.read_text().split()[0])
+            return f"dvc:{socket.gethostname()}:{pid}:{_started(pid)}"
     return f"process:{socket.gethostname()}:{_RUN_KEY}"
+
+
+def _started(pid: int) -> str:
+    """A process's start time (psutil), so that a reused pid names another call; '' without psutil."""
+    try:
+        import psutil
+
+        return f"{psutil.Process(pid).create_time():.3f}"
+    except Exception:  # psutil missing, or the process already gone
+        return ""
 
 
 def store_lock(uri: str) -> FileLock:
