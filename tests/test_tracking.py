@@ -32,6 +32,7 @@ with stage_run(stage, {"profile": "smoke", "data": {"fps": 10}}) as run:
 def start(cwd: Path, stage: str, invocation: str, fail: bool = False) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(SRC), "ORBIS2_PIPELINE_ID": invocation, "ORBIS2_SYSTEM_METRICS": "0",
            "MLFLOW_TRACKING_URI": f"sqlite:///{cwd / 'mlflow.db'}"}
+    env.pop("SLURM_JOB_ID", None)
     return subprocess.Popen([sys.executable, "-c", STAGE, stage, "fail" if fail else "ok"], cwd=cwd, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
@@ -63,7 +64,7 @@ def test_stages_started_together_on_a_fresh_store_share_one_parent(tmp_path):
     assert {r.data.tags["mlflow.parentRunId"] for r in children} == {parents[0].info.run_id}
     tags = children[0].data.tags
     assert tags["orbis2.profile"] == "smoke" and len(tags["orbis2.params_sha256"]) == 64
-    assert len(tags["orbis2.shards_sha256"]) == 64
+    assert len(tags["orbis2.shards_sha256"]) == 64 and "orbis2.slurm_job_id" not in tags
     assert children[0].inputs.dataset_inputs[0].dataset.digest == tags["orbis2.shards_sha256"][:36]
 
     finish(start(tmp_path, "other", "inv-b"))  # another invocation: another parent

@@ -83,7 +83,8 @@ def store_lock(uri: str) -> FileLock:
 
 
 def provenance(params: dict[str, Any]) -> dict[str, str]:
-    """Tags that say what produced a run: profile, params hash, shard manifest digest, git commit."""
+    """Tags that say what produced a run: profile, params hash, shard manifest digest, git commit,
+    host and Slurm job."""
     blob = json.dumps(params, sort_keys=True, default=str).encode()
     tags = {"orbis2.profile": str(params.get("profile", "")),
             "orbis2.params_sha256": hashlib.sha256(blob).hexdigest()}
@@ -92,6 +93,9 @@ def provenance(params: dict[str, Any]) -> dict[str, str]:
     commit = _git_commit()
     if commit:
         tags["mlflow.source.git.commit"] = commit
+    tags["orbis2.host"] = socket.gethostname()
+    if os.environ.get("SLURM_JOB_ID"):
+        tags["orbis2.slurm_job_id"] = os.environ["SLURM_JOB_ID"]
     return tags
 
 
