@@ -206,8 +206,8 @@ def stage_run(stage: str, params: dict[str, Any]) -> Iterator[StageRun]:
 def parent_run(client: Any, experiment_id: str, key: str) -> str:
     """The invocation's parent run, created by whichever stage comes first.
 
-    Stages on other nodes may create one at the same moment; all of them then
-    keep the oldest (by start time, then id) and delete their own duplicate.
+    Stages on other nodes (where the store lock does not reach) may create one at the
+    same moment; every stage then keeps the oldest (by start time, then id) and deletes the others.
     """
     found = _parents(client, experiment_id, key)
     if not found:
