@@ -7,6 +7,9 @@
 # Each rule's `params` are the params.yaml sections the stage reads (resolved for
 # the profile), so changing them re-runs that stage and its dependents only.
 
+import os
+import uuid
+
 from orbis2.config import resolve_section
 from orbis2.eval.stages import probe_targets
 from orbis2.eval.systems import MAIN_SYSTEMS, SYSTEMS
@@ -20,6 +23,10 @@ def latent_inputs(name):
     return [str(latents.root), *(str(path.parent) for path in latents.tokenizers.values())]
 
 configfile: "params.yaml"
+
+# One id per invocation, inherited by every job (on Slurm via sbatch --export=ALL): the MLflow parent run.
+os.environ.setdefault("ORBIS2_PIPELINE_ID", f"snakemake:{uuid.uuid4()}")
+envvars: "ORBIS2_PIPELINE_ID"
 
 PROFILE = config["profile"]
 # How training stages start: plain python, or e.g. "torchrun --standalone --nproc_per_node 8".

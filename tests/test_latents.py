@@ -167,3 +167,20 @@ def test_normalisation_round_trips_through_decoding(setup):
     torch.testing.assert_close(tok.denormalize(x), z, rtol=1e-5, atol=1e-5)
     with torch.no_grad():
         torch.testing.assert_close(tok.model.decode(tok.denormalize(x)), tok.model.decode(z), rtol=1e-4, atol=1e-4)
+
+
+def test_decoding_in_worker_processes_gives_the_same_latents(setup, tmp_path):
+    tmp, meta, detail, abstract = setup
+    again = build_latent_cache(tmp / "shards", tmp_path / "cache", tmp / "detail.pt", tmp / "abstract.pt",
+                               batch_size=7, device="cpu", decode_workers=2)
+    assert again["splits"] == meta["splits"]
+    first = open_cache(tmp / "cache", detail.checksum, abstract.checksum)
+    second = open_cache(tmp_path / "cache", detail.checksum, abstract.checksum)
+    for split in ("train", "val"):
+        a, b = first.index(split), second.index(split)
+        assert sorted(a) == sorted(b)
+        for key in a:
+            rows = [slice(i[key]["offset"], i[key]["offset"] + i[key]["length"]) for i in (a, b)]
+            for kind in ("detail", "abstract"):
+                np.testing.assert_allclose(first.arrays(split)[kind][rows[0]], second.arrays(split)[kind][rows[1]],
+                                           rtol=0, atol=1e-3)

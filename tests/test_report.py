@@ -365,3 +365,17 @@ def test_compression_rows_come_from_the_flat_abstract_models(evals):
     del evals["fvd"]["flat_abstract_full"]
     with pytest.raises(OrbisError, match="eval_fvd_flat_abstract_full"):
         report.compression_from_evals(evals)
+
+
+def test_write_csv_known_bytes_and_exact_float_round_trip(tmp_path):
+    import pandas as pd
+
+    from orbis2.eval.report import write_csv
+
+    rows = [{"model": "a, b", "fvd": 12.345678901234567, "n": 3, "note": None, "slope": float("nan")},
+            {"model": 'say "x"', "fvd": 1e-09, "n": 4, "note": "ok", "slope": -0.1}]
+    write_csv(rows, tmp_path / "t.csv")
+    assert (tmp_path / "t.csv").read_bytes() == (b'model,fvd,n,note,slope\r\n"a, b",12.345678901234567,3,None,nan\r\n'
+                                                 b'"say ""x""",1e-09,4,ok,-0.1\r\n')
+    back = pd.read_csv(tmp_path / "t.csv")
+    assert back["fvd"].tolist() == [12.345678901234567, 1e-09] and back["model"].tolist() == ["a, b", 'say "x"']

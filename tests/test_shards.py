@@ -1,11 +1,14 @@
-"""Shards: round trip, deterministic bytes, two-rate windows, rank/worker partitioning, corruption."""
+"""Shards: round trip, deterministic plain-tar bytes, two-rate windows, rank/worker partitioning through
+webdataset (local paths and pipe: URLs), decoding in worker processes, corruption."""
 
 import dataclasses
+import subprocess
 import tarfile
 
 import numpy as np
 import pytest
 import torch
+import webdataset as wds
 
 from orbis2.data.episodes import EpisodeRecord, RawIndex, write_labels, write_odometry
 from orbis2.data.shards import (
@@ -16,7 +19,9 @@ from orbis2.data.shards import (
     clip_window,
     iter_samples,
     load_manifest,
+    read_clips,
     shard_paths,
+    shard_urls,
     verify_shards,
     window_indices,
     write_shards,
@@ -180,3 +185,81 @@ def test_manifest_hash_detects_modification(shards, tmp_path):
     with pytest.raises(ShardError, match="does not match the manifest"):
         verify_shards(copy)
     assert load_manifest(copy)["fps"] == 10
+
+
+def test_shards_are_plain_tar_with_fixed_headers(shards):
+    tmp, _, _ = shards
+    path = shard_paths(tmp / "out", "probe")[0]
+    listing = subprocess.run(["tar", "--numeric-owner", "-tvf", str(path)], capture_output=True, text=True,
+                             check=True).stdout.splitlines()
+    sample = next(iter_samples(path))
+    names = [f"{sample['__key__']}.{ext}" for ext in sorted(k for k in sample if not k.startswith("__"))]
+    assert [line.split()[-1] for line in listing][:len(names)] == names
+    assert {tuple(line.split()[:2]) for line in listing} == {("-rw-r--r--", "0/0")}
+    assert {line.split()[3] for line in listing} == {"1970-01-01"}
+    member = subprocess.run(["tar", "-xOf", str(path), names[-1]], capture_output=True, check=True).stdout
+    assert member == sample[names[-1].split(".", 1)[1]]
+
+
+@pytest.fixture(scope="module")
+def many_shards(shards, smoke_cfg):
+    """The same clips, one per shard: enough shards for 2 ranks x 2 workers to split whole shards."""
+    tmp, _, cfg = shards
+    manifest = write_shards(tmp / "raw", tmp / "many", smoke_cfg.data, dataclasses.replace(cfg, max_shard_mb=0.01))
+    return tmp / "many", manifest
+
+
+@pytest.mark.parametrize("layout", ["few", "many"])
+def test_webloader_covers_every_clip_once_over_2_ranks_x_2_workers(shards, many_shards, smoke_cfg, layout):
+    root, manifest = (shards[0] / "out", shards[1]) if layout == "few" else many_shards
+    shard_count = len(manifest["splits"]["train"]["shards"])
+    assert (shard_count >= 4) == (layout == "many")
+    per_rank = []
+    for rank in range(2):
+        ds = WindowDataset(root, "train", smoke_cfg.data, anchors="first", rank=rank, world=2)
+        per_rank.append([w["key"] for w in wds.WebLoader(ds, batch_size=None, num_workers=2)])
+    seen = per_rank[0] + per_rank[1]
+    assert sorted(seen) == sorted(set(seen)) and len(seen) == manifest["splits"]["train"]["samples"]
+    assert abs(len(per_rank[0]) - len(per_rank[1])) <= (1 if layout == "few" else 2)
+
+
+def test_ranks_from_the_environment(many_shards, smoke_cfg, monkeypatch):
+    root, manifest = many_shards
+    keys = []
+    for rank in range(2):
+        monkeypatch.setenv("RANK", str(rank))
+        monkeypatch.setenv("WORLD_SIZE", "2")
+        keys.append({w["key"] for w in WindowDataset(root, "train", smoke_cfg.data, anchors="first")})
+    assert not keys[0] & keys[1] and len(keys[0] | keys[1]) == manifest["splits"]["train"]["samples"]
+
+
+def test_read_clips_decodes_in_worker_processes(shards):
+    tmp, manifest, _ = shards
+    lazy = {clip.key: clip for path in shard_paths(tmp / "out", "train") for clip in map(Clip.from_sample,
+                                                                                        iter_samples(path))}
+    decoded = list(read_clips(tmp / "out", "train", workers=2))
+    assert sorted(c.key for c in decoded) == sorted(lazy) and len(decoded) == manifest["splits"]["train"]["samples"]
+    for clip in decoded:
+        assert clip.pixels is not None and len(clip) == len(lazy[clip.key])
+        np.testing.assert_array_equal(clip.frames([0, 5]), lazy[clip.key].frames([0, 5]))
+
+
+def test_shards_through_pipe_urls(shards, smoke_cfg, monkeypatch):
+    tmp, _, _ = shards
+    local = [w["key"] for w in WindowDataset(tmp / "out", "val", smoke_cfg.data, anchors="first")]
+    monkeypatch.setenv("ORBIS2_SHARDS_URL", f"pipe:cat {tmp / 'out'}/{{}}")
+    assert shard_urls(tmp / "out", "val")[0].startswith("pipe:cat ")
+    piped = [w["key"] for w in WindowDataset(tmp / "out", "val", smoke_cfg.data, anchors="first")]
+    assert piped == local and piped
+    assert shard_urls(tmp / "out", "val", "https://host/shards/")[0] == "https://host/shards/val/val-000000.tar"
+
+
+def test_a_broken_shard_in_a_worker_names_the_file(shards, tmp_path):
+    import shutil
+    tmp, _, _ = shards
+    copy = tmp_path / "copy"
+    shutil.copytree(tmp / "out", copy)
+    shard = shard_paths(copy, "train")[-1]
+    shard.write_bytes(shard.read_bytes()[:5000])
+    with pytest.raises(ShardError, match=shard.name):
+        list(read_clips(copy, "train", workers=2))

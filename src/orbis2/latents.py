@@ -43,9 +43,8 @@ from orbis2.data.shards import (
     MANIFEST,
     Clip,
     anchor_range,
-    iter_samples,
     load_manifest,
-    shard_paths,
+    read_clips,
     window_indices,
     window_span,
 )
@@ -177,8 +176,11 @@ class _SplitWriter:
 
 def build_latent_cache(shards_root: str | Path, out_root: str | Path, detail: TokenizerFile | str | Path,
                        abstract: TokenizerFile | str | Path, batch_size: int, splits: Sequence[str] | None = None,
-                       device: str | torch.device | None = None) -> dict[str, Any]:
+                       device: str | torch.device | None = None, decode_workers: int = 0) -> dict[str, Any]:
     """Encode every native frame of every clip of ``splits`` (default: all in the manifest); returns the meta.
+
+    ``decode_workers`` > 0 decodes the JPEGs in that many processes ahead of the encoder (clips then
+    arrive in the loader's worker-interleaved order; the index is by key, so readers are unaffected).
 
     ``detail``/``abstract`` are loaded tokenizers (used on their own device) or paths to tokenizer files
     (loaded on ``device``, default CUDA when present; the path is recorded so a stale cache can name it).
@@ -203,24 +205,21 @@ def build_latent_cache(shards_root: str | Path, out_root: str | Path, detail: To
     }
     with atomic_dir(out_root) as tmp:
         for split in splits:
-            paths = shard_paths(shards_root, split)
             frames = manifest["splits"][split]["frames"]
             writer = _SplitWriter(tmp / split, frames, tokenizers, shapes, batch_size)
             index: dict[str, dict[str, Any]] = {}
             offset = 0
             with tqdm(total=frames, desc=f"latents: {split}", unit="frame") as bar:
-                for path in paths:
-                    for sample in iter_samples(path):
-                        clip = Clip.from_sample(sample, str(path))
-                        if offset + len(clip) > frames:
-                            raise LatentCacheError(f"{shards_root / MANIFEST}: split '{split}' holds more frames than "
-                                                   f"the manifest's {frames}; re-run the `shards` stage")
-                        index[clip.key] = {"offset": offset, "length": len(clip),
-                                           "has_odometry": bool(clip.meta["has_odometry"]),
-                                           "episode": clip.meta["episode"], "start_frame": clip.meta["start_frame"]}
-                        writer.add(clip, offset)
-                        offset += len(clip)
-                        bar.update(len(clip))
+                for clip in read_clips(shards_root, split, decode_workers):
+                    if offset + len(clip) > frames:
+                        raise LatentCacheError(f"{shards_root / MANIFEST}: split '{split}' holds more frames than "
+                                               f"the manifest's {frames}; re-run the `shards` stage")
+                    index[clip.key] = {"offset": offset, "length": len(clip),
+                                       "has_odometry": bool(clip.meta["has_odometry"]),
+                                       "episode": clip.meta["episode"], "start_frame": clip.meta["start_frame"]}
+                    writer.add(clip, offset)
+                    offset += len(clip)
+                    bar.update(len(clip))
             writer.close()
             if offset != frames:
                 raise LatentCacheError(f"{shards_root / MANIFEST}: split '{split}' lists {frames} frames but its "

@@ -80,7 +80,7 @@ def training_dir(name: str, cfg: PipelineConfig, sections: list[str], inputs: di
 def publish_training(run_dir: Path, out: Path, files: list[str], report: Path, metrics: dict[str, float],
                      run: StageRun) -> None:
     """Copy a finished training run's ``files`` and ``samples/`` into the stage output, atomically;
-    write the metrics report and log the samples."""
+    write the metrics report, log the samples and the model (weights + config)."""
     with atomic_dir(out) as tmp:
         for name in files:
             shutil.copy2(run_dir / name, tmp / name)
@@ -90,3 +90,4 @@ def publish_training(run_dir: Path, out: Path, files: list[str], report: Path, m
         run.log_artifact(png, "samples")
     write_json(report, metrics)
     run.log_artifact(report)
+    run.log_model(out)

@@ -2,81 +2,130 @@
 
 The store is ``sqlite:///mlflow.db`` unless ``MLFLOW_TRACKING_URI`` says otherwise;
 the experiment is ``orbis2`` unless ``MLFLOW_EXPERIMENT_NAME`` says otherwise.
+SQLite is for one machine: on a cluster, point ``MLFLOW_TRACKING_URI`` at a
+tracking server (``mlflow server``), since SQLite locking on NFS/Lustre is unsafe.
 
-A *pipeline invocation* is one ``snakemake`` or ``dvc repro`` call. Stages are
-separate processes started by it, so they find their common parent through an
-invocation key (:func:`invocation_key`). The first stage of an invocation
-creates the parent; later ones reuse it.
+A *pipeline invocation* is one ``snakemake`` or ``dvc repro`` call. Its stages are
+separate processes, possibly on other nodes, so the invocation is named by the
+orchestrator (:func:`invocation_key`) and every stage finds the parent run by
+that name. The parent's status follows its children: FAILED as soon as one
+stage failed, FINISHED only when every stage finished.
 """
 
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import hashlib
+import json
 import os
 import socket
+import subprocess
 import tempfile
 import time
+import uuid
+import warnings
 from pathlib import Path
 from typing import Any, Iterator
+from urllib.parse import urlparse
+
+from filelock import FileLock
 
 from orbis2.config import flatten
 
 DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
+PIPELINE_ENV = "ORBIS2_PIPELINE_ID"
 INVOCATION_TAG = "orbis2.invocation"
-
-
-PIPELINE_TOOLS = ("snakemake", "dvc")
+SHARD_MANIFEST = Path("data/shards/manifest.json")
+# Stages upstream of the shards (or beside them): they do not read the dataset.
+NOT_SHARD_READERS = ("town", "import", "shards", "assets")
+_RUN_KEY = uuid.uuid4().hex  # a stage started by hand is its own invocation
 
 
 def invocation_key() -> str:
-    """Identify the pipeline invocation this stage belongs to.
+    """The name of the pipeline invocation this stage belongs to.
 
-    ``ORBIS2_PIPELINE_ID`` if set; else the nearest ancestor process that is
-    ``snakemake`` or ``dvc`` (pid and start time, so a reused pid is a new key);
-    else this process's group (a stage run by hand is its own pipeline).
+    1. ``ORBIS2_PIPELINE_ID``: the Snakefile sets it once per ``snakemake`` call and
+       every job inherits it (on Slurm through ``sbatch --export=ALL``); set it
+       yourself for ``dvc repro`` (``ORBIS2_PIPELINE_ID=$(uuidgen) dvc repro``).
+    2. Under ``dvc repro`` without it: DVC writes its pid into ``.dvc/tmp/lock``
+       while it runs; that pid and the process's start time name the call.
+    3. Otherwise this process alone (a stage run by hand).
     """
-    explicit = os.environ.get("ORBIS2_PIPELINE_ID")
+    explicit = os.environ.get(PIPELINE_ENV)
     if explicit:
         return explicit
-    pid = os.getppid()
-    while pid > 1:
-        stat = _proc_stat(pid)
-        if stat is None:
-            break
-        if set(PIPELINE_TOOLS) & _proc_programs(pid):
-            return f"{socket.gethostname()}:{pid}:{stat[19]}"
-        pid = int(stat[1])
-    pgid = os.getpgid(0)
-    stat = _proc_stat(pgid)
-    return f"{socket.gethostname()}:pg{pgid}:{stat[19] if stat else ''}"
+    if os.environ.get("DVC_ROOT"):
+        lock = Path(os.environ["DVC_ROOT"]) / ".dvc" / "tmp" / "lock"
+        with contextlib.suppress(OSError, ValueError):
+            pid = int(lock.read_text().split()[0])
+            return f"dvc:{socket.gethostname()}:{pid}:{_started(pid)}"
+    return f"process:{socket.gethostname()}:{_RUN_KEY}"
 
 
-def _proc_stat(pid: int) -> list[str] | None:
-    """Fields of /proc/<pid>/stat after the command name (state, ppid, ..., starttime at 19)."""
+def _started(pid: int) -> str:
+    """A process's start time (psutil), so that a reused pid names another call; '' without psutil."""
     try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except (OSError, IndexError):
+        import psutil
+
+        return f"{psutil.Process(pid).create_time():.3f}"
+    except Exception:  # psutil missing, or the process already gone
+        return ""
+
+
+def store_lock(uri: str) -> FileLock:
+    """A lock around store creation: next to a SQLite file, else in the temp folder (per node)."""
+    parsed = urlparse(uri)
+    if parsed.scheme == "sqlite" and parsed.path not in ("", "/:memory:"):
+        path = Path(uri[len("sqlite:///"):] if uri.startswith("sqlite:///") else parsed.path)
+        return FileLock(str(path.absolute()) + ".lock")
+    digest = hashlib.sha1(uri.encode()).hexdigest()[:16]
+    return FileLock(str(Path(tempfile.gettempdir()) / f"orbis2-mlflow-{digest}.lock"))
+
+
+def provenance(params: dict[str, Any]) -> dict[str, str]:
+    """Tags that say what produced a run: profile, params hash, shard manifest digest, git commit,
+    host and Slurm job."""
+    blob = json.dumps(params, sort_keys=True, default=str).encode()
+    tags = {"orbis2.profile": str(params.get("profile", "")),
+            "orbis2.params_sha256": hashlib.sha256(blob).hexdigest()}
+    if SHARD_MANIFEST.is_file():
+        tags["orbis2.shards_sha256"] = hashlib.sha256(SHARD_MANIFEST.read_bytes()).hexdigest()
+    commit = _git_commit()
+    if commit:
+        tags["mlflow.source.git.commit"] = commit
+    tags["orbis2.host"] = socket.gethostname()
+    if os.environ.get("SLURM_JOB_ID"):
+        tags["orbis2.slurm_job_id"] = os.environ["SLURM_JOB_ID"]
+    return tags
+
+
+def _git_commit() -> str | None:
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired):
         return None
+    return out.stdout.strip() if out.returncode == 0 else None
 
 
-def _proc_programs(pid: int) -> set[str]:
-    """Base names of a process's program and first argument (``python .../snakemake`` -> both)."""
+def _system_metrics() -> bool:
+    """MLflow samples CPU/GPU/memory when psutil is installed, unless ORBIS2_SYSTEM_METRICS=0."""
+    if os.environ.get("ORBIS2_SYSTEM_METRICS", "1") == "0":
+        return False
     try:
-        argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[:2]
-    except OSError:
-        return set()
-    return {Path(a.decode(errors="replace")).name for a in argv}
+        import psutil  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 class StageRun:
-    """What a stage logs: metrics per step and artifacts. Without an MLflow module
+    """What a stage logs: metrics per step, artifacts, models. Without an MLflow module
     (ranks other than 0 under torchrun) every call does nothing."""
 
-    def __init__(self, mlflow_module: Any | None, run_id: str | None):
+    def __init__(self, mlflow_module: Any | None, run_id: str | None, stage: str = "",
+                 params: dict[str, Any] | None = None):
         self._mlflow = mlflow_module
-        self.run_id = run_id
+        self.run_id, self.stage, self.params = run_id, stage, params or {}
 
     def log_metrics(self, metrics: dict[str, float], step: int | None = None) -> None:
         if self._mlflow:
@@ -85,6 +134,36 @@ class StageRun:
     def log_artifact(self, path: Path, artifact_path: str | None = None) -> None:
         if self._mlflow:
             self._mlflow.log_artifact(str(path), artifact_path)
+
+    def log_model(self, folder: Path) -> None:
+        """Record a trained model: an MLflow logged model named after the stage, holding the
+        folder's files (final weights) and ``config.json`` (the stage's resolved params)."""
+        if not self._mlflow:
+            return
+        mlflow, config = self._mlflow, self.params
+        flat = {k: str(v)[:6000] for k, v in flatten(config).items()}
+        model = mlflow.initialize_logged_model(name=self.stage, source_run_id=self.run_id, params=flat,
+                                               model_type="orbis2")
+        client = mlflow.MlflowClient()
+        client.log_model_artifacts(model.model_id, str(folder))
+        with tempfile.TemporaryDirectory() as tmp:
+            (Path(tmp) / "config.json").write_text(json.dumps(config, indent=2, sort_keys=True, default=str))
+            client.log_model_artifacts(model.model_id, tmp)
+        mlflow.finalize_logged_model(model.model_id, "READY")
+
+    def log_shards(self, manifest: Path, context: str = "training") -> None:
+        """Log the shard set as the run's input dataset, identified by the manifest's SHA-256."""
+        if not self._mlflow:
+            return
+        from mlflow.data.dataset_source_registry import resolve_dataset_source
+        from mlflow.data.meta_dataset import MetaDataset
+
+        digest = hashlib.sha256(manifest.read_bytes()).hexdigest()
+        with warnings.catch_warnings():  # MLflow registers its local-file source twice and says so
+            warnings.simplefilter("ignore")
+            source = resolve_dataset_source(str(manifest.absolute()))
+        self._mlflow.log_input(MetaDataset(source, name=f"shards-{digest[:12]}", digest=digest[:36]),
+                               context=context)
 
 
 @contextlib.contextmanager
@@ -101,33 +180,68 @@ def stage_run(stage: str, params: dict[str, Any]) -> Iterator[StageRun]:
 
     uri = os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_TRACKING_URI)
     mlflow.set_tracking_uri(uri)
-    experiment = mlflow.set_experiment(os.environ.get("MLFLOW_EXPERIMENT_NAME", "orbis2"))
-    client = MlflowClient()
-    parent_id = _parent_run(client, experiment.experiment_id)
-    client.update_run(parent_id, status="RUNNING")
+    with store_lock(uri):  # the first stages of a fresh store would race on its schema migration
+        experiment = mlflow.set_experiment(os.environ.get("MLFLOW_EXPERIMENT_NAME", "orbis2"))
+        client = MlflowClient()
+        parent_id = parent_run(client, experiment.experiment_id, invocation_key())
+    tags = {"orbis2.stage": stage, **provenance(params)}
     status = "FAILED"
-    with mlflow.start_run(run_name=stage, parent_run_id=parent_id, nested=True,
-                          tags={"orbis2.stage": stage}) as run:
+    with mlflow.start_run(run_name=stage, parent_run_id=parent_id, nested=True, tags=tags,
+                          log_system_metrics=_system_metrics()) as run:
+        _settle_parent(client, experiment.experiment_id, parent_id)
         flat = {k: str(v)[:6000] for k, v in flatten(params).items()}
         for start in range(0, len(flat), 100):  # MLflow limits one batch to 100 params
             mlflow.log_params(dict(list(flat.items())[start:start + 100]))
+        logger = StageRun(mlflow, run.info.run_id, stage, params)
+        if stage not in NOT_SHARD_READERS and SHARD_MANIFEST.is_file():
+            logger.log_shards(SHARD_MANIFEST)
         try:
-            yield StageRun(mlflow, run.info.run_id)
+            yield logger
             status = "FINISHED"
         finally:
             mlflow.end_run(status=status)
-            client.set_terminated(parent_id, status=status)
+            _settle_parent(client, experiment.experiment_id, parent_id)
 
 
-def _parent_run(client: Any, experiment_id: str) -> str:
-    key = invocation_key()
-    lock = Path(tempfile.gettempdir()) / f"orbis2-{hashlib.sha1(key.encode()).hexdigest()[:16]}.lock"
-    with open(lock, "w") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)  # stages running in parallel must share one parent
-        found = client.search_runs([experiment_id], filter_string=f"tags.`{INVOCATION_TAG}` = '{key}'",
-                                   max_results=1)
-        if found:
-            return found[0].info.run_id
-        run = client.create_run(experiment_id, run_name=f"pipeline {time.strftime('%Y-%m-%d %H:%M:%S')}",
-                                tags={INVOCATION_TAG: key, "orbis2.pipeline": "true"})
-        return run.info.run_id
+def parent_run(client: Any, experiment_id: str, key: str) -> str:
+    """The invocation's parent run, created by whichever stage comes first.
+
+    Stages on other nodes (where the store lock does not reach) may create one at the
+    same moment; every stage then keeps the oldest (by start time, then id) and deletes the others.
+    """
+    found = _parents(client, experiment_id, key)
+    if not found:
+        client.create_run(experiment_id, run_name=f"pipeline {time.strftime('%Y-%m-%d %H:%M:%S')}",
+                          tags={INVOCATION_TAG: key, "orbis2.pipeline": "true"})
+        found = _parents(client, experiment_id, key)
+    keep, *duplicates = found
+    for run in duplicates:
+        if run.info.lifecycle_stage == "active":
+            with contextlib.suppress(Exception):  # another stage may have deleted it already
+                client.delete_run(run.info.run_id)
+    return keep.info.run_id
+
+
+def _parents(client: Any, experiment_id: str, key: str) -> list[Any]:
+    from mlflow.entities import ViewType
+
+    runs = client.search_runs([experiment_id], filter_string=f"tags.`{INVOCATION_TAG}` = '{key}'",
+                              run_view_type=ViewType.ALL, max_results=50)
+    return sorted(runs, key=lambda r: (r.info.start_time, r.info.run_id))
+
+
+def _settle_parent(client: Any, experiment_id: str, parent_id: str) -> None:
+    """Derive the parent's status from all its children, so a later success never hides a failure."""
+    children = client.search_runs([experiment_id], filter_string=f"tags.`mlflow.parentRunId` = '{parent_id}'",
+                                  max_results=5000)
+    states = {run.info.status for run in children}
+    if "FAILED" in states or "KILLED" in states:
+        status = "FAILED"
+    elif "RUNNING" in states or "SCHEDULED" in states:
+        status = "RUNNING"
+    else:
+        status = "FINISHED"
+    if status == "RUNNING":
+        client.update_run(parent_id, status="RUNNING")
+    else:
+        client.set_terminated(parent_id, status=status)

@@ -25,9 +25,8 @@ frame with the default 10 Hz / 2 Hz / 5-frame settings).
 
 from __future__ import annotations
 
-import io
 import json
-import tarfile
+import os
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,7 +34,7 @@ from typing import Any, Iterator
 
 import cv2
 import numpy as np
-import torch
+import webdataset as wds
 from torch.utils.data import IterableDataset, get_worker_info
 from tqdm import tqdm
 
@@ -56,34 +55,29 @@ class ShardError(OrbisError):
 
 
 class ShardWriter:
-    """Writes samples into ``<prefix>-000000.tar``, rolling over at ``max_bytes``."""
+    """``webdataset.ShardWriter`` into ``<prefix>-000000.tar``..., rolling over at ``max_bytes`` of
+    payload, with fixed headers (mtime 0, uid/gid 0, owner ``orbis2``, mode 0644, USTAR) so that
+    the same samples give the same bytes; records each shard's path and sample count."""
 
     def __init__(self, folder: Path, prefix: str, max_bytes: int):
-        self.folder, self.prefix, self.max_bytes = folder, prefix, max_bytes
+        pattern = str(folder).replace("%", "%%") + f"/{prefix}-%06d.tar"
         self.shards: list[dict[str, Any]] = []
-        self._tar: tarfile.TarFile | None = None
+        self._writer: wds.ShardWriter | None = None
+        self._args = dict(pattern=pattern, maxsize=max_bytes, maxcount=10**9, verbose=0, encoder=False,
+                          mtime=0, user="orbis2", group="orbis2", mode=0o644)
 
     def write(self, key: str, members: dict[str, bytes]) -> None:
-        if self._tar is None or self.shards[-1]["bytes"] >= self.max_bytes:
-            self._open_next()
-        for ext in members:
-            data = members[ext]
-            info = tarfile.TarInfo(f"{key}.{ext}")
-            info.size, info.mtime, info.mode = len(data), 0, 0o644
-            self._tar.addfile(info, io.BytesIO(data))
-            self.shards[-1]["bytes"] += len(data) + 512
+        if self._writer is None:  # opened lazily: a split without clips leaves no empty shard
+            self._writer = wds.ShardWriter(**self._args)
+        self._writer.write({"__key__": key, **members})
+        if not self.shards or self.shards[-1]["path"] != Path(self._writer.fname):
+            self.shards.append({"path": Path(self._writer.fname), "samples": 0})
         self.shards[-1]["samples"] += 1
 
-    def _open_next(self) -> None:
-        self.close()
-        path = self.folder / f"{self.prefix}-{len(self.shards):06d}.tar"
-        self._tar = tarfile.open(path, "w", format=tarfile.USTAR_FORMAT)
-        self.shards.append({"path": path, "samples": 0, "bytes": 0})
-
     def close(self) -> None:
-        if self._tar is not None:
-            self._tar.close()
-            self._tar = None
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
 
 
 def clip_starts(n_frames: int, clip_frames: int, min_frames: int) -> list[tuple[int, int]]:
@@ -180,24 +174,43 @@ def verify_shards(root: Path) -> None:
                                  f"re-run the `shards` stage")
 
 
-def iter_samples(path: Path) -> Iterator[dict[str, bytes | str]]:
-    """Yield WebDataset samples (members grouped by key) from one tar shard."""
-    sample: dict[str, Any] = {}
-    try:
-        with tarfile.open(path, "r") as tar:
-            for member in tar:
-                if not member.isfile():
-                    continue
-                key, _, ext = member.name.partition(".")
-                if sample and sample["__key__"] != key:
-                    yield sample
-                    sample = {}
-                sample["__key__"] = key
-                sample[ext] = tar.extractfile(member).read()
-    except (tarfile.TarError, EOFError, OSError, zlib.error) as err:
-        raise ShardError(f"{path}: truncated or corrupt shard ({err}); re-run the `shards` stage") from err
-    if sample:
-        yield sample
+def shard_urls(root: Path, split: str, base: str | None = None) -> list[str]:
+    """Where a split's shards are read from: local paths under ``root``, or the manifest's
+    relative paths placed into ``base`` (default ``$ORBIS2_SHARDS_URL``) when the shards live
+    elsewhere. ``base`` is a prefix (``https://host/shards``) or a template with ``{}``
+    (``pipe:aws s3 cp s3://bucket/shards/{} -``); ``webdataset`` opens files, ``pipe:`` commands
+    and HTTP(S) URLs. The manifest itself is always read from ``root``."""
+    base = base if base is not None else os.environ.get("ORBIS2_SHARDS_URL")
+    paths = [str(p.relative_to(root)) for p in shard_paths(root, split)]
+    if not base:
+        return [str(Path(root) / p) for p in paths]
+    return [base.format(p) if "{}" in base else f"{base.rstrip('/')}/{p}" for p in paths]
+
+
+def _raise_shard_error(exn: Exception) -> bool:
+    """``webdataset`` error handler: a broken shard stops the read with a message naming it.
+
+    webdataset appends the stream and URL to ``exn.args`` as the error leaves the shard;
+    before that (no URL yet) the error is passed on unchanged so that it gets one.
+    """
+    if isinstance(exn, ShardError):
+        raise exn
+    url = getattr(exn, "filename", None) or (exn.args[-1] if len(exn.args) >= 3 else None)
+    if not isinstance(url, str):
+        raise exn
+    raise ShardError(f"{url}: truncated, corrupt or unreadable shard ({exn.args[0]}); "
+                     f"re-run the `shards` stage") from exn
+
+
+def shard_dataset(urls: list[str], nodesplitter: Any = None, workersplitter: Any = None) -> wds.WebDataset:
+    """The raw samples (members grouped by key) of ``urls`` in order, through ``webdataset``."""
+    return wds.WebDataset(urls, shardshuffle=False, nodesplitter=nodesplitter, workersplitter=workersplitter,
+                          handler=_raise_shard_error, empty_check=False)
+
+
+def iter_samples(path: Path | str) -> Iterator[dict[str, Any]]:
+    """Yield the samples of one shard (a path or URL)."""
+    yield from shard_dataset([str(path)])
 
 
 @dataclass
@@ -210,10 +223,11 @@ class Clip:
     odometry: np.ndarray  # [n, 2] speed, yaw rate
     pose: np.ndarray      # [n, 3]
     labels: dict[str, np.ndarray] | None
+    pixels: np.ndarray | None = None  # every frame decoded ahead (see read_clips), else None
 
     @classmethod
     def from_sample(cls, sample: dict[str, Any], source: str = "") -> "Clip":
-        key = sample["__key__"]
+        key, source = sample["__key__"], source or sample.get("__url__", "")
         try:
             meta = json.loads(sample["json"])
             jpegs = [sample[f"{i:04d}.jpg"] for i in range(meta["frames"])]
@@ -223,11 +237,10 @@ class Clip:
             raise ShardError(f"{source}: sample '{key}' is incomplete or malformed ({err!r}); "
                              f"re-run the `shards` stage") from err
 
-    def __len__(self) -> int:
-        return len(self.jpegs)
-
     def frames(self, indices: np.ndarray | list[int]) -> np.ndarray:
         """RGB uint8 ``[len(indices), H, W, 3]``."""
+        if self.pixels is not None:
+            return self.pixels[np.asarray(indices, dtype=np.int64)]
         out = []
         for i in indices:
             bgr = cv2.imdecode(np.frombuffer(self.jpegs[i], np.uint8), cv2.IMREAD_COLOR)
@@ -235,6 +248,13 @@ class Clip:
                 raise ShardError(f"clip '{self.key}': frame {i} is not a decodable JPEG; re-run the `shards` stage")
             out.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
         return np.stack(out)
+
+    def decoded(self) -> "Clip":
+        """This clip with every frame decoded (and its JPEG bytes dropped)."""
+        return Clip(self.key, self.meta, [], self.odometry, self.pose, self.labels, self.frames(range(len(self))))
+
+    def __len__(self) -> int:
+        return len(self.pixels) if self.pixels is not None else len(self.jpegs)
 
 
 def window_indices(data: DataConfig, anchor: int) -> tuple[np.ndarray, np.ndarray]:
@@ -277,38 +297,50 @@ def clip_window(clip: Clip, data: DataConfig, anchor: int) -> dict[str, Any]:
 
 
 def assign(items: int, rank: int, world: int, worker: int, workers: int) -> tuple[str, int, int]:
-    """How one reader (rank, worker) takes its part: whole shards if there are enough, else every n-th sample."""
-    slot, slots = rank * workers + worker, world * workers
+    """How one reader (rank, worker) takes its part: whole shards if there are enough, else every n-th sample.
+
+    Slots go rank-fastest (slot = worker * world + rank), so each rank holds every ``world``-th item,
+    as ``split_by_node`` then ``split_by_worker`` would give it, and ranks differ by one item at most."""
+    slot, slots = worker * world + rank, world * workers
     return ("shards" if items >= slots else "samples"), slot, slots
 
 
 class ClipStream(IterableDataset):
-    """Clips of a split's shards, partitioned across DDP ranks and DataLoader workers.
+    """Clips of a split's shards, read by ``webdataset`` and partitioned across ranks and workers.
 
-    Iterating yields the clips themselves; subclasses turn each clip into training
-    items (``items``). ``seed`` and ``epoch`` make every random choice reproducible.
+    Ranks come from ``rank``/``world`` or, like ``wds.split_by_node``, from ``RANK``/``WORLD_SIZE``
+    or ``torch.distributed``; DataLoader workers split a rank's shards like ``wds.split_by_worker``.
+    With fewer shards than (ranks x workers) every reader keeps every n-th sample instead, so
+    all ranks still get the same number of clips (give or take one) and none waits at a barrier.
+    Iterating yields the clips themselves; subclasses turn each clip into training items
+    (``items``). ``seed`` and ``epoch`` make every random choice reproducible.
     """
 
     def __init__(self, root: Path, split: str, seed: int = 0, epoch: int = 0,
-                 rank: int | None = None, world: int | None = None):
-        self.paths = shard_paths(root, split)
+                 rank: int | None = None, world: int | None = None, base_url: str | None = None):
+        self.paths = shard_urls(root, split, base_url)
         self.seed, self.epoch = seed, epoch
-        dist = torch.distributed.is_available() and torch.distributed.is_initialized()
-        self.rank = rank if rank is not None else (torch.distributed.get_rank() if dist else 0)
-        self.world = world if world is not None else (torch.distributed.get_world_size() if dist else 1)
+        node_rank, node_world, _, _ = wds.utils.pytorch_worker_info()
+        self.rank = rank if rank is not None else node_rank
+        self.world = world if world is not None else node_world
 
     def clips(self) -> Iterator[Clip]:
         info = get_worker_info()
         worker, workers = (info.id, info.num_workers) if info else (0, 1)
         mode, slot, slots = assign(len(self.paths), self.rank, self.world, worker, workers)
-        paths = self.paths[slot::slots] if mode == "shards" else self.paths
-        position = 0
-        for path in paths:
-            for sample in iter_samples(path):
-                position += 1
-                if mode == "samples" and (position - 1) % slots != slot:
-                    continue
-                yield Clip.from_sample(sample, str(path))
+        if mode == "shards":
+            samples = shard_dataset([str(p) for p in self.paths], nodesplitter=self._node_shards,
+                                    workersplitter=wds.split_by_worker)
+        else:
+            samples = (s for i, s in enumerate(shard_dataset([str(p) for p in self.paths])) if i % slots == slot)
+        for sample in samples:
+            yield Clip.from_sample(sample)
+
+    def _node_shards(self, shards: Iterator[dict[str, str]]) -> Iterator[dict[str, str]]:
+        """This rank's shards: every ``world``-th, from ``rank`` on."""
+        for i, shard in enumerate(shards):
+            if i % self.world == self.rank:
+                yield shard
 
     def rng(self, clip: Clip) -> np.random.Generator:
         return np.random.default_rng([self.seed, self.epoch, zlib.crc32(clip.key.encode())])
@@ -319,6 +351,28 @@ class ClipStream(IterableDataset):
     def __iter__(self) -> Iterator[Any]:
         for clip in self.clips():
             yield from self.items(clip)
+
+
+class _DecodedClips(ClipStream):
+    def items(self, clip: Clip) -> Iterator[Clip]:
+        yield clip.decoded()
+
+
+def read_clips(root: Path, split: str, workers: int = 0) -> Iterator[Clip]:
+    """Every clip of a split exactly once, frames decoded in ``workers`` processes (``wds.WebLoader``).
+
+    The order is fixed for a given ``workers`` (the loader takes one clip from each worker in
+    turn), not the manifest's: index clips by key. A broken shard raises :class:`ShardError`.
+    """
+    dataset = _DecodedClips(root, split, rank=0, world=1)
+    if workers == 0:
+        yield from dataset
+        return
+    yield from wds.WebLoader(dataset, batch_size=None, num_workers=workers, collate_fn=_identity)
+
+
+def _identity(item: Any) -> Any:
+    return item
 
 
 class WindowDataset(ClipStream):

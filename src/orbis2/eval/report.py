@@ -11,13 +11,13 @@ measured).
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
+import pandas as pd
 
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file
@@ -421,16 +421,13 @@ def _cell(value: Any) -> str:
 
 
 def write_csv(rows: Sequence[Row], path: str | Path) -> None:
-    """Header row plus one line per row; floats are written with ``repr`` so they read back exactly."""
+    """Header row plus one line per row (CRLF, as the ``csv`` module writes); floats are written
+    with ``repr`` so they read back exactly."""
     if not rows:
         raise ValueError(f"no rows to write to {path}")
-    header = list(rows[0])
+    table = pd.DataFrame(list(rows), columns=list(rows[0]), dtype=object).map(_cell)
     with atomic_file(Path(path)) as tmp:
-        with open(tmp, "w", newline="") as handle:
-            writer = csv.writer(handle)
-            writer.writerow(header)
-            for row in rows:
-                writer.writerow([_cell(row[key]) for key in header])
+        table.to_csv(tmp, index=False, lineterminator="\r\n")
 
 
 def markdown_table(rows: Sequence[Row]) -> str:

@@ -1,0 +1,117 @@
+"""MLflow tracking across processes: one parent per invocation, a race-free fresh store,
+a parent that stays FAILED, inputs, models and provenance tags."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from orbis2.tracking import invocation_key, store_lock
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+
+STAGE = """
+import sys
+from pathlib import Path
+from orbis2.tracking import stage_run
+stage, fail = sys.argv[1], sys.argv[2] == "fail"
+with stage_run(stage, {"profile": "smoke", "data": {"fps": 10}}) as run:
+    run.log_metrics({"x": 1.0})
+    if Path("model").is_dir():
+        run.log_model(Path("model"))
+    if fail:
+        raise RuntimeError("stage failed on purpose")
+"""
+
+
+def start(cwd: Path, stage: str, invocation: str, fail: bool = False) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(SRC), "ORBIS2_PIPELINE_ID": invocation, "ORBIS2_SYSTEM_METRICS": "0",
+           "MLFLOW_TRACKING_URI": f"sqlite:///{cwd / 'mlflow.db'}"}
+    env.pop("SLURM_JOB_ID", None)
+    return subprocess.Popen([sys.executable, "-c", STAGE, stage, "fail" if fail else "ok"], cwd=cwd, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def finish(proc: subprocess.Popen, ok: bool = True) -> None:
+    out, err = proc.communicate(timeout=600)
+    assert (proc.returncode == 0) == ok, err[-3000:]
+
+
+def runs(cwd: Path) -> list:
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(tracking_uri=f"sqlite:///{cwd / 'mlflow.db'}")
+    experiment = client.get_experiment_by_name("orbis2")
+    return client.search_runs([experiment.experiment_id], max_results=100)
+
+
+def test_stages_started_together_on_a_fresh_store_share_one_parent(tmp_path):
+    (tmp_path / "data/shards").mkdir(parents=True)
+    (tmp_path / "data/shards/manifest.json").write_text(json.dumps({"splits": {}}))
+    procs = [start(tmp_path, f"stage{i}", "inv-a") for i in range(4)]
+    for proc in procs:
+        finish(proc)
+    found = runs(tmp_path)
+    parents = [r for r in found if "mlflow.parentRunId" not in r.data.tags]
+    children = [r for r in found if "mlflow.parentRunId" in r.data.tags]
+    assert len(parents) == 1 and parents[0].info.status == "FINISHED"
+    assert sorted(r.info.run_name for r in children) == [f"stage{i}" for i in range(4)]
+    assert {r.data.tags["mlflow.parentRunId"] for r in children} == {parents[0].info.run_id}
+    tags = children[0].data.tags
+    assert tags["orbis2.profile"] == "smoke" and len(tags["orbis2.params_sha256"]) == 64
+    assert len(tags["orbis2.shards_sha256"]) == 64 and "orbis2.slurm_job_id" not in tags
+    assert children[0].inputs.dataset_inputs[0].dataset.digest == tags["orbis2.shards_sha256"][:36]
+
+    finish(start(tmp_path, "other", "inv-b"))  # another invocation: another parent
+    assert len([r for r in runs(tmp_path) if "mlflow.parentRunId" not in r.data.tags]) == 2
+
+
+def test_parent_stays_failed_after_a_later_success(tmp_path):
+    finish(start(tmp_path, "broken", "inv", fail=True), ok=False)
+    finish(start(tmp_path, "fine", "inv"))
+    parent = [r for r in runs(tmp_path) if "mlflow.parentRunId" not in r.data.tags]
+    assert [r.info.status for r in parent] == ["FAILED"]
+
+
+def test_trained_model_is_logged_with_its_config(tmp_path):
+    (tmp_path / "model").mkdir()
+    (tmp_path / "model/weights.pt").write_bytes(b"\x00" * 64)
+    finish(start(tmp_path, "trainer", "inv"))
+    from mlflow.artifacts import download_artifacts
+    from mlflow.tracking import MlflowClient
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    client = MlflowClient(tracking_uri=uri)
+    models = client.search_logged_models([client.get_experiment_by_name("orbis2").experiment_id])
+    assert [m.name for m in models] == ["trainer"] and models[0].params["data.fps"] == "10"
+    [stage] = [r for r in runs(tmp_path) if "mlflow.parentRunId" in r.data.tags]
+    assert models[0].source_run_id == stage.info.run_id
+    local = Path(download_artifacts(models[0].artifact_location, dst_path=str(tmp_path / "dl"), tracking_uri=uri))
+    assert (local / "weights.pt").stat().st_size == 64
+    assert json.loads((local / "config.json").read_text())["data"] == {"fps": 10}
+
+
+def test_invocation_key_under_dvc_names_the_call(tmp_path, monkeypatch):
+    monkeypatch.delenv("ORBIS2_PIPELINE_ID", raising=False)
+    monkeypatch.setenv("DVC_ROOT", str(tmp_path))
+    lock = tmp_path / ".dvc/tmp/lock"
+    lock.parent.mkdir(parents=True)
+    lock.write_text(f" {os.getpid()}\n")  # DVC's own pid, as zc.lockfile writes it
+    first = invocation_key()
+    lock.write_text(f" {os.getpid()}\n")  # DVC rewrites the lock between stages of one call
+    assert first == invocation_key() and f":{os.getpid()}:" in first
+    lock.write_text(f" {os.getppid()}\n")  # another call
+    assert invocation_key() != first
+    monkeypatch.setenv("ORBIS2_PIPELINE_ID", "given")
+    assert invocation_key() == "given"
+
+
+@pytest.mark.parametrize("uri, lock", [("sqlite:///mlflow.db", "mlflow.db.lock"),
+                                       ("sqlite:////abs/store.db", "/abs/store.db.lock")])
+def test_sqlite_store_lock_sits_next_to_the_database(uri, lock):
+    assert store_lock(uri).lock_file == str(Path(lock).absolute())
