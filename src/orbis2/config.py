@@ -470,7 +470,7 @@ class PipelineConfig:
 
 
 # Fields that change only bookkeeping, never the trajectory: a resume may change them.
-_BOOKKEEPING = frozenset({"log_every", "eval_every", "checkpoint_every"})
+BOOKKEEPING_FIELDS = frozenset({"log_every", "eval_every", "checkpoint_every"})
 
 
 @dataclass(frozen=True)
@@ -515,7 +515,7 @@ class TrainConfig:
 
     def trajectory_fields(self) -> dict[str, Any]:
         """The fields a resumed run must share with the run that wrote the checkpoint."""
-        return {k: v for k, v in dataclasses.asdict(self).items() if k not in _BOOKKEEPING}
+        return {k: v for k, v in dataclasses.asdict(self).items() if k not in BOOKKEEPING_FIELDS}
 
     def fingerprint(self) -> str:
         blob = json.dumps(self.trajectory_fields(), sort_keys=True).encode()
