@@ -24,7 +24,8 @@ def body(name: str):
     def run(cfg, args, run):
         """Train the abstract tokenizer against the frozen teacher, and save tokenizer.pt with its latent scale."""
         teacher = asset_path(Path(cfg.assets.dir), TEACHER_ASSETS[cfg.section(name).teacher])
-        work = training_dir(name, cfg, ["data", name], {"shards": Path("data/shards/manifest.json"), "teacher": teacher})
+        inputs = {"shards": Path("data/shards/manifest.json"), "teacher": teacher}
+        work = training_dir(name, cfg, ["data", name], inputs)
         metrics = train_abstract_tokenizer(cfg, Path("data/shards"), work, Path(cfg.assets.dir), run, name)
         if not metrics:
             return "training rank done; rank 0 writes the outputs"

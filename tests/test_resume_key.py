@@ -11,7 +11,8 @@ from orbis2.stage import code_version, training_dir
 
 def with_train(cfg, section, **changes):
     sec = cfg.section(section)
-    return dataclasses.replace(cfg, **{section: dataclasses.replace(sec, train=dataclasses.replace(sec.train, **changes))})
+    changed = dataclasses.replace(sec, train=dataclasses.replace(sec.train, **changes))
+    return dataclasses.replace(cfg, **{section: changed})
 
 
 def test_key_ignores_bookkeeping_but_not_the_trajectory(smoke_cfg, tmp_path):

@@ -11,8 +11,17 @@ import torch.nn.functional as F
 from torch import nn
 
 from orbis2.config import ConfigError
-from orbis2.train import (DataSpec, ResumeError, TrainConfig, Update, load_checkpoint, load_weights, lr_at,
-                          spawn_cpu_processes, train)
+from orbis2.train import (
+    DataSpec,
+    ResumeError,
+    TrainConfig,
+    Update,
+    load_checkpoint,
+    load_weights,
+    lr_at,
+    spawn_cpu_processes,
+    train,
+)
 
 DIM = 6
 
