@@ -7,7 +7,7 @@
 # Each rule's `params` are the params.yaml sections the stage reads (resolved for
 # the profile), so changing them re-runs that stage and its dependents only.
 
-from orbis2.config import resolve_section
+from orbis2.config import load_params, resolve_section
 from orbis2.eval.stages import probe_targets
 from orbis2.eval.systems import MAIN_SYSTEMS, SYSTEMS
 from orbis2.latents import LATENT_SETS
@@ -20,6 +20,7 @@ def latent_inputs(name):
     return [str(latents.root), *(str(path.parent) for path in latents.tokenizers.values())]
 
 configfile: "params.yaml"
+load_params("params.yaml")  # Snakemake's reader lets a key given twice pass; ours stops
 
 PROFILE = config["profile"]
 # How training stages start: plain python, or e.g. "torchrun --standalone --nproc_per_node 8".
