@@ -8,6 +8,7 @@
 # the profile), so changing them re-runs that stage and its dependents only.
 
 from orbis2.config import load_params, resolve_section
+from orbis2.data.importer import input_files
 from orbis2.eval.stages import probe_targets
 from orbis2.eval.systems import MAIN_SYSTEMS, SYSTEMS
 from orbis2.latents import LATENT_SETS
@@ -60,7 +61,7 @@ rule import_videos:
     input:
         "stages/import.py",
         "src/orbis2/data/importer.py",
-        section("import")["videos"],
+        *input_files(section("import")["videos"]),
     output:
         directory("data/raw/import"),
     params:
