@@ -161,7 +161,7 @@ ROWS = "\n".join(f"{t / 10},{5 + t / 10},0.01" for t in range(31))
     ("negative speed", "timestamp,speed,yaw_rate\n0,5,0\n1,-2,0\n3,5,0", "negative speed -2 at data row 2"),
     ("km/h", "timestamp,speed,yaw_rate\n0,50,0\n1,120,0\n3,130,0", "convert it to m/s"),
     ("degrees/s", "timestamp,speed,yaw_rate\n0,5,0\n1,5,30\n3,5,0", "convert it to rad/s"),
-])
+], ids=lambda value: value if isinstance(value, str) and "\n" not in value and len(value) < 30 else "")
 def test_csv_that_would_be_misread_is_refused(tmp_path, make_video, smoke_cfg, name, text, expected):
     folder = odometry_case(tmp_path, make_video, name.replace(" ", "_").replace("/", "_"), text)
     out = tmp_path / "raw"
