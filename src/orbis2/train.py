@@ -166,7 +166,7 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
         raise ResumeError(f"{path}: checksum mismatch, the file is corrupt (truncated or altered on disk); {fix}")
     try:
         return torch.load(io.BytesIO(payload), map_location="cpu", weights_only=True)
-    except (EOFError, RuntimeError, pickle.UnpicklingError) as err:
+    except (OSError, EOFError, RuntimeError, pickle.UnpicklingError) as err:
         raise ResumeError(f"{path}: cannot be read ({err}); {fix}") from err
 
 
