@@ -25,6 +25,7 @@ from orbis2.config import flatten
 
 DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
 INVOCATION_TAG = "orbis2.invocation"
+OWNER_TAG = "orbis2.process"  # the process that set the run RUNNING (see process_key)
 
 
 PIPELINE_TOOLS = ("snakemake", "dvc")
@@ -103,11 +104,14 @@ def stage_run(stage: str, params: dict[str, Any]) -> Iterator[StageRun]:
     mlflow.set_tracking_uri(uri)
     experiment = mlflow.set_experiment(os.environ.get("MLFLOW_EXPERIMENT_NAME", "orbis2"))
     client = MlflowClient()
+    mark_killed_runs(client, experiment.experiment_id)
     parent_id = _parent_run(client, experiment.experiment_id)
     client.update_run(parent_id, status="RUNNING")
+    owner = process_key(os.getpid())
+    client.set_tag(parent_id, OWNER_TAG, owner)
     status = "FAILED"
     with mlflow.start_run(run_name=stage, parent_run_id=parent_id, nested=True,
-                          tags={"orbis2.stage": stage}) as run:
+                          tags={"orbis2.stage": stage, OWNER_TAG: owner}) as run:
         flat = {k: str(v)[:6000] for k, v in flatten(params).items()}
         for start in range(0, len(flat), 100):  # MLflow limits one batch to 100 params
             mlflow.log_params(dict(list(flat.items())[start:start + 100]))
@@ -117,6 +121,31 @@ def stage_run(stage: str, params: dict[str, Any]) -> Iterator[StageRun]:
         finally:
             mlflow.end_run(status=status)
             client.set_terminated(parent_id, status=status)
+
+
+def process_key(pid: int) -> str | None:
+    """``host:pid:start time``: names one process for good (a reused pid has another start time)."""
+    stat = _proc_stat(pid)
+    return None if stat is None else f"{socket.gethostname()}:{pid}:{stat[19]}"
+
+
+def mark_killed_runs(client: Any, experiment_id: str) -> list[str]:
+    """End as KILLED every RUNNING run whose process, on this host, is gone; returns their ids.
+
+    A stage killed with SIGKILL (or by a power cut) cannot end its own run, which
+    would then show as running for ever; the next stage to start ends it.
+    """
+    killed = []
+    host = socket.gethostname()
+    for run in client.search_runs([experiment_id], filter_string="attributes.status = 'RUNNING'", max_results=1000):
+        owner = run.data.tags.get(OWNER_TAG, "")
+        parts = owner.rsplit(":", 2)
+        if len(parts) != 3 or parts[0] != host or not parts[1].isdigit():
+            continue
+        if process_key(int(parts[1])) != owner:
+            client.set_terminated(run.info.run_id, status="KILLED")
+            killed.append(run.info.run_id)
+    return killed
 
 
 def _parent_run(client: Any, experiment_id: str) -> str:
