@@ -7,7 +7,7 @@ import sys
 import pytest
 
 from orbis2 import io as orbis_io
-from orbis2.io import atomic_dir
+from orbis2.io import atomic_dir, atomic_file
 
 
 def dead_pid() -> int:
@@ -75,3 +75,11 @@ def test_symlinked_output_is_written_at_its_destination(tmp_path):
     assert link.is_symlink() and os.readlink(link) == str(big_disk)
     assert sorted(p.name for p in link.iterdir()) == ["new.txt"]
     assert sorted(p.name for p in (tmp_path / "big").iterdir()) == ["raw"]
+
+
+def test_atomic_file_removes_a_dead_writers_temporary(tmp_path):
+    stale = tmp_path / f".last.pt.new-{dead_pid()}-xyz.pt"
+    stale.write_bytes(b"half a checkpoint")
+    with atomic_file(tmp_path / "last.pt") as tmp:
+        tmp.write_bytes(b"whole")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["last.pt"]

@@ -65,7 +65,8 @@ def _temp_prefix(target: Path, kind: str) -> str:
 
 
 def _recover_stale(target: Path) -> None:
-    """Delete temporaries of ``target`` whose writer is dead; restore an old directory orphaned mid-swap."""
+    """Delete temporaries of ``target`` (files or folders) whose writer is dead; restore an old directory
+    orphaned mid-swap."""
     for path in sorted(target.parent.glob(f".{glob.escape(target.name)}.*-*-*")):
         kind, _, rest = path.name[len(target.name) + 2:].partition("-")
         pid = rest.split("-", 1)[0]
@@ -73,8 +74,10 @@ def _recover_stale(target: Path) -> None:
             continue
         if kind == "old" and not target.exists():
             os.replace(path, target)  # killed between the two renames: the old output is still valid
-        else:
+        elif path.is_dir() and not path.is_symlink():
             shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
 
 
 def _alive(pid: int) -> bool:
@@ -92,10 +95,14 @@ def _alive(pid: int) -> bool:
 
 @contextlib.contextmanager
 def atomic_file(target: Path) -> Iterator[Path]:
-    """Yield a temporary path in the same folder; renamed onto ``target`` on success."""
+    """Yield a temporary path in the same folder; renamed onto ``target`` on success.
+
+    A temporary left by a killed writer of the same target is deleted first.
+    """
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=target.suffix, dir=target.parent)
+    _recover_stale(target)
+    fd, name = tempfile.mkstemp(prefix=_temp_prefix(target, "new"), suffix=target.suffix, dir=target.parent)
     os.close(fd)
     tmp = Path(name)
     tmp.chmod(0o644)  # mkstemp makes it private; outputs are shared data
