@@ -193,7 +193,7 @@ def test_the_dag_watches_every_video_file(tmp_path, make_video, monkeypatch):
     video.with_suffix(".csv").write_text("timestamp,speed,yaw_rate\n0,1,0\n3,1,0\n")
     make_video("b.mp4", 30, fps=10, folder=tmp_path / "data" / "videos" / "val")
     monkeypatch.chdir(tmp_path)
-    deps = snakemake_rules(tmp_path)["import"]["deps"]
+    deps = snakemake_rules(tmp_path, videos_as_folder=False)["import"]["deps"]
     assert {"data/videos/train/a.mp4", "data/videos/train/a.csv", "data/videos/val/b.mp4"} <= deps
 
 
