@@ -7,7 +7,8 @@ which needs only ``data/shards`` and ``data/assets``; build them first, e.g.
 1. run the stage once uninterrupted: the reference weights;
 2. N times, in a fresh workspace: start the stage with ``checkpoint_every: 1``
    (bookkeeping: it must not change the resume key or the weights), kill its
-   process group with SIGKILL after a random time, run it again to the end;
+   process group with SIGKILL at a random moment of a random training step, run
+   it again to the end;
 3. check the published weights are bit-identical to the reference, and that the
    killed MLflow run ended KILLED or FAILED (the next start ends it), not RUNNING.
 
@@ -38,7 +39,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
-from orbis2.config import load_yaml  # noqa: E402
+from orbis2.config import load_config, load_yaml  # noqa: E402
 from orbis2.tasks.predictors import STAGES as PREDICTOR_STAGES  # noqa: E402
 
 
@@ -104,6 +105,31 @@ def identical(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> bool:
     return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
 
+def kill_during_step(proc: subprocess.Popen, ws: Path, step: int, rng: random.Random) -> bool:
+    """SIGKILL the stage's process group at a random moment after its ``step``-th checkpoint write.
+
+    With ``checkpoint_every: 1`` the checkpoint is rewritten after every step, so the
+    kill lands anywhere in the next step: mid-update, mid-save or mid-rename.
+    """
+    seen, last, gaps = 0, None, []
+    stamp = time.monotonic()
+    while proc.poll() is None:
+        found = sorted(ws.glob("data/runs/*/checkpoints/last.pt"))
+        mtime = found[0].stat().st_mtime_ns if found else None
+        if mtime is not None and mtime != last:
+            last, seen = mtime, seen + 1
+            now = time.monotonic()
+            gaps.append(now - stamp)
+            stamp = now
+            if seen == step:
+                time.sleep(rng.uniform(0.0, 1.0) * (min(gaps[1:]) if len(gaps) > 1 else 1.0))
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+                return True
+        time.sleep(0.05)
+    return False
+
+
 def run_statuses(db: Path, pipeline: str, stage: str) -> list[str]:
     """Statuses of the stage's runs under the pipeline run ``pipeline``, oldest first."""
     from mlflow.tracking import MlflowClient
@@ -124,10 +150,12 @@ def main() -> None:
     parser.add_argument("--stage", default="tokenizer_detail")
     parser.add_argument("--profile", default="smoke")
     parser.add_argument("--trials", type=int, default=5)
-    parser.add_argument("--seed", type=int, default=0, help="seeds the kill times")
+    parser.add_argument("--seed", type=int, default=0, help="seeds the kill steps and moments")
     parser.add_argument("--keep", action="store_true", help="keep the workspaces (printed) for inspection")
     args = parser.parse_args()
     cmd, out = stage_command(args.stage, args.profile)
+    cfg = load_config(ROOT / "params.yaml", args.profile)
+    steps = cfg.section(args.stage).train.steps
     rng = random.Random(args.seed)
     base = Path(tempfile.mkdtemp(prefix="kill_resume_"))
     db = base / "mlflow.db"
@@ -143,15 +171,9 @@ def main() -> None:
     for trial in range(args.trials):
         name = f"trial{trial}"
         ws = workspace(base, name, out, args.stage, checkpoint_every=1)
-        delay = rng.uniform(0.3, 0.95) * ref_seconds
+        kill_step = rng.randint(1, steps - 1)
         proc = start(cmd, ws, db, name)
-        try:
-            proc.wait(timeout=delay)
-            killed = False
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-            killed = True
+        killed = kill_during_step(proc, ws, kill_step, rng)
         text = finish(start(cmd, ws, db, name + "-resume"), ws, name + "-resume")
         resumed = re.search(r"resumed at (\d+)", text)
         same = identical(reference, weights(ws / out))
@@ -159,7 +181,7 @@ def main() -> None:
         status_ok = statuses[-1:] == ["FINISHED"] and all(s in ("KILLED", "FAILED") for s in statuses[:-1])
         ok = same and status_ok and killed
         failures += not ok
-        print(f"{name}: killed after {delay:.1f} s: {killed}; resumed at step "
+        print(f"{name}: killed during step {kill_step + 1}: {killed}; resumed at step "
               f"{resumed.group(1) if resumed else 0}; weights bit-identical: {same}; MLflow runs "
               f"{' -> '.join(statuses)}: {'ok' if ok else 'FAIL'}", flush=True)
     print(f"{args.trials - failures}/{args.trials} trials passed ({args.stage}, profile {args.profile})")

@@ -107,11 +107,12 @@ def stage_run(stage: str, params: dict[str, Any]) -> Iterator[StageRun]:
     mark_killed_runs(client, experiment.experiment_id)
     parent_id = _parent_run(client, experiment.experiment_id)
     client.update_run(parent_id, status="RUNNING")
-    owner = process_key(os.getpid())
-    client.set_tag(parent_id, OWNER_TAG, owner)
+    owner = {OWNER_TAG: key} if (key := process_key(os.getpid())) else {}  # no /proc: not tracked
+    if owner:
+        client.set_tag(parent_id, OWNER_TAG, key)
     status = "FAILED"
     with mlflow.start_run(run_name=stage, parent_run_id=parent_id, nested=True,
-                          tags={"orbis2.stage": stage, OWNER_TAG: owner}) as run:
+                          tags={"orbis2.stage": stage, **owner}) as run:
         flat = {k: str(v)[:6000] for k, v in flatten(params).items()}
         for start in range(0, len(flat), 100):  # MLflow limits one batch to 100 params
             mlflow.log_params(dict(list(flat.items())[start:start + 100]))
