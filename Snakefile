@@ -10,7 +10,8 @@
 import os
 import uuid
 
-from orbis2.config import resolve_section
+from orbis2.config import load_params, resolve_section
+from orbis2.data.importer import input_files
 from orbis2.eval.stages import probe_targets
 from orbis2.eval.systems import MAIN_SYSTEMS, SYSTEMS
 from orbis2.latents import LATENT_SETS
@@ -23,6 +24,7 @@ def latent_inputs(name):
     return [str(latents.root), *(str(path.parent) for path in latents.tokenizers.values())]
 
 configfile: "params.yaml"
+load_params("params.yaml")  # Snakemake's reader lets a key given twice pass; ours stops
 
 # One id per invocation, inherited by every job (on Slurm via sbatch --export=ALL): the MLflow parent run.
 os.environ.setdefault("ORBIS2_PIPELINE_ID", f"snakemake:{uuid.uuid4()}")
@@ -66,7 +68,7 @@ rule import_videos:
     input:
         "stages/import.py",
         "src/orbis2/data/importer.py",
-        section("import")["videos"],
+        *input_files(section("import")["videos"]),
     output:
         directory("data/raw/import"),
     params:

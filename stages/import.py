@@ -4,7 +4,7 @@ import json
 from dataclasses import asdict
 from pathlib import Path
 
-from orbis2.data.importer import import_videos
+from orbis2.data.importer import check_outside, import_videos
 from orbis2.io import atomic_dir
 from orbis2.stage import stage_main
 
@@ -20,6 +20,7 @@ def add_arguments(parser):
 def run(cfg, args, run):
     """Resample, resize and re-encode user videos into the raw episode layout."""
     folder = args.videos or Path(cfg.import_.videos)
+    check_outside(folder, OUT)
     skip_bad = cfg.import_.skip_bad if args.skip_bad is None else args.skip_bad
     with atomic_dir(OUT) as tmp:
         index, skipped = import_videos(folder, tmp, cfg.data, cfg.import_, skip_bad)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from orbis2.latents import LATENT_SETS
 from orbis2.stage import publish_training, stage_main, training_dir
-from orbis2.tasks.tokenizers import train_abstract_tokenizer
+from orbis2.tasks.tokenizers import TEACHER_ASSETS, asset_path, train_abstract_tokenizer
 
 VARIANTS = {"tokenizer_abstract": "compressed", "tokenizer_abstract_full": "full"}
 
@@ -23,7 +23,9 @@ def body(name: str):
 
     def run(cfg, args, run):
         """Train the abstract tokenizer against the frozen teacher, and save tokenizer.pt with its latent scale."""
-        work = training_dir(name, cfg, ["data", name])
+        teacher = asset_path(Path(cfg.assets.dir), TEACHER_ASSETS[cfg.section(name).teacher])
+        inputs = {"shards": Path("data/shards/manifest.json"), "teacher": teacher}
+        work = training_dir(name, cfg, ["data", name], inputs)
         metrics = train_abstract_tokenizer(cfg, Path("data/shards"), work, Path(cfg.assets.dir), run, name)
         if not metrics:
             return "training rank done; rank 0 writes the outputs"

@@ -11,13 +11,14 @@ from orbis2.tasks.tokenizers import train_detail_tokenizer
 
 OUT = Path("data/tokenizers/detail")
 REPORT = Path("reports/tokenizer_detail.json")
+SHARDS = Path("data/shards")
 SECTIONS = ["data", "tokenizer_detail"]
 
 
 def run(cfg, args, run):
     """Train the detail tokenizer (VQGAN objective), measure it, and save tokenizer.pt with its latent scale."""
-    work = training_dir("tokenizer_detail", cfg, SECTIONS)
-    metrics = train_detail_tokenizer(cfg, Path("data/shards"), work, Path(cfg.assets.dir), run)
+    work = training_dir("tokenizer_detail", cfg, SECTIONS, {"shards": SHARDS / "manifest.json"})
+    metrics = train_detail_tokenizer(cfg, SHARDS, work, Path(cfg.assets.dir), run)
     if not metrics:
         return "training rank done; rank 0 writes the outputs"
     run.log_metrics(metrics, step=int(metrics["steps"]))

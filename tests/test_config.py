@@ -5,7 +5,7 @@ import copy
 import pytest
 import yaml
 
-from orbis2.config import PROFILES, ConfigError, load_config, load_params
+from orbis2.config import ASSETS_DIR, PROFILES, ConfigError, load_config, load_params
 
 from conftest import ROOT
 
@@ -57,3 +57,25 @@ def test_native_rate_of_twenty_is_accepted(tmp_path):
     path = write_params(tmp_path, lambda r: r["data"]["all"].update(fps=20))
     cfg = load_config(path, "smoke")
     assert (cfg.data.detail_stride, cfg.data.abstract_stride) == (2, 10)
+
+
+def test_a_key_given_twice_is_an_error(tmp_path):
+    text = (ROOT / "params.yaml").read_text()
+    twice = "    dir: data/assets\n    download: false\n    download: true\n"
+    doubled = text.replace("    dir: data/assets\n", twice, 1)
+    assert doubled != text
+    path = tmp_path / "params.yaml"
+    path.write_text(doubled)
+    with pytest.raises(ConfigError) as err:
+        load_config(path, "smoke")
+    assert str(path) in str(err.value) and "'download' is given twice" in str(err.value)
+
+
+def test_assets_dir_must_be_the_dags_output(tmp_path):
+    from test_dag import dvc_stages
+
+    assert dvc_stages()["assets"]["outs"] == {ASSETS_DIR}
+    path = write_params(tmp_path, lambda r: r["assets"]["all"].update(dir="/big/disk/assets"))
+    with pytest.raises(ConfigError, match="dir = '/big/disk/assets' differs .* make data/assets a symlink"):
+        load_config(path, "smoke")
+    assert load_config(write_params(tmp_path, lambda r: r["assets"]["all"].update(dir="data/assets/")), "smoke")

@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from orbis2.config import load_params
+from orbis2.config import load_params, resolve_section
 
 from conftest import ROOT
 
@@ -35,11 +35,13 @@ def dvc_stages(root: Path = ROOT) -> dict[str, dict]:
     return out
 
 
-def snakemake_rules(root: Path = ROOT) -> dict[str, dict]:
+def snakemake_rules(root: Path = ROOT, videos_as_folder: bool = True) -> dict[str, dict]:
     from snakemake.api import SnakemakeApi
     from snakemake.settings.types import ConfigSettings, OutputSettings, ResourceSettings
 
-    profile = load_params(root / "params.yaml")["profile"]
+    params = load_params(root / "params.yaml")
+    profile = params["profile"]
+    videos = resolve_section(params, "import", profile)["videos"] if videos_as_folder else None
     with SnakemakeApi(OutputSettings(quiet={"all"})) as api:
         workflow = api.workflow(resource_settings=ResourceSettings(cores=1),
                                 config_settings=ConfigSettings(config={"profile": profile}),
@@ -50,9 +52,15 @@ def snakemake_rules(root: Path = ROOT) -> dict[str, dict]:
                 continue
             cmd = rule.shellcmd.replace("{params.profile}", profile).replace("{rule}", rule.name)
             rules[rule.name] = {"cmd": cmd,
-                                "deps": {str(f) for f in rule.input}, "outs": {str(f) for f in rule.output},
+                                "deps": {_as_folder(str(f), videos) for f in rule.input},
+                                "outs": {str(f) for f in rule.output},
                                 "params": set(rule.params.keys())}
         return rules
+
+
+def _as_folder(dep: str, folder: str | None) -> str:
+    """The Snakefile lists each user video (so new ones re-run `import`); dvc.yaml names their folder."""
+    return folder if folder is not None and Path(folder) in Path(dep).parents else dep
 
 
 def drift(dvc: dict, snake: dict) -> list[str]:

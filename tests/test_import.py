@@ -1,6 +1,7 @@
 """User videos into the raw layout: resampling, odometry CSVs, and every bad input."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -25,10 +26,10 @@ def run_import(folder, out, cfg, skip_bad=False):
 
 def test_resamples_resizes_and_interpolates_odometry(tmp_path, make_video, smoke_cfg):
     src = tmp_path / "videos"
-    video = make_video("drive.mp4", 90, fps=30, folder=src)  # 3 s at 30 fps -> 30 frames at 10 fps
+    video = make_video("drive.mp4", 90, fps=30, folder=src / "train")  # 3 s at 30 fps -> 30 frames at 10 fps
     t = np.linspace(0, 3.0, 31)
     write_csv(video.with_suffix(".csv"), t, 5 + t, 0.1 * np.ones_like(t))
-    make_video("silent.mp4", 60, fps=20, folder=src)  # no CSV: unconditional
+    make_video("silent.mp4", 60, fps=20, folder=src / "val")  # no CSV: unconditional
     out = tmp_path / "raw"
     index, skipped = run_import(src, out, smoke_cfg)
     assert not skipped and [e.frames for e in index.episodes] == [30, 30]
@@ -93,15 +94,24 @@ def test_every_bad_input_stops_with_a_clear_message(tmp_path, make_video, smoke_
 
 def test_skip_bad_reports_and_keeps_the_good(tmp_path, make_video, smoke_cfg):
     src = tmp_path / "mixed"
-    make_video("good.mp4", 40, fps=10, folder=src)
-    make_video("rate.mp4", 60, fps=25, folder=src)
-    (src / "zz.mp4").write_bytes(b"garbage")
+    make_video("good.mp4", 40, fps=10, folder=src / "train")
+    make_video("rate.mp4", 60, fps=25, folder=src / "train")
+    (src / "train" / "zz.mp4").write_bytes(b"garbage")
+    make_video("v.mp4", 30, fps=10, folder=src / "val")
     out = tmp_path / "raw"
     index, skipped = run_import(src, out, smoke_cfg, skip_bad=True)
-    assert [e.frames for e in index.episodes] == [40]
+    assert [e.frames for e in index.episodes] == [40, 30]
     assert sorted(s.path.rsplit("/", 1)[1] for s in skipped) == ["rate.mp4", "zz.mp4"]
     assert sorted(p.name for p in (out / "train").iterdir()) == ["import_train_00000.mp4",
                                                                  "import_train_00000.parquet"]
+
+
+def stage_env(tmp_path):
+    """A bare environment for a stage script (this checkout's sources first when PYTHONPATH says so)."""
+    env = {"MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}", "PATH": "/usr/bin:/bin"}
+    if "PYTHONPATH" in os.environ:
+        env["PYTHONPATH"] = os.environ["PYTHONPATH"]
+    return env
 
 
 def test_stage_exits_nonzero_and_leaves_nothing(tmp_path, make_video):
@@ -109,7 +119,7 @@ def test_stage_exits_nonzero_and_leaves_nothing(tmp_path, make_video):
     src = tmp_path / "bad"
     make_video("r.mp4", 60, fps=25, folder=src)
     (tmp_path / "params.yaml").write_text((ROOT / "params.yaml").read_text())
-    env = {"MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}", "PATH": "/usr/bin:/bin"}
+    env = stage_env(tmp_path)
     proc = subprocess.run([sys.executable, str(ROOT / "stages/import.py"), "--profile", "smoke", "--videos", str(src)],
                           cwd=tmp_path, capture_output=True, text=True, env=env)
     assert proc.returncode == 2, proc.stderr
@@ -119,9 +129,93 @@ def test_stage_exits_nonzero_and_leaves_nothing(tmp_path, make_video):
     proc = subprocess.run([sys.executable, str(ROOT / "stages/import.py"), "--profile", "smoke", "--videos", str(src),
                            "--skip-bad"], cwd=tmp_path, capture_output=True, text=True, env=env)
     assert proc.returncode == 2 and "every video was skipped" in proc.stderr
-    make_video("ok.mp4", 30, fps=10, folder=src)
+    make_video("r.mp4", 60, fps=25, folder=src / "train")
+    make_video("ok.mp4", 30, fps=10, folder=src / "train")
+    make_video("ok.mp4", 30, fps=10, folder=src / "val")
     proc = subprocess.run([sys.executable, str(ROOT / "stages/import.py"), "--profile", "smoke", "--videos", str(src),
                            "--skip-bad"], cwd=tmp_path, capture_output=True, text=True, env=env)
     assert proc.returncode == 0, proc.stderr
     skipped = json.loads((tmp_path / "data/raw/import/skipped.json").read_text())
     assert [s["path"].rsplit("/", 1)[1] for s in skipped] == ["r.mp4"]
+
+
+def odometry_case(tmp_path, make_video, name, text):
+    """A folder with one 3-s video at 10 fps and the CSV ``text`` beside it."""
+    folder = tmp_path / name
+    video = make_video("v.mp4", 30, fps=10, folder=folder / "train")
+    video.with_suffix(".csv").write_bytes(text if isinstance(text, bytes) else text.encode())
+    return folder
+
+
+ROWS = "\n".join(f"{t / 10},{5 + t / 10},0.01" for t in range(31))
+
+
+@pytest.mark.parametrize("name, text, expected", [
+    ("bom", b"\xef\xbb\xbftimestamp,speed,yaw_rate\n" + ROWS.encode(), "byte-order mark"),
+    ("trailing commas", "timestamp,speed,yaw_rate,\n" + ROWS.replace("\n", ",\n") + ",", "trailing comma"),
+    ("rows with a trailing comma", "timestamp,speed,yaw_rate\n" + ROWS.replace("\n", ",\n"), "trailing comma"),
+    ("milliseconds", "timestamp,speed,yaw_rate\n" + "\n".join(f"{t * 100},5,0" for t in range(31)),
+     "must be in seconds"),
+    ("epoch seconds", "timestamp,speed,yaw_rate\n" + "\n".join(f"{1.7e9 + t / 10},5,0" for t in range(31)),
+     "seconds from the first video frame"),
+    ("negative speed", "timestamp,speed,yaw_rate\n0,5,0\n1,-2,0\n3,5,0", "negative speed -2 at data row 2"),
+    ("km/h", "timestamp,speed,yaw_rate\n0,50,0\n1,120,0\n3,130,0", "convert it to m/s"),
+    ("degrees/s", "timestamp,speed,yaw_rate\n0,5,0\n1,5,30\n3,5,0", "convert it to rad/s"),
+], ids=lambda value: value if isinstance(value, str) and "\n" not in value and len(value) < 30 else "")
+def test_csv_that_would_be_misread_is_refused(tmp_path, make_video, smoke_cfg, name, text, expected):
+    folder = odometry_case(tmp_path, make_video, name.replace(" ", "_").replace("/", "_"), text)
+    out = tmp_path / "raw"
+    with pytest.raises(ImportProblem) as err:
+        run_import(folder, out, smoke_cfg)
+    assert expected in str(err.value) and str(folder / "train" / "v.csv") in str(err.value)
+
+
+def test_a_missing_split_stops_the_import(tmp_path, make_video, smoke_cfg):
+    make_video("a.mp4", 30, fps=10, folder=tmp_path / "v" / "train")
+    with pytest.raises(ImportProblem, match=r"no val videos; training needs both: put videos into .*v/train/ and "):
+        run_import(tmp_path / "v", tmp_path / "raw", smoke_cfg)
+    make_video("flat.mp4", 30, fps=10, folder=tmp_path / "flat")
+    with pytest.raises(ImportProblem, match="a folder without split sub-folders imports everything as train"):
+        run_import(tmp_path / "flat", tmp_path / "raw", smoke_cfg)
+    (tmp_path / "v" / "val").mkdir()
+    (tmp_path / "v" / "val" / "broken.mp4").write_bytes(b"garbage")  # val exists, but its only video is skipped
+    with pytest.raises(ImportProblem, match="(?s)no val videos.*skipped: .*broken.mp4: OpenCV cannot open"):
+        run_import(tmp_path / "v", tmp_path / "raw", smoke_cfg, skip_bad=True)
+
+
+def test_the_dag_watches_every_video_file(tmp_path, make_video, monkeypatch):
+    """A video added to a split sub-folder must change the import rule's inputs (a folder's mtime does not)."""
+    from test_dag import snakemake_rules
+
+    for name in ("Snakefile", "params.yaml"):
+        (tmp_path / name).write_text((ROOT / name).read_text())
+    video = make_video("a.mp4", 30, fps=10, folder=tmp_path / "data" / "videos" / "train")
+    video.with_suffix(".csv").write_text("timestamp,speed,yaw_rate\n0,1,0\n3,1,0\n")
+    make_video("b.mp4", 30, fps=10, folder=tmp_path / "data" / "videos" / "val")
+    monkeypatch.chdir(tmp_path)
+    deps = snakemake_rules(tmp_path, videos_as_folder=False)["import"]["deps"]
+    assert {"data/videos/train/a.mp4", "data/videos/train/a.csv", "data/videos/val/b.mp4"} <= deps
+
+
+def run_stage(tmp_path, videos):
+    (tmp_path / "params.yaml").write_text((ROOT / "params.yaml").read_text())
+    return subprocess.run([sys.executable, str(ROOT / "stages/import.py"), "--profile", "smoke", "--videos",
+                           str(videos)], cwd=tmp_path, capture_output=True, text=True, env=stage_env(tmp_path))
+
+
+def test_stage_refuses_a_non_utf8_name_and_its_own_output(tmp_path, make_video):
+    src = tmp_path / "videos"
+    make_video("ok.mp4", 30, fps=10, folder=src / "train")
+    (src / "val").mkdir()
+    bad = src / "val" / os.fsdecode(b"caf\xe9.mp4")  # Latin-1 name: OpenCV crashed the process on it
+    bad.write_bytes((src / "train" / "ok.mp4").read_bytes())
+    proc = run_stage(tmp_path, src)
+    assert proc.returncode == 2, proc.stderr
+    assert "caf\\xe9.mp4: the file name is not valid UTF-8" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "data" / "raw" / "import").exists()
+    # --videos inside the output, which the stage replaces: refused before anything is deleted.
+    inside = tmp_path / "data" / "raw" / "import" / "train"
+    make_video("mine.mp4", 30, fps=10, folder=inside)
+    proc = run_stage(tmp_path, tmp_path / "data" / "raw" / "import")
+    assert proc.returncode == 2 and "lies inside the import output" in proc.stderr, proc.stderr
+    assert (inside / "mine.mp4").is_file()

@@ -251,3 +251,46 @@ def test_cli_end_to_end_writes_mp4_and_gif(make_video, tmp_path, checkpoints, ca
     assert frames[-1, :, :128].max() < 10  # the 25-frame video has no real frame 30: shown black
     with Image.open(out.with_suffix(".gif")) as gif:
         assert gif.n_frames == 15 and gif.size == (256, 72)
+
+
+@pytest.mark.parametrize("flag, value, fragment", [
+    ("--seconds", "nan", "--seconds nan: not a finite number"),
+    ("--seconds", "inf", "--seconds inf: not a finite number"),
+    ("--seconds", "0", "--seconds 0: the rollout length must be > 0"),
+    ("--seconds", "-3", "--seconds -3: the rollout length must be > 0"),
+    ("--abstract-nfe", "0", "--abstract-nfe 0: needs at least 1"),
+    ("--detail-nfe", "-1", "--detail-nfe -1: needs at least 1"),
+    ("--speed-scale", "nan", "--speed-scale nan: not a finite number"),
+])
+def test_cli_rejects_bad_numbers_in_one_line(tmp_path, checkpoints, capsys, flag, value, fragment):
+    err = _expect_exit_2(_args(tmp_path / "v.mp4", tmp_path / "o.mp4", checkpoints) + [flag, value], capsys,
+                         fragment)
+    assert len(err.strip().splitlines()) == 1
+    assert not list(tmp_path.iterdir())
+
+
+def test_cli_rejects_a_trajectory_shorter_than_the_rollout_unless_held(make_video, tmp_path, checkpoints, capsys):
+    video = make_video("drive.mp4", 25, 10)
+    rows = [[t / 10, 5.0, 0.1] for t in range(25)]
+    traj = _write_csv(tmp_path / "traj.csv", ["timestamp", "speed", "yaw_rate"], rows)
+    out = tmp_path / "out" / "o.mp4"
+    _expect_exit_2(_args(video, out, checkpoints, "--trajectory", traj, "--seconds", 1), capsys, str(traj),
+                   "ends at 2.4 s but this rollout needs steering up to 3 s", "--hold-last")
+    assert not out.exists()
+    main(_args(video, out, checkpoints, "--trajectory", traj, "--seconds", 1, "--hold-last"))
+    assert out.is_file()
+
+
+def test_cli_rejects_missing_corrupt_and_other_profile_checkpoints(make_video, tmp_path, checkpoints, capsys):
+    video = make_video("v.mp4", 25, 10)
+    _expect_exit_2(_args(tmp_path / "none.mp4", tmp_path / "o.mp4", checkpoints), capsys,
+                   f"{tmp_path / 'none.mp4'}: does not exist")
+    corrupt = tmp_path / "corrupt.pt"
+    corrupt.write_bytes(checkpoints["detail_tok"].read_bytes()[:5000])
+    _expect_exit_2(_args(video, tmp_path / "o.mp4", checkpoints) + ["--detail-tokenizer", str(corrupt)], capsys,
+                   f"{corrupt}: not a checkpoint this version can read")
+    # The smoke checkpoints under the default profile: other frame size, other predictor preset.
+    _expect_exit_2(_args(video, tmp_path / "o.mp4", checkpoints) + ["--profile", "default"], capsys,
+                   f"{checkpoints['detail_tok']}: made for 128x72 frames but profile default uses 256x144",
+                   "pass --profile smoke")
+    assert not list(tmp_path.glob("o.*"))

@@ -11,7 +11,17 @@ import torch.nn.functional as F
 from torch import nn
 
 from orbis2.config import ConfigError
-from orbis2.train import DataSpec, ResumeError, TrainConfig, Update, load_weights, lr_at, spawn_cpu_processes, train
+from orbis2.train import (
+    DataSpec,
+    ResumeError,
+    TrainConfig,
+    Update,
+    load_checkpoint,
+    load_weights,
+    lr_at,
+    spawn_cpu_processes,
+    train,
+)
 
 DIM = 6
 
@@ -187,7 +197,7 @@ def test_resume_after_kill_is_bit_identical(tmp_path):
     train(Regression(noise=0.1), cfg, tmp_path / "straight")
     with pytest.raises(Killed):
         train(Regression(noise=0.1, kill_at=17), cfg, tmp_path / "killed")
-    checkpoint = torch.load(tmp_path / "killed" / "checkpoints" / "last.pt", weights_only=True)
+    checkpoint = load_checkpoint(tmp_path / "killed" / "checkpoints" / "last.pt")
     assert checkpoint["step"] == checkpoint["data_position"] == 14
     assert not (tmp_path / "killed" / "model.pt").exists()
     # Evaluation is bookkeeping: turning it on for the rest of the run changes nothing.
@@ -211,6 +221,28 @@ def test_resume_with_a_changed_config_is_refused(tmp_path):
     message = str(caught.value)
     assert str(tmp_path / "checkpoints" / "last.pt") in message
     assert "lr: 0.01 -> 0.005" in message and "Delete" in message
+
+
+@pytest.mark.parametrize("damage", ["bit flip", "truncated", "foreign"])
+def test_corrupt_or_foreign_checkpoint_is_refused_by_name(tmp_path, damage):
+    cfg = config(steps=6, checkpoint_every=3)
+    with pytest.raises(Killed):
+        train(Regression(kill_at=4), cfg, tmp_path)
+    path = tmp_path / "checkpoints" / "last.pt"
+    blob = bytearray(path.read_bytes())
+    if damage == "bit flip":
+        blob[len(blob) * 3 // 4] ^= 0x10  # inside the tensors, where torch.load alone notices nothing
+    elif damage == "truncated":
+        del blob[len(blob) // 2:]
+    else:
+        blob = bytearray()
+        torch.save(nn.Linear(2, 2).state_dict(), path)
+        blob = bytearray(path.read_bytes())
+    path.write_bytes(bytes(blob))
+    with pytest.raises(ResumeError) as caught:
+        train(Regression(), cfg, tmp_path)
+    assert str(path) in str(caught.value) and "delete" in str(caught.value)
+    assert not (tmp_path / "model.pt").exists()
 
 
 def _ddp_worker(out_dir: Path):
@@ -251,7 +283,7 @@ def test_gan_task_steps_generator_and_discriminator_separately(tmp_path):
     final = load_weights(tmp_path / "full" / "model.pt")
     assert all(not torch.equal(final[k], initial[k]) for k in initial)
     assert {"loss", "loss_disc", "grad_norm_disc"} <= set(result.metrics)
-    checkpoint = torch.load(tmp_path / "full" / "checkpoints" / "last.pt", weights_only=True)
+    checkpoint = load_checkpoint(tmp_path / "full" / "checkpoints" / "last.pt")
     assert set(checkpoint["optimizers"]) == {"main", "disc"}
     disc_lr = checkpoint["optimizers"]["disc"]["param_groups"][0]["lr"]
     assert disc_lr == pytest.approx(0.5 * lr_at(119, config(steps=120, lr=2e-2)))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import pickle
 import sys
 from pathlib import Path
 
@@ -19,7 +20,7 @@ import torch
 from PIL import Image
 from tqdm import tqdm
 
-from orbis2.config import load_config
+from orbis2.config import PROFILES, load_config
 from orbis2.data.importer import read_odometry_csv
 from orbis2.data.town import integrate_odometry
 from orbis2.data.video import probe, read_video, resample_stride, write_video
@@ -70,6 +71,58 @@ def load_steering(args: argparse.Namespace, video: Path) -> tuple[dict[str, np.n
         raise OrbisError(f"{path}: trajectory file not found; pass an existing CSV with columns timestamp, speed, "
                          f"yaw_rate")
     return read_odometry_csv(path), path
+
+
+def steering_until(odometry: dict[str, np.ndarray], path: Path, t_end: float, hold_last: bool) -> None:
+    """The trajectory must cover the rollout from the first context frame to ``t_end`` s (or hold its last value)."""
+    first, last = float(odometry["timestamp"][0]), float(odometry["timestamp"][-1])
+    if first > 1e-9:
+        raise OrbisError(f"{path}: starts at {first:g} s but the rollout's context starts at 0 s; timestamps are "
+                         f"seconds from the video's first frame")
+    if last < t_end - 1e-9 and not hold_last:
+        raise OrbisError(f"{path}: ends at {last:g} s but this rollout needs steering up to {t_end:g} s; give a "
+                         f"longer trajectory, a shorter --seconds, or --hold-last to keep its last values")
+
+
+def load_checkpoints(args: argparse.Namespace, cfg) -> tuple[TokenizerFile, TokenizerFile, Path, PredictorFile,
+                                                             PredictorFile]:
+    """Both tokenizers and predictors, refused if unreadable or made for another profile."""
+    device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    abstract_path = abstract_predictor_path(args.abstract_predictor)
+    loaded = []
+    for path, load in ((args.detail_tokenizer, load_tokenizer), (args.abstract_tokenizer, load_tokenizer),
+                       (abstract_path, load_predictor), (args.detail_predictor, load_predictor)):
+        try:
+            loaded.append(load(path, device))
+        except OrbisError:
+            raise
+        except (OSError, RuntimeError, KeyError, TypeError, ValueError, pickle.UnpicklingError, EOFError) as err:
+            raise OrbisError(f"{path}: not a checkpoint this version can read ({type(err).__name__}: "
+                             f"{str(err).splitlines()[0][:200]}); pass the file a training stage wrote") from err
+    detail_tok, abstract_tok, abstract_pred, detail_pred = loaded
+    frame = (cfg.data.height, cfg.data.width)
+    for tok, path in ((detail_tok, args.detail_tokenizer), (abstract_tok, args.abstract_tokenizer)):
+        size = tuple(tok.model.encoder.image_size)
+        if size != frame:
+            raise OrbisError(f"{path}: made for {size[1]}x{size[0]} frames but profile {cfg.profile} uses "
+                             f"{frame[1]}x{frame[0]}; pass {profile_hint(args.params, size)}or that profile's "
+                             f"checkpoints")
+    for pred, path, stage in ((abstract_pred, abstract_path, "abstract_tf"),
+                              (detail_pred, args.detail_predictor, "detail")):
+        preset, wanted = pred.build.get("preset"), cfg.section(stage).preset
+        if preset != wanted:
+            raise OrbisError(f"{path}: a {preset!r} predictor but profile {cfg.profile} uses {wanted!r}; pass the "
+                             f"profile it was trained with (--profile) or that profile's checkpoints")
+    return detail_tok, abstract_tok, abstract_path, abstract_pred, detail_pred
+
+
+def profile_hint(params: Path, size: tuple[int, int]) -> str:
+    """``--profile P `` for the profile whose frames have ``size`` (height, width), if one has."""
+    for profile in PROFILES:
+        data = load_config(params, profile).data
+        if (data.height, data.width) == size:
+            return f"--profile {profile} "
+    return ""
 
 
 def read_context(video: Path, cfg, needed: int) -> np.ndarray:
@@ -140,6 +193,7 @@ def write_outputs(out: Path, frames: np.ndarray, fps: float) -> Path:
 
 
 def rollout_command(args: argparse.Namespace) -> str:
+    check_numbers(args)
     cfg = load_config(args.params, args.profile)
     data = cfg.data
     steps = max(1, math.ceil(args.seconds * data.abstract_hz))
@@ -147,13 +201,11 @@ def rollout_command(args: argparse.Namespace) -> str:
     schedule = rollout_schedule(data, context_end, steps)
     frames = read_context(args.video, cfg, context_end + 1)
     odometry, odometry_path = load_steering(args, args.video)
+    if odometry is not None:
+        steering_until(odometry, odometry_path, schedule[-1].detail_target[-1] / data.fps, args.hold_last)
 
-    device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
-    detail_tok = load_tokenizer(args.detail_tokenizer, device)
-    abstract_tok = load_tokenizer(args.abstract_tokenizer, device)
-    abstract_path = abstract_predictor_path(args.abstract_predictor)
-    abstract_pred = load_predictor(abstract_path, device)
-    detail_pred = load_predictor(args.detail_predictor, device)
+    detail_tok, abstract_tok, abstract_path, abstract_pred, detail_pred = load_checkpoints(args, cfg)
+    device = next(detail_pred.model.parameters()).device
     check_pairing(abstract_pred, abstract_path, abstract_tok, "abstract", args.abstract_tokenizer)
     check_pairing(detail_pred, args.detail_predictor, detail_tok, "detail", args.detail_tokenizer)
     check_pairing(detail_pred, args.detail_predictor, abstract_tok, "abstract", args.abstract_tokenizer)
@@ -202,11 +254,26 @@ def rollout_command(args: argparse.Namespace) -> str:
     return f"wrote {args.out} and {gif}: {len(out)} frames at {data.detail_hz} Hz, {steps} steps, {mode}"
 
 
+def check_numbers(args: argparse.Namespace) -> None:
+    """Numbers argparse accepts but a rollout cannot use (NaN, infinity, zero or negative lengths, no steps)."""
+    for flag, value in (("--seconds", args.seconds), ("--speed-scale", args.speed_scale),
+                        ("--yaw-rate-scale", args.yaw_rate_scale)):
+        if not math.isfinite(value):
+            raise OrbisError(f"{flag} {value}: not a finite number")
+    if args.seconds <= 0:
+        raise OrbisError(f"--seconds {args.seconds:g}: the rollout length must be > 0")
+    for flag, value in (("--abstract-nfe", args.abstract_nfe), ("--detail-nfe", args.detail_nfe)):
+        if value < 1:
+            raise OrbisError(f"{flag} {value}: needs at least 1 function evaluation per sample")
+
+
 def add_rollout_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("rollout", help="roll the hierarchical world model forward from a video's context")
     p.add_argument("--video", type=Path, required=True, help="context video (any rate that is a multiple of data.fps)")
     p.add_argument("--trajectory", type=Path, default=None,
                    help="CSV with columns timestamp, speed, yaw_rate (default: <video>.csv if present)")
+    p.add_argument("--hold-last", action="store_true",
+                   help="a trajectory shorter than the rollout keeps its last speed and yaw rate (default: error)")
     p.add_argument("--speed-scale", type=float, default=1.0, help="multiply the speeds (counterfactuals)")
     p.add_argument("--yaw-rate-scale", type=float, default=1.0, help="multiply the yaw rates (counterfactuals)")
     p.add_argument("--seconds", type=float, default=16.0, help="rollout length in seconds")
@@ -219,8 +286,8 @@ def add_rollout_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--params", type=Path, default=Path("params.yaml"))
     p.add_argument("--profile", default=None, help="smoke | default | paper (default: the file's `profile`)")
     p.add_argument("--side-by-side", action="store_true", help="show the real continuation on the left")
-    p.add_argument("--abstract-nfe", type=int, default=15)
-    p.add_argument("--detail-nfe", type=int, default=30)
+    p.add_argument("--abstract-nfe", type=int, default=15, help="Euler steps per abstract latent")
+    p.add_argument("--detail-nfe", type=int, default=30, help="Euler steps per detail window")
     p.add_argument("--device", default=None, help="default: cuda if available, else cpu")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(run=rollout_command)

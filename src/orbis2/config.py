@@ -157,15 +157,28 @@ ASSET_NAMES = ("i3d_kinetics400", "inception_v3", "dinov2_vitb14")
 TOKENIZER_PRESETS = ("smoke", "default", "paper")
 
 
+# The assets stage's output as the DAG (Snakefile, dvc.yaml) declares it; a test keeps them equal.
+ASSETS_DIR = "data/assets"
+
+
 @dataclass(frozen=True)
 class AssetsConfig:
-    """Pretrained networks: where converted files go, and files the user provides by hand."""
+    """Pretrained networks: where converted files go, and files the user provides by hand.
 
-    dir: str = "data/assets"
+    ``dir`` must be the DAG's declared output (``ASSETS_DIR``): anywhere else, the
+    stage would write where Snakemake and DVC do not look. To keep the files on
+    another disk, make ``data/assets`` a symlink (outputs follow symlinks).
+    """
+
+    dir: str = ASSETS_DIR
     download: bool = True
     local: dict[str, str | None] = field(default_factory=dict)
 
     def validate(self, where: str) -> None:
+        if Path(self.dir) != Path(ASSETS_DIR):
+            raise ConfigError(f"{where}.dir = {self.dir!r} differs from the assets stage's output in the Snakefile and "
+                              f"dvc.yaml ({ASSETS_DIR}); set it back to {ASSETS_DIR} and, to keep the files "
+                              f"elsewhere, make {ASSETS_DIR} a symlink to that folder")
         unknown = set(self.local) - set(ASSET_NAMES)
         if unknown:
             raise ConfigError(f"{where}.local names unknown assets {sorted(unknown)}; known: {list(ASSET_NAMES)}")
@@ -477,7 +490,7 @@ class PipelineConfig:
 
 
 # Fields that change only bookkeeping, never the trajectory: a resume may change them.
-_BOOKKEEPING = frozenset({"log_every", "eval_every", "checkpoint_every"})
+BOOKKEEPING_FIELDS = frozenset({"log_every", "eval_every", "checkpoint_every"})
 
 
 @dataclass(frozen=True)
@@ -522,7 +535,7 @@ class TrainConfig:
 
     def trajectory_fields(self) -> dict[str, Any]:
         """The fields a resumed run must share with the run that wrote the checkpoint."""
-        return {k: v for k, v in dataclasses.asdict(self).items() if k not in _BOOKKEEPING}
+        return {k: v for k, v in dataclasses.asdict(self).items() if k not in BOOKKEEPING_FIELDS}
 
     def fingerprint(self) -> str:
         blob = json.dumps(self.trajectory_fields(), sort_keys=True).encode()
@@ -558,12 +571,34 @@ SECTION_TYPES: dict[str, type] = {
 # --------------------------------------------------------------------------- loading
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader, except that a key given twice in one mapping is an error (not "last one wins")."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: dict[Any, Any] = {}
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue  # "<<: *anchor" entries may be overridden, that is their purpose
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    "while reading a mapping", node.start_mark,
+                    f"key {key!r} is given twice (first {seen[key]}); keep one", key_node.start_mark)
+            seen[key] = f"line {key_node.start_mark.line + 1}"
+        return super().construct_mapping(node, deep=deep)
+
+
+def load_yaml(text: str) -> Any:
+    """Parse YAML safely, rejecting duplicate keys; how the project reads params.yaml everywhere."""
+    return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
+
+
 def load_params(path: str | Path = "params.yaml") -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: not found; run from the project root or pass --params")
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = load_yaml(path.read_text())
     except yaml.YAMLError as err:
         raise ConfigError(f"{path}: not valid YAML: {err}") from err
     if not isinstance(raw, dict):

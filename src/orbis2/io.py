@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import glob
 import hashlib
 import io
 import json
@@ -18,27 +19,90 @@ import numpy as np
 
 @contextlib.contextmanager
 def atomic_dir(target: Path) -> Iterator[Path]:
-    """Build a directory beside ``target`` and swap it in only if the block succeeds."""
-    target = Path(target)
+    """Build a directory beside ``target`` and swap it in only if the block succeeds.
+
+    The swap never leaves the target missing: the old directory is renamed aside, the
+    new one renamed in, and only then is the old one deleted (if the second rename
+    fails the old one is put back). Temporaries left by a killed process are removed,
+    or an orphaned old directory restored, on the next call for the same target. A
+    ``target`` that is a symlink (e.g. data on a bigger disk) is followed: the new
+    directory is built beside the link's destination and replaces that.
+    """
+    target = _follow_link(Path(target))
     target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
+    _recover_stale(target)
+    tmp = Path(tempfile.mkdtemp(prefix=_temp_prefix(target, "new"), dir=target.parent))
     tmp.chmod(0o755)  # mkdtemp makes it private; outputs are shared data
     try:
         yield tmp
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    if target.exists():
-        shutil.rmtree(target)
-    os.replace(tmp, target)
+    if not target.exists():
+        os.replace(tmp, target)
+        return
+    old = Path(tempfile.mkdtemp(prefix=_temp_prefix(target, "old"), dir=target.parent))
+    os.replace(target, old)  # a directory target replaces the empty placeholder
+    try:
+        os.replace(tmp, target)
+    except BaseException:
+        os.replace(old, target)
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    shutil.rmtree(old)
+
+
+def _follow_link(target: Path) -> Path:
+    """The path a symlinked output points to (made absolute); other paths unchanged."""
+    if target.is_symlink():
+        return target.resolve()
+    return target
+
+
+def _temp_prefix(target: Path, kind: str) -> str:
+    """``.<name>.<kind>-<pid>-``: the pid lets a later run tell a dead writer's leftovers from a live one's."""
+    return f".{target.name}.{kind}-{os.getpid()}-"
+
+
+def _recover_stale(target: Path) -> None:
+    """Delete temporaries of ``target`` (files or folders) whose writer is dead; restore an old directory
+    orphaned mid-swap."""
+    for path in sorted(target.parent.glob(f".{glob.escape(target.name)}.*-*-*")):
+        kind, _, rest = path.name[len(target.name) + 2:].partition("-")
+        pid = rest.split("-", 1)[0]
+        if kind not in ("new", "old") or not pid.isdigit() or _alive(int(pid)):
+            continue
+        if kind == "old" and not target.exists():
+            os.replace(path, target)  # killed between the two renames: the old output is still valid
+        elif path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
+
+
+def _alive(pid: int) -> bool:
+    """Whether another process with this pid runs (our own pid: a leftover of an earlier process that had it)."""
+    if pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 @contextlib.contextmanager
 def atomic_file(target: Path) -> Iterator[Path]:
-    """Yield a temporary path in the same folder; renamed onto ``target`` on success."""
+    """Yield a temporary path in the same folder; renamed onto ``target`` on success.
+
+    A temporary left by a killed writer of the same target is deleted first.
+    """
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=target.suffix, dir=target.parent)
+    _recover_stale(target)
+    fd, name = tempfile.mkstemp(prefix=_temp_prefix(target, "new"), suffix=target.suffix, dir=target.parent)
     os.close(fd)
     tmp = Path(name)
     tmp.chmod(0o644)  # mkstemp makes it private; outputs are shared data

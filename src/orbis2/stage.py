@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import hashlib
 import json
 import shutil
@@ -11,9 +12,10 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from orbis2.config import PipelineConfig, as_dict, load_config
+import orbis2
+from orbis2.config import BOOKKEEPING_FIELDS, PipelineConfig, as_dict, load_config
 from orbis2.errors import OrbisError
-from orbis2.io import atomic_dir, write_json
+from orbis2.io import atomic_dir, sha256_file, write_json
 from orbis2.tracking import StageRun, stage_run
 
 StageBody = Callable[[PipelineConfig, argparse.Namespace, StageRun], str]
@@ -62,19 +64,47 @@ def named_stage_main(script: str, prefix: str, names: list[str], sections: list[
     stage_main(f"{prefix}{argv[0]}", sections, body_for(argv[0]), argv=argv[1:])
 
 
-def training_dir(name: str, cfg: PipelineConfig, sections: list[str], inputs: dict | None = None) -> Path:
-    """Where a training stage keeps checkpoints: ``data/runs/<stage>-<profile>-<params hash>``.
+def training_dir(name: str, cfg: PipelineConfig, sections: list[str], inputs: dict[str, Path]) -> Path:
+    """Where a training stage keeps checkpoints: ``data/runs/<stage>-<profile>-<key>``.
 
     Outside the stage's declared outputs, because Snakemake and DVC delete those
-    before re-running a stage; keyed by the resolved params (and ``inputs``, e.g.
-    checksums of upstream weights), so a killed run resumes while a changed config
-    or input starts afresh.
+    before re-running a stage. The key covers everything that decides the weights,
+    so a killed run resumes while anything else starts afresh: the resolved params
+    of ``sections`` (without bookkeeping such as ``checkpoint_every``, which a resume
+    may change), the SHA-256 of every file in ``inputs`` (the shards manifest,
+    upstream weights, the teacher) and :func:`code_version`. Without the last two, a
+    re-run after new data or a bug fix would find the old run finished and publish
+    its stale weights.
     """
-    key = {s: as_dict(cfg.section(s)) for s in sections}
-    if inputs:
-        key["inputs"] = inputs
+    key: dict = {s: _without_bookkeeping(as_dict(cfg.section(s))) for s in sections}
+    missing = [str(path) for path in inputs.values() if not Path(path).is_file()]
+    if missing:
+        raise OrbisError(f"{', '.join(missing)}: not found; stage `{name}` reads it, run the stages before it first")
+    key["inputs"] = {label: sha256_file(path) for label, path in sorted(inputs.items())}
+    key["code"] = code_version()
     blob = json.dumps(key, sort_keys=True).encode()
     return Path("data/runs") / f"{name}-{cfg.profile}-{hashlib.sha256(blob).hexdigest()[:12]}"
+
+
+def _without_bookkeeping(section: dict) -> dict:
+    """A section with the bookkeeping fields of its ``train`` settings left out."""
+    train = section.get("train")
+    if not isinstance(train, dict):
+        return section
+    return {**section, "train": {k: v for k, v in train.items() if k not in BOOKKEEPING_FIELDS}}
+
+
+@functools.cache
+def code_version(root: Path = Path(orbis2.__file__).parent) -> str:
+    """SHA-256 over the ``*.py`` files of the orbis2 package (relative paths and bytes).
+
+    The whole package rather than the modules a stage imports: a stage reaches most of
+    it indirectly, and a spurious fresh start costs less than resuming stale code.
+    """
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()
 
 
 def publish_training(run_dir: Path, out: Path, files: list[str], report: Path, metrics: dict[str, float],

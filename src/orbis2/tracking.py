@@ -39,6 +39,7 @@ SHARD_MANIFEST = Path("data/shards/manifest.json")
 # Stages upstream of the shards (or beside them): they do not read the dataset.
 NOT_SHARD_READERS = ("town", "import", "shards", "assets")
 _RUN_KEY = uuid.uuid4().hex  # a stage started by hand is its own invocation
+OWNER_TAG = "orbis2.process"  # the process that set the run RUNNING (see process_key)
 
 
 def invocation_key() -> str:
@@ -183,8 +184,10 @@ def stage_run(stage: str, params: dict[str, Any]) -> Iterator[StageRun]:
     with store_lock(uri):  # the first stages of a fresh store would race on its schema migration
         experiment = mlflow.set_experiment(os.environ.get("MLFLOW_EXPERIMENT_NAME", "orbis2"))
         client = MlflowClient()
+        mark_killed_runs(client, experiment.experiment_id)
         parent_id = parent_run(client, experiment.experiment_id, invocation_key())
-    tags = {"orbis2.stage": stage, **provenance(params)}
+    owner = {OWNER_TAG: key} if (key := process_key(os.getpid())) else {}  # no /proc: not tracked
+    tags = {"orbis2.stage": stage, **provenance(params), **owner}
     status = "FAILED"
     with mlflow.start_run(run_name=stage, parent_run_id=parent_id, nested=True, tags=tags,
                           log_system_metrics=_system_metrics()) as run:
@@ -245,3 +248,36 @@ def _settle_parent(client: Any, experiment_id: str, parent_id: str) -> None:
         client.update_run(parent_id, status="RUNNING")
     else:
         client.set_terminated(parent_id, status=status)
+
+
+def _proc_stat(pid: int) -> list[str] | None:
+    """Fields of /proc/<pid>/stat after the command name (state, ppid, ..., starttime at 19)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+
+
+def process_key(pid: int) -> str | None:
+    """``host:pid:start time``: names one process for good (a reused pid has another start time)."""
+    stat = _proc_stat(pid)
+    return None if stat is None else f"{socket.gethostname()}:{pid}:{stat[19]}"
+
+
+def mark_killed_runs(client: Any, experiment_id: str) -> list[str]:
+    """End as KILLED every RUNNING stage run whose process, on this host, is gone; returns their ids.
+
+    A stage killed with SIGKILL (or by a power cut) cannot end its own run, which
+    would then show as running for ever; the next stage to start ends it.
+    """
+    killed = []
+    host = socket.gethostname()
+    for run in client.search_runs([experiment_id], filter_string="attributes.status = 'RUNNING'", max_results=1000):
+        owner = run.data.tags.get(OWNER_TAG, "")
+        parts = owner.rsplit(":", 2)
+        if len(parts) != 3 or parts[0] != host or not parts[1].isdigit():
+            continue
+        if process_key(int(parts[1])) != owner:
+            client.set_terminated(run.info.run_id, status="KILLED")
+            killed.append(run.info.run_id)
+    return killed

@@ -5,8 +5,9 @@ extra optimisers such as a GAN discriminator); :func:`train` owns the rest, so
 resuming, logging and multi-process behaviour are written and tested once.
 
 ``out_dir/checkpoints/last.pt`` (every ``checkpoint_every`` steps and at the end)
-holds model, EMA, optimisers, step, data position and every rank's RNG state; a
-re-run resumes from it, bit-identically on CPU. The schedule is a pure function
+holds model, EMA, optimisers, step, data position and every rank's RNG state,
+behind a checksum (:func:`load_checkpoint`); a re-run resumes from it,
+bit-identically on CPU. The schedule is a pure function
 of the step (:func:`lr_at`), so the step is the whole scheduler state.
 ``out_dir/model.pt`` holds ``{"model": EMA weights if EMA is on else raw, "raw",
 "ema", "step", "config"}``; read it with :func:`load_weights`. Under ``torchrun``
@@ -19,6 +20,8 @@ import atexit
 import contextlib
 import copy
 import dataclasses
+import hashlib
+import io
 import math
 import os
 import pickle
@@ -137,6 +140,34 @@ class ResumeError(OrbisError):
 def unwrap(model: nn.Module) -> nn.Module:
     """The plain module inside a ``DistributedDataParallel`` wrapper."""
     return model.module if isinstance(model, DistributedDataParallel) else model
+
+
+CHECKPOINT_MAGIC = b"ORBIS2-CHECKPOINT-1 sha256="
+
+
+def load_checkpoint(path: Path) -> dict[str, Any]:
+    """A training checkpoint (``checkpoints/last.pt``), verified against the checksum it carries.
+
+    The file is a header naming the SHA-256 of the payload, then the payload
+    (``torch.save`` bytes). A file without the header (foreign, or from an older
+    version), a truncated one or one with a flipped bit raises :class:`ResumeError`
+    naming the file and the fix, before anything is unpickled.
+    """
+    path = Path(path)
+    fix = f"delete {path} (or the whole {path.parent.parent}) to start this stage over"
+    try:
+        blob = path.read_bytes()
+    except OSError as err:
+        raise ResumeError(f"{path}: cannot be read ({err}); {fix}") from err
+    header, newline, payload = blob.partition(b"\n")
+    if not header.startswith(CHECKPOINT_MAGIC) or not newline:
+        raise ResumeError(f"{path}: not an orbis2 training checkpoint (no checksum header); {fix}")
+    if hashlib.sha256(payload).hexdigest().encode() != header[len(CHECKPOINT_MAGIC):]:
+        raise ResumeError(f"{path}: checksum mismatch, the file is corrupt (truncated or altered on disk); {fix}")
+    try:
+        return torch.load(io.BytesIO(payload), map_location="cpu", weights_only=True)
+    except (OSError, EOFError, RuntimeError, pickle.UnpicklingError) as err:
+        raise ResumeError(f"{path}: cannot be read ({err}); {fix}") from err
 
 
 def load_weights(path: Path, raw: bool = False) -> dict[str, torch.Tensor]:
@@ -334,10 +365,7 @@ class _Run:
         path = self.checkpoint_path
         if not path.exists():
             return
-        try:
-            saved = torch.load(path, map_location="cpu", weights_only=True)
-        except (EOFError, RuntimeError, pickle.UnpicklingError) as err:
-            raise ResumeError(f"{path} cannot be read ({err}); delete it to start this stage over") from err
+        saved = load_checkpoint(path)
         if saved["fingerprint"] != self.cfg.fingerprint():
             old = saved["config"]
             changed = ", ".join(f"{k}: {old.get(k)!r} -> {v!r}"
@@ -363,7 +391,7 @@ class _Run:
     def save_checkpoint(self) -> None:
         rng = _all_gather(_rng_state(self.env.device), self.env)
         if self.env.rank == 0:
-            _atomic_save({
+            _save_checkpoint({
                 "fingerprint": self.cfg.fingerprint(), "config": dataclasses.asdict(self.cfg),
                 "world_size": self.env.world_size, "step": self.step, "data_position": self.position,
                 "model": self.raw.state_dict(), "ema": None if self.ema is None else self.ema.state_dict(),
@@ -506,6 +534,15 @@ def _all_gather(obj: Any, env: _Env) -> list[Any]:
 def _barrier(env: _Env) -> None:
     if env.world_size > 1:
         dist.barrier()
+
+
+def _save_checkpoint(obj: Any, path: Path) -> None:
+    """``obj`` with its checksum header (see :func:`load_checkpoint`), atomically."""
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    payload = buffer.getvalue()
+    with atomic_file(path) as tmp:
+        tmp.write_bytes(CHECKPOINT_MAGIC + hashlib.sha256(payload).hexdigest().encode() + b"\n" + payload)
 
 
 def _atomic_save(obj: Any, path: Path) -> None:

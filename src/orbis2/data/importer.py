@@ -1,8 +1,9 @@
 """Bring user videos into the raw episode layout (the ``import`` stage).
 
-Input folder: either flat (every video goes to ``train``) or with one sub-folder
-per split (``train/``, ``val/``, ...). Next to ``drive.mp4`` an optional
-``drive.csv`` holds odometry with a header and the columns
+Input folder: one sub-folder per split (``train/``, ``val/``, ...); ``train`` and
+``val`` must each end up with a usable video, or the import stops (a flat folder
+is read as ``train`` only, so it stops for want of ``val``). Next to
+``drive.mp4`` an optional ``drive.csv`` holds odometry with a header and the columns
 
 - ``timestamp``: seconds from the first video frame, strictly increasing;
 - ``speed``: m/s;
@@ -18,7 +19,9 @@ a CSV are kept for unconditional training: their odometry is NaN.
 
 from __future__ import annotations
 
+import codecs
 import csv
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -52,34 +55,112 @@ def find_videos(folder: Path) -> list[tuple[str, Path]]:
     pairs = []
     for split_dir in split_dirs or [folder]:
         split = split_dir.name if split_dirs else "train"
-        pairs += [(split, p) for p in sorted(split_dir.iterdir()) if p.suffix.lower() in VIDEO_SUFFIXES]
+        pairs += [(split, p) for p in sorted(split_dir.iterdir()) if p.suffix.lower() in VIDEO_SUFFIXES
+                  and not p.is_dir()]
     if not pairs:
         raise ImportProblem(f"{folder}: no video files ({', '.join(VIDEO_SUFFIXES)}) found")
     return pairs
 
 
-def read_odometry_csv(path: Path) -> dict[str, np.ndarray]:
+def input_files(folder: str | Path) -> list[str]:
+    """Every file the import reads (videos and their CSVs), for the DAG to watch.
+
+    A folder's timestamp changes only when its own entries do, not when a file is
+    added to a split sub-folder, so the DAG lists the files. A folder that does not
+    exist or holds no video is returned as is, so the stage runs and says what is wrong.
+    """
+    folder = Path(folder)
     try:
-        with open(path, newline="") as handle:
-            reader = csv.DictReader(handle)
-            header = [h.strip() for h in reader.fieldnames or []]
-            missing = [c for c in CSV_COLUMNS if c not in header]
-            if missing:
-                raise ImportProblem(f"{path}: missing column(s) {missing}; expected a header with {list(CSV_COLUMNS)}")
-            rows = [{k.strip(): v for k, v in row.items()} for row in reader]
-        values = {c: np.array([float(r[c]) for r in rows], np.float64) for c in CSV_COLUMNS}
-    except (OSError, UnicodeDecodeError) as err:
+        videos = [video for _, video in find_videos(folder)]
+    except ImportProblem:
+        return [str(folder)]
+    csvs = [video.with_suffix(".csv") for video in videos if video.with_suffix(".csv").is_file()]
+    return sorted(str(path) for path in videos + csvs)
+
+
+def check_outside(folder: Path, out: Path) -> None:
+    """The input folder must not lie inside the stage's output, which is replaced (deleted) on success."""
+    source, target = Path(folder).resolve(), Path(out).resolve()
+    if source == target or target in source.parents:
+        raise ImportProblem(f"{folder}: lies inside the import output {out}, which this stage replaces (your videos "
+                            f"would be deleted); keep the originals elsewhere (e.g. data/videos) and pass that folder")
+
+
+# Splits training reads (its loss on val): without one the pipeline would fail only after training started.
+REQUIRED_SPLITS = ("train", "val")
+
+# Beyond these the values are not m/s and rad/s of a car (km/h or degrees/s, most likely).
+MAX_SPEED = 90.0  # m/s (324 km/h)
+MAX_YAW_RATE = math.pi  # rad/s (180 degrees/s)
+
+
+def read_odometry_csv(path: Path) -> dict[str, np.ndarray]:
+    """The odometry columns of a CSV, refusing what would be silently misread.
+
+    A byte-order mark, trailing commas or rows with a different number of fields
+    than the header are errors (a CSV reader would shift or rename columns); so are
+    negative speeds and speeds or yaw rates beyond what a car does (wrong units).
+    """
+    try:
+        raw = path.read_bytes()
+    except OSError as err:
         raise ImportProblem(f"{path}: cannot read ({err})") from err
-    except (ValueError, TypeError) as err:
+    if raw.startswith((codecs.BOM_UTF8, codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
+        raise ImportProblem(f"{path}: starts with a byte-order mark (saved as 'UTF-8 with BOM' or UTF-16); save it "
+                            f"as plain UTF-8 CSV")
+    try:
+        lines = raw.decode("utf-8").splitlines()
+    except UnicodeDecodeError as err:
+        raise ImportProblem(f"{path}: not UTF-8 text ({err}); save it as plain UTF-8 CSV") from err
+    rows = [row for row in csv.reader(lines) if row]
+    if not rows:
+        raise ImportProblem(f"{path}: empty; expected a header with {list(CSV_COLUMNS)} and data rows")
+    header = [h.strip() for h in rows[0]]
+    for number, row in enumerate(rows, start=1):
+        if len(row) > 1 and row[-1].strip() == "":
+            raise ImportProblem(f"{path}: line {number} ends with a trailing comma; remove the trailing commas")
+        if len(row) != len(header):
+            raise ImportProblem(f"{path}: line {number} has {len(row)} fields but the header has {len(header)}; "
+                                f"every row needs one value per column")
+    missing = [c for c in CSV_COLUMNS if c not in header]
+    if missing:
+        raise ImportProblem(f"{path}: missing column(s) {missing}; expected a header with {list(CSV_COLUMNS)}")
+    try:
+        values = {c: np.array([float(r[header.index(c)]) for r in rows[1:]], np.float64) for c in CSV_COLUMNS}
+    except ValueError as err:
         raise ImportProblem(f"{path}: a value is not a number ({err})") from err
     if len(values["timestamp"]) < 2:
         raise ImportProblem(f"{path}: needs at least two rows")
+    if not all(np.isfinite(v).all() for v in values.values()):
+        raise ImportProblem(f"{path}: contains NaN or infinite values")
     if np.any(np.diff(values["timestamp"]) <= 0):
         bad = int(np.argmax(np.diff(values["timestamp"]) <= 0)) + 2
         raise ImportProblem(f"{path}: timestamps must be strictly increasing (data row {bad} is not)")
-    if not all(np.isfinite(v).all() for v in values.values()):
-        raise ImportProblem(f"{path}: contains NaN or infinite values")
+    speed, yaw_rate = values["speed"], np.abs(values["yaw_rate"])
+    if speed.min() < 0:
+        row = int(np.argmin(speed)) + 1
+        raise ImportProblem(f"{path}: negative speed {speed[row - 1]:g} at data row {row}; speed is the forward "
+                            f"speed in m/s, >= 0 (drop reversing segments)")
+    if speed.max() > MAX_SPEED:
+        row = int(np.argmax(speed)) + 1
+        raise ImportProblem(f"{path}: speed {speed[row - 1]:g} at data row {row} is not a car's speed in m/s "
+                            f"(over {MAX_SPEED:g}); convert it to m/s (km/h / 3.6, mph * 0.447)")
+    if yaw_rate.max() > MAX_YAW_RATE:
+        row = int(np.argmax(yaw_rate)) + 1
+        raise ImportProblem(f"{path}: yaw rate {values['yaw_rate'][row - 1]:g} at data row {row} is over "
+                            f"{MAX_YAW_RATE:.2f} rad/s; convert it to rad/s (degrees/s * pi / 180)")
     return values
+
+
+def check_time_unit(path: Path, timestamps: np.ndarray, video_seconds: float) -> None:
+    """Timestamps are seconds from the first frame: their span cannot exceed the video's length by much."""
+    start, span = float(timestamps[0]), float(timestamps[-1] - timestamps[0])
+    if start > video_seconds:
+        raise ImportProblem(f"{path}: timestamps start at {start:g} s, after the video ends ({video_seconds:.1f} s); "
+                            f"they must be seconds from the first video frame (subtract the first timestamp)")
+    if span > 1.5 * video_seconds + 1.0:
+        raise ImportProblem(f"{path}: timestamps span {span:g} but the video lasts {video_seconds:.1f} s; they must "
+                            f"be in seconds (milliseconds: divide by 1000)")
 
 
 def import_one(video: Path, split: str, stem: str, root: Path, data: DataConfig, cfg: ImportConfig) -> EpisodeRecord:
@@ -94,6 +175,7 @@ def import_one(video: Path, split: str, stem: str, root: Path, data: DataConfig,
     speed = yaw_rate = None
     if csv_path.exists():
         odo = read_odometry_csv(csv_path)
+        check_time_unit(csv_path, odo["timestamp"], len(frames) * stride / info.fps)
         t = np.arange(len(frames)) / data.fps
         covered = t <= odo["timestamp"][-1] + 1e-9
         if t[0] < odo["timestamp"][0] - 1e-9:
@@ -118,7 +200,10 @@ def import_one(video: Path, split: str, stem: str, root: Path, data: DataConfig,
 
 def import_videos(folder: Path, root: Path, data: DataConfig, cfg: ImportConfig,
                   skip_bad: bool) -> tuple[RawIndex, list[Skipped]]:
-    """Import every video; stop at the first bad one unless ``skip_bad`` (then list what was skipped)."""
+    """Import every video; stop at the first bad one unless ``skip_bad`` (then list what was skipped).
+
+    Every split in ``REQUIRED_SPLITS`` must end up with at least one video.
+    """
     records, skipped = [], []
     counters: dict[str, int] = {}
     for split, video in tqdm(find_videos(folder), desc="import: videos", unit="video"):
@@ -135,6 +220,13 @@ def import_videos(folder: Path, root: Path, data: DataConfig, cfg: ImportConfig,
     if not records:
         problems = "\n".join(f"  {s.path}: {s.problem}" for s in skipped)
         raise ImportProblem(f"{folder}: every video was skipped:\n{problems}")
+    absent = [split for split in REQUIRED_SPLITS if split not in counters]
+    if absent:
+        flat = not any((folder / split).is_dir() for split in SPLITS)
+        why = " (a folder without split sub-folders imports everything as train)" if flat else ""
+        problems = "".join(f"\n  skipped: {s.problem}" for s in skipped)
+        raise ImportProblem(f"{folder}: no {' or '.join(absent)} videos{why}; training needs both: put videos into "
+                            f"{' and '.join(str(folder / split) + '/' for split in REQUIRED_SPLITS)}{problems}")
     index = RawIndex("import", data.fps, data.width, data.height, None, records)
     index.write(root)
     return index, skipped

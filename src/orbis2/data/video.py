@@ -31,11 +31,44 @@ class VideoInfo:
     height: int
 
 
-def probe(path: Path) -> VideoInfo:
-    cap = cv2.VideoCapture(str(path))
+def printable(path: Path) -> str:
+    """The path as text even when its name is not valid UTF-8 (undecodable bytes shown as ``\\xNN``)."""
+    return str(path).encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
+def open_capture(path: Path) -> cv2.VideoCapture:
+    """An opened ``cv2.VideoCapture``, or a :class:`VideoError` naming the file and the fix.
+
+    Checks what OpenCV would otherwise crash on or misread: a name that is not valid
+    UTF-8 (OpenCV's Python binding crashes the process on it), a missing file, a
+    folder, a file OpenCV cannot decode.
+    """
+    name = _opencv_name(path)
+    if not Path(path).is_file():
+        problem = "is a folder" if Path(path).is_dir() else "does not exist"
+        raise VideoError(f"{name}: {problem}; pass an existing video file")
+    cap = cv2.VideoCapture(name)
+    if not cap.isOpened():
+        cap.release()
+        raise VideoError(f"{name}: OpenCV cannot open this file (unreadable or not a video); re-encode it as "
+                         f"mp4 (e.g. ffmpeg -i {Path(path).name} out.mp4) or remove it")
+    return cap
+
+
+def _opencv_name(path: Path) -> str:
+    """``str(path)``, refused if not valid UTF-8: OpenCV's Python binding crashes the process on such names."""
+    name = str(path)
     try:
-        if not cap.isOpened():
-            raise VideoError(f"{path}: OpenCV cannot open this file (unreadable or not a video)")
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        raise VideoError(f"{printable(path)}: the file name is not valid UTF-8, which OpenCV cannot handle; rename "
+                         f"the file (e.g. convmv -f latin1 -t utf8 --notest)") from None
+    return name
+
+
+def probe(path: Path) -> VideoInfo:
+    cap = open_capture(path)
+    try:
         info = VideoInfo(
             path=Path(path),
             fps=float(cap.get(cv2.CAP_PROP_FPS) or 0.0),
@@ -68,9 +101,7 @@ def resample_stride(source_fps: float, target_fps: int, tolerance: float, path: 
 
 def iter_frames(path: Path, stride: int = 1, size: tuple[int, int] | None = None) -> Iterator[np.ndarray]:
     """Decode every ``stride``-th frame as RGB, resized (cover + centre crop) to ``size=(W, H)``."""
-    cap = cv2.VideoCapture(str(path))
-    if not cap.isOpened():
-        raise VideoError(f"{path}: OpenCV cannot open this file (unreadable or not a video)")
+    cap = open_capture(path)
     try:
         index = 0
         while True:
@@ -120,7 +151,7 @@ def write_video(path: Path, frames: Iterable[np.ndarray], fps: float) -> int:
         for frame in frames:
             if writer is None:
                 h, w = frame.shape[:2]
-                writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
+                writer = cv2.VideoWriter(_opencv_name(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
                 if not writer.isOpened():
                     raise VideoError(f"{path}: OpenCV cannot write an mp4v video here")
             writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))

@@ -417,20 +417,20 @@ def stage_sections(stage: str) -> list[str]:
 def run_stage(stage: str, cfg: PipelineConfig, run: StageRun) -> str:
     """The body of ``stages/<stage>.py``: train in data/runs/, publish predictor.pt and reports/<stage>.json.
 
-    The run folder is keyed by the params and by the upstream files (the latent
-    cache's meta, which names the tokenizers and shards, and the ``init_from``
+    The run folder is keyed by the params, the code and the upstream files (the
+    latent cache's meta, which names the tokenizers and shards, and the ``init_from``
     predictor): a retrained upstream starts a fresh run instead of resuming one
     that trained on other inputs.
     """
     latents = LATENT_SETS[STAGES[stage].latents]
     cache = open_cache(latents.root, *tokenizer_checksums(latents.tokenizers["detail"], latents.tokenizers["abstract"]))
     init_from = cfg.section(stage).init_from
-    inputs = {"latents": sha256_file(latents.root / "meta.json")}
+    inputs = {"latents": latents.root / "meta.json"}
     if init_from is not None:
         source = predictor_path(init_from)
         if not source.is_file():
             raise OrbisError(f"{source}: not found; `{stage}` starts from it (init_from), run `{init_from}` first")
-        inputs[init_from] = sha256_file(source)
+        inputs[init_from] = source
     work = training_dir(stage, cfg, stage_sections(stage), inputs)
     metrics = train_predictor(stage, cfg, cache, work, run)
     if not metrics:
