@@ -399,11 +399,16 @@ class EvaluationConfig:
     inverse_dynamics: str = "opencv"
     speed_seconds: float = 2.0
     speed_repeats: int = 2
+    precision: str = "bf16"
+    compile: bool = False
+    kv_cache: bool = True
 
     def validate(self, where: str) -> None:
         _positive(self, where, "seconds", "long_seconds", "chunk_seconds", "starts_per_clip", "top_nfe",
                   "bottom_nfe", "batch_size", "steering_seconds", "speed_seconds", "speed_repeats")
         self.probe.validate(f"{where}.probe")
+        if self.precision not in ("bf16", "fp32"):
+            raise ConfigError(f"{where}.precision = {self.precision!r} must be 'bf16' (autocast on CUDA) or 'fp32'")
         if self.long_seconds < 2 * self.chunk_seconds:
             raise ConfigError(f"{where}.long_seconds must hold at least two chunks of chunk_seconds for FVD-slope")
         for mode, scales in self.steering_modes.items():
@@ -470,12 +475,18 @@ class PipelineConfig:
 
 
 # Fields that change only bookkeeping, never the trajectory: a resume may change them.
-_BOOKKEEPING = frozenset({"log_every", "eval_every", "checkpoint_every"})
+# Activation checkpointing recomputes the same activations: it changes memory and time, not the numbers.
+_BOOKKEEPING = frozenset({"log_every", "eval_every", "checkpoint_every", "activation_checkpointing"})
 
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Optimisation settings of one stage; ``batch_size`` is global (summed over ranks)."""
+    """Optimisation settings of one stage; ``batch_size`` is global (summed over ranks).
+
+    GPU only: ``mixed_precision`` bf16 autocast, ``tf32`` for the remaining fp32
+    matmuls, ``activation_checkpointing`` = how many of the model's first blocks
+    recompute their activations in the backward pass (0 off; >= depth all).
+    """
 
     steps: int
     batch_size: int
@@ -488,6 +499,8 @@ class TrainConfig:
     grad_clip: float | None = None
     ema_decay: float | None = None
     mixed_precision: str = "bf16"
+    tf32: bool = True
+    activation_checkpointing: int = 0
     log_every: int = 10
     eval_every: int = 0
     checkpoint_every: int = 500
@@ -507,7 +520,8 @@ class TrainConfig:
             **{name: (getattr(self, name) >= 1, ">= 1") for name in ("steps", "batch_size", "log_every",
                                                                      "checkpoint_every")},
             **{name: (getattr(self, name) >= 0, ">= 0") for name in ("weight_decay", "warmup_steps", "eval_every",
-                                                                     "seed", "num_workers")},
+                                                                     "seed", "num_workers",
+                                                                     "activation_checkpointing")},
         }
         for name, (valid, rule) in rules.items():
             if not valid:

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from orbis2.accel import Inference, set_tf32
 from orbis2.assets import ensure_asset
 from orbis2.config import PipelineConfig
 from orbis2.data.probes import cityscapes_frames, kitti_eigen_frames, split_by_episode, town_probe_frames
@@ -76,6 +77,14 @@ GRID_TIMES = (0.5, 4.0, 8.0, 12.0, 16.0)
 
 def device() -> torch.device:
     return torch.device("cuda") if torch.cuda.is_available() else torch.device("cpu")
+
+
+def inference_settings(cfg: PipelineConfig) -> Inference:
+    """Rollout precision, KV cache and compilation from ``evaluation``; sets the TF32 policy on CUDA."""
+    ev = cfg.evaluation
+    if torch.cuda.is_available():
+        set_tf32(True)
+    return Inference(precision=ev.precision, compile=ev.compile, kv_cache=ev.kv_cache)
 
 
 def generator(seed: int, dev: torch.device) -> torch.Generator:
@@ -147,7 +156,7 @@ def run_fvd(name: str, cfg: PipelineConfig, run: StageRun) -> str:
     world model must beat.
     """
     ev, dev = cfg.evaluation, device()
-    system = load_system(name, dev)
+    system = load_system(name, dev, inference=inference_settings(cfg))
     cache = open_cache(LATENT_SETS[system.system.latents].root)
     i3d = load_fvd_network(cfg, dev)
     record: dict[str, Any] = {"model": name, "label": SYSTEMS[name].label, "parameters": system.parameters,
@@ -250,7 +259,7 @@ def run_steering(cfg: PipelineConfig, run: StageRun) -> str:
         raise OrbisError(f"data.{cfg.profile}: the steering evaluation compares odometry at the video rate and needs "
                          f"fps == detail_hz (got {data.fps} and {data.detail_hz})")
     dev = device()
-    system = load_system("hierarchical", dev, top_override="action")
+    system = load_system("hierarchical", dev, top_override="action", inference=inference_settings(cfg))
     steer_meta = system.top.meta.get("steering")
     if steer_meta is None:
         raise OrbisError("data/predictors/action/predictor.pt is not steered; re-run the `action` stage")
@@ -343,7 +352,7 @@ def run_speed(cfg: PipelineConfig, run: StageRun) -> str:
     steps = rollout_steps(data, ev.speed_seconds)
     models = {}
     for name in ("hierarchical", "flat_detail", "flat_abstract"):
-        system = load_system(name, dev)
+        system = load_system(name, dev, inference=inference_settings(cfg))
         sample = eval_samples(cache, "val", data, steps, 1)[:1]
         contexts = contexts_for(system, cache, "val", data, sample, dev)
 

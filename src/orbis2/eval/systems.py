@@ -25,12 +25,13 @@ runs on the uncompressed abstract latents (compression ablation).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from orbis2.accel import Inference, compile_decoder, compile_predictor, inference_autocast
 from orbis2.config import DataConfig
 from orbis2.errors import OrbisError
 from orbis2.latents import LATENT_SETS, LatentCache
@@ -80,6 +81,11 @@ class LoadedSystem:
     bottom: PredictorFile
     top: PredictorFile | None
     tokenizers: dict[str, TokenizerFile]
+    inference: Inference = field(default_factory=Inference)
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.bottom.model.parameters()).device
 
     @property
     def output_level(self) -> str:
@@ -104,16 +110,17 @@ class LoadedSystem:
                 bottom_nfe: int, steering: torch.Tensor | None = None) -> torch.Tensor:
         """Latents [B, 5 * steps, C, h, w] of ``output_level`` from the contexts (keys ``bottom`` and ``top``)."""
         bottom_rate = float(self.bottom.meta["frame_rate"])
-        if self.top is None:
-            if steering is not None:
-                raise OrbisError(f"{self.name}: flat systems are not steered")
-            return flat_rollout(self.bottom.model, contexts["bottom"], steps, self._frames_per_step(self.bottom),
-                                bottom_nfe, bottom_rate, generator)
-        details, _ = cascaded_rollout(
-            self.top.model, self.bottom.model, contexts["bottom"], contexts["top"], steps, generator,
-            abstract_nfe=top_nfe, detail_nfe=bottom_nfe, frames_per_step=self._frames_per_step(self.bottom),
-            abstract_hz=float(self.top.meta["frame_rate"]), detail_hz=bottom_rate, steering=steering,
-            top_frames_per_step=self._frames_per_step(self.top))
+        if self.top is None and steering is not None:
+            raise OrbisError(f"{self.name}: flat systems are not steered")
+        with inference_autocast(self.device, self.inference.precision):
+            if self.top is None:
+                return flat_rollout(self.bottom.model, contexts["bottom"], steps, self._frames_per_step(self.bottom),
+                                    bottom_nfe, bottom_rate, generator, kv_cache=self.inference.kv_cache)
+            details, _ = cascaded_rollout(
+                self.top.model, self.bottom.model, contexts["bottom"], contexts["top"], steps, generator,
+                abstract_nfe=top_nfe, detail_nfe=bottom_nfe, frames_per_step=self._frames_per_step(self.bottom),
+                abstract_hz=float(self.top.meta["frame_rate"]), detail_hz=bottom_rate, steering=steering,
+                top_frames_per_step=self._frames_per_step(self.top), kv_cache=self.inference.kv_cache)
         return details
 
     @torch.no_grad()
@@ -121,13 +128,19 @@ class LoadedSystem:
         """Scaled latents [B, T, C, h, w] -> RGB uint8 [B, T, H, W, 3] through the output level's tokenizer."""
         tokenizer = self.tokenizers[self.output_level]
         b, t = latents.shape[:2]
-        images = [tokenizer.model.decode(part / tokenizer.scale) for part in latents.flatten(0, 1).split(chunk)]
+        with inference_autocast(self.device, self.inference.precision):
+            images = [tokenizer.model.decode(part / tokenizer.scale).float()
+                      for part in latents.flatten(0, 1).split(chunk)]
         frames = ((torch.cat(images).clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8).permute(0, 2, 3, 1)
         return frames.cpu().numpy().reshape(b, t, *frames.shape[1:])
 
 
-def load_system(name: str, device: torch.device | str = "cpu", top_override: str | None = None) -> LoadedSystem:
-    """Load a system's predictors and both tokenizers; ``top_override`` swaps the top (e.g. the steered ``action``)."""
+def load_system(name: str, device: torch.device | str = "cpu", top_override: str | None = None,
+                inference: Inference | None = None) -> LoadedSystem:
+    """Load a system's predictors and both tokenizers; ``top_override`` swaps the top (e.g. the steered ``action``).
+
+    ``inference`` sets precision, KV cache and compilation (compiled here, once per process and network).
+    """
     if name not in SYSTEMS:
         raise OrbisError(f"unknown system {name!r}; choose from {sorted(SYSTEMS)}")
     system = SYSTEMS[name]
@@ -140,7 +153,13 @@ def load_system(name: str, device: torch.device | str = "cpu", top_override: str
             if predictor.meta["tokenizers"][kind]["checksum"] != tokenizer.checksum:
                 raise OrbisError(f"{predictor_file(stage)} was trained on latents of another {kind} tokenizer than "
                                  f"{paths[kind]}; re-run `{stage}`")
-    return LoadedSystem(name, system, loaded[system.bottom], loaded.get(top_stage), tokenizers)
+    inference = inference or Inference()
+    if inference.compile:
+        for predictor in loaded.values():
+            compile_predictor(predictor.model)
+        for tokenizer in tokenizers.values():
+            compile_decoder(tokenizer.model)
+    return LoadedSystem(name, system, loaded[system.bottom], loaded.get(top_stage), tokenizers, inference)
 
 
 # --------------------------------------------------------------------------- evaluation samples
