@@ -86,3 +86,16 @@ def test_checkpointed_gradients_equal_plain_gradients(blocks):
     assert grads[0].keys() == grads[1].keys() and len(grads[0]) > 10
     for name in grads[0]:
         torch.testing.assert_close(grads[1][name], grads[0][name], rtol=1e-5, atol=1e-7, msg=name)
+
+
+def test_gpu_policies_are_inert_on_the_cpu():
+    """bf16 autocast is CUDA only: on the CPU the rollout stays fp32 and identical to the unwrapped one."""
+    from orbis2.accel import Inference, inference_autocast
+
+    assert not torch.is_autocast_enabled("cpu")
+    with inference_autocast("cpu", "bf16"):
+        assert not torch.is_autocast_enabled("cpu")
+        y = torch.nn.Linear(4, 4)(torch.randn(2, 4))
+    assert y.dtype == torch.float32
+    with pytest.raises(ValueError, match="precision"):
+        Inference(precision="fp16")
