@@ -9,7 +9,7 @@
 
 from orbis2.config import resolve_section
 from orbis2.eval.stages import probe_targets
-from orbis2.eval.systems import MAIN_SYSTEMS, SYSTEMS
+from orbis2.eval.systems import MAIN_SYSTEMS, SPEED_SYSTEMS, SYSTEMS
 from orbis2.latents import LATENT_SETS
 from orbis2.tasks.predictors import STAGES
 
@@ -313,7 +313,8 @@ rule eval_speed:
         "src/orbis2/eval/speed.py",
         "data/latents",
         *TOKENIZER_DIRS,
-        *sorted({f"data/predictors/{s}" for name in MAIN_SYSTEMS for s in SYSTEMS[name].stages}),
+        *sorted({f"data/predictors/{s}" for system in [*(SYSTEMS[n] for n in MAIN_SYSTEMS), *SPEED_SYSTEMS.values()]
+                 for s in system.stages}),
     output:
         "reports/eval/speed.json",
     params:

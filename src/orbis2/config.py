@@ -302,6 +302,31 @@ class DetailPredictorConfig(TeacherForcingConfig):
 
 
 @dataclass(frozen=True)
+class DistillConfig(PredictorConfig):
+    """The few-step detail predictor, distilled from ``init_from`` (the teacher) by rectified-flow reflow.
+
+    Each step the teacher samples the targets from fresh noise with
+    ``teacher_nfe`` Euler steps (use the NFE the evaluation samples the teacher
+    with); the student, initialised from the teacher, learns the straight path
+    of each (noise, sample) pair and is sampled with ``student_nfe`` steps.
+    """
+
+    teacher_nfe: int = 30
+    student_nfe: int = 4
+
+    INIT_SOURCES: typing.ClassVar[tuple[str, ...]] = ("detail",)
+
+    def validate(self, where: str) -> None:
+        super().validate(where)
+        if self.init_from is None:
+            raise ConfigError(f"{where}.init_from must name the teacher stage (detail)")
+        _positive(self, where, "teacher_nfe", "student_nfe")
+        if self.student_nfe >= self.teacher_nfe:
+            raise ConfigError(f"{where}.student_nfe = {self.student_nfe} must be below teacher_nfe = "
+                              f"{self.teacher_nfe}: the point of distillation is fewer steps")
+
+
+@dataclass(frozen=True)
 class ActionConfig(TeacherForcingConfig):
     """The steering fine-tune of the abstract predictor (paper "Action-conditioning").
 
@@ -446,6 +471,7 @@ class PipelineConfig:
     top_detail: TeacherForcingConfig
     detail_on_detail: DetailPredictorConfig
     flat_abstract_full: TeacherForcingConfig
+    detail_distill: DistillConfig
     evaluation: EvaluationConfig
 
     def section(self, name: str) -> Any:
@@ -558,6 +584,7 @@ SECTION_TYPES: dict[str, type] = {
     "top_detail": TeacherForcingConfig,
     "detail_on_detail": DetailPredictorConfig,
     "flat_abstract_full": TeacherForcingConfig,
+    "detail_distill": DistillConfig,
     "evaluation": EvaluationConfig,
 }
 

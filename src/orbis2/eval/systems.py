@@ -66,6 +66,11 @@ SYSTEMS = {
                                  latents="full"),
 }
 MAIN_SYSTEMS = ("flat_detail", "flat_abstract", "hierarchical")
+# Systems timed by the speed stage only: the hierarchy with the few-step (distilled) detail predictor,
+# sampled with the NFE its predictor file records.
+SPEED_SYSTEMS = {
+    "hierarchical_distilled": System("Hierarchical, few-step detail (distilled)", "detail_distill", "abstract_tf"),
+}
 
 
 def predictor_file(stage: str) -> Path:
@@ -105,11 +110,30 @@ class LoadedSystem:
         """Native frame indices of a predictor's context at one rollout step (its rate's window)."""
         return step.abstract_context if predictor.meta["rate"] == "slow" else step.detail_context
 
+    def bottom_nfe(self, default: int) -> int:
+        """The bottom predictor's Euler steps: its own (a distilled predictor records them) or ``default``."""
+        return int(self.bottom.meta.get("sampling", {}).get("nfe", default))
+
     @torch.no_grad()
     def rollout(self, contexts: dict[str, torch.Tensor], steps: int, generator: torch.Generator, top_nfe: int,
-                bottom_nfe: int, steering: torch.Tensor | None = None) -> torch.Tensor:
-        """Latents [B, 5 * steps, C, h, w] of ``output_level`` from the contexts (keys ``bottom`` and ``top``)."""
+                bottom_nfe: int, steering: torch.Tensor | None = None,
+                frames_per_step: int | None = None) -> torch.Tensor:
+        """Latents [B, 5 * steps, C, h, w] of ``output_level`` from the contexts (keys ``bottom`` and ``top``).
+
+        ``frames_per_step`` (flat systems) runs the same network with another step length, e.g. 1 for an
+        Orbis v1-style rollout (one frame per step); the rollout still covers ``steps`` * 0.5 s.
+        """
         bottom_rate = float(self.bottom.meta["frame_rate"])
+        if frames_per_step is not None:
+            if self.top is not None:
+                raise OrbisError(f"{self.name}: frames_per_step applies to flat systems only")
+            native = self._frames_per_step(self.bottom)
+            if native % frames_per_step:
+                raise OrbisError(f"{self.name}: frames_per_step = {frames_per_step} must divide {native}")
+            with inference_autocast(self.device, self.inference.precision):
+                return flat_rollout(self.bottom.model, contexts["bottom"], steps * native // frames_per_step,
+                                    frames_per_step, bottom_nfe, bottom_rate, generator,
+                                    kv_cache=self.inference.kv_cache)
         if self.top is None and steering is not None:
             raise OrbisError(f"{self.name}: flat systems are not steered")
         with inference_autocast(self.device, self.inference.precision):
@@ -141,9 +165,10 @@ def load_system(name: str, device: torch.device | str = "cpu", top_override: str
 
     ``inference`` sets precision, KV cache and compilation (compiled here, once per process and network).
     """
-    if name not in SYSTEMS:
-        raise OrbisError(f"unknown system {name!r}; choose from {sorted(SYSTEMS)}")
-    system = SYSTEMS[name]
+    known = {**SYSTEMS, **SPEED_SYSTEMS}
+    if name not in known:
+        raise OrbisError(f"unknown system {name!r}; choose from {sorted(known)}")
+    system = known[name]
     paths = LATENT_SETS[system.latents].tokenizers
     tokenizers = {kind: load_tokenizer(path, device) for kind, path in paths.items()}
     top_stage = top_override or system.top
