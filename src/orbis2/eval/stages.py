@@ -405,8 +405,13 @@ MAIN_PROBES = ("abstract_tf", "detail")
 PER_BLOCK = ("abstract_df", "abstract_tf_only")
 
 
+# Predictors not probed: the steered fine-tune, and the distilled detail predictor (a faster sampler of
+# ``detail``'s distribution, not another representation).
+NOT_PROBED = ("action", "detail_distill")
+
+
 def probe_targets() -> list[str]:
-    return [*REPRESENTATIONS, *(s for s in STAGES if s != "action")]
+    return [*REPRESENTATIONS, *(s for s in STAGES if s not in NOT_PROBED)]
 
 
 def probe_sets(cfg: PipelineConfig) -> list[tuple[str, list, list]]:
