@@ -224,7 +224,7 @@ def add_rollout_parser(sub: argparse._SubParsersAction) -> None:
                    help=f"default: {DEFAULT_ACTION}, else {DEFAULT_ABSTRACT_TF}")
     p.add_argument("--detail-predictor", type=Path, default=Path("data/predictors/detail/predictor.pt"))
     p.add_argument("--params", type=Path, default=Path("params.yaml"))
-    p.add_argument("--profile", default=None, help="smoke | default | paper (default: the file's `profile`)")
+    p.add_argument("--profile", default=None, help="smoke | default | gpu | paper (default: the file's `profile`)")
     p.add_argument("--side-by-side", action="store_true", help="show the real continuation on the left")
     p.add_argument("--abstract-nfe", type=int, default=15)
     p.add_argument("--detail-nfe", type=int, default=30)

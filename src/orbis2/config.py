@@ -2,7 +2,7 @@
 
 ``params.yaml`` is the single source of every hyper-parameter and seed. Each
 stage has a section; inside a section, ``all`` holds the values shared by every
-profile and ``smoke`` / ``default`` / ``paper`` hold what differs. The
+profile and ``smoke`` / ``default`` / ``gpu`` / ``paper`` hold what differs. The
 top-level ``profile`` key picks one; the resolved section is ``all`` updated by
 the profile's mapping (nested mappings are merged key by key).
 
@@ -26,7 +26,7 @@ import yaml
 
 from orbis2.errors import OrbisError
 
-PROFILES = ("smoke", "default", "paper")
+PROFILES = ("smoke", "default", "gpu", "paper")
 SPLITS = ("train", "val", "turns", "heldout", "probe")
 
 
