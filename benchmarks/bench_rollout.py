@@ -179,7 +179,22 @@ def main(argv: list[str] | None = None) -> None:
         print(json.dumps(rollout_worker(args)))
         return
     forwarded = [a for a in (argv if argv is not None else sys.argv[1:])]
+    device_name = torch.cuda.get_device_name() if args.device.startswith("cuda") else f"cpu ({args.threads} threads)"
     results: dict[str, dict] = {}
+
+    def ratios() -> dict[str, float]:
+        ok = {k: v for k, v in results.items() if "error" not in v}
+        return {f"{k}_over_v1_style": ok[k]["fps"] / ok["v1_style"]["fps"] for k in ok if "v1_style" in ok and k != "v1_style"}
+
+    def write() -> None:  # after every system, so a run cut short still leaves what it measured
+        if args.json is None:
+            return
+        record = {"device": device_name, "preset": args.preset, "grid": list(args.grid), "precision": args.precision,
+                  "compile": args.compile, "kv_cache": args.kv_cache, "seconds": args.seconds, "batch": 1,
+                  "decoding_included": True, "systems": results, "ratios": ratios()}
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(record, indent=2))
+
     for name in args.systems.split(","):
         if name not in SYSTEMS:
             raise SystemExit(f"unknown system {name!r}; choose from {SYSTEMS}")
@@ -191,7 +206,7 @@ def main(argv: list[str] | None = None) -> None:
             results[name] = {"system": name, "error": f"over {args.timeout:.0f} s"}
         except subprocess.CalledProcessError as err:
             results[name] = {"system": name, "error": err.stderr.strip().splitlines()[-1] if err.stderr else "failed"}
-    device_name = torch.cuda.get_device_name() if args.device.startswith("cuda") else f"cpu ({args.threads} threads)"
+        write()
     print(f"device {device_name}, preset {args.preset}, grid {args.grid[0]}x{args.grid[1]}x{LATENT_CHANNELS}, "
           f"{args.precision}{', compiled' if args.compile else ''}, KV cache {'on' if args.kv_cache else 'off'}, "
           f"{args.seconds:g} s of video per rollout, decoding included")
@@ -201,16 +216,8 @@ def main(argv: list[str] | None = None) -> None:
             print(f"{name:<14}  skipped: {r['error']}")
             continue
         print(f"{name:<14}{r['params']:>14,}{r['fps']:>10.2f}{r['peak_memory_mb']:>10.0f}{r['warmup_s']:>11.1f}")
-    ok = {k: v for k, v in results.items() if "error" not in v}
-    ratios = {f"{k}_over_v1_style": ok[k]["fps"] / ok["v1_style"]["fps"] for k in ok if "v1_style" in ok}
-    for key, value in ratios.items():
+    for key, value in ratios().items():
         print(f"speed ratio {key}: {value:.2f}x")
-    if args.json is not None:
-        record = {"device": device_name, "preset": args.preset, "grid": list(args.grid), "precision": args.precision,
-                  "compile": args.compile, "kv_cache": args.kv_cache, "seconds": args.seconds, "batch": 1,
-                  "decoding_included": True, "systems": results, "ratios": ratios}
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(record, indent=2))
 
 
 if __name__ == "__main__":

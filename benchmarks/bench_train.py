@@ -218,6 +218,12 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     device = torch.device(args.device)
+
+    def write(record: dict) -> None:  # after every run, so a run cut short still leaves what it measured
+        if args.json is not None:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(record, indent=2))
+
     set_tf32(True)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else f"cpu ({args.threads} threads)"
     table_peak = peak_bf16_tflops(name) if device.type == "cuda" else None
@@ -250,6 +256,7 @@ def main(argv: list[str] | None = None) -> None:
                 if table_peak:
                     run["mfu"] = achieved / table_peak
             record["runs"].append(run)
+            write(record)
             step = None
             fmt = (lambda key, spec: format(run[key], spec) if key in run else "-")
             print(f"{preset:<9}{kind:<10}{run['params']:>14,}{run['tokens_per_s']:>12.0f}{seconds:>9.3f}"
@@ -257,13 +264,12 @@ def main(argv: list[str] | None = None) -> None:
                   f"{fmt('peak_memory_gb', '.1f'):>9}")
     if args.max_batch:
         search = argparse.Namespace(**{**vars(args), "checkpointing": args.batch_checkpointing})
+        write(record)
         record["max_batch_detail"] = max_batch(args.mfu_preset, device, search)
         print(f"max batch, detail predictor at {args.mfu_preset} with checkpointing: {record['max_batch_detail']}")
     if record["sdpa"]:
         print(f"SDPA kernels usable at the {args.mfu_preset} head size: {record['sdpa']}")
-    if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(record, indent=2))
+    write(record)
 
 
 if __name__ == "__main__":
