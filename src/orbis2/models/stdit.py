@@ -107,7 +107,7 @@ class Attention(nn.Module):
         ``keep``: a list that receives this call's (keys, values) for a later call's ``past``."""
         b, n, d = x.shape
         q, k, v = self.qkv(x).reshape(b, n, 3, self.num_heads, d // self.num_heads).permute(2, 0, 3, 1, 4)
-        q, k = self.q_norm(q), self.k_norm(k)
+        q, k = self.q_norm(q).to(v.dtype), self.k_norm(k).to(v.dtype)  # bf16 under autocast: flash-eligible
         if keep is not None:
             keep.append((k, v))
         mask = None
@@ -140,7 +140,7 @@ class CrossAttention(nn.Module):
         inner = self.q.out_features
         q = self.q(x).reshape(b, n, self.num_heads, -1).transpose(1, 2)
         k, v = self.kv(context).reshape(b, context.shape[1], 2, self.num_heads, -1).permute(2, 0, 3, 1, 4)
-        out = F.scaled_dot_product_attention(self.q_norm(q), self.k_norm(k), v)
+        out = F.scaled_dot_product_attention(self.q_norm(q).to(v.dtype), self.k_norm(k).to(v.dtype), v)
         return self.proj(out.transpose(1, 2).reshape(b, n, inner))
 
 
