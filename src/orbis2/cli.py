@@ -187,7 +187,8 @@ def rollout_command(args: argparse.Namespace) -> str:
     with tqdm(total=steps, desc="rollout", unit="step") as bar, inference_autocast(device, args.precision):
         details, _ = cascaded_rollout(
             abstract_pred.model, detail_pred.model, detail_ctx[None].to(device), abstract_ctx[None].to(device),
-            steps, generator, abstract_nfe=args.abstract_nfe, detail_nfe=args.detail_nfe,
+            steps, generator, abstract_nfe=args.abstract_nfe,
+            detail_nfe=args.detail_nfe or int(detail_pred.meta.get("sampling", {}).get("nfe", 30)),
             abstract_hz=data.abstract_hz, detail_hz=data.detail_hz, steering=steering,
             on_step=lambda _: bar.update(1), kv_cache=not args.no_kv_cache)
 
@@ -227,7 +228,8 @@ def add_rollout_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--profile", default=None, help="smoke | default | gpu | paper (default: the file's `profile`)")
     p.add_argument("--side-by-side", action="store_true", help="show the real continuation on the left")
     p.add_argument("--abstract-nfe", type=int, default=15)
-    p.add_argument("--detail-nfe", type=int, default=30)
+    p.add_argument("--detail-nfe", type=int, default=None,
+                   help="default: 30, or the steps a distilled detail predictor (detail_distill) records")
     p.add_argument("--device", default=None, help="default: cuda if available, else cpu")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--precision", choices=("bf16", "fp32"), default="bf16",
