@@ -59,9 +59,14 @@ def flat_baseline(preset: str) -> torch.nn.Module:
     """A detail-level predictor widened until its parameter count is closest to the whole hierarchy's."""
     with torch.device("meta"):  # sizes only, nothing allocated
         target = sum(n_params(m) for m in hierarchy(preset))
-        step = 4 * STDIT_PRESETS[preset]["num_heads"]  # sin-cos positions need a multiple of 4 per head
-        width = min(range(step, 8 * STDIT_PRESETS[preset]["hidden_size"], step),
-                    key=lambda w: abs(n_params(build_stdit(preset, LATENT_CHANNELS, False, hidden_size=w)) - target))
+        step = 8 * STDIT_PRESETS[preset]["num_heads"]  # head size a multiple of 8: flash attention applies
+        widths = range(step, 8 * STDIT_PRESETS[preset]["hidden_size"], step)
+        size = lambda w: n_params(build_stdit(preset, LATENT_CHANNELS, False, hidden_size=w))  # noqa: E731
+        lo, hi = 0, len(widths) - 1  # the count grows with the width: bisect to the first one >= target
+        while lo < hi:
+            mid = (lo + hi) // 2
+            lo, hi = (mid + 1, hi) if size(widths[mid]) < target else (lo, mid)
+        width = min(widths[max(lo - 1, 0)], widths[lo], key=lambda w: abs(size(w) - target))
     return build_stdit(preset, LATENT_CHANNELS, causal=False, hidden_size=width)
 
 
@@ -88,10 +93,12 @@ def rollout_worker(args: argparse.Namespace) -> dict:
     gen = torch.Generator(device=device).manual_seed(0)
     steps = max(1, round(args.seconds * 2))
     d_ctx = torch.randn(1, CONTEXT, LATENT_CHANNELS, h, w, device=device)
-    tokenizer = decoder(args.preset).to(device).eval()
+    with torch.device(device):  # initialise on the device: fast even at the paper's sizes
+        tokenizer = decoder(args.preset).eval()
+        models = hierarchy(args.preset) if args.worker in ("hierarchical", "distilled") else [flat_baseline(args.preset)]
     nets: list[torch.nn.Module] = []
     if args.worker in ("hierarchical", "distilled"):
-        abstract, detail = (m.to(device).eval() for m in hierarchy(args.preset))
+        abstract, detail = (m.eval() for m in models)
         nets = [abstract, detail]
         a_ctx = torch.randn(1, CONTEXT, LATENT_CHANNELS, h, w, device=device)
         steering = torch.randn(1, steps, PER_STEP, 2, device=device)
@@ -101,7 +108,7 @@ def rollout_worker(args: argparse.Namespace) -> dict:
             return cascaded_rollout(abstract, detail, d_ctx, a_ctx, steps, gen, abstract_nfe=15, detail_nfe=detail_nfe,
                                     steering=steering, kv_cache=args.kv_cache)[0]
     else:
-        flat = flat_baseline(args.preset).to(device).eval()
+        flat = models[0].eval()
         nets = [flat]
         per_step = PER_STEP if args.worker == "flat_detail" else 1
 

@@ -90,12 +90,13 @@ class Step:
     def __init__(self, kind: str, preset: str, batch: int, device: torch.device, args: argparse.Namespace):
         h, w = GRIDS.get(preset, (9, 16))
         self.kind, self.device, self.batch = kind, device, batch
+        with torch.device(device):  # initialise on the device: a 555M-parameter init on the CPU takes seconds
+            self.model = (build_stdit(preset, LATENT_CHANNELS, causal=True, steering=True) if kind == "abstract" else
+                          build_stdit(preset, LATENT_CHANNELS, causal=False, abstract_channels=LATENT_CHANNELS))
         if kind == "abstract":
-            self.model = build_stdit(preset, LATENT_CHANNELS, causal=True, steering=True)
             frames, self.context = 6, 5
             self.cond = {"frame_rate": 2.0, "steering": torch.randn(batch, 5, 2, device=device)}
         else:
-            self.model = build_stdit(preset, LATENT_CHANNELS, causal=False, abstract_channels=LATENT_CHANNELS)
             frames, self.context = 10, 5
             mask = torch.zeros(batch, frames, dtype=torch.bool, device=device)
             mask[:, [4, 9]] = True
