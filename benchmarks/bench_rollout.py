@@ -56,7 +56,8 @@ def hierarchy(preset: str) -> tuple[torch.nn.Module, torch.nn.Module]:
 
 
 def flat_baseline(preset: str) -> torch.nn.Module:
-    """A detail-level predictor widened until its parameter count is closest to the whole hierarchy's."""
+    """A detail-level predictor widened until its parameter count is closest to the whole hierarchy's
+    (widths in steps of 8 per head, so flash attention applies: 1,152M against 1,069M at the paper preset)."""
     with torch.device("meta"):  # sizes only, nothing allocated
         target = sum(n_params(m) for m in hierarchy(preset))
         step = 8 * STDIT_PRESETS[preset]["num_heads"]  # head size a multiple of 8: flash attention applies
