@@ -96,7 +96,8 @@ def rollout_worker(args: argparse.Namespace) -> dict:
     d_ctx = torch.randn(1, CONTEXT, LATENT_CHANNELS, h, w, device=device)
     with torch.device(device):  # initialise on the device: fast even at the paper's sizes
         tokenizer = decoder(args.preset).eval()
-        models = hierarchy(args.preset) if args.worker in ("hierarchical", "distilled") else [flat_baseline(args.preset)]
+        cascaded = args.worker in ("hierarchical", "distilled")
+        models = hierarchy(args.preset) if cascaded else [flat_baseline(args.preset)]
     nets: list[torch.nn.Module] = []
     if args.worker in ("hierarchical", "distilled"):
         abstract, detail = (m.eval() for m in models)
@@ -192,7 +193,9 @@ def main(argv: list[str] | None = None) -> None:
 
     def ratios() -> dict[str, float]:
         ok = {k: v for k, v in results.items() if "error" not in v}
-        return {f"{k}_over_v1_style": ok[k]["fps"] / ok["v1_style"]["fps"] for k in ok if "v1_style" in ok and k != "v1_style"}
+        if "v1_style" not in ok:
+            return {}
+        return {f"{k}_over_v1_style": ok[k]["fps"] / ok["v1_style"]["fps"] for k in ok if k != "v1_style"}
 
     def write() -> None:  # after every system, so a run cut short still leaves what it measured
         if args.json is None:

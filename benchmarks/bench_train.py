@@ -259,7 +259,7 @@ def main(argv: list[str] | None = None) -> None:
             record["runs"].append(run)
             write(record)
             step = None
-            fmt = (lambda key, spec: format(run[key], spec) if key in run else "-")
+            fmt = (lambda key, spec, run=run: format(run[key], spec) if key in run else "-")
             print(f"{preset:<9}{kind:<10}{run['params']:>14,}{run['tokens_per_s']:>12.0f}{seconds:>9.3f}"
                   f"{fmt('tflops', '.3g'):>9}{fmt('mfu', '.1%'):>9}{fmt('mfu_measured_matmul', '.1%'):>8}"
                   f"{fmt('peak_memory_gb', '.1f'):>9}")

@@ -1,4 +1,4 @@
-"""CUDA-only checks of the GPU paths (bf16 autocast, torch.compile, SDPA kernels, checkpointing); skipped without CUDA."""
+"""CUDA-only checks of the GPU paths (bf16 autocast, torch.compile, SDPA kernels, checkpointing); skip on the CPU."""
 
 from __future__ import annotations
 

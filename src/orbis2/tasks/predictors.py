@@ -490,7 +490,8 @@ def run_stage(stage: str, cfg: PipelineConfig, run: StageRun) -> str:
     run.log_metrics(metrics, step=int(metrics["steps"]))
     out = predictor_path(stage)
     publish_training(work, out.parent, [out.name], Path("reports") / f"{stage}.json", metrics, run)
-    few = (f"; {pc.student_nfe}-step MSE to the teacher's {pc.teacher_nfe}-step sample {metrics['few_step_mse_student']:.4f}"
-           f" (teacher's own {metrics['few_step_mse_teacher']:.4f})" if "few_step_mse_student" in metrics else "")
+    few = (f"; {pc.student_nfe}-step MSE to the teacher's {pc.teacher_nfe}-step sample "
+           f"{metrics['few_step_mse_student']:.4f} (teacher's own {metrics['few_step_mse_teacher']:.4f})"
+           if "few_step_mse_student" in metrics else "")
     return (f"{metrics['steps']} steps, {metrics['parameters'] / 1e6:.2f}M parameters, val loss "
             f"{metrics['val_loss']:.4f} (at initialisation {metrics['val_loss_init']:.4f}){few} -> {out}")
