@@ -13,7 +13,7 @@ import uuid
 from orbis2.config import load_params, resolve_section
 from orbis2.data.importer import input_files
 from orbis2.eval.stages import probe_targets
-from orbis2.eval.systems import MAIN_SYSTEMS, SYSTEMS
+from orbis2.eval.systems import MAIN_SYSTEMS, SPEED_SYSTEMS, SYSTEMS
 from orbis2.latents import LATENT_SETS
 from orbis2.tasks.predictors import STAGES
 
@@ -322,7 +322,8 @@ rule eval_speed:
         "src/orbis2/eval/speed.py",
         "data/latents",
         *TOKENIZER_DIRS,
-        *sorted({f"data/predictors/{s}" for name in MAIN_SYSTEMS for s in SYSTEMS[name].stages}),
+        *sorted({f"data/predictors/{s}" for system in [*(SYSTEMS[n] for n in MAIN_SYSTEMS), *SPEED_SYSTEMS.values()]
+                 for s in system.stages}),
     output:
         "reports/eval/speed.json",
     params:

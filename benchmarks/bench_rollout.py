@@ -1,22 +1,25 @@
-"""Hierarchical rollout vs a flat detail-level baseline of the same size, and training-step efficiency.
+"""Generation speed side by side (paper Table 5): hierarchical, distilled, flat detail and an Orbis v1-style model.
 
-    python benchmarks/bench_rollout.py [--preset default] [--steps 2] [--batch-size 8] [--threads 1]
-        [--grid 9x16] [--device cpu|cuda]
+    python benchmarks/bench_rollout.py [--preset paper] [--grid 18x32] [--seconds 2] [--precision bf16]
+        [--compile] [--no-kv-cache] [--no-decode] [--distill-nfe 4] [--json out.json]
 
-Random weights at an ST-DiT preset's size, latents of 16 channels on the latent grid:
+Random weights at an ST-DiT preset's size, 16-channel latents on the latent grid,
+batch 1, every frame decoded by the detail tokenizer's decoder of the same preset
+(decoding is part of generation as a user sees it):
 
-* rollout: frames per second and peak memory of (a) the cascaded model (steered
-  causal abstract predictor, 15 NFE, + abstract-conditioned detail predictor,
-  30 NFE) and (b) one unconditioned detail-level predictor widened until its
-  parameter count matches (a)'s total (30 NFE, same 5-frame sliding window).
-  Each model runs in its own subprocess so its peak memory is its own: on CUDA
-  ``torch.cuda.max_memory_allocated``, on the CPU the rise of the process's peak
-  RSS (``resource.getrusage``) during the rollout, which sees torch's native
-  allocations that tracemalloc does not.
-* training: teacher-forcing steps (forward, backward, AdamW) of each predictor;
-  tokens/s and achieved FLOP/s (FLOPs counted once with
-  ``torch.utils.flop_counter.FlopCounterMode``) as a fraction of this machine's
-  measured fp32 matmul FLOP/s (the MFU of the paper's "25% MFU").
+* ``hierarchical``: steered causal abstract predictor (15 NFE, KV-cached context)
+  + abstract-conditioned detail predictor (30 NFE), 5 frames per 0.5-s step;
+* ``distilled``: the same with the few-step detail predictor (``--distill-nfe``);
+* ``flat_detail``: one detail-level predictor widened to the hierarchy's total
+  parameter count, 5 frames per step, 30 NFE;
+* ``v1_style``: the same network run like Orbis v1: one frame per step at 10 Hz,
+  30 NFE.
+
+Each system runs in its own subprocess so its peak memory is its own (CUDA:
+``max_memory_allocated``, weights included; CPU: peak RSS). The first rollout
+is a warm-up whose time is reported apart (it holds the compilation with
+``--compile``). Speed depends on the network sizes and NFE only, so random
+weights measure what trained ones would.
 """
 
 from __future__ import annotations
@@ -27,16 +30,18 @@ import resource
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import torch
-from torch.utils.flop_counter import FlopCounterMode
 
-from orbis2.flow import teacher_forcing_loss
+from orbis2.accel import compile_decoder, compile_predictor, inference_autocast, set_tf32
 from orbis2.models.stdit import STDIT_PRESETS, build_stdit
+from orbis2.models.tokenizer import TOKENIZER_PRESETS, build_detail_tokenizer
 from orbis2.rollout import cascaded_rollout, flat_rollout
 
 LATENT_CHANNELS = 16
 CONTEXT, PER_STEP = 5, 5
+SYSTEMS = ("hierarchical", "distilled", "flat_detail", "v1_style")
 
 
 def n_params(model: torch.nn.Module) -> int:
@@ -51,13 +56,24 @@ def hierarchy(preset: str) -> tuple[torch.nn.Module, torch.nn.Module]:
 
 
 def flat_baseline(preset: str) -> torch.nn.Module:
-    """A detail-level predictor widened until its parameter count is closest to the whole hierarchy's."""
+    """A detail-level predictor widened until its parameter count is closest to the whole hierarchy's
+    (widths in steps of 8 per head, so flash attention applies: 1,152M against 1,069M at the paper preset)."""
     with torch.device("meta"):  # sizes only, nothing allocated
         target = sum(n_params(m) for m in hierarchy(preset))
-        step = 4 * STDIT_PRESETS[preset]["num_heads"]  # sin-cos positions need a multiple of 4 per head
-        width = min(range(step, 8 * STDIT_PRESETS[preset]["hidden_size"], step),
-                    key=lambda w: abs(n_params(build_stdit(preset, LATENT_CHANNELS, False, hidden_size=w)) - target))
+        step = 8 * STDIT_PRESETS[preset]["num_heads"]  # head size a multiple of 8: flash attention applies
+        widths = range(step, 8 * STDIT_PRESETS[preset]["hidden_size"], step)
+        size = lambda w: n_params(build_stdit(preset, LATENT_CHANNELS, False, hidden_size=w))  # noqa: E731
+        lo, hi = 0, len(widths) - 1  # the count grows with the width: bisect to the first one >= target
+        while lo < hi:
+            mid = (lo + hi) // 2
+            lo, hi = (mid + 1, hi) if size(widths[mid]) < target else (lo, mid)
+        width = min(widths[max(lo - 1, 0)], widths[lo], key=lambda w: abs(size(w) - target))
     return build_stdit(preset, LATENT_CHANNELS, causal=False, hidden_size=width)
+
+
+def decoder(preset: str) -> torch.nn.Module:
+    """The detail tokenizer of the preset (its decoder is what runs); ``smoke`` for presets it lacks."""
+    return build_detail_tokenizer(preset if preset in TOKENIZER_PRESETS else "smoke")
 
 
 def _perturb_outputs(*models: torch.nn.Module) -> None:
@@ -68,146 +84,151 @@ def _perturb_outputs(*models: torch.nn.Module) -> None:
 
 def _sync(device: torch.device) -> None:
     if device.type == "cuda":
-        torch.cuda.synchronize()
+        torch.cuda.synchronize(device)
 
 
 def rollout_worker(args: argparse.Namespace) -> dict:
-    """One model's rollout in this process: frames/s and peak memory (printed as JSON)."""
+    """One system's rollouts in this process: warm-up time, frames/s (decoding included), peak memory."""
     device = torch.device(args.device)
     h, w = args.grid
     gen = torch.Generator(device=device).manual_seed(0)
+    steps = max(1, round(args.seconds * 2))
     d_ctx = torch.randn(1, CONTEXT, LATENT_CHANNELS, h, w, device=device)
-    if args.worker == "hierarchical":
-        abstract, detail = (m.to(device).eval() for m in hierarchy(args.preset))
-        _perturb_outputs(abstract, detail)
+    with torch.device(device):  # initialise on the device: fast even at the paper's sizes
+        tokenizer = decoder(args.preset).eval()
+        cascaded = args.worker in ("hierarchical", "distilled")
+        models = hierarchy(args.preset) if cascaded else [flat_baseline(args.preset)]
+    nets: list[torch.nn.Module] = []
+    if args.worker in ("hierarchical", "distilled"):
+        abstract, detail = (m.eval() for m in models)
+        nets = [abstract, detail]
         a_ctx = torch.randn(1, CONTEXT, LATENT_CHANNELS, h, w, device=device)
-        steering = torch.randn(1, args.steps, PER_STEP, 2, device=device)
-        params = n_params(abstract) + n_params(detail)
+        steering = torch.randn(1, steps, PER_STEP, 2, device=device)
+        detail_nfe = args.distill_nfe if args.worker == "distilled" else 30
 
-        def run(steps: int) -> None:
-            cascaded_rollout(abstract, detail, d_ctx, a_ctx, steps, gen, steering=steering[:, :steps])
+        def generate() -> torch.Tensor:
+            return cascaded_rollout(abstract, detail, d_ctx, a_ctx, steps, gen, abstract_nfe=15, detail_nfe=detail_nfe,
+                                    steering=steering, kv_cache=args.kv_cache)[0]
     else:
-        flat = flat_baseline(args.preset).to(device).eval()
-        _perturb_outputs(flat)
-        params = n_params(flat)
+        flat = models[0].eval()
+        nets = [flat]
+        per_step = PER_STEP if args.worker == "flat_detail" else 1
 
-        def run(steps: int) -> None:
-            flat_rollout(flat, d_ctx, steps, PER_STEP, 30, 10.0, gen)
+        def generate() -> torch.Tensor:
+            return flat_rollout(flat, d_ctx, steps * PER_STEP // per_step, per_step, 30, 10.0, gen)
+    _perturb_outputs(*nets)
+    for net in nets:
+        net.requires_grad_(False)
+    tokenizer.requires_grad_(False)
+    if args.compile:
+        for net in nets:
+            compile_predictor(net)
+        compile_decoder(tokenizer)
+
+    @torch.no_grad()
+    def run() -> int:
+        with inference_autocast(device, args.precision):
+            latents = generate()
+            frames = [tokenizer.decode(chunk).float() for chunk in latents[0].split(8)]
+        return sum(f.shape[0] for f in frames)
+
     _sync(device)
     if device.type == "cuda":
-        torch.cuda.reset_peak_memory_stats()
-        base = torch.cuda.memory_allocated()
-    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # models and inputs only
-    run(1)  # warm-up (kernels, allocator caches); its memory counts, its time does not
-    _sync(device)
+        torch.cuda.reset_peak_memory_stats(device)
     start = time.perf_counter()
-    run(args.steps)
+    run()  # warm-up: kernel selection, allocator, compilation
     _sync(device)
-    seconds = time.perf_counter() - start
+    warmup_s = time.perf_counter() - start
+    timings = []
+    for _ in range(args.repeats):
+        start = time.perf_counter()
+        frames = run()
+        _sync(device)
+        timings.append(time.perf_counter() - start)
+    seconds = sorted(timings)[len(timings) // 2]
     if device.type == "cuda":
-        peak_mb = (torch.cuda.max_memory_allocated() - base) / 2**20
-        total_mb = torch.cuda.max_memory_allocated() / 2**20
+        peak_mb = torch.cuda.max_memory_allocated(device) / 2**20
     else:
-        rss_after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-        peak_mb, total_mb = (rss_after - rss_before) / 1024, rss_after / 1024  # ru_maxrss is in KiB on Linux
-    return {"params": params, "fps": PER_STEP * args.steps / seconds, "seconds": seconds,
-            "peak_delta_mb": peak_mb, "peak_total_mb": total_mb}
+        peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
+    return {"system": args.worker, "params": sum(n_params(n) for n in nets), "decoder_params": n_params(tokenizer),
+            "frames": frames, "fps": frames / seconds, "seconds": seconds, "warmup_s": warmup_s,
+            "peak_memory_mb": peak_mb, "memory_kind": "cuda_max_allocated" if device.type == "cuda" else "cpu_peak_rss",
+            "nfe": {"hierarchical": [15, 30], "distilled": [15, args.distill_nfe]}.get(args.worker, [30])}
 
 
-def matmul_flops(device: torch.device, n: int = 2048, repeats: int = 5) -> float:
-    """Measured fp32 matmul FLOP/s: the denominator of the achieved-FLOP/s fraction."""
-    a, b = torch.randn(n, n, device=device), torch.randn(n, n, device=device)
-    a @ b
-    _sync(device)
-    start = time.perf_counter()
-    for _ in range(repeats):
-        a @ b
-    _sync(device)
-    return 2 * n**3 * repeats / (time.perf_counter() - start)
-
-
-def train_throughput(name: str, model: torch.nn.Module, args: argparse.Namespace, device: torch.device) -> dict:
-    """Teacher-forcing steps at the predictor's own window: tokens/s and FLOP/s (fp32)."""
-    h, w = args.grid
-    model.to(device).train()
-    frames, cond = (6, {"frame_rate": 2.0, "steering": None}) if name == "abstract" else (10, {"frame_rate": 10.0})
-    context = frames - 1 if name == "abstract" else CONTEXT
-    b = args.batch_size
-    x = torch.randn(b, frames, LATENT_CHANNELS, h, w, device=device)
-    if name == "abstract":
-        cond["steering"] = torch.randn(b, 5, 2, device=device)
-    if name == "detail":
-        mask = torch.zeros(b, frames, dtype=torch.bool, device=device)
-        mask[:, [CONTEXT - 1, frames - 1]] = True
-        cond.update(cond_frames=torch.randn(b, frames, LATENT_CHANNELS, h, w, device=device), cond_mask=mask)
-    optimizer = torch.optim.AdamW(model.parameters(), lr=1e-4)
-    gen = torch.Generator(device=device).manual_seed(0)
-
-    def step() -> None:
-        loss, _ = teacher_forcing_loss(model, x[:, :context], x[:, context:], gen, **cond)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-
-    with FlopCounterMode(display=False) as counter:
-        step()  # also the warm-up
-    flops = counter.get_total_flops()
-    _sync(device)
-    start = time.perf_counter()
-    for _ in range(args.train_steps):
-        step()
-    _sync(device)
-    seconds = (time.perf_counter() - start) / args.train_steps
-    tokens = b * frames * h * w // model.patch_size**2
-    return {"params": n_params(model), "tokens_per_s": tokens / seconds, "flops_per_step": flops,
-            "flops_per_s": flops / seconds, "step_s": seconds}
-
-
-def main() -> None:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="default")
-    parser.add_argument("--steps", type=int, default=2, help="rollout steps timed (0.5 s of video each)")
-    parser.add_argument("--batch-size", type=int, default=8)
-    parser.add_argument("--train-steps", type=int, default=3)
-    parser.add_argument("--grid", type=lambda s: tuple(int(v) for v in s.split("x")), default=(9, 16),
-                        help="latent grid HxW (default 9x16: the default profile)")
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (matmul peak uses the same)")
+    parser.add_argument("--grid", type=lambda s: tuple(int(v) for v in s.split("x")), default=None,
+                        help="latent grid HxW (default: 18x32 for paper, else 9x16)")
+    parser.add_argument("--seconds", type=float, default=1.0, help="seconds of 10 Hz video per timed rollout")
+    parser.add_argument("--repeats", type=int, default=2, help="timed rollouts per system (median)")
+    parser.add_argument("--precision", choices=("bf16", "fp32"), default="bf16", help="bf16 autocast on CUDA only")
+    parser.add_argument("--compile", action="store_true", help="torch.compile predictors and decoder")
+    parser.add_argument("--no-kv-cache", dest="kv_cache", action="store_false")
+    parser.add_argument("--distill-nfe", type=int, default=4, help="Euler steps of the distilled detail predictor")
+    parser.add_argument("--systems", default=",".join(SYSTEMS), help=f"comma-separated subset of {SYSTEMS}")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--worker", choices=["hierarchical", "flat"], help=argparse.SUPPRESS)
-    args = parser.parse_args()
+    parser.add_argument("--timeout", type=float, default=600, help="seconds per system before it is skipped")
+    parser.add_argument("--json", type=Path, default=None, help="also write the results here")
+    parser.add_argument("--worker", choices=SYSTEMS, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.grid is None:
+        args.grid = (18, 32) if args.preset == "paper" else (9, 16)
+    return args
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
     torch.set_num_threads(args.threads)
+    set_tf32(True)
     torch.manual_seed(0)
     if args.worker:
         print(json.dumps(rollout_worker(args)))
         return
+    forwarded = [a for a in (argv if argv is not None else sys.argv[1:])]
+    device_name = torch.cuda.get_device_name() if args.device.startswith("cuda") else f"cpu ({args.threads} threads)"
+    results: dict[str, dict] = {}
 
-    argv = [sys.executable, __file__, "--preset", args.preset, "--steps", str(args.steps), "--threads",
-            str(args.threads), "--device", args.device, "--grid", "x".join(map(str, args.grid))]
-    rollout = {}
-    for kind in ("hierarchical", "flat"):
-        out = subprocess.run(argv + ["--worker", kind], check=True, capture_output=True, text=True).stdout
-        rollout[kind] = json.loads(out.strip().splitlines()[-1])
-    device = torch.device(args.device)
-    print(f"device {args.device}, preset {args.preset}, grid {args.grid[0]}x{args.grid[1]}x{LATENT_CHANNELS}, "
-          f"{args.threads} thread(s)")
-    print(f"\nrollout ({args.steps} steps = {PER_STEP * args.steps} frames at 10 Hz, "
-          f"peak = rise over models + inputs)")
-    print(f"{'model':<14}{'params':>12}{'frames/s':>10}{'peak MB':>10}{'process MB':>12}")
-    for kind, r in rollout.items():
-        print(f"{kind:<14}{r['params']:>12,}{r['fps']:>10.2f}{r['peak_delta_mb']:>10.1f}"
-              f"{r['peak_total_mb']:>12.1f}")
-    h, f = rollout["hierarchical"], rollout["flat"]
-    print(f"ratio hierarchical/flat: params {h['params'] / f['params']:.3f}, frames/s {h['fps'] / f['fps']:.2f}, "
-          f"peak memory {h['peak_delta_mb'] / max(f['peak_delta_mb'], 1e-9):.2f}")
+    def ratios() -> dict[str, float]:
+        ok = {k: v for k, v in results.items() if "error" not in v}
+        if "v1_style" not in ok:
+            return {}
+        return {f"{k}_over_v1_style": ok[k]["fps"] / ok["v1_style"]["fps"] for k in ok if k != "v1_style"}
 
-    peak = matmul_flops(device)
-    print(f"\ntraining step (teacher forcing, batch {args.batch_size}, fp32), matmul peak {peak / 1e9:.1f} GFLOP/s")
-    print(f"{'model':<14}{'params':>12}{'tokens/s':>12}{'GFLOP/step':>12}{'GFLOP/s':>10}{'of peak':>9}")
-    models = dict(zip(("abstract", "detail"), hierarchy(args.preset)), flat=flat_baseline(args.preset))
-    for name in ("abstract", "detail", "flat"):
-        r = train_throughput(name, models[name], args, device)
-        print(f"{name:<14}{r['params']:>12,}{r['tokens_per_s']:>12.0f}{r['flops_per_step'] / 1e9:>12.2f}"
-              f"{r['flops_per_s'] / 1e9:>10.2f}{r['flops_per_s'] / peak:>9.1%}")
+    def write() -> None:  # after every system, so a run cut short still leaves what it measured
+        if args.json is None:
+            return
+        record = {"device": device_name, "preset": args.preset, "grid": list(args.grid), "precision": args.precision,
+                  "compile": args.compile, "kv_cache": args.kv_cache, "seconds": args.seconds, "batch": 1,
+                  "decoding_included": True, "systems": results, "ratios": ratios()}
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(record, indent=2))
+
+    for name in args.systems.split(","):
+        if name not in SYSTEMS:
+            raise SystemExit(f"unknown system {name!r}; choose from {SYSTEMS}")
+        cmd = [sys.executable, __file__, *forwarded, "--worker", name]
+        try:
+            out = subprocess.run(cmd, check=True, capture_output=True, text=True, timeout=args.timeout).stdout
+            results[name] = json.loads(out.strip().splitlines()[-1])
+        except subprocess.TimeoutExpired:
+            results[name] = {"system": name, "error": f"over {args.timeout:.0f} s"}
+        except subprocess.CalledProcessError as err:
+            results[name] = {"system": name, "error": err.stderr.strip().splitlines()[-1] if err.stderr else "failed"}
+        write()
+    print(f"device {device_name}, preset {args.preset}, grid {args.grid[0]}x{args.grid[1]}x{LATENT_CHANNELS}, "
+          f"{args.precision}{', compiled' if args.compile else ''}, KV cache {'on' if args.kv_cache else 'off'}, "
+          f"{args.seconds:g} s of video per rollout, decoding included")
+    print(f"{'system':<14}{'params':>14}{'frames/s':>10}{'peak MB':>10}{'warm-up s':>11}")
+    for name, r in results.items():
+        if "error" in r:
+            print(f"{name:<14}  skipped: {r['error']}")
+            continue
+        print(f"{name:<14}{r['params']:>14,}{r['fps']:>10.2f}{r['peak_memory_mb']:>10.0f}{r['warmup_s']:>11.1f}")
+    for key, value in ratios().items():
+        print(f"speed ratio {key}: {value:.2f}x")
 
 
 if __name__ == "__main__":

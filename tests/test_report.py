@@ -90,12 +90,15 @@ def steering_doc() -> dict:
 
 
 def speed_doc() -> dict:
-    models = {"hierarchical": 3.64, "flat_detail": 0.7, "flat_abstract": 1.5}
+    models = {"hierarchical": 3.64, "hierarchical_distilled": 9.1, "flat_detail": 0.7, "flat_abstract": 1.5,
+              "v1_style": 0.3}
+    params = {"hierarchical_distilled": "hierarchical", "v1_style": "flat_detail"}
     return {
         "device": "cpu",
         "memory_kind": "cpu_peak_rss",
         "models": {
-            m: {"fps": fps, "peak_memory_mb": 900.5, "parameters": FVD[m][0], "frames": 60} for m, fps in models.items()
+            m: {"fps": fps, "peak_memory_mb": 900.5, "parameters": FVD[params.get(m, m)][0], "frames": 60}
+            for m, fps in models.items()
         },
     }
 
@@ -183,8 +186,10 @@ def test_main_report_tables_round_trip(evals, tmp_path):
     assert list(speed[0]) == ["model", "fps", "fps_n", "peak_memory_mb", "memory_kind", "parameters", "device"]
     assert [(r["model"], float(r["fps"])) for r in speed] == [
         ("hierarchical", 3.64),
+        ("hierarchical_distilled", 9.1),
         ("flat_detail", 0.7),
         ("flat_abstract", 1.5),
+        ("v1_style", 0.3),
     ]
     assert speed[0]["memory_kind"] == "cpu_peak_rss" and speed[0]["device"] == "cpu"
 

@@ -20,6 +20,7 @@ import torch
 from PIL import Image
 from tqdm import tqdm
 
+from orbis2.accel import compile_decoder, compile_predictor, inference_autocast, set_tf32
 from orbis2.config import PROFILES, load_config
 from orbis2.data.importer import read_odometry_csv
 from orbis2.data.town import integrate_odometry
@@ -229,17 +230,24 @@ def rollout_command(args: argparse.Namespace) -> str:
     detail_ctx = detail_tok.normalize(encode_frames(detail_tok, frames[list(first.detail_context)]))
     abstract_ctx = abstract_tok.normalize(encode_frames(abstract_tok, frames[list(first.abstract_context)]))
     generator = torch.Generator(device=device).manual_seed(args.seed)
-    with tqdm(total=steps, desc="rollout", unit="step") as bar:
+    if device.type == "cuda":
+        set_tf32(True)
+    if args.compile:
+        compile_predictor(abstract_pred.model)
+        compile_predictor(detail_pred.model)
+        compile_decoder(detail_tok.model)
+    with tqdm(total=steps, desc="rollout", unit="step") as bar, inference_autocast(device, args.precision):
         details, _ = cascaded_rollout(
             abstract_pred.model, detail_pred.model, detail_ctx[None].to(device), abstract_ctx[None].to(device),
-            steps, generator, abstract_nfe=args.abstract_nfe, detail_nfe=args.detail_nfe,
+            steps, generator, abstract_nfe=args.abstract_nfe,
+            detail_nfe=args.detail_nfe or int(detail_pred.meta.get("sampling", {}).get("nfe", 30)),
             abstract_hz=data.abstract_hz, detail_hz=data.detail_hz, steering=steering,
-            on_step=lambda _: bar.update(1))
+            on_step=lambda _: bar.update(1), kv_cache=not args.no_kv_cache)
 
     generated = []
-    with torch.inference_mode():
+    with torch.inference_mode(), inference_autocast(device, args.precision):
         for chunk in details[0].split(8):
-            generated.append(_to_uint8(detail_tok.model.decode(detail_tok.denormalize(chunk))))
+            generated.append(_to_uint8(detail_tok.model.decode(detail_tok.denormalize(chunk)).float()))
     context_frames = frames[list(first.detail_context)]
     video = np.concatenate([context_frames, np.concatenate(generated)])
     indices = np.array(list(first.detail_context) + [i for s in schedule for i in s.detail_target])
@@ -284,12 +292,20 @@ def add_rollout_parser(sub: argparse._SubParsersAction) -> None:
                    help=f"default: {DEFAULT_ACTION}, else {DEFAULT_ABSTRACT_TF}")
     p.add_argument("--detail-predictor", type=Path, default=Path("data/predictors/detail/predictor.pt"))
     p.add_argument("--params", type=Path, default=Path("params.yaml"))
-    p.add_argument("--profile", default=None, help="smoke | default | paper (default: the file's `profile`)")
+    p.add_argument("--profile", default=None, help="smoke | default | gpu | paper (default: the file's `profile`)")
     p.add_argument("--side-by-side", action="store_true", help="show the real continuation on the left")
     p.add_argument("--abstract-nfe", type=int, default=15, help="Euler steps per abstract latent")
-    p.add_argument("--detail-nfe", type=int, default=30, help="Euler steps per detail window")
+    p.add_argument("--detail-nfe", type=int, default=None,
+                   help="Euler steps per detail window; default: 30, or the steps a distilled detail predictor "
+                        "(detail_distill) records")
     p.add_argument("--device", default=None, help="default: cuda if available, else cpu")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--precision", choices=("bf16", "fp32"), default="bf16",
+                   help="bf16 autocast on CUDA (default) or fp32; the CPU always runs fp32")
+    p.add_argument("--compile", action="store_true",
+                   help="torch.compile the predictors and the decoder (CUDA; compiles once per rollout shape)")
+    p.add_argument("--no-kv-cache", action="store_true",
+                   help="recompute the abstract predictor's context at every Euler step (for comparison)")
     p.set_defaults(run=rollout_command)
 
 

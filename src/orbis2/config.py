@@ -2,7 +2,7 @@
 
 ``params.yaml`` is the single source of every hyper-parameter and seed. Each
 stage has a section; inside a section, ``all`` holds the values shared by every
-profile and ``smoke`` / ``default`` / ``paper`` hold what differs. The
+profile and ``smoke`` / ``default`` / ``gpu`` / ``paper`` hold what differs. The
 top-level ``profile`` key picks one; the resolved section is ``all`` updated by
 the profile's mapping (nested mappings are merged key by key).
 
@@ -26,7 +26,7 @@ import yaml
 
 from orbis2.errors import OrbisError
 
-PROFILES = ("smoke", "default", "paper")
+PROFILES = ("smoke", "default", "gpu", "paper")
 SPLITS = ("train", "val", "turns", "heldout", "probe")
 
 
@@ -320,6 +320,31 @@ class DetailPredictorConfig(TeacherForcingConfig):
 
 
 @dataclass(frozen=True)
+class DistillConfig(PredictorConfig):
+    """The few-step detail predictor, distilled from ``init_from`` (the teacher) by rectified-flow reflow.
+
+    Each step the teacher samples the targets from fresh noise with
+    ``teacher_nfe`` Euler steps (use the NFE the evaluation samples the teacher
+    with); the student, initialised from the teacher, learns the straight path
+    of each (noise, sample) pair and is sampled with ``student_nfe`` steps.
+    """
+
+    teacher_nfe: int = 30
+    student_nfe: int = 4
+
+    INIT_SOURCES: typing.ClassVar[tuple[str, ...]] = ("detail",)
+
+    def validate(self, where: str) -> None:
+        super().validate(where)
+        if self.init_from is None:
+            raise ConfigError(f"{where}.init_from must name the teacher stage (detail)")
+        _positive(self, where, "teacher_nfe", "student_nfe")
+        if self.student_nfe >= self.teacher_nfe:
+            raise ConfigError(f"{where}.student_nfe = {self.student_nfe} must be below teacher_nfe = "
+                              f"{self.teacher_nfe}: the point of distillation is fewer steps")
+
+
+@dataclass(frozen=True)
 class ActionConfig(TeacherForcingConfig):
     """The steering fine-tune of the abstract predictor (paper "Action-conditioning").
 
@@ -417,11 +442,16 @@ class EvaluationConfig:
     inverse_dynamics: str = "opencv"
     speed_seconds: float = 2.0
     speed_repeats: int = 2
+    precision: str = "bf16"
+    compile: bool = False
+    kv_cache: bool = True
 
     def validate(self, where: str) -> None:
         _positive(self, where, "seconds", "long_seconds", "chunk_seconds", "starts_per_clip", "top_nfe",
                   "bottom_nfe", "batch_size", "steering_seconds", "speed_seconds", "speed_repeats")
         self.probe.validate(f"{where}.probe")
+        if self.precision not in ("bf16", "fp32"):
+            raise ConfigError(f"{where}.precision = {self.precision!r} must be 'bf16' (autocast on CUDA) or 'fp32'")
         if self.long_seconds < 2 * self.chunk_seconds:
             raise ConfigError(f"{where}.long_seconds must hold at least two chunks of chunk_seconds for FVD-slope")
         for mode, scales in self.steering_modes.items():
@@ -461,6 +491,7 @@ class PipelineConfig:
     top_detail: TeacherForcingConfig
     detail_on_detail: DetailPredictorConfig
     flat_abstract_full: TeacherForcingConfig
+    detail_distill: DistillConfig
     evaluation: EvaluationConfig
 
     def section(self, name: str) -> Any:
@@ -490,12 +521,18 @@ class PipelineConfig:
 
 
 # Fields that change only bookkeeping, never the trajectory: a resume may change them.
-BOOKKEEPING_FIELDS = frozenset({"log_every", "eval_every", "checkpoint_every"})
+# Activation checkpointing recomputes the same activations: it changes memory and time, not the numbers.
+BOOKKEEPING_FIELDS = frozenset({"log_every", "eval_every", "checkpoint_every", "activation_checkpointing"})
 
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Optimisation settings of one stage; ``batch_size`` is global (summed over ranks)."""
+    """Optimisation settings of one stage; ``batch_size`` is global (summed over ranks).
+
+    GPU only: ``mixed_precision`` bf16 autocast, ``tf32`` for the remaining fp32
+    matmuls, ``activation_checkpointing`` = how many of the model's first blocks
+    recompute their activations in the backward pass (0 off; >= depth all).
+    """
 
     steps: int
     batch_size: int
@@ -508,6 +545,8 @@ class TrainConfig:
     grad_clip: float | None = None
     ema_decay: float | None = None
     mixed_precision: str = "bf16"
+    tf32: bool = True
+    activation_checkpointing: int = 0
     log_every: int = 10
     eval_every: int = 0
     checkpoint_every: int = 500
@@ -527,7 +566,8 @@ class TrainConfig:
             **{name: (getattr(self, name) >= 1, ">= 1") for name in ("steps", "batch_size", "log_every",
                                                                      "checkpoint_every")},
             **{name: (getattr(self, name) >= 0, ">= 0") for name in ("weight_decay", "warmup_steps", "eval_every",
-                                                                     "seed", "num_workers")},
+                                                                     "seed", "num_workers",
+                                                                     "activation_checkpointing")},
         }
         for name, (valid, rule) in rules.items():
             if not valid:
@@ -564,6 +604,7 @@ SECTION_TYPES: dict[str, type] = {
     "top_detail": TeacherForcingConfig,
     "detail_on_detail": DetailPredictorConfig,
     "flat_abstract_full": TeacherForcingConfig,
+    "detail_distill": DistillConfig,
     "evaluation": EvaluationConfig,
 }
 

@@ -123,20 +123,60 @@ def euler_sample(
     n_target: int,
     nfe: int,
     generator: torch.Generator,
+    target_fn: ModelFn | None = None,
+    noise: torch.Tensor | None = None,
     **cond,
 ) -> torch.Tensor:
     """Sample ``n_target`` frames after ``context`` [B, F_c, C, h, w]: Euler from tau = 1 to 0 in ``nfe`` steps.
 
     Uniform grid, context at tau = 0 throughout (paper "Inference protocol":
     15 NFE abstract, 30 NFE detail). Returns the target frames [B, n_target, C, h, w].
+    ``target_fn(x_target, tau_target)``, when given, replaces the full-window call
+    with one that returns the target frames' velocity alone (a causal model with
+    its clean context's keys/values cached); the noise drawn is the same.
+    ``noise`` [B, n_target, C, h, w] replaces the draw (the start of a given ODE path).
     """
     b, n_context = context.shape[:2]
-    x = _randn((b, n_target, *context.shape[2:]), context, generator)
+    x = _randn((b, n_target, *context.shape[2:]), context, generator) if noise is None else noise
     tau_context = torch.zeros(b, n_context, device=context.device, dtype=context.dtype)
     grid = torch.linspace(1.0, 0.0, nfe + 1)
     for tau_now, tau_next in zip(grid[:-1].tolist(), grid[1:].tolist()):
         tau_target = torch.full((b, n_target), tau_now, device=context.device, dtype=context.dtype)
-        tau = torch.cat([tau_context, tau_target], dim=1)
-        velocity = model_fn(torch.cat([context, x], dim=1), tau, **cond)[:, n_context:]
+        if target_fn is not None:
+            velocity = target_fn(x, tau_target)
+        else:
+            tau = torch.cat([tau_context, tau_target], dim=1)
+            velocity = model_fn(torch.cat([context, x], dim=1), tau, **cond)[:, n_context:]
         x = x + (tau_next - tau_now) * velocity.to(x.dtype)
     return x
+
+
+def reflow_loss(
+    model_fn: ModelFn,
+    teacher_fn: ModelFn,
+    context: torch.Tensor,
+    n_target: int,
+    generator: torch.Generator,
+    teacher_nfe: int,
+    **cond,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Rectified-flow reflow distillation (Liu et al., 2023, "Flow straight and fast"), with eq. 1's conditioning.
+
+    The teacher integrates its ODE from noise ``eps`` to a sample ``x_T``
+    (``teacher_nfe`` Euler steps, clean context); the student regresses the
+    straight path between the pair: x_tau = (1 - tau) x_T + tau eps, target
+    eps - x_T. Paths of the reflowed field are nearly straight, so a few Euler
+    steps land where the teacher's many steps do. Same interpolant, target and
+    sampler as the teacher's flow matching; only the pairing of data and noise
+    changes (coupled by the teacher instead of independent).
+    """
+    b, n_context = context.shape[:2]
+    eps = _randn((b, n_target, *context.shape[2:]), context, generator)
+    with torch.no_grad():
+        x_teacher = euler_sample(teacher_fn, context, n_target, teacher_nfe, generator, noise=eps, **cond).detach()
+    tau_target = _rand((b, 1), context, generator).expand(b, n_target)
+    tau = torch.cat([torch.zeros(b, n_context, device=context.device, dtype=context.dtype), tau_target], dim=1)
+    x = torch.cat([context, interpolate(x_teacher, eps, tau_target)], dim=1)
+    velocity = model_fn(x, tau, **cond)[:, n_context:]
+    loss = F.mse_loss(velocity.float(), velocity_target(x_teacher, eps).float())
+    return loss, {"loss": loss.item()}

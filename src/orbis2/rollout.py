@@ -95,6 +95,26 @@ def steering_sequences(schedule: list[ScheduleStep], speed: np.ndarray, yaw_rate
     return torch.from_numpy(values).float()
 
 
+def can_cache(model: ModelFn, cond: dict) -> bool:
+    """A causal predictor without abstract conditioning: its clean context's keys/values can be cached."""
+    return (getattr(model, "causal", False) and getattr(model, "abstract_channels", 0) is None
+            and hasattr(model, "build_kv_cache") and "cond_frames" not in cond)
+
+
+def sample_frames(model: ModelFn, context: torch.Tensor, n_target: int, nfe: int, generator: torch.Generator,
+                  kv_cache: bool = True, **cond) -> torch.Tensor:
+    """``euler_sample``, with the context's temporal keys/values computed once per call where exact
+    (:func:`can_cache`): the NFE loop then runs the target frames only."""
+    if not (kv_cache and can_cache(model, cond)):
+        return euler_sample(model, context, n_target, nfe, generator, **cond)
+    cache = model.build_kv_cache(context, n_target, cond.get("frame_rate"), cond.get("steering"))
+
+    def target_fn(x: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
+        return model.forward_cached(x, tau, cache, cond.get("frame_rate"), cond.get("steering"))
+
+    return euler_sample(model, context, n_target, nfe, generator, target_fn=target_fn, **cond)
+
+
 def _slide(context: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
     """Append ``new`` frames to the context window and drop as many of its oldest frames."""
     return torch.cat([context, new], dim=1)[:, -context.shape[1]:]
@@ -142,6 +162,7 @@ def cascaded_rollout(
     steering: torch.Tensor | None = None,
     on_step: StepCallback | None = None,
     top_frames_per_step: int = 1,
+    kv_cache: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Hierarchical rollout; returns detail latents [B, frames_per_step * steps, ...] and the top
     predictor's frames [B, top_frames_per_step * steps, ...].
@@ -155,13 +176,14 @@ def cascaded_rollout(
     step). The hierarchy ablations put other top predictors here: detail latents
     at 2 Hz (Exp. 4), or abstract latents at 10 Hz (Exp. 5, ``top_frames_per_step``
     = 5, ``abstract_hz`` = 10); the subgoal is always the top's last new frame.
+    ``kv_cache``: cache a causal top predictor's context keys/values (:func:`sample_frames`).
     """
     b = detail_context.shape[0]
     n_context = detail_context.shape[1]
     details, subgoals = [], []
     for k in range(steps):
-        top = euler_sample(abstract_model, abstract_context, top_frames_per_step, abstract_nfe, generator,
-                           frame_rate=abstract_hz, **_step_steering(steering, k, b, steps))
+        top = sample_frames(abstract_model, abstract_context, top_frames_per_step, abstract_nfe, generator,
+                            kv_cache, frame_rate=abstract_hz, **_step_steering(steering, k, b, steps))
         cond_frames, cond_mask = detail_conditioning(abstract_context[:, -1], top[:, -1], n_context,
                                                      frames_per_step)
         new = euler_sample(detail_model, detail_context, frames_per_step, detail_nfe, generator,
@@ -186,16 +208,17 @@ def flat_rollout(
     generator: torch.Generator,
     steering: torch.Tensor | None = None,
     on_step: StepCallback | None = None,
+    kv_cache: bool = True,
 ) -> torch.Tensor:
     """Single-branch baseline: the same sliding window, no abstract conditioning.
 
-    Returns [B, frames_per_step * steps, ...].
+    Returns [B, frames_per_step * steps, ...]; ``kv_cache`` as in :func:`cascaded_rollout`.
     """
     b = context.shape[0]
     frames = []
     for k in range(steps):
-        new = euler_sample(model, context, frames_per_step, nfe, generator, frame_rate=frame_rate,
-                           **_step_steering(steering, k, b, steps))
+        new = sample_frames(model, context, frames_per_step, nfe, generator, kv_cache, frame_rate=frame_rate,
+                            **_step_steering(steering, k, b, steps))
         context = _slide(context, new)
         frames.append(new)
         if on_step is not None:

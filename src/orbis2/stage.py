@@ -31,7 +31,7 @@ def stage_main(name: str, sections: list[str], body: StageBody,
     """
     parser = argparse.ArgumentParser(prog=f"stages/{name}.py", description=body.__doc__)
     parser.add_argument("--params", default="params.yaml", help="params file (default: params.yaml)")
-    parser.add_argument("--profile", default=None, help="smoke | default | paper (default: the file's `profile`)")
+    parser.add_argument("--profile", default=None, help="smoke | default | gpu | paper (default: the file's `profile`)")
     if add_arguments:
         add_arguments(parser)
     args = parser.parse_args(argv)

@@ -42,6 +42,7 @@ from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
+from orbis2.accel import set_tf32
 from orbis2.config import ConfigError, TrainConfig
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file
@@ -254,6 +255,13 @@ class _Run:
         self.checkpoint_path = out_dir / "checkpoints" / "last.pt"
         torch.manual_seed(cfg.seed)  # the same initial weights on every rank
         self.raw = task.build_model().to(env.device)
+        if env.device.type == "cuda":
+            set_tf32(cfg.tf32)
+        if cfg.activation_checkpointing:
+            if not hasattr(self.raw, "checkpoint_blocks"):
+                raise ConfigError(f"activation_checkpointing = {cfg.activation_checkpointing}: "
+                                  f"{type(self.raw).__name__} does not support it; set it to 0")
+            self.raw.checkpoint_blocks = cfg.activation_checkpointing
         extras = list(task.extra_updates(self.raw)) if hasattr(task, "extra_updates") else []
         claimed = {id(p) for update in extras for p in update.params}
         if len(claimed) != sum(len(update.params) for update in extras):

@@ -62,7 +62,7 @@ HIERARCHY_LAYOUT = (
     (5, "top", "abstract", "detail_hz", "flat_abstract", "top_abstract_10hz"),
     (5, "bottom", "detail", "detail_hz", "detail", "top_abstract_10hz"),
 )
-SPEED_MODELS = ("hierarchical", "flat_detail", "flat_abstract")
+SPEED_MODELS = ("hierarchical", "hierarchical_distilled", "flat_detail", "flat_abstract", "v1_style")
 NA = "NA"
 
 MAIN_CSV = "main_table.csv"

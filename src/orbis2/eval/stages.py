@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from orbis2.accel import Inference, set_tf32
 from orbis2.assets import ensure_asset
 from orbis2.config import PipelineConfig
 from orbis2.data.probes import cityscapes_frames, kitti_eigen_frames, split_by_episode, town_probe_frames
@@ -76,6 +77,14 @@ GRID_TIMES = (0.5, 4.0, 8.0, 12.0, 16.0)
 
 def device() -> torch.device:
     return torch.device("cuda") if torch.cuda.is_available() else torch.device("cpu")
+
+
+def inference_settings(cfg: PipelineConfig) -> Inference:
+    """Rollout precision, KV cache and compilation from ``evaluation``; sets the TF32 policy on CUDA."""
+    ev = cfg.evaluation
+    if torch.cuda.is_available():
+        set_tf32(True)
+    return Inference(precision=ev.precision, compile=ev.compile, kv_cache=ev.kv_cache)
 
 
 def generator(seed: int, dev: torch.device) -> torch.Generator:
@@ -147,7 +156,7 @@ def run_fvd(name: str, cfg: PipelineConfig, run: StageRun) -> str:
     world model must beat.
     """
     ev, dev = cfg.evaluation, device()
-    system = load_system(name, dev)
+    system = load_system(name, dev, inference=inference_settings(cfg))
     cache = open_cache(LATENT_SETS[system.system.latents].root)
     i3d = load_fvd_network(cfg, dev)
     record: dict[str, Any] = {"model": name, "label": SYSTEMS[name].label, "parameters": system.parameters,
@@ -250,7 +259,7 @@ def run_steering(cfg: PipelineConfig, run: StageRun) -> str:
         raise OrbisError(f"data.{cfg.profile}: the steering evaluation compares odometry at the video rate and needs "
                          f"fps == detail_hz (got {data.fps} and {data.detail_hz})")
     dev = device()
-    system = load_system("hierarchical", dev, top_override="action")
+    system = load_system("hierarchical", dev, top_override="action", inference=inference_settings(cfg))
     steer_meta = system.top.meta.get("steering")
     if steer_meta is None:
         raise OrbisError("data/predictors/action/predictor.pt is not steered; re-run the `action` stage")
@@ -331,34 +340,54 @@ def save_strip(strip: dict[str, tuple[np.ndarray, np.ndarray]], fps: float, run:
 # --------------------------------------------------------------------------- speed
 
 
+# Speed rows: name -> (system, frames per step; None = the system's own). ``v1_style`` runs the flat detail
+# network like Orbis v1, one frame per step at 10 Hz with the full NFE (same parameters, 5x the calls).
+SPEED_RUNS = {
+    "hierarchical": ("hierarchical", None),
+    "hierarchical_distilled": ("hierarchical_distilled", None),
+    "flat_detail": ("flat_detail", None),
+    "flat_abstract": ("flat_abstract", None),
+    "v1_style": ("flat_detail", 1),
+}
+
+
 def run_speed(cfg: PipelineConfig, run: StageRun) -> str:
-    """Frames per second and peak memory of the main systems' rollouts, one after another in one process.
+    """Frames per second and peak memory of ``SPEED_RUNS``, one after another in one process (paper Table 5).
 
     Batch 1, ``speed_seconds`` of rollout from a val context with the evaluation's
-    NFE, the last-decoded frames included (generation as a user sees it).
+    NFE (the distilled detail predictor with its own), the last-decoded frames
+    included (generation as a user sees it); bf16 / compile / KV cache per
+    ``evaluation``.
     """
     ev, data = cfg.evaluation, cfg.data
     dev = device()
     cache = open_cache(LATENTS)
     steps = rollout_steps(data, ev.speed_seconds)
+    settings = inference_settings(cfg)
     models = {}
-    for name in ("hierarchical", "flat_detail", "flat_abstract"):
-        system = load_system(name, dev)
+    for name, (system_name, frames_per_step) in SPEED_RUNS.items():
+        system = load_system(system_name, dev, inference=settings)
         sample = eval_samples(cache, "val", data, steps, 1)[:1]
         contexts = contexts_for(system, cache, "val", data, sample, dev)
+        bottom_nfe = system.bottom_nfe(ev.bottom_nfe)
 
-        def one_rollout(system=system, contexts=contexts) -> int:
-            latents = system.rollout(contexts, steps, generator(ev.seed, dev), ev.top_nfe, ev.bottom_nfe)
+        def one_rollout(system=system, contexts=contexts, nfe=bottom_nfe, per_step=frames_per_step) -> int:
+            latents = system.rollout(contexts, steps, generator(ev.seed, dev), ev.top_nfe, nfe,
+                                     frames_per_step=per_step)
             return system.decode(latents).shape[1]
 
         result = measure(one_rollout, warmup=1, repeats=ev.speed_repeats, device=dev)
         models[name] = {"fps": result["fps"], "peak_memory_mb": result["peak_memory_mb"],
                         "parameters": system.parameters, "frames": result["frames"],
-                        "memory_kind": result["memory_kind"]}
+                        "memory_kind": result["memory_kind"], "bottom_nfe": bottom_nfe,
+                        "top_nfe": ev.top_nfe if system.top is not None else None,
+                        "frames_per_step": frames_per_step or 5}
         del system, contexts
     record = {"device": torch.cuda.get_device_name() if dev.type == "cuda" else f"cpu ({torch.get_num_threads()} "
               f"threads)", "memory_kind": next(iter(models.values()))["memory_kind"], "batch": 1,
-              "seconds": steps * 0.5, "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe}, "models": models}
+              "seconds": steps * 0.5, "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe}, "models": models,
+              "precision": settings.precision if dev.type == "cuda" else "fp32", "compile": settings.compile,
+              "kv_cache": settings.kv_cache}
     write_json(EVAL / "speed.json", record)
     run.log_artifact(EVAL / "speed.json")
     run.log_metrics({f"fps_{m}": v["fps"] for m, v in models.items()})
@@ -376,8 +405,13 @@ MAIN_PROBES = ("abstract_tf", "detail")
 PER_BLOCK = ("abstract_df", "abstract_tf_only")
 
 
+# Predictors not probed: the steered fine-tune, and the distilled detail predictor (a faster sampler of
+# ``detail``'s distribution, not another representation).
+NOT_PROBED = ("action", "detail_distill")
+
+
 def probe_targets() -> list[str]:
-    return [*REPRESENTATIONS, *(s for s in STAGES if s != "action")]
+    return [*REPRESENTATIONS, *(s for s in STAGES if s not in NOT_PROBED)]
 
 
 def probe_sets(cfg: PipelineConfig) -> list[tuple[str, list, list]]:

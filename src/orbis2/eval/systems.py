@@ -25,12 +25,13 @@ runs on the uncompressed abstract latents (compression ablation).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from orbis2.accel import Inference, compile_decoder, compile_predictor, inference_autocast
 from orbis2.config import DataConfig
 from orbis2.errors import OrbisError
 from orbis2.latents import LATENT_SETS, LatentCache
@@ -65,6 +66,11 @@ SYSTEMS = {
                                  latents="full"),
 }
 MAIN_SYSTEMS = ("flat_detail", "flat_abstract", "hierarchical")
+# Systems timed by the speed stage only: the hierarchy with the few-step (distilled) detail predictor,
+# sampled with the NFE its predictor file records.
+SPEED_SYSTEMS = {
+    "hierarchical_distilled": System("Hierarchical, few-step detail (distilled)", "detail_distill", "abstract_tf"),
+}
 
 
 def predictor_file(stage: str) -> Path:
@@ -80,6 +86,11 @@ class LoadedSystem:
     bottom: PredictorFile
     top: PredictorFile | None
     tokenizers: dict[str, TokenizerFile]
+    inference: Inference = field(default_factory=Inference)
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.bottom.model.parameters()).device
 
     @property
     def output_level(self) -> str:
@@ -99,21 +110,41 @@ class LoadedSystem:
         """Native frame indices of a predictor's context at one rollout step (its rate's window)."""
         return step.abstract_context if predictor.meta["rate"] == "slow" else step.detail_context
 
+    def bottom_nfe(self, default: int) -> int:
+        """The bottom predictor's Euler steps: its own (a distilled predictor records them) or ``default``."""
+        return int(self.bottom.meta.get("sampling", {}).get("nfe", default))
+
     @torch.no_grad()
     def rollout(self, contexts: dict[str, torch.Tensor], steps: int, generator: torch.Generator, top_nfe: int,
-                bottom_nfe: int, steering: torch.Tensor | None = None) -> torch.Tensor:
-        """Latents [B, 5 * steps, C, h, w] of ``output_level`` from the contexts (keys ``bottom`` and ``top``)."""
+                bottom_nfe: int, steering: torch.Tensor | None = None,
+                frames_per_step: int | None = None) -> torch.Tensor:
+        """Latents [B, 5 * steps, C, h, w] of ``output_level`` from the contexts (keys ``bottom`` and ``top``).
+
+        ``frames_per_step`` (flat systems) runs the same network with another step length, e.g. 1 for an
+        Orbis v1-style rollout (one frame per step); the rollout still covers ``steps`` * 0.5 s.
+        """
         bottom_rate = float(self.bottom.meta["frame_rate"])
-        if self.top is None:
-            if steering is not None:
-                raise OrbisError(f"{self.name}: flat systems are not steered")
-            return flat_rollout(self.bottom.model, contexts["bottom"], steps, self._frames_per_step(self.bottom),
-                                bottom_nfe, bottom_rate, generator)
-        details, _ = cascaded_rollout(
-            self.top.model, self.bottom.model, contexts["bottom"], contexts["top"], steps, generator,
-            abstract_nfe=top_nfe, detail_nfe=bottom_nfe, frames_per_step=self._frames_per_step(self.bottom),
-            abstract_hz=float(self.top.meta["frame_rate"]), detail_hz=bottom_rate, steering=steering,
-            top_frames_per_step=self._frames_per_step(self.top))
+        if frames_per_step is not None:
+            if self.top is not None:
+                raise OrbisError(f"{self.name}: frames_per_step applies to flat systems only")
+            native = self._frames_per_step(self.bottom)
+            if native % frames_per_step:
+                raise OrbisError(f"{self.name}: frames_per_step = {frames_per_step} must divide {native}")
+            with inference_autocast(self.device, self.inference.precision):
+                return flat_rollout(self.bottom.model, contexts["bottom"], steps * native // frames_per_step,
+                                    frames_per_step, bottom_nfe, bottom_rate, generator,
+                                    kv_cache=self.inference.kv_cache)
+        if self.top is None and steering is not None:
+            raise OrbisError(f"{self.name}: flat systems are not steered")
+        with inference_autocast(self.device, self.inference.precision):
+            if self.top is None:
+                return flat_rollout(self.bottom.model, contexts["bottom"], steps, self._frames_per_step(self.bottom),
+                                    bottom_nfe, bottom_rate, generator, kv_cache=self.inference.kv_cache)
+            details, _ = cascaded_rollout(
+                self.top.model, self.bottom.model, contexts["bottom"], contexts["top"], steps, generator,
+                abstract_nfe=top_nfe, detail_nfe=bottom_nfe, frames_per_step=self._frames_per_step(self.bottom),
+                abstract_hz=float(self.top.meta["frame_rate"]), detail_hz=bottom_rate, steering=steering,
+                top_frames_per_step=self._frames_per_step(self.top), kv_cache=self.inference.kv_cache)
         return details
 
     @torch.no_grad()
@@ -121,16 +152,23 @@ class LoadedSystem:
         """Normalised latents [B, T, C, h, w] -> RGB uint8 [B, T, H, W, 3] through the output level's tokenizer."""
         tokenizer = self.tokenizers[self.output_level]
         b, t = latents.shape[:2]
-        images = [tokenizer.model.decode(tokenizer.denormalize(part)) for part in latents.flatten(0, 1).split(chunk)]
+        with inference_autocast(self.device, self.inference.precision):
+            images = [tokenizer.model.decode(tokenizer.denormalize(part)).float()
+                      for part in latents.flatten(0, 1).split(chunk)]
         frames = ((torch.cat(images).clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8).permute(0, 2, 3, 1)
         return frames.cpu().numpy().reshape(b, t, *frames.shape[1:])
 
 
-def load_system(name: str, device: torch.device | str = "cpu", top_override: str | None = None) -> LoadedSystem:
-    """Load a system's predictors and both tokenizers; ``top_override`` swaps the top (e.g. the steered ``action``)."""
-    if name not in SYSTEMS:
-        raise OrbisError(f"unknown system {name!r}; choose from {sorted(SYSTEMS)}")
-    system = SYSTEMS[name]
+def load_system(name: str, device: torch.device | str = "cpu", top_override: str | None = None,
+                inference: Inference | None = None) -> LoadedSystem:
+    """Load a system's predictors and both tokenizers; ``top_override`` swaps the top (e.g. the steered ``action``).
+
+    ``inference`` sets precision, KV cache and compilation (compiled here, once per process and network).
+    """
+    known = {**SYSTEMS, **SPEED_SYSTEMS}
+    if name not in known:
+        raise OrbisError(f"unknown system {name!r}; choose from {sorted(known)}")
+    system = known[name]
     paths = LATENT_SETS[system.latents].tokenizers
     tokenizers = {kind: load_tokenizer(path, device) for kind, path in paths.items()}
     top_stage = top_override or system.top
@@ -140,7 +178,13 @@ def load_system(name: str, device: torch.device | str = "cpu", top_override: str
             if predictor.meta["tokenizers"][kind]["checksum"] != tokenizer.checksum:
                 raise OrbisError(f"{predictor_file(stage)} was trained on latents of another {kind} tokenizer than "
                                  f"{paths[kind]}; re-run `{stage}`")
-    return LoadedSystem(name, system, loaded[system.bottom], loaded.get(top_stage), tokenizers)
+    inference = inference or Inference()
+    if inference.compile:
+        for predictor in loaded.values():
+            compile_predictor(predictor.model)
+        for tokenizer in tokenizers.values():
+            compile_decoder(tokenizer.model)
+    return LoadedSystem(name, system, loaded[system.bottom], loaded.get(top_stage), tokenizers, inference)
 
 
 # --------------------------------------------------------------------------- evaluation samples

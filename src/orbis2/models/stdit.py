@@ -33,6 +33,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 from torch import nn
+from torch.utils.checkpoint import checkpoint
 
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file, sha256_file
@@ -100,10 +101,22 @@ class Attention(nn.Module):
         self.k_norm = nn.RMSNorm(head_dim, eps=1e-6)
         self.proj = nn.Linear(dim, dim)
 
-    def forward(self, x: torch.Tensor, causal: bool = False) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, causal: bool = False, past: tuple[torch.Tensor, torch.Tensor] | None = None,
+                keep: list | None = None) -> torch.Tensor:
+        """``past``: cached (keys, values) [B, H, P, d] of earlier positions, attended before ``x``'s own;
+        ``keep``: a list that receives this call's (keys, values) for a later call's ``past``."""
         b, n, d = x.shape
         q, k, v = self.qkv(x).reshape(b, n, 3, self.num_heads, d // self.num_heads).permute(2, 0, 3, 1, 4)
-        out = F.scaled_dot_product_attention(self.q_norm(q), self.k_norm(k), v, is_causal=causal)
+        q, k = self.q_norm(q).to(v.dtype), self.k_norm(k).to(v.dtype)  # bf16 under autocast: flash-eligible
+        if keep is not None:
+            keep.append((k, v))
+        mask = None
+        if past is not None:
+            k, v = torch.cat([past[0], k], dim=2), torch.cat([past[1], v], dim=2)
+            if causal and n > 1:  # query i sees every cached position and its own first i + 1
+                mask = torch.ones(n, k.shape[2], dtype=torch.bool, device=x.device).tril(k.shape[2] - n)
+            causal = False
+        out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, is_causal=causal)
         return self.proj(out.transpose(1, 2).reshape(b, n, d))
 
 
@@ -127,7 +140,7 @@ class CrossAttention(nn.Module):
         inner = self.q.out_features
         q = self.q(x).reshape(b, n, self.num_heads, -1).transpose(1, 2)
         k, v = self.kv(context).reshape(b, context.shape[1], 2, self.num_heads, -1).permute(2, 0, 3, 1, 4)
-        out = F.scaled_dot_product_attention(self.q_norm(q), self.k_norm(k), v)
+        out = F.scaled_dot_product_attention(self.q_norm(q).to(v.dtype), self.k_norm(k).to(v.dtype), v)
         return self.proj(out.transpose(1, 2).reshape(b, n, inner))
 
 
@@ -294,8 +307,13 @@ class STDiTBlock(nn.Module):
         causal: bool,
         cond_tokens: torch.Tensor | None = None,
         cond_context: torch.Tensor | None = None,
+        time_past: tuple[torch.Tensor, torch.Tensor] | None = None,
+        time_keep: list | None = None,
     ) -> torch.Tensor:
-        """x [B, F, N, D]; c [B, F, D]; cond_tokens [B, F, N, cond_dim]; cond_context [B, M, cond_dim]."""
+        """x [B, F, N, D]; c [B, F, D]; cond_tokens [B, F, N, cond_dim]; cond_context [B, M, cond_dim].
+
+        ``time_past`` / ``time_keep``: the temporal attention's key/value cache (:class:`TemporalKVCache`).
+        """
         b, f, n, d = x.shape
         if cond_tokens is not None:
             shift, scale, gate = self.cond_modulation(cond_tokens).chunk(3, dim=-1)
@@ -311,7 +329,7 @@ class STDiTBlock(nn.Module):
         x = x + g_sm * self.space_mlp(modulate(self.space_mlp_norm(x), sh_sm, sc_sm))
 
         h = modulate(self.time_norm(x), sh_ta, sc_ta).permute(0, 2, 1, 3).reshape(b * n, f, d)
-        h = self.time_attn(h, causal=causal).reshape(b, n, f, d).permute(0, 2, 1, 3)
+        h = self.time_attn(h, causal=causal, past=time_past, keep=time_keep).reshape(b, n, f, d).permute(0, 2, 1, 3)
         x = x + g_ta * h
         return x + g_tm * self.time_mlp(modulate(self.time_mlp_norm(x), sh_tm, sc_tm))
 
@@ -362,6 +380,9 @@ class STDiT(nn.Module):
     ):
         super().__init__()
         self.latent_channels = latent_channels
+        # Activation checkpointing of the first ``checkpoint_blocks`` blocks while training (their activations
+        # are recomputed in the backward pass); set by the training loop, not part of the architecture.
+        self.checkpoint_blocks = 0
         self.hidden_size = hidden_size
         self.patch_size = patch_size
         self.max_frames = max_frames
@@ -431,15 +452,21 @@ class STDiT(nn.Module):
             return c + self.steering.null.to(c.dtype)
         return c + self.steering(steering, steering_drop)[:, None]
 
-    def embed(self, x: torch.Tensor, frame_rate: torch.Tensor | float | None) -> torch.Tensor:
-        """Latent frames [B, F, C, h, w] -> tokens [B, F, N, D] with all position encodings added."""
+    def embed(self, x: torch.Tensor, frame_rate: torch.Tensor | float | None, total_frames: int | None = None,
+              first: int = 0) -> torch.Tensor:
+        """Latent frames [B, F, C, h, w] -> tokens [B, F, N, D] with all position encodings added.
+
+        ``x`` may be frames ``first`` .. ``first + F - 1`` of a window of ``total_frames`` (the KV-cached path).
+        """
         b, f, _, h, w = x.shape
-        if f > self.max_frames:
-            raise ValueError(f"got {f} frames but the predictor has max_frames = {self.max_frames}")
+        total = f if total_frames is None else total_frames
+        if total > self.max_frames:
+            raise ValueError(f"got {total} frames but the predictor has max_frames = {self.max_frames}")
         tokens = self.x_embedder(patchify(x, self.patch_size).to(self.x_embedder.weight.dtype))
         p = self.patch_size
         tokens = tokens + _grid_positions(self.hidden_size, h // p, w // p).to(tokens)
-        tokens = tokens + self.frame_embed[self.max_frames - f :, None]
+        start = self.max_frames - total + first
+        tokens = tokens + self.frame_embed[start : start + f, None]
         if frame_rate is not None:
             rate = torch.as_tensor(frame_rate, device=x.device, dtype=torch.float32).expand(b)
             tokens = tokens + sinusoidal_embedding(rate, self.hidden_size).to(tokens.dtype)[:, None, None]
@@ -501,12 +528,79 @@ class STDiT(nn.Module):
         tokens = self.embed(x, frame_rate)
         cond_tokens, cond_context = self._abstract_inputs(cond_frames, cond_mask, (h, w), f)
         for index, block in enumerate(self.blocks):
-            tokens = block(tokens, c, self.causal, cond_tokens, cond_context)
+            if index < self.checkpoint_blocks and self.training and torch.is_grad_enabled():
+                tokens = checkpoint(block, tokens, c, self.causal, cond_tokens, cond_context, use_reentrant=False)
+            else:
+                tokens = block(tokens, c, self.causal, cond_tokens, cond_context)
             if features_from_block is not None and index == depth - features_from_block:
                 p = self.patch_size
                 return tokens.transpose(2, 3).reshape(b, f, self.hidden_size, h // p, w // p)
         out = self.final_layer(tokens, c)
         return unpatchify(out, self.patch_size, self.latent_channels, h, w).to(x.dtype)
+
+    # ------------------------------------------------------------- KV cache (causal predictor, clean context)
+
+    def _check_cacheable(self) -> None:
+        if not self.causal or self.abstract_channels is not None:
+            raise ValueError("the KV cache needs a causal predictor without abstract conditioning (the abstract one)")
+
+    @torch.no_grad()
+    def build_kv_cache(
+        self,
+        context: torch.Tensor,
+        n_target: int,
+        frame_rate: torch.Tensor | float | None = None,
+        steering: torch.Tensor | None = None,
+    ) -> TemporalKVCache:
+        """Run the clean context [B, F_c, C, h, w] (tau = 0) once and keep every block's temporal keys/values.
+
+        Exact because context frames attend only to earlier frames (causal) and
+        their noise level never changes during sampling: their features are the
+        same at every Euler step of one rollout step, so :meth:`forward_cached`
+        needs to run only the target frames.
+        """
+        self._check_cacheable()
+        b, f_c, _, h, w = context.shape
+        tau = torch.zeros(b, f_c, device=context.device, dtype=context.dtype)
+        c = self.conditioning(tau, steering)
+        tokens = self.embed(context, frame_rate, total_frames=f_c + n_target)
+        keys: list[tuple[torch.Tensor, torch.Tensor]] = []
+        for block in self.blocks:
+            tokens = block(tokens, c, True, time_keep=keys)
+        return TemporalKVCache(keys, f_c, n_target)
+
+    def forward_cached(
+        self,
+        x: torch.Tensor,
+        tau: torch.Tensor,
+        cache: TemporalKVCache,
+        frame_rate: torch.Tensor | float | None = None,
+        steering: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Velocity of the target frames ``x`` [B, F_t, C, h, w] at ``tau`` [B, F_t] after a cached context.
+
+        Equals ``forward(cat(context, x), cat(0, tau))[:, F_c:]`` (a test checks it).
+        """
+        self._check_cacheable()
+        b, f, _, h, w = x.shape
+        if f != cache.n_target or tuple(tau.shape) != (b, f):
+            raise ValueError(f"the cache was built for {cache.n_target} target frames, got x {tuple(x.shape)} "
+                             f"and tau {tuple(tau.shape)}")
+        c = self.conditioning(tau, steering)
+        tokens = self.embed(x, frame_rate, total_frames=cache.n_context + f, first=cache.n_context)
+        for block, past in zip(self.blocks, cache.keys_values):
+            tokens = block(tokens, c, True, time_past=past)
+        out = self.final_layer(tokens, c)
+        return unpatchify(out, self.patch_size, self.latent_channels, h, w).to(x.dtype)
+
+
+@dataclass
+class TemporalKVCache:
+    """Per block, the temporal attention's keys and values [B*N, H, F_c, d] of a clean context window."""
+
+    keys_values: list[tuple[torch.Tensor, torch.Tensor]]
+    n_context: int
+    n_target: int
 
 
 # --------------------------------------------------------------------------- presets

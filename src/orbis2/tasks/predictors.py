@@ -25,6 +25,11 @@ Ablations (paper Tables 3 and 4), the same code with another spec:
 - ``flat_abstract_full``: ``flat_abstract`` on the uncompressed, teacher-dimensional
   abstract latents (the compression ablation).
 
+Faster inference: ``detail_distill`` is the few-step detail predictor, ``detail``
+distilled by rectified-flow reflow (``orbis2.flow.reflow_loss``): initialised
+from its teacher, trained on the teacher's own (noise, sample) pairs, sampled
+with ``student_nfe`` Euler steps instead of the teacher's ``teacher_nfe``.
+
 Batches come from :class:`~orbis2.latents.LatentWindowDataset` (already normalised
 latents). All randomness of a training step comes from a generator seeded by
 ``(seed, rank, step)``, so a resumed run draws what an uninterrupted one would.
@@ -49,13 +54,14 @@ from torch import nn
 from orbis2.config import (
     ActionConfig,
     DataConfig,
+    DistillConfig,
     PipelineConfig,
     PredictorConfig,
     TeacherForcingConfig,
 )
 from orbis2.data.shards import window_indices, window_span
 from orbis2.errors import OrbisError
-from orbis2.flow import diffusion_forcing_loss, teacher_forcing_loss
+from orbis2.flow import diffusion_forcing_loss, euler_sample, reflow_loss, teacher_forcing_loss
 from orbis2.io import sha256_file
 from orbis2.latents import LATENT_SETS, LatentCache, LatentWindowDataset, open_cache
 from orbis2.models.stdit import build_stdit, load_predictor, save_predictor
@@ -80,7 +86,7 @@ class StageSpec:
 
     level: str  # "abstract" or "detail": which latents the predictor models
     rate: str  # "slow" or "fast"
-    objective: str  # "diffusion_forcing" or "teacher_forcing"
+    objective: str  # "diffusion_forcing", "teacher_forcing" or "reflow" (distillation from init_from)
     condition: str | None = None
     steering: bool = False
     latents: str = "compressed"  # which LATENT_SETS entry it trains on
@@ -105,6 +111,7 @@ STAGES = {
     "top_detail": StageSpec("detail", "slow", "teacher_forcing"),
     "detail_on_detail": StageSpec("detail", "fast", "teacher_forcing", condition="detail"),
     "flat_abstract_full": StageSpec("abstract", "fast", "teacher_forcing", latents="full"),
+    "detail_distill": StageSpec("detail", "fast", "reflow", condition="abstract"),
 }
 
 
@@ -236,6 +243,7 @@ class PredictorTask:
         self.frame_rate = float(rate_geometry(data, self.spec.rate)[0])
         self._val: list[dict[str, torch.Tensor]] | None = None
         self._val_init: float | None = None
+        self._teacher: nn.Module | None = None
 
     @property
     def rank(self) -> int:
@@ -272,6 +280,16 @@ class PredictorTask:
     def batches(self, spec: DataSpec) -> Iterator[dict[str, torch.Tensor]]:
         return window_batches(self.train_set, spec)
 
+    def teacher(self, device: torch.device) -> nn.Module:
+        """The frozen ``init_from`` network a ``reflow`` stage distills (built once per process)."""
+        if self.init_state is None:
+            raise OrbisError(f"{self.stage}: distillation needs init_from (the teacher)")
+        if self._teacher is None:
+            teacher = build_stdit(**self.build)
+            teacher.load_state_dict(self.init_state)
+            self._teacher = teacher.eval().requires_grad_(False)
+        return self._teacher.to(device)
+
     def objective(self, model: nn.Module, batch: dict[str, torch.Tensor], generator: torch.Generator,
                   augment: bool) -> tuple[torch.Tensor, dict[str, float]]:
         """The flow-matching loss of this stage; ``augment`` switches on context noise/drop and steering dropout."""
@@ -282,9 +300,13 @@ class PredictorTask:
             cond["cond_frames"], cond["cond_mask"] = detail_condition(subgoals, self.data)
         if self.spec.objective == "diffusion_forcing":
             return diffusion_forcing_loss(model, frames, generator, **cond)
+        n_context = rate_geometry(self.data, self.spec.rate)[2]
+        if self.spec.objective == "reflow":
+            assert isinstance(self.cfg, DistillConfig)
+            return reflow_loss(model, self.teacher(frames.device), frames[:, :n_context],
+                               frames.shape[1] - n_context, generator, self.cfg.teacher_nfe, **cond)
         cfg = self.cfg
         assert isinstance(cfg, TeacherForcingConfig)
-        n_context = rate_geometry(self.data, self.spec.rate)[2]
         metrics: dict[str, float] = {}
         if self.spec.steering:
             assert isinstance(cfg, ActionConfig)
@@ -327,6 +349,30 @@ class PredictorTask:
             losses.append(self.objective(model, batch, generator, augment=False)[0].item())
             weights.append(len(batch["has_odometry"]))
         return float(np.average(losses, weights=weights))
+
+    @torch.no_grad()
+    def few_step_errors(self, model: nn.Module) -> dict[str, float]:
+        """Reflow stages: MSE to the teacher's ``teacher_nfe``-step sample of the student's and of the teacher's
+        own ``student_nfe``-step samples, from the same noise on the val windows (the student must be closer)."""
+        cfg = self.cfg
+        assert isinstance(cfg, DistillConfig)
+        device = next(model.parameters()).device
+        teacher, n_context = self.teacher(device), rate_geometry(self.data, self.spec.rate)[2]
+        errors = {"student": [], "teacher": []}
+        generator = torch.Generator(device).manual_seed(self.cfg.train.seed + VAL_SEED_OFFSET)
+        for batch in self.val_windows():
+            batch = {k: v.to(device) for k, v in batch.items()}
+            frames = batch[self.spec.batch_key]
+            context, n_target = frames[:, :n_context], frames.shape[1] - n_context
+            cond: dict[str, Any] = {"frame_rate": self.frame_rate}
+            cond["cond_frames"], cond["cond_mask"] = detail_condition(batch[window_key(self.spec.condition, "slow")],
+                                                                      self.data)
+            noise = torch.randn(frames[:, n_context:].shape, generator=generator, device=device)
+            reference = euler_sample(teacher, context, n_target, cfg.teacher_nfe, generator, noise=noise, **cond)
+            for name, net in (("student", model), ("teacher", teacher)):
+                few = euler_sample(net, context, n_target, cfg.student_nfe, generator, noise=noise, **cond)
+                errors[name].append(float((few - reference).pow(2).mean()))
+        return {f"few_step_mse_{name}": float(np.mean(values)) for name, values in errors.items()}
 
     def evaluate(self, model: nn.Module, step: int) -> dict[str, float]:
         """``val_loss``; the first call also logs ``val_loss_init``, the same loss of the untrained network."""
@@ -380,6 +426,8 @@ def train_predictor(stage: str, cfg: PipelineConfig, cache: LatentCache, out_dir
     model.to(device).eval()
     metrics = {"val_loss": task.val_loss(model), "val_loss_init": task.init_val_loss(device), "steps": result.step,
                "parameters": sum(p.numel() for p in model.parameters())}
+    if task.spec.objective == "reflow":
+        metrics.update(task.few_step_errors(model))
     save_predictor(Path(out_dir) / "predictor.pt", model, task.build, predictor_meta(stage, cfg, cache, metrics))
     return metrics
 
@@ -399,6 +447,8 @@ def predictor_meta(stage: str, cfg: PipelineConfig, cache: LatentCache, metrics:
         "windows": {level: {"window": w, "context": c} for level, (w, c) in level_window.items()},
         "metrics": metrics,
     }
+    if spec.objective == "reflow":
+        meta["sampling"] = {"nfe": pc.student_nfe, "teacher_nfe": pc.teacher_nfe, "method": "reflow"}
     if spec.condition is not None:
         meta["condition_slots"] = {str(slot): index for slot, index in detail_condition_slots(d).items()}
     if spec.steering:
@@ -431,6 +481,7 @@ def run_stage(stage: str, cfg: PipelineConfig, run: StageRun) -> str:
         if not source.is_file():
             raise OrbisError(f"{source}: not found; `{stage}` starts from it (init_from), run `{init_from}` first")
         inputs[init_from] = source
+    pc = cfg.section(stage)
     work = training_dir(stage, cfg, stage_sections(stage), inputs)
     metrics = train_predictor(stage, cfg, cache, work, run)
     if not metrics:
@@ -438,5 +489,8 @@ def run_stage(stage: str, cfg: PipelineConfig, run: StageRun) -> str:
     run.log_metrics(metrics, step=int(metrics["steps"]))
     out = predictor_path(stage)
     publish_training(work, out.parent, [out.name], Path("reports") / f"{stage}.json", metrics, run)
+    few = (f"; {pc.student_nfe}-step MSE to the teacher's {pc.teacher_nfe}-step sample "
+           f"{metrics['few_step_mse_student']:.4f} (teacher's own {metrics['few_step_mse_teacher']:.4f})"
+           if "few_step_mse_student" in metrics else "")
     return (f"{metrics['steps']} steps, {metrics['parameters'] / 1e6:.2f}M parameters, val loss "
-            f"{metrics['val_loss']:.4f} (at initialisation {metrics['val_loss_init']:.4f}) -> {out}")
+            f"{metrics['val_loss']:.4f} (at initialisation {metrics['val_loss_init']:.4f}){few} -> {out}")

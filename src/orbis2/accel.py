@@ -1,0 +1,67 @@
+"""Precision and compilation policies for GPU inference and training, inert on the CPU.
+
+* **TF32** (:func:`set_tf32`): fp32 matmuls and convolutions on tensor cores
+  (10-bit mantissa products, fp32 accumulation). Set explicitly by every stage
+  and benchmark so results do not depend on a library default.
+* **bf16 autocast** (:func:`inference_autocast`): rollouts and decoding run
+  under ``torch.autocast(bfloat16)`` on CUDA only; on the CPU everything stays
+  fp32 so the laptop numbers and the tests are unchanged. The FVD network (I3D)
+  and the Frechet distance are never wrapped: they run after decoding, in fp32.
+* **torch.compile** (:func:`compile_predictor`, :func:`compile_decoder`):
+  ``dynamic=False``, because a rollout calls each network with one shape per
+  rollout (fixed batch, window and grid), so each compiles once and re-uses
+  the graph for every Euler step.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+PRECISIONS = ("bf16", "fp32")
+
+
+@dataclass(frozen=True)
+class Inference:
+    """How rollouts run: ``precision`` (bf16 autocast on CUDA, else fp32), ``compile``, ``kv_cache``."""
+
+    precision: str = "bf16"
+    compile: bool = False
+    kv_cache: bool = True
+    tf32: bool = True
+
+    def __post_init__(self) -> None:
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision = {self.precision!r} must be one of {list(PRECISIONS)}")
+
+
+def set_tf32(enabled: bool = True) -> None:
+    """The process-wide fp32 policy on CUDA: TF32 tensor cores for matmuls and cuDNN convolutions, or exact fp32."""
+    torch.set_float32_matmul_precision("high" if enabled else "highest")
+    torch.backends.cudnn.allow_tf32 = enabled
+
+
+def inference_autocast(device: torch.device | str, precision: str = "bf16") -> contextlib.AbstractContextManager:
+    """bf16 autocast on CUDA when ``precision`` is ``bf16``; a no-op elsewhere (CPU runs stay fp32)."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision = {precision!r} must be one of {list(PRECISIONS)}")
+    if torch.device(device).type == "cuda" and precision == "bf16":
+        return torch.autocast("cuda", dtype=torch.bfloat16)
+    return contextlib.nullcontext()
+
+
+def compile_predictor(model: nn.Module) -> nn.Module:
+    """Compile an ST-DiT's forward (and its KV-cached forward) in place; returns the same module."""
+    model.forward = torch.compile(model.forward, dynamic=False)
+    if hasattr(model, "forward_cached"):
+        model.forward_cached = torch.compile(model.forward_cached, dynamic=False)
+    return model
+
+
+def compile_decoder(tokenizer: nn.Module) -> nn.Module:
+    """Compile a tokenizer's ``decode`` in place (decoding is part of the measured generation)."""
+    tokenizer.decode = torch.compile(tokenizer.decode, dynamic=False)
+    return tokenizer
