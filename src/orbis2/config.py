@@ -368,6 +368,35 @@ class ProbeSettings:
 
 
 @dataclass(frozen=True)
+class ConditioningSettings:
+    """The ``eval_conditioning`` stage (``orbis2.eval.conditioning``): does each predictor use its inputs?
+
+    Val windows every ``anchor_stride`` native frames (at most ``max_windows``, evenly
+    spread), ``draws`` noise draws per window shared by every variant. An input is
+    "used" when the clip-bootstrap lower bound of the error increase without it
+    exceeds ``threshold`` (a fraction of the error with it). The ego-motion probe
+    fits ridge regression (penalty ``ridge`` on standardised features) on train
+    frames every ``probe_stride`` frames.
+    """
+
+    draws: int = 3
+    anchor_stride: int = 5
+    max_windows: int = 512
+    batch_size: int = 32
+    threshold: float = 0.03
+    bootstrap_reps: int = 1000
+    probe_stride: int = 2
+    ridge: float = 1.0
+    strips: int = 4
+
+    def validate(self, where: str) -> None:
+        _positive(self, where, "draws", "anchor_stride", "max_windows", "batch_size", "bootstrap_reps",
+                  "probe_stride", "ridge", "strips")
+        if self.threshold < 0:
+            raise ConfigError(f"{where}.threshold must be >= 0 (a fraction of the reference error)")
+
+
+@dataclass(frozen=True)
 class EvaluationConfig:
     """The ``eval_*`` stages (paper Sec. 4.3 and 5).
 
@@ -399,8 +428,14 @@ class EvaluationConfig:
     inverse_dynamics: str = "opencv"
     speed_seconds: float = 2.0
     speed_repeats: int = 2
+    conditioning: ConditioningSettings = field(default_factory=ConditioningSettings)
+    # Seeds (noise draws, rollout noise) over which the claim-bearing evaluation is repeated.
+    seeds: list[int] = field(default_factory=lambda: [0])
 
     def validate(self, where: str) -> None:
+        self.conditioning.validate(f"{where}.conditioning")
+        if not self.seeds or len(set(self.seeds)) != len(self.seeds):
+            raise ConfigError(f"{where}.seeds must be a non-empty list of distinct integers")
         _positive(self, where, "seconds", "long_seconds", "chunk_seconds", "starts_per_clip", "top_nfe",
                   "bottom_nfe", "batch_size", "steering_seconds", "speed_seconds", "speed_repeats")
         self.probe.validate(f"{where}.probe")
