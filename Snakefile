@@ -8,6 +8,7 @@
 # the profile), so changing them re-runs that stage and its dependents only.
 
 from orbis2.config import resolve_section
+from orbis2.eval.conditioning import MAIN_PREDICTORS as CONDITIONING_PREDICTORS
 from orbis2.eval.stages import probe_targets
 from orbis2.eval.systems import MAIN_SYSTEMS, SYSTEMS
 from orbis2.latents import LATENT_SETS
@@ -324,6 +325,25 @@ rule eval_speed:
         "python stages/eval_speed.py --profile {params.profile}"
 
 
+rule eval_conditioning:
+    threads: workflow.cores  # batched forward passes of every main predictor
+    input:
+        "stages/eval_conditioning.py",
+        "src/orbis2/eval/conditioning.py",
+        "src/orbis2/eval/stats.py",
+        "data/latents",
+        *TOKENIZER_DIRS,
+        *[f"data/predictors/{stage}" for stage in CONDITIONING_PREDICTORS],
+    output:
+        "reports/eval/conditioning.json",
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        evaluation=section("evaluation"),
+    shell:
+        "python stages/eval_conditioning.py --profile {params.profile}"
+
+
 rule report_main:
     input:
         "stages/report.py",
@@ -332,10 +352,12 @@ rule report_main:
         *[f"reports/eval/probe_{target}.json" for target in MAIN_PROBES],
         "reports/eval/steering.json",
         "reports/eval/speed.json",
+        "reports/eval/conditioning.json",
     output:
         "reports/main_table.csv",
         "reports/steering.csv",
         "reports/speed.csv",
+        "reports/conditioning.csv",
         "reports/summary.md",
     params:
         profile=PROFILE,
@@ -355,6 +377,7 @@ rule report_all:
         "reports/eval/steering.json",
         "reports/eval/steering_strip.png",
         "reports/eval/speed.json",
+        "reports/eval/conditioning.json",
     output:
         directory("reports/all"),
     params:

@@ -110,9 +110,26 @@ def compression_doc() -> dict:
     return {"rows": rows}
 
 
+def conditioning_doc() -> dict:
+    def variant(model, variant, error, effect=0.0, low=0.0, high=0.0, verdict="reference"):
+        return {"model": model, "metric": "one_step_mse", "variant": variant, "error": error, "effect": effect,
+                "low": low, "high": high, "verdict": verdict, "windows": 64, "clips": 16}
+
+    def baseline(model, horizon, low):
+        return {"model": model, "horizon_s": horizon, "baseline": "repeat_last", "model_mse": 0.5,
+                "baseline_mse": 0.5 * (1 + low + 0.1), "effect": low + 0.1, "low": low, "high": low + 0.2,
+                "verdict": "holds", "windows": 64, "clips": 16}
+
+    return {"threshold": 0.03,
+            "variants": [variant("detail", "true", 0.4), variant("detail", "subgoal_other_clip", 0.6, 0.5, 0.3, 0.7,
+                                                                  "used")],
+            "baselines": [baseline(m, h, 0.2) for m in ("detail", "abstract_tf") for h in (0.5, 1.0)]}
+
+
 def write_evals(folder: Path, skip: tuple[str, ...] = ()) -> Path:
     docs = {f"fvd_{m}": fvd_doc(m) for m in FVD} | {f"probe_{t}": probe_doc(t) for t in PROBES}
-    docs |= {"steering": steering_doc(), "speed": speed_doc(), "compression": compression_doc()}
+    docs |= {"steering": steering_doc(), "speed": speed_doc(), "compression": compression_doc(),
+             "conditioning": conditioning_doc()}
     folder.mkdir(parents=True, exist_ok=True)
     for name, doc in docs.items():
         if name not in skip:
@@ -154,7 +171,11 @@ def test_load_eval_rejects_a_file_under_the_wrong_name(tmp_path):
 def test_main_report_tables_round_trip(evals, tmp_path):
     out = tmp_path / "reports"
     written = report.write_main_report(evals, out, SETUP)
-    assert sorted(p.name for p in written) == ["main_table.csv", "speed.csv", "steering.csv", "summary.md"]
+    assert sorted(p.name for p in written) == ["conditioning.csv", "main_table.csv", "speed.csv", "steering.csv",
+                                               "summary.md"]
+    conditioning = read_csv(out / "conditioning.csv")
+    assert [(r["model"], r["check"], r["verdict"]) for r in conditioning][:2] == [
+        ("detail", "input: subgoal_other_clip", "used"), ("detail", "beats repeat_last at 0.5 s", "holds")]
 
     main = read_csv(out / "main_table.csv")
     assert [r["model"] for r in main] == ["flat_detail", "flat_abstract", "hierarchical"]
@@ -192,7 +213,7 @@ def test_main_report_tables_round_trip(evals, tmp_path):
     for heading in ("## Main results", "## Steering", "## Speed", "## Reading", "## Setup"):
         assert heading in summary
     assert "- profile: smoke" in summary and "- fvd_videos: 12" in summary
-    assert summary_verdicts(out / "summary.md") == ["holds"] * 5
+    assert summary_verdicts(out / "summary.md") == ["holds"] * 7
     assert not (out / "hierarchy_ablation.csv").exists()
 
 
@@ -205,6 +226,8 @@ def test_main_report_marks_absent_ablations_not_measured(tmp_path):
         "not measured",
         "holds",
         "holds",
+        "holds",
+        "holds",
     ]
     assert "## Training strategy" not in (tmp_path / "out" / "summary.md").read_text()
 
@@ -215,7 +238,7 @@ def test_full_report_ablations_and_figures(evals, tmp_path):
     names = {p.relative_to(out).as_posix() for p in written}
     assert names == {
         "main_table.csv", "steering.csv", "speed.csv", "summary.md",
-        "hierarchy_ablation.csv", "training_ablation.csv", "compression_ablation.csv",
+        "hierarchy_ablation.csv", "training_ablation.csv", "compression_ablation.csv", "conditioning.csv",
         "figures/fvd_chunked.png", "figures/probe_per_block.png", "figures/bubble_params_fvd_miou.png",
     }  # fmt: skip
 
@@ -260,7 +283,7 @@ def test_full_report_ablations_and_figures(evals, tmp_path):
     summary = (out / "summary.md").read_text()
     for heading in ("## Hierarchy design study", "## Training strategy", "## Latent compression"):
         assert heading in summary
-    assert summary_verdicts(out / "summary.md") == ["holds"] * 5
+    assert summary_verdicts(out / "summary.md") == ["holds"] * 7
 
 
 def _set(evals: dict, path: tuple, value) -> None:
@@ -281,16 +304,25 @@ def _set(evals: dict, path: tuple, value) -> None:
         (3, ("steering", "modes", "original", "ade"), 3.0),  # original nearer chance than floor
         (3, ("steering", "modes", "yaw_rate_x1.5", "turn_deg"), 5.0),  # x1.5 turns less than x0.5
         (4, ("speed", "models", "flat_detail", "fps"), 5.0),  # flat detail faster
+        (5, ("conditioning", "variants", 1, "high"), 0.02),  # another clip's subgoal: no material change
+        (6, ("conditioning", "baselines", 0, "high"), 0.01),  # repeating the last frame is as good
     ],
 )
 def test_each_claim_flips_with_the_numbers(evals, tmp_path, claim, path, value):
     assert verdicts(evals)[claim] == "holds"
     _set(evals, path, value)
-    expected = ["holds"] * 5
+    expected = ["holds"] * 7
     expected[claim] = "does not hold"
+    if claim >= 5:
+        _set(evals, path[:-1] + ("low",), -0.05)
     assert verdicts(evals) == expected
     report.write_full_report(evals, tmp_path / "out", SETUP)
     assert summary_verdicts(tmp_path / "out" / "summary.md") == expected
+
+
+def test_an_interval_straddling_the_threshold_is_not_resolved(evals):
+    _set(evals, ("conditioning", "variants", 1, "low"), 0.01)
+    assert verdicts(evals)[5] == "not resolved at this sample size"
 
 
 def test_null_compression_slope_is_not_measured(evals):

@@ -438,3 +438,33 @@ def run_conditioning(cfg: PipelineConfig, run: StageRun, device: torch.device, o
     return (f"{len(keys)} val windows from {record['clips']} clips x {settings.draws} draws x {len(ev.seeds)} seeds; "
             f"inputs used (one-step mean): {', '.join(used) or 'none shown'}; ego-motion probe R^2 speed "
             f"{probe['speed']['r2']:.2f}, yaw rate {probe['yaw_rate']['r2']:.2f}")
+
+
+# --------------------------------------------------------------------------- report rows
+
+
+def claim_verdict(row: dict, threshold: float) -> str:
+    """The claim reading of a stored row: "holds" / "does not hold" / "not resolved at this sample size"."""
+    if row["low"] > threshold:
+        return "holds"
+    return "does not hold" if row["high"] < threshold else "not resolved at this sample size"
+
+
+def conditioning_rows(doc: dict) -> list[dict]:
+    """One table of the stage's record: per model and check, the error with the true input (or of the model),
+    the alternative's error, effect = (alternative - error) / error with its interval, and the verdict."""
+    rows = []
+    for r in doc["variants"]:
+        if r["verdict"] == "reference":
+            continue
+        ref = next(x for x in doc["variants"] if x["model"] == r["model"] and x["metric"] == r["metric"]
+                   and x["verdict"] == "reference")
+        rows.append({"model": r["model"], "check": f"input: {r['variant']}", "metric": r["metric"],
+                     "error": ref["error"], "alternative_error": r["error"], "effect": r["effect"], "low": r["low"],
+                     "high": r["high"], "verdict": r["verdict"], "windows": r["windows"], "clips": r["clips"]})
+    for r in doc["baselines"]:
+        rows.append({"model": r["model"], "check": f"beats {r['baseline']} at {r['horizon_s']:g} s",
+                     "metric": "one_step_mse", "error": r["model_mse"], "alternative_error": r["baseline_mse"],
+                     "effect": r["effect"], "low": r["low"], "high": r["high"], "verdict": r["verdict"],
+                     "windows": r["windows"], "clips": r["clips"]})
+    return rows
