@@ -125,6 +125,6 @@ def test_fvd_slope_interval_recovers_a_growing_gap():
     clips = np.repeat(np.arange(16), 4)
     real = [rng.normal(size=(64, 4)) for _ in range(3)]
     fake = [r + shift for r, shift in zip(real, (0.0, 1.0, 2.0))]
-    chunks, slope = fvd_slope_interval(real, fake, clips, reps=40, seed=2)
+    chunks, slope, draws = fvd_slope_interval(real, fake, clips, reps=40, seed=2)
     assert [c.estimate for c in chunks] == pytest.approx([0.0, 4.0, 16.0], abs=1e-6)
-    assert slope.estimate == pytest.approx(8.0) and slope.low == pytest.approx(8.0)
+    assert slope.estimate == pytest.approx(8.0) and slope.low == pytest.approx(8.0) and len(draws) == 40

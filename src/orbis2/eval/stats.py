@@ -78,6 +78,24 @@ def _interval(estimate: float, draws: np.ndarray, level: float, clusters: int, u
     return Interval(float(estimate), float(low), float(high), level, clusters, units, reps, seed)
 
 
+def bootstrap_draws(clusters: Sequence, statistic: Callable[[np.ndarray], float], reps: int = DEFAULT_REPS,
+                    seed: int = 0) -> tuple[float, np.ndarray, int]:
+    """(full-sample statistic, its value on each clip resample [reps], number of clips).
+
+    ``statistic(row_weights)`` gets multiplicities per row; the full sample is all ones.
+    The resamples depend only on the clip labels, ``reps`` and ``seed``: two statistics
+    of the same clips with the same seed see the same resamples (paired draws).
+    """
+    ids, weights = cluster_weights(clusters, reps, seed)
+    draws = np.array([statistic(w[ids]) for w in weights], np.float64)
+    return float(statistic(np.ones(len(ids)))), draws, weights.shape[1]
+
+
+def interval_from_draws(estimate: float, draws: np.ndarray, clusters: int, units: int, seed: int,
+                        level: float = DEFAULT_LEVEL) -> Interval:
+    return _interval(estimate, np.asarray(draws, np.float64), level, clusters, units, len(draws), seed)
+
+
 def bootstrap_statistic(clusters: Sequence, statistic: Callable[[np.ndarray], float], reps: int = DEFAULT_REPS,
                         level: float = DEFAULT_LEVEL, seed: int = 0) -> Interval:
     """Interval of ``statistic(row_weights)`` over clip resamples; row_weights [N] are multiplicities.
@@ -85,9 +103,8 @@ def bootstrap_statistic(clusters: Sequence, statistic: Callable[[np.ndarray], fl
     The estimate is the statistic with every weight 1 (the full sample). Use this for
     statistics that are not means, e.g. FVD recomputed from a resample's features.
     """
-    ids, weights = cluster_weights(clusters, reps, seed)
-    draws = np.array([statistic(w[ids]) for w in weights], np.float64)
-    return _interval(statistic(np.ones(len(ids))), draws, level, weights.shape[1], len(ids), reps, seed)
+    estimate, draws, n_clusters = bootstrap_draws(clusters, statistic, reps, seed)
+    return _interval(estimate, draws, level, n_clusters, len(clusters), reps, seed)
 
 
 def _cluster_sums(values: np.ndarray, ids: np.ndarray, n_clusters: int) -> tuple[np.ndarray, np.ndarray]:
@@ -146,49 +163,59 @@ def _weighted_moments(features: np.ndarray, weights: np.ndarray) -> tuple[np.nda
     return mean, cov
 
 
-def fvd_interval(real: np.ndarray, fake: np.ndarray, clusters: Sequence, reps: int = 200,
-                 level: float = DEFAULT_LEVEL, seed: int = 0) -> Interval:
-    """FVD of paired feature rows (real[i] and fake[i] from the same clip start) with a clip-bootstrap interval.
+def fvd_statistic(real: np.ndarray, fake: np.ndarray) -> Callable[[np.ndarray], float]:
+    """FVD of paired feature rows (real[i] and fake[i] from the same clip start) under row weights.
 
-    Each resample takes the same clips on both sides and recomputes both means and
-    covariances, so the interval reflects which clips were evaluated, the dominant
+    A resample takes the same clips on both sides and recomputes both means and
+    covariances, so an interval reflects which clips were evaluated, the dominant
     source of variation at tens of videos. FVD is biased upwards at small sample
     sizes, so intervals of different sample sizes are not comparable.
     """
     real, fake = np.asarray(real, np.float64), np.asarray(fake, np.float64)
-    if real.shape != fake.shape or len(real) != len(clusters):
-        raise ValueError(f"fvd_interval: real {real.shape} and fake {fake.shape} must be paired rows, one cluster "
-                         f"label each (got {len(clusters)})")
+    if real.shape != fake.shape:
+        raise ValueError(f"FVD rows must be paired: real {real.shape}, generated {fake.shape}")
 
     def statistic(w: np.ndarray) -> float:
         mu_r, cov_r = _weighted_moments(real, w)
         mu_f, cov_f = _weighted_moments(fake, w)
         return frechet_distance(mu_r, cov_r, mu_f, cov_f)
 
-    return bootstrap_statistic(clusters, statistic, reps, level, seed)
+    return statistic
+
+
+def fvd_interval(real: np.ndarray, fake: np.ndarray, clusters: Sequence, reps: int = 200,
+                 level: float = DEFAULT_LEVEL, seed: int = 0) -> Interval:
+    """FVD of paired feature rows with a clip-bootstrap interval (see :func:`fvd_statistic`)."""
+    if len(real) != len(clusters):
+        raise ValueError(f"fvd_interval: {len(real)} rows but {len(clusters)} cluster labels")
+    return bootstrap_statistic(clusters, fvd_statistic(real, fake), reps, level, seed)
 
 
 def fvd_slope_interval(real_chunks: Sequence[np.ndarray], fake_chunks: Sequence[np.ndarray], clusters: Sequence,
-                       reps: int = 200, level: float = DEFAULT_LEVEL, seed: int = 0) -> tuple[list[Interval],
-                                                                                              Interval]:
-    """Per-chunk FVD intervals and the FVD-slope (last - first) / (chunks - 1), every chunk on the same resample."""
+                       reps: int = 200, level: float = DEFAULT_LEVEL,
+                       seed: int = 0) -> tuple[list[Interval], Interval, np.ndarray]:
+    """Per-chunk FVD intervals, the FVD-slope (last - first) / (chunks - 1) interval, and the slope's draws;
+    every chunk is evaluated on the same clip resample."""
     if len(real_chunks) < 2 or len(real_chunks) != len(fake_chunks):
         raise ValueError("fvd_slope_interval needs at least two chunks, as many real as generated")
-    ids, weights = cluster_weights(clusters, reps, seed)
-
-    def chunk_fvd(k: int, w: np.ndarray) -> float:
-        mu_r, cov_r = _weighted_moments(np.asarray(real_chunks[k], np.float64), w)
-        mu_f, cov_f = _weighted_moments(np.asarray(fake_chunks[k], np.float64), w)
-        return frechet_distance(mu_r, cov_r, mu_f, cov_f)
-
     n = len(real_chunks)
-    full = np.array([chunk_fvd(k, np.ones(len(ids))) for k in range(n)])
-    draws = np.array([[chunk_fvd(k, w[ids]) for k in range(n)] for w in weights])
-    g, units = weights.shape[1], len(ids)
-    chunks = [_interval(full[k], draws[:, k], level, g, units, reps, seed) for k in range(n)]
-    slope = _interval((full[-1] - full[0]) / (n - 1), (draws[:, -1] - draws[:, 0]) / (n - 1), level, g, units,
-                      reps, seed)
-    return chunks, slope
+    results = [bootstrap_draws(clusters, fvd_statistic(r, f), reps, seed) for r, f in zip(real_chunks, fake_chunks)]
+    g, units = results[0][2], len(clusters)
+    chunks = [_interval(est, draws, level, g, units, reps, seed) for est, draws, _ in results]
+    slope_draws = (results[-1][1] - results[0][1]) / (n - 1)
+    slope = _interval((results[-1][0] - results[0][0]) / (n - 1), slope_draws, level, g, units, reps, seed)
+    return chunks, slope, slope_draws
+
+
+def paired_draws_interval(estimate: float, draws_a: Sequence[float], draws_b: Sequence[float],
+                          level: float = DEFAULT_LEVEL) -> tuple[float, float]:
+    """Interval of a - b from two statistics' draws on the same clip resamples (same clips, reps, seed)."""
+    if len(draws_a) != len(draws_b):
+        raise ValueError("paired draws need the same number of resamples on both sides")
+    diff = np.asarray(draws_a, np.float64) - np.asarray(draws_b, np.float64)
+    alpha = (1.0 - level) / 2.0
+    low, high = np.quantile(diff, [alpha, 1.0 - alpha])
+    return float(low), float(high)
 
 
 # --------------------------------------------------------------------------- swaps and verdicts
