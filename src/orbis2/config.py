@@ -403,7 +403,8 @@ class EvaluationConfig:
     FVD over ``seconds`` of rollout on each split in ``fvd_splits``; chunked FVD
     over ``chunk_seconds`` windows of ``long_seconds`` rollouts on ``long_split``
     (whose first ``seconds`` also give that split's FVD). ``starts_per_clip``
-    context positions per evaluation clip, evenly spread. ``top_nfe`` and
+    context positions per evaluation clip, evenly spread (FVD needs many videos: its
+    covariance has rank videos - 1). ``top_nfe`` and
     ``bottom_nfe`` are the Euler steps of the top (abstract, 2 Hz) and bottom
     (detail, 10 Hz; also flat) predictors. Steering: ``steering_seconds`` rollouts
     of ``steering_split`` clips under each mode of ``steering_modes``.
@@ -429,11 +430,19 @@ class EvaluationConfig:
     speed_seconds: float = 2.0
     speed_repeats: int = 2
     conditioning: ConditioningSettings = field(default_factory=ConditioningSettings)
+    # FVD intervals: clip-bootstrap resamples, random clip half-splits for the real-vs-real floor, and the
+    # smallest FVD(-slope) difference a claim counts as material (FVD units).
+    fvd_bootstrap_reps: int = 200
+    floor_splits: int = 50
+    fvd_material: float = 10.0
     # Seeds (noise draws, rollout noise) over which the claim-bearing evaluation is repeated.
     seeds: list[int] = field(default_factory=lambda: [0])
 
     def validate(self, where: str) -> None:
         self.conditioning.validate(f"{where}.conditioning")
+        _positive(self, where, "fvd_bootstrap_reps", "floor_splits")
+        if self.fvd_material < 0:
+            raise ConfigError(f"{where}.fvd_material must be >= 0 (FVD units)")
         if not self.seeds or len(set(self.seeds)) != len(self.seeds):
             raise ConfigError(f"{where}.seeds must be a non-empty list of distinct integers")
         _positive(self, where, "seconds", "long_seconds", "chunk_seconds", "starts_per_clip", "top_nfe",

@@ -24,7 +24,7 @@ from orbis2.data.probes import cityscapes_frames, kitti_eigen_frames, split_by_e
 from orbis2.data.shards import Clip, iter_samples, load_manifest, shard_paths
 from orbis2.data.video import write_video
 from orbis2.errors import OrbisError
-from orbis2.eval.fvd import FeatureStats, cached_stats, chunk_windows, clip_stats, fvd_slope, video_fvd
+from orbis2.eval.fvd import cached_features, chunk_windows, clip_features
 from orbis2.eval.odometry import (
     camera_intrinsics,
     endpoint_angle,
@@ -33,6 +33,7 @@ from orbis2.eval.odometry import (
     trajectory_ade,
 )
 from orbis2.eval.probe import ProbeConfig, predictor_features, run_probe, teacher_features, tokenizer_features
+from orbis2.eval.references import fvd_with_interval, reference_rows
 from orbis2.eval.report import (
     compression_from_evals,
     load_eval,
@@ -42,6 +43,7 @@ from orbis2.eval.report import (
     write_main_report,
 )
 from orbis2.eval.speed import measure
+from orbis2.eval.stats import fvd_slope_interval
 from orbis2.eval.systems import (
     SYSTEMS,
     LoadedSystem,
@@ -102,11 +104,6 @@ def real_videos(clips: dict[str, Clip], samples: list[Sample], indices: list[np.
     return np.stack([clips[s.key].frames(idx) for s, idx in zip(samples, indices)])
 
 
-def real_stats(split: str, what: str, compute) -> FeatureStats:
-    """I3D statistics of real videos, cached under the split's shard hash and a description of the videos."""
-    return cached_stats(STATS_CACHE, f"{split}|{split_hash(split)}|{what}", compute)
-
-
 # --------------------------------------------------------------------------- rollouts
 
 
@@ -132,19 +129,21 @@ def load_fvd_network(cfg: PipelineConfig, dev: torch.device):
     return load_i3d(path).to(dev).eval()
 
 
-def fvd_record(result, seconds: float) -> dict[str, Any]:
-    return {"fvd": result.value, "videos": result.n_videos, "frames": result.frames, "seconds": seconds,
-            "resolution": [224, 224], "source_resolution": list(result.resolution), "seed": result.seed}
+def sample_clusters(cache: LatentCache, split: str, samples: list[Sample]) -> list[str]:
+    """What a bootstrap resamples: each sample's episode (clips and starts of one episode are not independent)."""
+    index = cache.index(split)
+    return [str(index[s.key].get("episode", s.key)) for s in samples]
 
 
 def run_fvd(name: str, cfg: PipelineConfig, run: StageRun) -> str:
-    """FVD over ``seconds`` on each split, chunked FVD and FVD-slope over ``long_seconds`` on ``long_split``.
+    """FVD over ``seconds`` on each split, chunked FVD and FVD-slope over ``long_seconds`` on ``long_split``,
+    each with a clip-bootstrap interval, beside the reference rows of :mod:`orbis2.eval.references`.
 
     The long split's FVD uses the first ``seconds`` of its long rollouts (same
-    contexts, same distribution as separate short rollouts). Also records, on the
-    first split, the per-frame latent MSE of the first 4 s of rollout against the
-    truth and against repeating the last context frame: a trivial baseline that a
-    world model must beat.
+    contexts, same distribution as separate short rollouts). Whether a rollout
+    beats repeating the last frame in latent space is the ``eval_conditioning``
+    stage's unbiased one-step comparison, not a sample's MSE (which pays twice the
+    conditional variance).
     """
     ev, dev = cfg.evaluation, device()
     system = load_system(name, dev)
@@ -153,7 +152,7 @@ def run_fvd(name: str, cfg: PipelineConfig, run: StageRun) -> str:
     record: dict[str, Any] = {"model": name, "label": SYSTEMS[name].label, "parameters": system.parameters,
                               "latent_channels": system.bottom.model.latent_channels,
                               "predictors": SYSTEMS[name].stages, "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe},
-                              "fvd": {}}
+                              "starts_per_clip": ev.starts_per_clip, "fvd": {}, "references": {}}
     media = EVAL / "media" / name
     with atomic_dir(media) as tmp:
         for split in ev.fvd_splits:
@@ -163,65 +162,100 @@ def run_fvd(name: str, cfg: PipelineConfig, run: StageRun) -> str:
     write_json(EVAL / f"fvd_{name}.json", record)
     run.log_artifact(EVAL / f"fvd_{name}.json")
     run.log_metrics({f"fvd_{split}": v["fvd"] for split, v in record["fvd"].items()})
+    run.log_metrics({f"fvd_{split}_{ref}": v["fvd"] for split, refs in record["references"].items()
+                     for ref, v in refs.items()})
     if "chunked" in record:
         run.log_metrics({"fvd_slope": record["chunked"]["fvd_slope"]})
-    splits = ", ".join(f"{s} {v['fvd']:.1f} (n={v['videos']})" for s, v in record["fvd"].items())
+    splits = ", ".join(f"{s} {v['fvd']:.1f} [{v['low']:.1f}, {v['high']:.1f}] (n={v['videos']}, {v['clips']} clips)"
+                       for s, v in record["fvd"].items())
     slope = f"; FVD-slope {record['chunked']['fvd_slope']:.1f}" if "chunked" in record else ""
     return f"{name}: FVD {splits}{slope}"
 
 
 def fvd_split(split: str, system: LoadedSystem, cache: LatentCache, i3d, record: dict[str, Any], media: Path,
               cfg: PipelineConfig, dev: torch.device) -> None:
-    """Roll out one split, add its FVD (and, for the long split, chunked FVD) to ``record``; save a sample video."""
+    """Roll out one split, add its FVD, reference rows and (long split) chunked FVD to ``record``; save a video."""
     ev, data = cfg.evaluation, cfg.data
     long = split == ev.long_split
     steps = rollout_steps(data, ev.long_seconds if long else ev.seconds)
     n_short, n_long = round(ev.seconds * data.detail_hz), round(ev.long_seconds * data.detail_hz)
     samples = eval_samples(cache, split, data, steps, ev.starts_per_clip)
     indices = [generated_indices(data, s.context_end, steps) for s in samples]
+    clusters = sample_clusters(cache, split, samples)
     latents = generate(system, cache, split, samples, steps, cfg, dev)
-    if split == ev.fvd_splits[0]:
-        record["latent_mse"] = latent_baseline(system, cache, split, samples, indices, latents, data)
     fake = system.decode(latents)
     clips = split_clips(split)
     what = f"{len(samples)}x{ev.starts_per_clip}starts|{steps}steps|{data.width}x{data.height}"
-    real = real_stats(split, f"{what}|first{n_short}",
-                      lambda: clip_stats(real_videos(clips, samples, [i[:n_short] for i in indices]), i3d))
-    record["fvd"][split] = fvd_record(video_fvd(real, fake[:, :n_short], i3d, seed=ev.seed), ev.seconds)
+
+    def real(window: slice) -> np.ndarray:
+        return real_features(split, f"{what}|frames{window.start}-{window.stop}",
+                             lambda: clip_features(real_videos(clips, samples, [i[window] for i in indices]), i3d))
+
+    short = slice(0, n_short)
+    real_short = real(short)
+    record["fvd"][split] = {**fvd_with_interval(real_short, clip_features(fake[:, short], i3d), clusters,
+                                                ev.fvd_bootstrap_reps, ev.seed),
+                            "frames": 16, "seconds": ev.seconds, "resolution": [224, 224],
+                            "source_resolution": list(fake.shape[2:4]), "seed": ev.seed}
+    record["references"][split] = references(split, system, cache, samples, indices, short, real_short, clusters,
+                                             what, i3d, cfg)
     if long:
-        record["chunked"] = chunked_record(split, samples, indices, fake[:, :n_long], clips, what, i3d, cfg)
+        record["chunked"] = chunked_record(split, fake[:, :n_long], real, clusters, i3d, cfg)
         save_grid_frames(media / "grid.npz", fake[0], data.detail_hz)
     write_video(media / f"{split}.mp4", fake[0], data.detail_hz)
 
 
-def chunked_record(split: str, samples: list[Sample], indices: list[np.ndarray], fake: np.ndarray,
-                   clips: dict[str, Clip], what: str, i3d, cfg: PipelineConfig) -> dict[str, Any]:
-    """Chunked FVD over consecutive ``chunk_seconds`` windows, FVD over the whole span, and the FVD-slope."""
+def real_features(split: str, what: str, compute) -> np.ndarray:
+    """Per-video I3D features of real videos, cached under the split's shard hash and a description of the videos."""
+    return cached_features(STATS_CACHE, f"{split}|{split_hash(split)}|{what}", compute)
+
+
+def references(split: str, system: LoadedSystem, cache: LatentCache, samples: list[Sample],
+               indices: list[np.ndarray], window: slice, real: np.ndarray, clusters: list[str], what: str, i3d,
+               cfg: PipelineConfig) -> dict[str, Any]:
+    """Reference rows on the same clips and frames: real-vs-real floor, tokenizer reconstruction, repeat-last.
+
+    Cached by the decoding tokenizer's checksum: systems that decode with the same
+    tokenizer (all detail-level ones) share them.
+    """
+    ev, level = cfg.evaluation, system.output_level
+    key = f"{what}|frames{window.start}-{window.stop}|{level}|{system.tokenizers[level].checksum[:16]}"
+
+    def reconstruction() -> np.ndarray:
+        truth = cache_latents(cache, split, level, samples, [i[window] for i in indices])
+        return clip_features(system.decode(truth), i3d)
+
+    def repeat_last() -> np.ndarray:
+        last = cache_latents(cache, split, level, samples, [np.array([s.context_end]) for s in samples])
+        frames = system.decode(last)
+        return clip_features(np.broadcast_to(frames, (len(frames), window.stop - window.start, *frames.shape[2:])),
+                             i3d)
+
+    recon = real_features(split, f"{key}|reconstruction", reconstruction)
+    still = real_features(split, f"{key}|repeat_last", repeat_last)
+    return reference_rows(real, recon, still, clusters, ev.fvd_bootstrap_reps, ev.seed, ev.floor_splits)
+
+
+def chunked_record(split: str, fake: np.ndarray, real, clusters: list[str], i3d,
+                   cfg: PipelineConfig) -> dict[str, Any]:
+    """Chunked FVD over consecutive ``chunk_seconds`` windows, FVD over the whole span, and the FVD-slope,
+    each with a clip-bootstrap interval (all chunks on the same resamples)."""
     ev, data = cfg.evaluation, cfg.data
-
-    def fvd_of(window: slice) -> float:
-        real = real_stats(split, f"{what}|frames{window.start}-{window.stop}",
-                          lambda: clip_stats(real_videos(clips, samples, [i[window] for i in indices]), i3d))
-        return video_fvd(real, fake[:, window], i3d, seed=ev.seed).value
-
     windows = chunk_windows(fake.shape[1], data.detail_hz, ev.chunk_seconds)
-    chunks = [{"start_s": w.start / data.detail_hz, "end_s": w.stop / data.detail_hz, "fvd": fvd_of(w)}
-              for w in windows]
+    reals = [real(w) for w in windows]
+    fakes = [clip_features(fake[:, w], i3d) for w in windows]
+    chunks, slope, slope_draws = fvd_slope_interval(reals, fakes, clusters, ev.fvd_bootstrap_reps, seed=ev.seed)
+    whole = slice(0, windows[-1].stop)
+    full = fvd_with_interval(real(whole), clip_features(fake[:, whole], i3d), clusters,
+                             ev.fvd_bootstrap_reps, ev.seed)
     return {"split": split, "seconds": len(windows) * ev.chunk_seconds, "chunk_seconds": ev.chunk_seconds,
-            "videos": len(samples), "seed": ev.seed, "chunks": chunks,
-            "fvd_16s": fvd_of(slice(0, windows[-1].stop)), "fvd_slope": fvd_slope([c["fvd"] for c in chunks])}
-
-
-def latent_baseline(system: LoadedSystem, cache: LatentCache, split: str, samples: list[Sample],
-                    indices: list[np.ndarray], latents: torch.Tensor, data) -> dict[str, Any]:
-    """Per-frame MSE of the first 4 s of rollout vs. the true latents, and of repeating the last context frame."""
-    frames = min(latents.shape[1], round(4.0 * data.detail_hz))
-    level = system.output_level
-    truth = cache_latents(cache, split, level, samples, [i[:frames] for i in indices])
-    last = cache_latents(cache, split, level, samples, [np.array([s.context_end]) for s in samples])
-    return {"level": level, "seconds": frames / data.detail_hz, "videos": len(samples),
-            "rollout": float(((latents[:, :frames] - truth) ** 2).mean()),
-            "repeat_last": float(((last - truth) ** 2).mean())}
+            "videos": len(clusters), "clips": slope.clusters, "seed": ev.seed,
+            "chunks": [{"start_s": w.start / data.detail_hz, "end_s": w.stop / data.detail_hz, "fvd": c.estimate,
+                        "low": c.low, "high": c.high} for w, c in zip(windows, chunks)],
+            "fvd_16s": full["fvd"], "fvd_16s_low": full["low"], "fvd_16s_high": full["high"],
+            "fvd_slope": slope.estimate, "fvd_slope_low": slope.low, "fvd_slope_high": slope.high,
+            "bootstrap_reps": ev.fvd_bootstrap_reps, "bootstrap_seed": ev.seed,
+            "fvd_slope_draws": [float(d) for d in slope_draws]}
 
 
 def save_grid_frames(path: Path, frames: np.ndarray, fps: float) -> None:
