@@ -41,6 +41,6 @@ def test_draws_with_the_same_seed_are_paired():
     fake = real + 1.0 + rng.normal(size=real.shape)
     a = fvd_with_interval(real, fake, clips, reps=100, seed=4)
     b = fvd_with_interval(real, fake + 0.2, clips, reps=100, seed=4)
-    low, high = paired_draws_interval(b["fvd"] - a["fvd"], b["draws"], a["draws"])
+    low, high = paired_draws_interval(b["draws"], a["draws"])
     assert 0 < low <= b["fvd"] - a["fvd"] <= high
     assert high - low < 0.5 * (a["high"] - a["low"])

@@ -18,7 +18,7 @@ SETUP = {"profile": "smoke", "seed": 7, "fvd_videos": 12}
 
 FVD = {  # model: (parameters, fvd val, heldout, turns, fvd_16s, slope)
     "flat_detail": (20_000_000, 170.5, 200.25, 210.0, 300.0, 101.63),
-    "flat_abstract": (21_000_000, 490.04, 500.0, 510.0, 520.0, 48.38),
+    "flat_abstract": (21_000_000, 490.04, 500.0, 510.0, 520.0, 60.38),
     "hierarchical": (41_000_000, 98.97, 98.01, 187.53, 209.15, 46.45),
     "top_detail": (40_000_000, 120.0, 130.0, 140.0, 207.71, 81.4),
     "top_abstract_10hz": (40_000_000, 400.0, 410.0, 420.0, 551.38, 137.07),
@@ -41,13 +41,25 @@ PROBES = {  # target: (miou, val loss, rmse)
 
 def fvd_doc(model: str) -> dict:
     params, val, heldout, turns, fvd16, slope = FVD[model]
-    split = lambda v, n: {"fvd": v, "videos": n, "frames": 16, "seconds": 6.0, "resolution": [224, 224], "seed": 3}
+
+    def split(v, n):
+        return {"fvd": v, "low": v * 0.9, "high": v * 1.1, "videos": n, "clips": 8, "frames": 16, "seconds": 6.0,
+                "resolution": [224, 224], "seed": 3}
+
+    def reference(v):
+        return {"fvd": v, "low": v - 5.0, "high": v + 5.0, "videos": 40}
+
     chunks = [{"start_s": 4.0 * i, "end_s": 4.0 * (i + 1), "fvd": fvd16 / 2 + slope * i} for i in range(4)]
+    # Bootstrap draws of the slope: the same resamples for every model, so differences are paired.
+    wiggle = np.linspace(-3.0, 3.0, 40)
     return {
         "model": model,
         "label": model.replace("_", " ").title(),
         "parameters": params,
+        "fvd_material": 10.0,
         "fvd": {"val": split(val, 40), "heldout": split(heldout, 41), "turns": split(turns, 42)},
+        "references": {s: {"real_floor": reference(30.0), "reconstruction": reference(60.0),
+                           "repeat_last": reference(900.0)} for s in ("val", "heldout", "turns")},
         "chunked": {
             "split": "turns",
             "seconds": 16.0,
@@ -57,6 +69,9 @@ def fvd_doc(model: str) -> dict:
             "chunks": chunks,
             "fvd_16s": fvd16,
             "fvd_slope": slope,
+            "fvd_slope_low": slope - 3.0,
+            "fvd_slope_high": slope + 3.0,
+            "fvd_slope_draws": list(slope + wiggle),
         },
     }
 
@@ -178,12 +193,18 @@ def test_main_report_tables_round_trip(evals, tmp_path):
         ("detail", "input: subgoal_other_clip", "used"), ("detail", "beats repeat_last at 0.5 s", "holds")]
 
     main = read_csv(out / "main_table.csv")
-    assert [r["model"] for r in main] == ["flat_detail", "flat_abstract", "hierarchical"]
+    assert [r["model"] for r in main] == ["flat_detail", "flat_abstract", "hierarchical",
+                                          *(name for name, *_ in report.FVD_REFERENCES)]
+    assert [r["kind"] for r in main] == ["model"] * 3 + ["reference"] * 5
     assert list(main[0]) == [
-        "model", "label", "parameters",
-        "fvd_val", "fvd_val_n", "fvd_heldout", "fvd_heldout_n", "fvd_turns", "fvd_turns_n",
-        "fvd_slope_turns", "fvd_slope_turns_n", "probe_target", "miou", "miou_n", "rmse", "rmse_n",
+        "model", "kind", "label", "parameters",
+        "fvd_val", "fvd_val_low", "fvd_val_high", "fvd_val_n", "fvd_heldout", "fvd_heldout_low",
+        "fvd_heldout_high", "fvd_heldout_n", "fvd_turns", "fvd_turns_low", "fvd_turns_high", "fvd_turns_n",
+        "fvd_slope_turns", "fvd_slope_turns_low", "fvd_slope_turns_high", "fvd_slope_turns_n",
+        "probe_target", "miou", "miou_n", "rmse", "rmse_n",
     ]  # fmt: skip
+    floor = main[3]
+    assert float(floor["fvd_val"]) == 30.0 and floor["fvd_slope_turns"] == "NA" and floor["miou"] == "NA"
     ours = main[2]
     assert int(ours["parameters"]) == FVD["hierarchical"][0]
     assert [float(ours[f"fvd_{s}"]) for s in ("val", "heldout", "turns")] == list(FVD["hierarchical"][1:4])
@@ -298,7 +319,7 @@ def _set(evals: dict, path: tuple, value) -> None:
     [
         (0, ("probe", "abstract_df", "segmentation", "miou"), 60.0),  # DF only better mIoU than DF+TF
         (0, ("probe", "abstract_tf_only", "depth", "rmse"), 4.0),  # TF only better RMSE
-        (1, ("fvd", "flat_abstract", "chunked", "fvd_slope"), 40.0),  # flat abstract more stable
+        (1, ("fvd", "flat_abstract", "chunked", "fvd_slope_draws"), [40.0] * 40),  # flat abstract more stable
         (2, ("compression", "rows", 0, "fvd_slope"), 200.0),  # compressed less stable than full
         (3, ("steering", "modes", "yaw_rate_x1.5", "ade"), 4.5),  # one mode at chance level
         (3, ("steering", "modes", "original", "ade"), 3.0),  # original nearer chance than floor

@@ -21,6 +21,7 @@ import numpy as np
 
 from orbis2.errors import OrbisError
 from orbis2.eval.conditioning import claim_verdict, conditioning_rows
+from orbis2.eval.stats import paired_draws_interval
 from orbis2.io import atomic_file
 
 FVD_MODELS = ("flat_detail", "flat_abstract", "hierarchical", "top_detail", "top_abstract_10hz")
@@ -180,22 +181,45 @@ def _rollout_cells(evals: Mapping, model: str) -> Row:
     }
 
 
+# Reference rows of the FVD table: (row name, system whose record holds it, reference, label).
+FVD_REFERENCES = (
+    ("real_floor", "hierarchical", "real_floor", "reference: real vs real, disjoint halves of the clips"),
+    ("reconstruction_detail", "hierarchical", "reconstruction", "reference: detail tokenizer reconstruction"),
+    ("repeat_last_detail", "hierarchical", "repeat_last", "reference: last context frame held (detail decoder)"),
+    ("reconstruction_abstract", "flat_abstract", "reconstruction", "reference: abstract tokenizer reconstruction"),
+    ("repeat_last_abstract", "flat_abstract", "repeat_last", "reference: last context frame held (abstract decoder)"),
+)
+
+
 def main_table(evals: Mapping) -> list[Row]:
-    """Table 1: FVD on three splits, FVD-slope on turns and the linear probes, per main model."""
+    """Table 1: FVD on three splits (clip-bootstrap intervals), FVD-slope on turns and the linear probes per
+    main model, then the reference rows (``kind`` = reference) on the same clips and frames."""
     rows = []
     for model in MAIN_MODELS:
         row: Row = {
             "model": model,
+            "kind": "model",
             "label": _get(evals, "fvd", model, "label"),
             "parameters": _get(evals, "fvd", model, "parameters"),
         }
         for split in FVD_SPLITS:
-            row[f"fvd_{split}"] = _get(evals, "fvd", model, "fvd", split, "fvd")
-            row[f"fvd_{split}_n"] = _get(evals, "fvd", model, "fvd", split, "videos")
+            for suffix, key in (("", "fvd"), ("_low", "low"), ("_high", "high"), ("_n", "videos")):
+                row[f"fvd_{split}{suffix}"] = _get(evals, "fvd", model, "fvd", split, key)
         rollout = _rollout_cells(evals, model)
         row["fvd_slope_turns"] = rollout["fvd_slope"]
+        row["fvd_slope_turns_low"] = _get(evals, "fvd", model, "chunked", "fvd_slope_low")
+        row["fvd_slope_turns_high"] = _get(evals, "fvd", model, "chunked", "fvd_slope_high")
         row["fvd_slope_turns_n"] = rollout["fvd_slope_n"]
         row.update(_probe_cells(evals, MAIN_PROBE[model]))
+        rows.append(row)
+    for name, model, ref, label in FVD_REFERENCES:
+        row = {"model": name, "kind": "reference", "label": label, "parameters": NA}
+        for split in FVD_SPLITS:
+            cells = _get(evals, "fvd", model, "references", split, ref)
+            row.update({f"fvd_{split}": cells["fvd"], f"fvd_{split}_low": cells["low"],
+                        f"fvd_{split}_high": cells["high"],
+                        f"fvd_{split}_n": cells.get("videos", cells.get("videos_per_half"))})
+        row.update({key: NA for key in rows[0] if key not in row})
         rows.append(row)
     return rows
 
@@ -338,13 +362,25 @@ def claim_training(evals: Mapping) -> tuple[str, str]:
 
 
 def claim_hierarchy_slope(evals: Mapping) -> tuple[str, str]:
-    """(2) The hierarchy has the lowest FVD-slope on turns among the main-table models."""
+    """(2) The hierarchy has the lowest FVD-slope on turns among the main-table models: for each other model,
+    the clip-bootstrap interval of (its slope - the hierarchy's), paired over the same resamples, lies above
+    ``fvd_material``; "does not hold" when one lies wholly below it, otherwise not resolved."""
     if not all(_has(evals, "fvd", m) for m in MAIN_MODELS):
         return UNMEASURED, "needs " + ", ".join(f"eval_fvd_{m}" for m in MAIN_MODELS)
+    material = _get(evals, "fvd", "hierarchical", "fvd_material")
     slopes = {m: _get(evals, "fvd", m, "chunked", "fvd_slope") for m in MAIN_MODELS}
-    ok = all(slopes["hierarchical"] < v for m, v in slopes.items() if m != "hierarchical")
+    ours = _get(evals, "fvd", "hierarchical", "chunked", "fvd_slope_draws")
+    verdicts, parts = [], []
+    for model in MAIN_MODELS:
+        if model == "hierarchical":
+            continue
+        low, high = paired_draws_interval(_get(evals, "fvd", model, "chunked", "fvd_slope_draws"), ours)
+        verdicts.append(claim_verdict({"low": low, "high": high}, material))
+        parts.append(f"{model} - hierarchical {_fmt(slopes[model] - slopes['hierarchical'])} "
+                     f"[{_fmt(low)}, {_fmt(high)}]")
+    verdict = FAILS if FAILS in verdicts else HOLDS if all(v == HOLDS for v in verdicts) else UNRESOLVED
     text = "FVD-slope on turns: " + ", ".join(f"{m} {_fmt(v)}" for m, v in slopes.items())
-    return (HOLDS if ok else FAILS), text
+    return verdict, f"{text}; paired differences {'; '.join(parts)} (material: > {_fmt(material)})"
 
 
 def claim_compression(evals: Mapping) -> tuple[str, str]:
@@ -645,7 +681,7 @@ def plot_bubble(evals: Mapping, path: str | Path, x_metric: str = "fvd_slope") -
 
     ``x_metric`` is ``fvd_slope`` (turns) or one of ``fvd_val``, ``fvd_heldout``, ``fvd_turns``.
     """
-    rows = main_table(evals)
+    rows = [r for r in main_table(evals) if r["kind"] == "model"]
     key = "fvd_slope_turns" if x_metric == "fvd_slope" else x_metric
     if key not in rows[0] or not key.startswith("fvd"):
         raise ValueError(f"x_metric must be fvd_slope, fvd_val, fvd_heldout or fvd_turns, got {x_metric!r}")

@@ -152,7 +152,8 @@ def run_fvd(name: str, cfg: PipelineConfig, run: StageRun) -> str:
     record: dict[str, Any] = {"model": name, "label": SYSTEMS[name].label, "parameters": system.parameters,
                               "latent_channels": system.bottom.model.latent_channels,
                               "predictors": SYSTEMS[name].stages, "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe},
-                              "starts_per_clip": ev.starts_per_clip, "fvd": {}, "references": {}}
+                              "starts_per_clip": ev.starts_per_clip, "fvd_material": ev.fvd_material, "fvd": {},
+                              "references": {}}
     media = EVAL / "media" / name
     with atomic_dir(media) as tmp:
         for split in ev.fvd_splits:

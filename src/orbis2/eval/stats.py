@@ -207,7 +207,7 @@ def fvd_slope_interval(real_chunks: Sequence[np.ndarray], fake_chunks: Sequence[
     return chunks, slope, slope_draws
 
 
-def paired_draws_interval(estimate: float, draws_a: Sequence[float], draws_b: Sequence[float],
+def paired_draws_interval(draws_a: Sequence[float], draws_b: Sequence[float],
                           level: float = DEFAULT_LEVEL) -> tuple[float, float]:
     """Interval of a - b from two statistics' draws on the same clip resamples (same clips, reps, seed)."""
     if len(draws_a) != len(draws_b):
