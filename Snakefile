@@ -283,17 +283,38 @@ for target in probe_targets():
             "python stages/eval_probe.py {rule} --profile {params.profile}"
 
 
+rule inverse_dynamics:
+    threads: workflow.cores  # trains a CNN; run nothing beside it
+    input:
+        "stages/inverse_dynamics.py",
+        "src/orbis2/eval/inverse_dynamics.py",
+        "src/orbis2/models/inverse_dynamics.py",
+        "data/shards",
+        "data/tokenizers/detail",
+    output:
+        directory("data/inverse_dynamics"),
+        "reports/inverse_dynamics.json",
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        inverse_dynamics=section("inverse_dynamics"),
+    shell:
+        "python stages/inverse_dynamics.py --profile {params.profile}"
+
+
 rule eval_steering:
     threads: workflow.cores  # uses every core itself; run nothing beside it
     input:
         "stages/eval_steering.py",
         *EVAL_CODE,
         "src/orbis2/eval/odometry.py",
+        "src/orbis2/eval/stats.py",
         "data/latents",
         "data/shards",
         *TOKENIZER_DIRS,
         "data/predictors/detail",
         "data/predictors/action",
+        "data/inverse_dynamics",
     output:
         "reports/eval/steering.json",
         "reports/eval/steering_strip.png",

@@ -92,15 +92,26 @@ def probe_doc(target: str) -> dict:
 
 def steering_doc() -> dict:
     ades = {"original": 1.2, "speed_x0.5": 2.18, "speed_x1.5": 0.53, "yaw_rate_x0.5": 1.65, "yaw_rate_x1.5": 0.73}
+    modes = {}
+    for i, (mode, ade) in enumerate(ades.items()):
+        cells = {"ade": ade, "ade_low": ade - 0.1, "ade_high": ade + 0.1, "turn_deg": 10.0 + 10 * i}
+        modes[mode] = {**cells, "samples": 20 + i, "commanded_turn_deg": 12.0 + 10 * i,
+                       "instruments": {"learned": cells, "opencv": {**cells, "ade": ade + 3.0}}}
+    sanity = {"real_ade": 0.4, "real_low": 0.3, "real_high": 0.5, "shuffled_ade": 4.0, "shuffled_low": 3.5,
+              "shuffled_high": 4.5, "videos": 30}
     return {
         "split": "turns",
         "seconds": 6.0,
         "samples": 20,
         "seed": 5,
-        "inverse_dynamics": "opencv",
-        "modes": {mode: {"ade": ade, "samples": 20 + i, "turn_deg": 10.0 + 10 * i, "commanded_turn_deg": 12.0 + 10 * i}
-                  for i, (mode, ade) in enumerate(ades.items())},
-        "odometry_sanity": {"real_ade": 0.4, "shuffled_ade": 4.0, "videos": 30},
+        "inverse_dynamics": "learned",
+        "modes": modes,
+        "responses": {"learned": {"turn_response_deg": {"estimate": 9.0, "low": 5.0, "high": 13.0},
+                                  "commanded_turn_response_deg": 12.0,
+                                  "path_ratio": {"estimate": 2.5, "low": 2.0, "high": 3.0}}},
+        "material": {"turn_deg": 2.0, "path_ratio": 1.1},
+        "odometry_sanity": sanity,
+        "sanity": {"learned": sanity, "opencv": {**sanity, "real_ade": 0.6}},
     }
 
 
@@ -216,7 +227,9 @@ def test_main_report_tables_round_trip(evals, tmp_path):
     assert float(main[1]["miou"]) == PROBES["flat_abstract"][0]
 
     steering = read_csv(out / "steering.csv")
-    assert list(steering[0]) == ["mode", "kind", "ade", "ade_n", "turn_deg", "commanded_turn_deg"]
+    assert list(steering[0]) == ["mode", "kind", "instrument", "ade", "ade_low", "ade_high", "ade_n", "turn_deg",
+                                 "commanded_turn_deg", "ade_opencv", "turn_deg_opencv"]
+    assert float(steering[0]["ade_opencv"]) == 4.2 and float(steering[-2]["ade_opencv"]) == 0.6
     assert [r["mode"] for r in steering] == [*report.STEERING_MODES, "real_videos", "shuffled_videos"]
     assert float(steering[1]["ade"]) == 2.18 and steering[1]["ade_n"] == "21"
     assert float(steering[-1]["ade"]) == 4.0 and steering[-1]["ade_n"] == "30"
@@ -321,9 +334,8 @@ def _set(evals: dict, path: tuple, value) -> None:
         (0, ("probe", "abstract_tf_only", "depth", "rmse"), 4.0),  # TF only better RMSE
         (1, ("fvd", "flat_abstract", "chunked", "fvd_slope_draws"), [40.0] * 40),  # flat abstract more stable
         (2, ("compression", "rows", 0, "fvd_slope"), 200.0),  # compressed less stable than full
-        (3, ("steering", "modes", "yaw_rate_x1.5", "ade"), 4.5),  # one mode at chance level
-        (3, ("steering", "modes", "original", "ade"), 3.0),  # original nearer chance than floor
-        (3, ("steering", "modes", "yaw_rate_x1.5", "turn_deg"), 5.0),  # x1.5 turns less than x0.5
+        (3, ("steering", "responses", "learned", "turn_response_deg", "high"), 1.0),  # turns do not follow yaw
+        (3, ("steering", "responses", "learned", "path_ratio", "high"), 1.05),  # paths do not follow speed
         (4, ("speed", "models", "flat_detail", "fps"), 5.0),  # flat detail faster
         (5, ("conditioning", "variants", 1, "high"), 0.02),  # another clip's subgoal: no material change
         (6, ("conditioning", "baselines", 0, "high"), 0.01),  # repeating the last frame is as good
@@ -334,7 +346,7 @@ def test_each_claim_flips_with_the_numbers(evals, tmp_path, claim, path, value):
     _set(evals, path, value)
     expected = ["holds"] * 7
     expected[claim] = "does not hold"
-    if claim >= 5:
+    if path[-1] == "high":  # an interval wholly below the material threshold
         _set(evals, path[:-1] + ("low",), -0.05)
     assert verdicts(evals) == expected
     report.write_full_report(evals, tmp_path / "out", SETUP)

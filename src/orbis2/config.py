@@ -368,6 +368,28 @@ class ProbeSettings:
 
 
 @dataclass(frozen=True)
+class InverseDynamicsConfig:
+    """The learned inverse-dynamics instrument (``orbis2.eval.inverse_dynamics``): a CNN of base ``width``
+    trained for ``steps`` AdamW steps on pairs of consecutive train frames (resized by ``scale``, at most
+    ``max_train_clips`` clips) to regress speed and yaw rate; scored on ``eval_pairs`` val pairs."""
+
+    steps: int = 600
+    batch_size: int = 32
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    width: int = 16
+    scale: float = 0.5
+    max_train_clips: int | None = None
+    eval_pairs: int = 512
+    seed: int = 0
+
+    def validate(self, where: str) -> None:
+        _positive(self, where, "steps", "batch_size", "lr", "width", "scale", "eval_pairs")
+        if self.scale > 1:
+            raise ConfigError(f"{where}.scale must be in (0, 1] (frames are only ever shrunk)")
+
+
+@dataclass(frozen=True)
 class ConditioningSettings:
     """The ``eval_conditioning`` stage (``orbis2.eval.conditioning``): does each predictor use its inputs?
 
@@ -423,6 +445,11 @@ class EvaluationConfig:
     batch_size: int = 8
     steering_split: str = "turns"
     steering_seconds: float = 6.0
+    steering_starts_per_clip: int = 1
+    # Material steering responses: recovered turn under yaw rate x1.5 minus x0.5 (degrees), and path length
+    # under speed x1.5 over x0.5 (commanded: 3).
+    steering_turn_material_deg: float = 2.0
+    steering_path_ratio_material: float = 1.1
     steering_modes: dict[str, list[float]] = field(default_factory=lambda: {
         "original": [1.0, 1.0], "speed_x0.5": [0.5, 1.0], "speed_x1.5": [1.5, 1.0],
         "yaw_rate_x0.5": [1.0, 0.5], "yaw_rate_x1.5": [1.0, 1.5]})
@@ -445,8 +472,9 @@ class EvaluationConfig:
             raise ConfigError(f"{where}.fvd_material must be >= 0 (FVD units)")
         if not self.seeds or len(set(self.seeds)) != len(self.seeds):
             raise ConfigError(f"{where}.seeds must be a non-empty list of distinct integers")
-        _positive(self, where, "seconds", "long_seconds", "chunk_seconds", "starts_per_clip", "top_nfe",
-                  "bottom_nfe", "batch_size", "steering_seconds", "speed_seconds", "speed_repeats")
+        _positive(self, where, "seconds", "long_seconds", "chunk_seconds", "starts_per_clip",
+                  "steering_starts_per_clip", "top_nfe", "bottom_nfe", "batch_size", "steering_seconds",
+                  "speed_seconds", "speed_repeats")
         self.probe.validate(f"{where}.probe")
         if self.long_seconds < 2 * self.chunk_seconds:
             raise ConfigError(f"{where}.long_seconds must hold at least two chunks of chunk_seconds for FVD-slope")
@@ -486,6 +514,7 @@ class PipelineConfig:
     detail_on_detail: DetailPredictorConfig
     flat_abstract_full: TeacherForcingConfig
     evaluation: EvaluationConfig
+    inverse_dynamics: InverseDynamicsConfig
 
     def section(self, name: str) -> Any:
         return getattr(self, SECTION_ATTRS.get(name, name))
@@ -588,6 +617,7 @@ SECTION_TYPES: dict[str, type] = {
     "top_detail": TeacherForcingConfig,
     "detail_on_detail": DetailPredictorConfig,
     "flat_abstract_full": TeacherForcingConfig,
+    "inverse_dynamics": InverseDynamicsConfig,
     "evaluation": EvaluationConfig,
 }
 

@@ -225,32 +225,43 @@ def main_table(evals: Mapping) -> list[Row]:
 
 
 def steering_table(evals: Mapping) -> list[Row]:
-    """Table 2: ADE per steering mode, then the odometry on real and on shuffled videos as floor and chance."""
-    rows: list[Row] = [
-        {
+    """Table 2: ADE per steering mode (clip-bootstrap interval) by the main instrument, with OpenCV odometry as a
+    second column; then each instrument on real and on shuffled videos as floor and chance."""
+    main = _get(evals, "steering", None, "inverse_dynamics")
+    rows: list[Row] = []
+    for mode in STEERING_MODES:
+        cells = _get(evals, "steering", None, "modes", mode)
+        opencv = _get(evals, "steering", None, "modes", mode, "instruments", "opencv")
+        rows.append({
             "mode": mode,
             "kind": "generated",
-            "ade": _get(evals, "steering", None, "modes", mode, "ade"),
-            "ade_n": _get(evals, "steering", None, "modes", mode, "samples"),
-            # How far the video turns (odometry end point, degrees, the clip's turn direction positive) next to
-            # the command: a scale-free check that counterfactuals move the rollout the right way.
-            "turn_deg": _get(evals, "steering", None, "modes", mode, "turn_deg"),
-            "commanded_turn_deg": _get(evals, "steering", None, "modes", mode, "commanded_turn_deg"),
-        }
-        for mode in STEERING_MODES
-    ]
+            "instrument": main,
+            "ade": cells["ade"],
+            "ade_low": _get(evals, "steering", None, "modes", mode, "ade_low"),
+            "ade_high": _get(evals, "steering", None, "modes", mode, "ade_high"),
+            "ade_n": cells["samples"],
+            # How far the video turns (end point, degrees, the clip's turn direction positive) next to the
+            # command: a scale-free check that counterfactuals move the rollout the right way.
+            "turn_deg": cells["turn_deg"],
+            "commanded_turn_deg": cells["commanded_turn_deg"],
+            "ade_opencv": opencv["ade"],
+            "turn_deg_opencv": opencv["turn_deg"],
+        })
     videos = _get(evals, "steering", None, "odometry_sanity", "videos")
-    for mode, key in (("real_videos", "real_ade"), ("shuffled_videos", "shuffled_ade")):
-        rows.append(
-            {
-                "mode": mode,
-                "kind": "odometry_sanity",
-                "ade": _get(evals, "steering", None, "odometry_sanity", key),
-                "ade_n": videos,
-                "turn_deg": NA,
-                "commanded_turn_deg": NA,
-            }
-        )
+    for mode, key in (("real_videos", "real"), ("shuffled_videos", "shuffled")):
+        rows.append({
+            "mode": mode,
+            "kind": "odometry_sanity",
+            "instrument": main,
+            "ade": _get(evals, "steering", None, "odometry_sanity", f"{key}_ade"),
+            "ade_low": _get(evals, "steering", None, "odometry_sanity", f"{key}_low"),
+            "ade_high": _get(evals, "steering", None, "odometry_sanity", f"{key}_high"),
+            "ade_n": videos,
+            "turn_deg": NA,
+            "commanded_turn_deg": NA,
+            "ade_opencv": _get(evals, "steering", None, "sanity", "opencv", f"{key}_ade"),
+            "turn_deg_opencv": NA,
+        })
     return rows
 
 
@@ -402,30 +413,26 @@ def claim_compression(evals: Mapping) -> tuple[str, str]:
 
 
 def claim_steering(evals: Mapping) -> tuple[str, str]:
-    """(4) Every mode beats chance (shuffled videos), the original is nearer the odometry floor than chance,
-    and the videos turn further under yaw rate x1.5 than under x0.5.
-
-    "Small" for the original ADE is read as below the midpoint between the ADE
-    of the odometry on real videos (its own error floor) and on shuffled ones.
-    """
+    """(4) Steering follows counterfactual commands, read scale-free by the main instrument: the recovered turn
+    under yaw rate x1.5 exceeds that under x0.5, and the path under speed x1.5 is longer than under x0.5, each
+    by a material margin (interval lower bounds; paired per start). ADE is reported, not decided on: it mixes
+    the instrument's own error with the model's."""
     if not _has(evals, "steering"):
         return UNMEASURED, "needs eval_steering"
-    ades = {m: _get(evals, "steering", None, "modes", m, "ade") for m in STEERING_MODES}
-    turns = {m: _get(evals, "steering", None, "modes", m, "turn_deg") for m in ("yaw_rate_x0.5", "yaw_rate_x1.5")}
-    real = _get(evals, "steering", None, "odometry_sanity", "real_ade")
-    shuffled = _get(evals, "steering", None, "odometry_sanity", "shuffled_ade")
-    midpoint = (real + shuffled) / 2.0
-    ok = (all(v < shuffled for v in ades.values()) and ades["original"] < midpoint
-          and turns["yaw_rate_x1.5"] > turns["yaw_rate_x0.5"])
-    text = (
-        "ADE: "
-        + ", ".join(f"{m} {_fmt(v)}" for m, v in ades.items())
-        + f"; odometry on real videos {_fmt(real)}, on shuffled videos {_fmt(shuffled)} "
-        + f"(every mode must be below {_fmt(shuffled)}, the original below {_fmt(midpoint)}); "
-        + f"turn under yaw rate x0.5 {_fmt(turns['yaw_rate_x0.5'])} deg, x1.5 {_fmt(turns['yaw_rate_x1.5'])} deg "
-        + "(x1.5 must turn further)"
-    )
-    return (HOLDS if ok else FAILS), text
+    main = _get(evals, "steering", None, "inverse_dynamics")
+    turn = _get(evals, "steering", None, "responses", main, "turn_response_deg")
+    ratio = _get(evals, "steering", None, "responses", main, "path_ratio")
+    material = _get(evals, "steering", None, "material")
+    verdicts = [claim_verdict(turn, material["turn_deg"]), claim_verdict(ratio, material["path_ratio"])]
+    verdict = FAILS if FAILS in verdicts else HOLDS if all(v == HOLDS for v in verdicts) else UNRESOLVED
+    floor = _get(evals, "steering", None, "odometry_sanity")
+    text = (f"{main} instrument: turn under yaw rate x1.5 minus x0.5 {_fmt(turn['estimate'])} deg "
+            f"[{_fmt(turn['low'])}, {_fmt(turn['high'])}] (material > {_fmt(material['turn_deg'])}; commanded "
+            f"{_fmt(_get(evals, 'steering', None, 'responses', main, 'commanded_turn_response_deg'))}); path length "
+            f"speed x1.5 / x0.5 {_fmt(ratio['estimate'])} [{_fmt(ratio['low'])}, {_fmt(ratio['high'])}] "
+            f"(material > {_fmt(material['path_ratio'])}; commanded 3); instrument ADE on real videos "
+            f"{_fmt(floor['real_ade'])} m, shuffled {_fmt(floor['shuffled_ade'])} m")
+    return verdict, text
 
 
 def claim_speed(evals: Mapping) -> tuple[str, str]:

@@ -30,6 +30,7 @@ from orbis2.eval.odometry import (
     endpoint_angle,
     get_inverse_dynamics,
     integrate_controls,
+    path_length,
     trajectory_ade,
 )
 from orbis2.eval.probe import ProbeConfig, predictor_features, run_probe, teacher_features, tokenizer_features
@@ -43,7 +44,7 @@ from orbis2.eval.report import (
     write_main_report,
 )
 from orbis2.eval.speed import measure
-from orbis2.eval.stats import fvd_slope_interval
+from orbis2.eval.stats import fvd_slope_interval, mean_interval, paired_difference
 from orbis2.eval.systems import (
     SYSTEMS,
     LoadedSystem,
@@ -270,15 +271,18 @@ def save_grid_frames(path: Path, frames: np.ndarray, fps: float) -> None:
 
 
 def run_steering(cfg: PipelineConfig, run: StageRun) -> str:
-    """Counterfactual steering ADE (paper Table 2, appendix "Counterfactual steering").
+    """Counterfactual steering (paper Table 2, appendix "Counterfactual steering"), read by two instruments.
 
     Rollouts of the hierarchical model with the steered top predictor (``action``)
-    on ``steering_split`` clips, under each mode's scaling of the clip's own speed
-    and yaw rate; inverse dynamics (visual odometry) recovers the trajectory of
-    each generated video, which is scale-aligned by least squares to the
-    commanded trajectory before the ADE in metres. The first frame is the decoded
-    last context frame, where both trajectories start. Sanity: the same odometry
-    on the real videos of those spans, in order and with shuffled frames.
+    on ``steering_split`` starts, under each mode's scaling of the clip's own speed
+    and yaw rate. Each video's trajectory is recovered by ``evaluation.inverse_dynamics``
+    (the learned instrument by default) and by OpenCV visual odometry (second column);
+    ADE in metres after least-squares scale alignment to the commanded trajectory.
+    Scale-free responses, paired per start: the recovered turn (end-point angle, the
+    clip's own turn direction positive) under yaw rate x1.5 minus under x0.5, and the
+    path-length ratio (before alignment) under speed x1.5 over x0.5 (3 if the video
+    follows). Every figure has a clip-bootstrap interval. Sanity: each instrument on
+    the real videos of those spans, in order and with shuffled frames.
     """
     ev, data = cfg.evaluation, cfg.data
     if data.detail_stride != 1:
@@ -292,15 +296,17 @@ def run_steering(cfg: PipelineConfig, run: StageRun) -> str:
     cache = open_cache(LATENTS)
     steps = rollout_steps(data, ev.steering_seconds)
     split = ev.steering_split
-    samples = eval_samples(cache, split, data, steps, ev.starts_per_clip)
+    samples = eval_samples(cache, split, data, steps, ev.steering_starts_per_clip)
+    clusters = sample_clusters(cache, split, samples)
     indices = [generated_indices(data, s.context_end, steps) for s in samples]
     odometry = cache.arrays(split)["odometry"]
     K = camera_intrinsics(data.width, data.height, cfg.town.hfov_deg)
-    inverse = get_inverse_dynamics(ev.inverse_dynamics)
+    instruments = {name: get_inverse_dynamics(name) for name in dict.fromkeys([ev.inverse_dynamics, "opencv"])}
     first = cache_latents(cache, split, "detail", samples, [np.array([s.context_end]) for s in samples])
     first_frames = system.decode(first)  # [N, 1, H, W, 3]
     speed_norm, yaw_norm = steer_meta["scale"]
     modes: dict[str, Any] = {}
+    per_sample: dict[str, dict[str, dict[str, np.ndarray]]] = {}
     strip = {}
     for mode, (speed_scale, yaw_scale) in ev.steering_modes.items():
         controls, steering = [], []
@@ -312,34 +318,83 @@ def run_steering(cfg: PipelineConfig, run: StageRun) -> str:
             controls.append((speed[s.context_end:], yaw[s.context_end:]))
         latents = generate(system, cache, split, samples, steps, cfg, dev, torch.stack(steering), desc=mode)
         videos = np.concatenate([first_frames, system.decode(latents)], axis=1)
-        scored = [trajectory_ade(v, sp, yw, data.detail_hz, K, inverse) for v, (sp, yw) in zip(videos, controls)]
-        # Turn statistic, signed so that the clip's own turn direction is positive: a model that steers
-        # turns further under yaw rate x1.5 than x0.5, whatever the odometry's scale.
-        sign = [np.sign(endpoint_angle(r["reference"])) or 1.0 for r in scored]
-        modes[mode] = {"ade": float(np.mean([r["ade"] for r in scored])), "samples": len(samples),
-                       "speed_scale": speed_scale, "yaw_rate_scale": yaw_scale,
-                       "turn_deg": float(np.mean([g * endpoint_angle(r["estimated"]) for g, r in zip(sign, scored)])),
-                       "commanded_turn_deg": float(np.mean([g * endpoint_angle(r["reference"])
-                                                            for g, r in zip(sign, scored)]))}
+        per_sample[mode] = {name: score_videos(videos, controls, inverse, K, data.detail_hz)
+                            for name, inverse in instruments.items()}
+        modes[mode] = mode_record(per_sample[mode], clusters, speed_scale, yaw_scale, ev.seed)
         sp, yw = controls[0]
         strip[mode] = (videos[0], integrate_controls(sp[:videos.shape[1] - 1], yw[:videos.shape[1] - 1],
                                                      1.0 / data.detail_hz))
-    sanity = odometry_sanity(split, samples, indices, odometry, K, inverse, data)
-    record = {"split": split, "seconds": ev.steering_seconds, "samples": len(samples), "seed": ev.seed,
-              "inverse_dynamics": ev.inverse_dynamics, "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe},
-              "modes": modes, "odometry_sanity": sanity}
+    sanity = {name: odometry_sanity(split, samples, indices, odometry, K, inverse, data, clusters, ev.seed)
+              for name, inverse in instruments.items()}
+    record = {"split": split, "seconds": ev.steering_seconds, "samples": len(samples), "clips": len(set(clusters)),
+              "seed": ev.seed, "inverse_dynamics": ev.inverse_dynamics, "instruments": list(instruments),
+              "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe}, "modes": modes,
+              "responses": {name: steering_responses(per_sample, name, clusters, ev.seed) for name in instruments},
+              "material": {"turn_deg": ev.steering_turn_material_deg, "path_ratio": ev.steering_path_ratio_material},
+              "odometry_sanity": sanity[ev.inverse_dynamics], "sanity": sanity}
     write_json(EVAL / "steering.json", record)
     run.log_artifact(EVAL / "steering.json")
     save_strip(strip, data.detail_hz, run)
     run.log_metrics({f"ade_{m}": v["ade"] for m, v in modes.items()})
+    response, floor = record["responses"][ev.inverse_dynamics], sanity[ev.inverse_dynamics]
     return ("ADE (turn) " + ", ".join(f"{m} {v['ade']:.2f} m ({v['turn_deg']:.0f} deg)" for m, v in modes.items())
-            + f" (n={len(samples)}); odometry on real video {sanity['real_ade']:.2f} m, "
-              f"shuffled {sanity['shuffled_ade']:.2f} m")
+            + f" (n={len(samples)}, {ev.inverse_dynamics}); turn response "
+              f"{response['turn_response_deg']['estimate']:.1f} deg, path ratio x1.5/x0.5 "
+              f"{response['path_ratio']['estimate']:.2f}; real video ADE {floor['real_ade']:.2f} m, shuffled "
+              f"{floor['shuffled_ade']:.2f} m")
+
+
+def score_videos(videos: np.ndarray, controls: list, inverse, K: np.ndarray, fps: float) -> dict[str, np.ndarray]:
+    """Per video: aligned ADE, signed turn (clip's own direction positive, degrees) and unaligned path length."""
+    scored = [trajectory_ade(v, sp, yw, fps, K, inverse) for v, (sp, yw) in zip(videos, controls)]
+    sign = np.array([np.sign(endpoint_angle(r["reference"])) or 1.0 for r in scored])
+    return {"ade": np.array([r["ade"] for r in scored]),
+            "turn_deg": sign * np.array([endpoint_angle(r["estimated"]) for r in scored]),
+            "commanded_turn_deg": sign * np.array([endpoint_angle(r["reference"]) for r in scored]),
+            "path_length": np.array([path_length(r["estimated"]) for r in scored])}
+
+
+def mode_record(scores: dict[str, dict[str, np.ndarray]], clusters: list[str], speed_scale: float, yaw_scale: float,
+                seed: int) -> dict[str, Any]:
+    """One mode's figures per instrument with clip-bootstrap intervals; the first instrument's on top."""
+    per = {}
+    for name, sc in scores.items():
+        ade_iv, turn_iv = mean_interval(sc["ade"], clusters, seed=seed), mean_interval(sc["turn_deg"], clusters,
+                                                                                       seed=seed)
+        per[name] = {"ade": ade_iv.estimate, "ade_low": ade_iv.low, "ade_high": ade_iv.high,
+                     "turn_deg": turn_iv.estimate, "turn_low": turn_iv.low, "turn_high": turn_iv.high,
+                     "path_length": float(sc["path_length"].mean())}
+    main = next(iter(scores))
+    return {**per[main], "samples": len(clusters), "speed_scale": speed_scale, "yaw_rate_scale": yaw_scale,
+            "commanded_turn_deg": float(scores[main]["commanded_turn_deg"].mean()), "instruments": per}
+
+
+def steering_responses(per_sample: dict, name: str, clusters: list[str], seed: int) -> dict[str, Any]:
+    """Scale-free, paired per start: turn(x1.5) - turn(x0.5) in degrees, and path length(x1.5) / (x0.5)."""
+    out: dict[str, Any] = {}
+    yaw = ("yaw_rate_x0.5", "yaw_rate_x1.5")
+    if all(m in per_sample for m in yaw):
+        lo, hi = (per_sample[m][name] for m in yaw)
+        iv = paired_difference(hi["turn_deg"], lo["turn_deg"], clusters, seed=seed)
+        out["turn_response_deg"] = iv.to_dict()
+        cmd = float((hi["commanded_turn_deg"] - lo["commanded_turn_deg"]).mean())
+        out["commanded_turn_response_deg"] = cmd
+        out["turn_by_mode_deg"] = {m: float(per_sample[m][name]["turn_deg"].mean())
+                                   for m in ("yaw_rate_x0.5", "original", "yaw_rate_x1.5") if m in per_sample}
+    speed = ("speed_x0.5", "speed_x1.5")
+    if all(m in per_sample for m in speed):
+        lo, hi = (per_sample[m][name]["path_length"] for m in speed)
+        ratio = np.log(np.maximum(hi, 1e-9) / np.maximum(lo, 1e-9))
+        iv = mean_interval(ratio, clusters, seed=seed)
+        out["path_ratio"] = {"estimate": float(np.exp(iv.estimate)), "low": float(np.exp(iv.low)),
+                             "high": float(np.exp(iv.high)), "commanded": 3.0, "clusters": iv.clusters,
+                             "note": "geometric mean of path length under speed x1.5 over x0.5, before alignment"}
+    return out
 
 
 def odometry_sanity(split: str, samples: list[Sample], indices: list[np.ndarray], odometry: np.ndarray, K,
-                    inverse, data) -> dict[str, Any]:
-    """Visual odometry on the real videos of the evaluated spans, in order and with a fixed frame shuffle."""
+                    inverse, data, clusters: list[str], seed: int) -> dict[str, Any]:
+    """An instrument on the real videos of the evaluated spans, in order and with a fixed frame shuffle."""
     clips = split_clips(split)
     rng = np.random.default_rng(0)
     real, shuffled = [], []
@@ -350,7 +405,10 @@ def odometry_sanity(split: str, samples: list[Sample], indices: list[np.ndarray]
         real.append(trajectory_ade(video, rows[:, 0], rows[:, 1], data.detail_hz, K, inverse)["ade"])
         order = rng.permutation(len(video))
         shuffled.append(trajectory_ade(video[order], rows[:, 0], rows[:, 1], data.detail_hz, K, inverse)["ade"])
-    return {"real_ade": float(np.mean(real)), "shuffled_ade": float(np.mean(shuffled)), "videos": len(samples)}
+    real_iv, shuffled_iv = mean_interval(real, clusters, seed=seed), mean_interval(shuffled, clusters, seed=seed)
+    return {"real_ade": real_iv.estimate, "real_low": real_iv.low, "real_high": real_iv.high,
+            "shuffled_ade": shuffled_iv.estimate, "shuffled_low": shuffled_iv.low,
+            "shuffled_high": shuffled_iv.high, "videos": len(samples)}
 
 
 def save_strip(strip: dict[str, tuple[np.ndarray, np.ndarray]], fps: float, run: StageRun) -> None:
