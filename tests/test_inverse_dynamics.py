@@ -27,7 +27,7 @@ def episodes(town, seeds, seconds=12.0):
 def trained():
     town = Town.generate("default", 11)
     train, val = episodes(town, range(6)), episodes(town, (20, 21, 22))
-    cfg = InverseDynamicsConfig(steps=300, batch_size=32, width=16, scale=1.0, seed=0)
+    cfg = InverseDynamicsConfig(steps=200, batch_size=32, width=16, scale=0.5, seed=0)
     torch.set_num_threads(2)
     return train_instrument(train, cfg, FPS, torch.device("cpu")), val
 

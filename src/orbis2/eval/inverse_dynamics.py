@@ -4,9 +4,10 @@ Monocular visual odometry needs trackable texture and a consistent scene; on
 generated video it mostly returns noise, so the steering evaluation could not
 tell a steered model from an unsteered one. This instrument is a small CNN
 (:class:`orbis2.models.inverse_dynamics.InverseDynamicsNet`) trained on the
-town's train split to regress the controls over [t, t + 1) from frames t and
-t + 1 at the native rate. Horizontal flips (with the yaw rate negated) double the
-data and make left and right symmetric. The stage reports val R^2 on real frames,
+town's train split to regress the controls over [t, t + 1) from the dense optical
+flow between frames t and t + 1 at the native rate (OpenCV Farneback: a fixed,
+texture-agnostic front end, so a few hundred frames suffice). Horizontal flips
+(with the yaw rate negated) double the data and make left and right symmetric. The stage reports val R^2 on real frames,
 on the detail tokenizer's reconstructions of those frames (what the instrument
 sees of a perfect world model), and a shuffled control (frame t paired with a
 random frame of the same clip: no consistent motion, R^2 near zero or below).
@@ -80,10 +81,18 @@ def pair_index(data: ClipFrames) -> np.ndarray:
     return np.array(rows, np.int64).reshape(-1, 2)
 
 
+def pair_flow(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """Dense optical flow (Farneback) [N, 2, h, w] from each ``first[i]`` to ``second[i]`` (uint8 RGB)."""
+    out = []
+    for a, b in zip(first, second):
+        ga, gb = cv2.cvtColor(a, cv2.COLOR_RGB2GRAY), cv2.cvtColor(b, cv2.COLOR_RGB2GRAY)
+        out.append(cv2.calcOpticalFlowFarneback(ga, gb, None, 0.5, 3, 9, 3, 5, 1.1, 0).transpose(2, 0, 1))
+    return np.stack(out).astype(np.float32)
+
+
 def to_input(first: np.ndarray, second: np.ndarray, device: torch.device) -> torch.Tensor:
-    """Two uint8 stacks [N, h, w, 3] -> [N, 6, h, w] in [-1, 1]."""
-    x = torch.from_numpy(np.concatenate([first, second], axis=-1)).to(device)
-    return x.permute(0, 3, 1, 2).float().div_(127.5).sub_(1.0)
+    """Two uint8 stacks [N, h, w, 3] -> their flow fields [N, 2, h, w] as a tensor on ``device``."""
+    return torch.from_numpy(pair_flow(first, second)).to(device)
 
 
 @dataclass
@@ -136,6 +145,10 @@ def train_instrument(data: ClipFrames, cfg: InverseDynamicsConfig, fps: float, d
                          f"({cfg.batch_size})")
     targets = np.stack([data.odometry[c][t] for c, t in index])
     mean, std = targets.mean(axis=0), targets.std(axis=0) + 1e-6
+    # The flow front end is fixed: compute every pair's flow once, and its mirror image (u negated).
+    flows = pair_flow(np.stack([data.frames[c][t] for c, t in index]),
+                      np.stack([data.frames[c][t + 1] for c, t in index]))
+    mirrored = np.ascontiguousarray(flows[..., ::-1] * np.array([-1.0, 1.0], np.float32)[:, None, None])
     torch.manual_seed(cfg.seed)
     net = InverseDynamicsNet(cfg.width).to(device)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
@@ -143,21 +156,18 @@ def train_instrument(data: ClipFrames, cfg: InverseDynamicsConfig, fps: float, d
     rng = np.random.default_rng(cfg.seed)
     sign = np.array([1.0, -1.0])
     for step in range(cfg.steps):
-        pick = index[rng.integers(0, len(index), cfg.batch_size)]
-        first = np.stack([data.frames[c][t] for c, t in pick])
-        second = np.stack([data.frames[c][t + 1] for c, t in pick])
-        y = np.stack([data.odometry[c][t] for c, t in pick])
+        pick = rng.integers(0, len(index), cfg.batch_size)
         flip = rng.random(cfg.batch_size) < 0.5
-        first[flip], second[flip] = first[flip][:, :, ::-1], second[flip][:, :, ::-1]
-        y = np.where(flip[:, None], y * sign, y)
+        x = np.where(flip[:, None, None, None], mirrored[pick], flows[pick])
+        y = np.where(flip[:, None], targets[pick] * sign, targets[pick])
         target = torch.from_numpy((y - mean) / std).float().to(device)
-        loss = F.mse_loss(net(to_input(first, second, device)), target)
+        loss = F.mse_loss(net(torch.from_numpy(x).to(device)), target)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
         sched.step()
         if log is not None and (step % 50 == 0 or step == cfg.steps - 1):
-            log(step, float(loss))
+            log(step, loss.item())
     return Instrument(net.eval(), mean, std, fps, cfg.scale)
 
 
