@@ -408,7 +408,7 @@ class ConditioningSettings:
     threshold: float = 0.03
     bootstrap_reps: int = 1000
     probe_stride: int = 2
-    ridge: float = 1.0
+    ridge: float = 10.0
     strips: int = 4
 
     def validate(self, where: str) -> None:
