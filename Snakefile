@@ -243,6 +243,8 @@ for system in SYSTEMS:
             "stages/eval_fvd.py",
             *EVAL_CODE,
             "src/orbis2/eval/fvd.py",
+            "src/orbis2/eval/references.py",
+            "src/orbis2/eval/stats.py",
             *latent_inputs(SYSTEMS[system].latents),
             "data/shards",
             "data/assets",

@@ -21,6 +21,8 @@ def test_floor_halves_never_share_a_clip_and_sit_below_a_shifted_set():
     assert floor["low"] <= floor["fvd"] <= floor["high"] < shifted["low"]
     with pytest.raises(ValueError, match="at least 4 clips"):
         real_floor(real, np.repeat(np.arange(2), 32), splits=5, seed=0)
+    few = reference_rows(real, real, real, np.repeat(np.arange(2), 32), reps=10, seed=0)
+    assert few["real_floor"]["fvd"] is None and few["reconstruction"]["fvd"] == pytest.approx(0.0, abs=1e-9)
 
 
 def test_reference_rows_order_ceiling_below_trivial_baseline():

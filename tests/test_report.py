@@ -216,6 +216,7 @@ def test_main_report_tables_round_trip(evals, tmp_path):
     ]  # fmt: skip
     floor = main[3]
     assert float(floor["fvd_val"]) == 30.0 and floor["fvd_slope_turns"] == "NA" and floor["miou"] == "NA"
+
     ours = main[2]
     assert int(ours["parameters"]) == FVD["hierarchical"][0]
     assert [float(ours[f"fvd_{s}"]) for s in ("val", "heldout", "turns")] == list(FVD["hierarchical"][1:4])
@@ -430,3 +431,9 @@ def test_compression_rows_come_from_the_flat_abstract_models(evals):
     del evals["fvd"]["flat_abstract_full"]
     with pytest.raises(OrbisError, match="eval_fvd_flat_abstract_full"):
         report.compression_from_evals(evals)
+
+
+def test_a_floor_on_too_few_clips_reads_na(evals):
+    evals["fvd"]["hierarchical"]["references"]["val"]["real_floor"] = {"fvd": None, "clips": 2, "reason": "few"}
+    floor = report.main_table(evals)[3]
+    assert floor["fvd_val"] == floor["fvd_val_n"] == "NA" and floor["fvd_heldout"] == 30.0

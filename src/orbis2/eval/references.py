@@ -60,10 +60,11 @@ def real_floor(real: np.ndarray, clusters: Sequence, splits: int, seed: int) -> 
 
 def reference_rows(real: np.ndarray, reconstruction: np.ndarray, repeat_last: np.ndarray, clusters: Sequence,
                    reps: int, seed: int, splits: int = 50) -> dict[str, dict[str, Any]]:
-    """The three reference rows of one FVD table (see the module docstring); floor only with >= 4 clips."""
-    rows: dict[str, dict[str, Any]] = {}
-    if len(set(map(str, clusters))) >= 4:
-        rows["real_floor"] = real_floor(real, clusters, splits, seed)
+    """The three reference rows of one FVD table (see the module docstring); with fewer than 4 clips the
+    floor is recorded as not computable (``fvd`` None, with the reason)."""
+    clips = len(set(map(str, clusters)))
+    rows: dict[str, dict[str, Any]] = {"real_floor": real_floor(real, clusters, splits, seed) if clips >= 4 else
+                                       {"fvd": None, "clips": clips, "reason": "needs at least 4 clips (2 per half)"}}
     rows["reconstruction"] = fvd_with_interval(real, reconstruction, clusters, reps, seed)
     rows["repeat_last"] = fvd_with_interval(real, repeat_last, clusters, reps, seed)
     return rows

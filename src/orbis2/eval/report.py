@@ -216,6 +216,9 @@ def main_table(evals: Mapping) -> list[Row]:
         row = {"model": name, "kind": "reference", "label": label, "parameters": NA}
         for split in FVD_SPLITS:
             cells = _get(evals, "fvd", model, "references", split, ref)
+            if cells.get("fvd") is None:  # e.g. a real-vs-real floor on fewer than 4 clips: not computable
+                row.update({f"fvd_{split}{suffix}": NA for suffix in ("", "_low", "_high", "_n")})
+                continue
             row.update({f"fvd_{split}": cells["fvd"], f"fvd_{split}_low": cells["low"],
                         f"fvd_{split}_high": cells["high"],
                         f"fvd_{split}_n": cells.get("videos", cells.get("videos_per_half"))})
