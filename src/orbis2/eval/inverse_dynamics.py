@@ -171,10 +171,14 @@ def train_instrument(data: ClipFrames, cfg: InverseDynamicsConfig, fps: float, d
     return Instrument(net.eval(), mean, std, fps, cfg.scale)
 
 
-def r2(y: np.ndarray, pred: np.ndarray) -> list[float]:
-    """Coefficient of determination per column."""
-    return [float(1.0 - ((y[:, k] - pred[:, k]) ** 2).sum() / ((y[:, k] - y[:, k].mean()) ** 2).sum())
-            for k in range(y.shape[1])]
+def r2(y: np.ndarray, pred: np.ndarray) -> list[float | None]:
+    """Coefficient of determination per column; None where the targets do not vary (e.g. a val split
+    without turns has no yaw-rate variance, and R^2 is undefined)."""
+    out: list[float | None] = []
+    for k in range(y.shape[1]):
+        total = float(((y[:, k] - y[:, k].mean()) ** 2).sum())
+        out.append(None if total <= 1e-9 * len(y) else 1.0 - float(((y[:, k] - pred[:, k]) ** 2).sum()) / total)
+    return out
 
 
 def evaluate_instrument(instrument: Instrument, data: ClipFrames, max_pairs: int, seed: int,
@@ -186,11 +190,13 @@ def evaluate_instrument(instrument: Instrument, data: ClipFrames, max_pairs: int
     y = np.stack([data.odometry[c][t] for c, t in index])
     rng = np.random.default_rng(seed)
 
-    def score(frames: list[np.ndarray], partner) -> dict[str, float]:
+    def score(frames: list[np.ndarray], partner) -> dict[str, float | None]:
         first = np.stack([frames[c][t] for c, t in index])
         second = np.stack([frames[c][partner(c, t)] for c, t in index])
-        speed, yaw = r2(y, instrument.predict(first, second))
-        return {"speed_r2": speed, "yaw_rate_r2": yaw}
+        pred = instrument.predict(first, second)
+        speed, yaw = r2(y, pred)
+        rmse = np.sqrt(((y - pred) ** 2).mean(axis=0))
+        return {"speed_r2": speed, "yaw_rate_r2": yaw, "speed_rmse": float(rmse[0]), "yaw_rate_rmse": float(rmse[1])}
 
     out = {"pairs": len(index), "clips": len(set(index[:, 0].tolist())),
            "real": score(data.frames, lambda c, t: t + 1),
@@ -232,8 +238,11 @@ def run_inverse_dynamics(cfg: PipelineConfig, run: StageRun, device: torch.devic
     write_json(REPORT, record)
     run.log_artifact(REPORT)
     run.log_metrics({f"val_{kind}_{k}": v for kind in ("real", "reconstructed", "shuffled")
-                     for k, v in result[kind].items()})
-    real, shuffled = result["real"], result["shuffled"]
-    return (f"val R^2 speed {real['speed_r2']:.2f}, yaw rate {real['yaw_rate_r2']:.2f} on real frames; "
-            f"reconstructed {result['reconstructed']['speed_r2']:.2f} / {result['reconstructed']['yaw_rate_r2']:.2f}; "
-            f"shuffled control {shuffled['speed_r2']:.2f} / {shuffled['yaw_rate_r2']:.2f} ({result['pairs']} pairs)")
+                     for k, v in result[kind].items() if v is not None})
+
+    def pair(kind: str) -> str:
+        return " / ".join("undefined" if result[kind][k] is None else f"{result[kind][k]:.2f}"
+                          for k in ("speed_r2", "yaw_rate_r2"))
+
+    return (f"val R^2 speed / yaw rate: real {pair('real')}, reconstructed {pair('reconstructed')}, shuffled "
+            f"control {pair('shuffled')} ({result['pairs']} pairs; undefined: no variance in the val targets)")
