@@ -432,6 +432,10 @@ def run_conditioning(cfg: PipelineConfig, run: StageRun, device: torch.device, o
                      for r in record["variants"] if r["verdict"] != "reference"})
     run.log_metrics({f"{r['model']}_{r['baseline']}_{r['horizon_s']:g}s_effect": r["effect"]
                      for r in record["baselines"]})
+    run.log_metrics({f"latents_{level}_{k}": latents[level][k] for level in KINDS
+                     for k in ("varying_share", "within_clip_share", "repeat_last_relative")})
+    run.log_metrics({f"ego_probe_{name}_r2": latents["ego_motion_probe"][name]["r2"] for name in ("speed", "yaw_rate")
+                     if np.isfinite(latents["ego_motion_probe"][name]["r2"])})
     used = [f"{r['model']}/{r['variant']}" for r in record["variants"]
             if r["metric"] == "one_step_mse" and r["verdict"] == "used"]
     probe = latents["ego_motion_probe"]
