@@ -165,7 +165,7 @@ def run_fvd(name: str, cfg: PipelineConfig, run: StageRun) -> str:
     run.log_artifact(EVAL / f"fvd_{name}.json")
     run.log_metrics({f"fvd_{split}": v["fvd"] for split, v in record["fvd"].items()})
     run.log_metrics({f"fvd_{split}_{ref}": v["fvd"] for split, refs in record["references"].items()
-                     for ref, v in refs.items()})
+                     for ref, v in refs.items() if v["fvd"] is not None})
     if "chunked" in record:
         run.log_metrics({"fvd_slope": record["chunked"]["fvd_slope"]})
     splits = ", ".join(f"{s} {v['fvd']:.1f} [{v['low']:.1f}, {v['high']:.1f}] (n={v['videos']}, {v['clips']} clips)"
