@@ -12,6 +12,7 @@ import uuid
 
 from orbis2.config import load_params, resolve_section
 from orbis2.data.importer import input_files
+from orbis2.eval.conditioning import MAIN_PREDICTORS as CONDITIONING_PREDICTORS
 from orbis2.eval.stages import probe_targets
 from orbis2.eval.systems import MAIN_SYSTEMS, SPEED_SYSTEMS, SYSTEMS
 from orbis2.latents import LATENT_SETS
@@ -251,6 +252,8 @@ for system in SYSTEMS:
             "stages/eval_fvd.py",
             *EVAL_CODE,
             "src/orbis2/eval/fvd.py",
+            "src/orbis2/eval/references.py",
+            "src/orbis2/eval/stats.py",
             *latent_inputs(SYSTEMS[system].latents),
             "data/shards",
             "data/assets",
@@ -291,17 +294,38 @@ for target in probe_targets():
             "python stages/eval_probe.py {rule} --profile {params.profile}"
 
 
+rule inverse_dynamics:
+    threads: workflow.cores  # trains a CNN; run nothing beside it
+    input:
+        "stages/inverse_dynamics.py",
+        "src/orbis2/eval/inverse_dynamics.py",
+        "src/orbis2/models/inverse_dynamics.py",
+        "data/shards",
+        "data/tokenizers/detail",
+    output:
+        directory("data/inverse_dynamics"),
+        "reports/inverse_dynamics.json",
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        inverse_dynamics=section("inverse_dynamics"),
+    shell:
+        "python stages/inverse_dynamics.py --profile {params.profile}"
+
+
 rule eval_steering:
     threads: workflow.cores  # uses every core itself; run nothing beside it
     input:
         "stages/eval_steering.py",
         *EVAL_CODE,
         "src/orbis2/eval/odometry.py",
+        "src/orbis2/eval/stats.py",
         "data/latents",
         "data/shards",
         *TOKENIZER_DIRS,
         "data/predictors/detail",
         "data/predictors/action",
+        "data/inverse_dynamics",
     output:
         "reports/eval/steering.json",
         "reports/eval/steering_strip.png",
@@ -334,6 +358,25 @@ rule eval_speed:
         "python stages/eval_speed.py --profile {params.profile}"
 
 
+rule eval_conditioning:
+    threads: workflow.cores  # batched forward passes of every main predictor
+    input:
+        "stages/eval_conditioning.py",
+        "src/orbis2/eval/conditioning.py",
+        "src/orbis2/eval/stats.py",
+        "data/latents",
+        *TOKENIZER_DIRS,
+        *[f"data/predictors/{stage}" for stage in CONDITIONING_PREDICTORS],
+    output:
+        "reports/eval/conditioning.json",
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        evaluation=section("evaluation"),
+    shell:
+        "python stages/eval_conditioning.py --profile {params.profile}"
+
+
 rule report_main:
     input:
         "stages/report.py",
@@ -342,10 +385,12 @@ rule report_main:
         *[f"reports/eval/probe_{target}.json" for target in MAIN_PROBES],
         "reports/eval/steering.json",
         "reports/eval/speed.json",
+        "reports/eval/conditioning.json",
     output:
         "reports/main_table.csv",
         "reports/steering.csv",
         "reports/speed.csv",
+        "reports/conditioning.csv",
         "reports/summary.md",
     params:
         profile=PROFILE,
@@ -365,6 +410,7 @@ rule report_all:
         "reports/eval/steering.json",
         "reports/eval/steering_strip.png",
         "reports/eval/speed.json",
+        "reports/eval/conditioning.json",
     output:
         directory("reports/all"),
     params:

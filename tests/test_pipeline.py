@@ -107,7 +107,7 @@ def check_outputs(root: Path, full: bool = True) -> None:
 def check_reports(root: Path, full: bool) -> None:
     """The report stages read every evaluation and wrote the paper's tables with finite figures."""
     with open(root / "reports/main_table.csv") as handle:
-        rows = list(csv.DictReader(handle))
+        rows = [r for r in csv.DictReader(handle) if r["kind"] == "model"]
     assert [r["model"] for r in rows] == ["flat_detail", "flat_abstract", "hierarchical"]
     for row in rows:
         for column in ("fvd_val", "fvd_heldout", "fvd_turns", "fvd_slope_turns", "miou", "rmse"):
@@ -119,7 +119,14 @@ def check_reports(root: Path, full: bool) -> None:
                  "figures/rollout_grid.png", "figures/steering_strip.png"):
         assert not full or (root / "reports/all" / name).stat().st_size > 100, name
     fvd = json.loads((root / "reports/eval/fvd_hierarchical.json").read_text())
-    assert len(fvd["chunked"]["chunks"]) == 2 and fvd["fvd"]["val"]["videos"] == 2
+    assert len(fvd["chunked"]["chunks"]) == 2 and fvd["fvd"]["val"]["videos"] == 4
+    val = fvd["fvd"]["val"]
+    assert val["low"] <= val["fvd"] <= val["high"] and set(fvd["references"]["val"]) >= {"reconstruction",
+                                                                                           "repeat_last"}
+    conditioning = json.loads((root / "reports/eval/conditioning.json").read_text())
+    assert conditioning["seeds"] == [0, 1] and {r["model"] for r in conditioning["baselines"]} == {
+        "abstract_tf", "detail", "action", "flat_detail", "flat_abstract"}
+    assert (root / "reports/conditioning.csv").stat().st_size > 100
     steering = json.loads((root / "reports/eval/steering.json").read_text())
     assert set(steering["modes"]) == {"original", "speed_x0.5", "speed_x1.5", "yaw_rate_x0.5", "yaw_rate_x1.5"}
 
@@ -164,7 +171,7 @@ def test_dvc_repro_smoke_dag(tmp_path):
     parents = [r for r in runs if r[2] is None]
     assert len(parents) == 2
     rerun = Counter(n for _, n, p in runs if p is not None) - Counter(MAIN_STAGES)
-    assert "action" in rerun and set(rerun) <= {"action", "eval_steering", "report_main"}
+    assert "action" in rerun and set(rerun) <= {"action", "eval_steering", "eval_conditioning", "report_main"}
 
 
 def test_import_source_feeds_the_shards(tmp_path, make_video):

@@ -18,7 +18,7 @@ SETUP = {"profile": "smoke", "seed": 7, "fvd_videos": 12}
 
 FVD = {  # model: (parameters, fvd val, heldout, turns, fvd_16s, slope)
     "flat_detail": (20_000_000, 170.5, 200.25, 210.0, 300.0, 101.63),
-    "flat_abstract": (21_000_000, 490.04, 500.0, 510.0, 520.0, 48.38),
+    "flat_abstract": (21_000_000, 490.04, 500.0, 510.0, 520.0, 60.38),
     "hierarchical": (41_000_000, 98.97, 98.01, 187.53, 209.15, 46.45),
     "top_detail": (40_000_000, 120.0, 130.0, 140.0, 207.71, 81.4),
     "top_abstract_10hz": (40_000_000, 400.0, 410.0, 420.0, 551.38, 137.07),
@@ -41,13 +41,25 @@ PROBES = {  # target: (miou, val loss, rmse)
 
 def fvd_doc(model: str) -> dict:
     params, val, heldout, turns, fvd16, slope = FVD[model]
-    split = lambda v, n: {"fvd": v, "videos": n, "frames": 16, "seconds": 6.0, "resolution": [224, 224], "seed": 3}
+
+    def split(v, n):
+        return {"fvd": v, "low": v * 0.9, "high": v * 1.1, "videos": n, "clips": 8, "frames": 16, "seconds": 6.0,
+                "resolution": [224, 224], "seed": 3}
+
+    def reference(v):
+        return {"fvd": v, "low": v - 5.0, "high": v + 5.0, "videos": 40}
+
     chunks = [{"start_s": 4.0 * i, "end_s": 4.0 * (i + 1), "fvd": fvd16 / 2 + slope * i} for i in range(4)]
+    # Bootstrap draws of the slope: the same resamples for every model, so differences are paired.
+    wiggle = np.linspace(-3.0, 3.0, 40)
     return {
         "model": model,
         "label": model.replace("_", " ").title(),
         "parameters": params,
+        "fvd_material": 10.0,
         "fvd": {"val": split(val, 40), "heldout": split(heldout, 41), "turns": split(turns, 42)},
+        "references": {s: {"real_floor": reference(30.0), "reconstruction": reference(60.0),
+                           "repeat_last": reference(900.0)} for s in ("val", "heldout", "turns")},
         "chunked": {
             "split": "turns",
             "seconds": 16.0,
@@ -57,6 +69,9 @@ def fvd_doc(model: str) -> dict:
             "chunks": chunks,
             "fvd_16s": fvd16,
             "fvd_slope": slope,
+            "fvd_slope_low": slope - 3.0,
+            "fvd_slope_high": slope + 3.0,
+            "fvd_slope_draws": list(slope + wiggle),
         },
     }
 
@@ -77,15 +92,26 @@ def probe_doc(target: str) -> dict:
 
 def steering_doc() -> dict:
     ades = {"original": 1.2, "speed_x0.5": 2.18, "speed_x1.5": 0.53, "yaw_rate_x0.5": 1.65, "yaw_rate_x1.5": 0.73}
+    modes = {}
+    for i, (mode, ade) in enumerate(ades.items()):
+        cells = {"ade": ade, "ade_low": ade - 0.1, "ade_high": ade + 0.1, "turn_deg": 10.0 + 10 * i}
+        modes[mode] = {**cells, "samples": 20 + i, "commanded_turn_deg": 12.0 + 10 * i,
+                       "instruments": {"learned": cells, "opencv": {**cells, "ade": ade + 3.0}}}
+    sanity = {"real_ade": 0.4, "real_low": 0.3, "real_high": 0.5, "shuffled_ade": 4.0, "shuffled_low": 3.5,
+              "shuffled_high": 4.5, "videos": 30}
     return {
         "split": "turns",
         "seconds": 6.0,
         "samples": 20,
         "seed": 5,
-        "inverse_dynamics": "opencv",
-        "modes": {mode: {"ade": ade, "samples": 20 + i, "turn_deg": 10.0 + 10 * i, "commanded_turn_deg": 12.0 + 10 * i}
-                  for i, (mode, ade) in enumerate(ades.items())},
-        "odometry_sanity": {"real_ade": 0.4, "shuffled_ade": 4.0, "videos": 30},
+        "inverse_dynamics": "learned",
+        "modes": modes,
+        "responses": {"learned": {"turn_response_deg": {"estimate": 9.0, "low": 5.0, "high": 13.0},
+                                  "commanded_turn_response_deg": 12.0,
+                                  "path_ratio": {"estimate": 2.5, "low": 2.0, "high": 3.0}}},
+        "material": {"turn_deg": 2.0, "path_ratio": 1.1},
+        "odometry_sanity": sanity,
+        "sanity": {"learned": sanity, "opencv": {**sanity, "real_ade": 0.6}},
     }
 
 
@@ -113,9 +139,26 @@ def compression_doc() -> dict:
     return {"rows": rows}
 
 
+def conditioning_doc() -> dict:
+    def variant(model, variant, error, effect=0.0, low=0.0, high=0.0, verdict="reference"):
+        return {"model": model, "metric": "one_step_mse", "variant": variant, "error": error, "effect": effect,
+                "low": low, "high": high, "verdict": verdict, "windows": 64, "clips": 16}
+
+    def baseline(model, horizon, low):
+        return {"model": model, "horizon_s": horizon, "baseline": "repeat_last", "model_mse": 0.5,
+                "baseline_mse": 0.5 * (1 + low + 0.1), "effect": low + 0.1, "low": low, "high": low + 0.2,
+                "verdict": "holds", "windows": 64, "clips": 16}
+
+    return {"threshold": 0.03,
+            "variants": [variant("detail", "true", 0.4), variant("detail", "subgoal_other_clip", 0.6, 0.5, 0.3, 0.7,
+                                                                  "used")],
+            "baselines": [baseline(m, h, 0.2) for m in ("detail", "abstract_tf") for h in (0.5, 1.0)]}
+
+
 def write_evals(folder: Path, skip: tuple[str, ...] = ()) -> Path:
     docs = {f"fvd_{m}": fvd_doc(m) for m in FVD} | {f"probe_{t}": probe_doc(t) for t in PROBES}
-    docs |= {"steering": steering_doc(), "speed": speed_doc(), "compression": compression_doc()}
+    docs |= {"steering": steering_doc(), "speed": speed_doc(), "compression": compression_doc(),
+             "conditioning": conditioning_doc()}
     folder.mkdir(parents=True, exist_ok=True)
     for name, doc in docs.items():
         if name not in skip:
@@ -157,15 +200,26 @@ def test_load_eval_rejects_a_file_under_the_wrong_name(tmp_path):
 def test_main_report_tables_round_trip(evals, tmp_path):
     out = tmp_path / "reports"
     written = report.write_main_report(evals, out, SETUP)
-    assert sorted(p.name for p in written) == ["main_table.csv", "speed.csv", "steering.csv", "summary.md"]
+    assert sorted(p.name for p in written) == ["conditioning.csv", "main_table.csv", "speed.csv", "steering.csv",
+                                               "summary.md"]
+    conditioning = read_csv(out / "conditioning.csv")
+    assert [(r["model"], r["check"], r["verdict"]) for r in conditioning][:2] == [
+        ("detail", "input: subgoal_other_clip", "used"), ("detail", "beats repeat_last at 0.5 s", "holds")]
 
     main = read_csv(out / "main_table.csv")
-    assert [r["model"] for r in main] == ["flat_detail", "flat_abstract", "hierarchical"]
+    assert [r["model"] for r in main] == ["flat_detail", "flat_abstract", "hierarchical",
+                                          *(name for name, *_ in report.FVD_REFERENCES)]
+    assert [r["kind"] for r in main] == ["model"] * 3 + ["reference"] * 5
     assert list(main[0]) == [
-        "model", "label", "parameters",
-        "fvd_val", "fvd_val_n", "fvd_heldout", "fvd_heldout_n", "fvd_turns", "fvd_turns_n",
-        "fvd_slope_turns", "fvd_slope_turns_n", "probe_target", "miou", "miou_n", "rmse", "rmse_n",
+        "model", "kind", "label", "parameters",
+        "fvd_val", "fvd_val_low", "fvd_val_high", "fvd_val_n", "fvd_heldout", "fvd_heldout_low",
+        "fvd_heldout_high", "fvd_heldout_n", "fvd_turns", "fvd_turns_low", "fvd_turns_high", "fvd_turns_n",
+        "fvd_slope_turns", "fvd_slope_turns_low", "fvd_slope_turns_high", "fvd_slope_turns_n",
+        "probe_target", "miou", "miou_n", "rmse", "rmse_n",
     ]  # fmt: skip
+    floor = main[3]
+    assert float(floor["fvd_val"]) == 30.0 and floor["fvd_slope_turns"] == "NA" and floor["miou"] == "NA"
+
     ours = main[2]
     assert int(ours["parameters"]) == FVD["hierarchical"][0]
     assert [float(ours[f"fvd_{s}"]) for s in ("val", "heldout", "turns")] == list(FVD["hierarchical"][1:4])
@@ -177,7 +231,9 @@ def test_main_report_tables_round_trip(evals, tmp_path):
     assert float(main[1]["miou"]) == PROBES["flat_abstract"][0]
 
     steering = read_csv(out / "steering.csv")
-    assert list(steering[0]) == ["mode", "kind", "ade", "ade_n", "turn_deg", "commanded_turn_deg"]
+    assert list(steering[0]) == ["mode", "kind", "instrument", "ade", "ade_low", "ade_high", "ade_n", "turn_deg",
+                                 "commanded_turn_deg", "ade_opencv", "turn_deg_opencv"]
+    assert float(steering[0]["ade_opencv"]) == 4.2 and float(steering[-2]["ade_opencv"]) == 0.6
     assert [r["mode"] for r in steering] == [*report.STEERING_MODES, "real_videos", "shuffled_videos"]
     assert float(steering[1]["ade"]) == 2.18 and steering[1]["ade_n"] == "21"
     assert float(steering[-1]["ade"]) == 4.0 and steering[-1]["ade_n"] == "30"
@@ -197,7 +253,7 @@ def test_main_report_tables_round_trip(evals, tmp_path):
     for heading in ("## Main results", "## Steering", "## Speed", "## Reading", "## Setup"):
         assert heading in summary
     assert "- profile: smoke" in summary and "- fvd_videos: 12" in summary
-    assert summary_verdicts(out / "summary.md") == ["holds"] * 5
+    assert summary_verdicts(out / "summary.md") == ["holds"] * 7
     assert not (out / "hierarchy_ablation.csv").exists()
 
 
@@ -210,6 +266,8 @@ def test_main_report_marks_absent_ablations_not_measured(tmp_path):
         "not measured",
         "holds",
         "holds",
+        "holds",
+        "holds",
     ]
     assert "## Training strategy" not in (tmp_path / "out" / "summary.md").read_text()
 
@@ -220,7 +278,7 @@ def test_full_report_ablations_and_figures(evals, tmp_path):
     names = {p.relative_to(out).as_posix() for p in written}
     assert names == {
         "main_table.csv", "steering.csv", "speed.csv", "summary.md",
-        "hierarchy_ablation.csv", "training_ablation.csv", "compression_ablation.csv",
+        "hierarchy_ablation.csv", "training_ablation.csv", "compression_ablation.csv", "conditioning.csv",
         "figures/fvd_chunked.png", "figures/probe_per_block.png", "figures/bubble_params_fvd_miou.png",
     }  # fmt: skip
 
@@ -265,7 +323,7 @@ def test_full_report_ablations_and_figures(evals, tmp_path):
     summary = (out / "summary.md").read_text()
     for heading in ("## Hierarchy design study", "## Training strategy", "## Latent compression"):
         assert heading in summary
-    assert summary_verdicts(out / "summary.md") == ["holds"] * 5
+    assert summary_verdicts(out / "summary.md") == ["holds"] * 7
 
 
 def _set(evals: dict, path: tuple, value) -> None:
@@ -280,22 +338,30 @@ def _set(evals: dict, path: tuple, value) -> None:
     [
         (0, ("probe", "abstract_df", "segmentation", "miou"), 60.0),  # DF only better mIoU than DF+TF
         (0, ("probe", "abstract_tf_only", "depth", "rmse"), 4.0),  # TF only better RMSE
-        (1, ("fvd", "flat_abstract", "chunked", "fvd_slope"), 40.0),  # flat abstract more stable
+        (1, ("fvd", "flat_abstract", "chunked", "fvd_slope_draws"), [40.0] * 40),  # flat abstract more stable
         (2, ("compression", "rows", 0, "fvd_slope"), 200.0),  # compressed less stable than full
-        (3, ("steering", "modes", "yaw_rate_x1.5", "ade"), 4.5),  # one mode at chance level
-        (3, ("steering", "modes", "original", "ade"), 3.0),  # original nearer chance than floor
-        (3, ("steering", "modes", "yaw_rate_x1.5", "turn_deg"), 5.0),  # x1.5 turns less than x0.5
+        (3, ("steering", "responses", "learned", "turn_response_deg", "high"), 1.0),  # turns do not follow yaw
+        (3, ("steering", "responses", "learned", "path_ratio", "high"), 1.05),  # paths do not follow speed
         (4, ("speed", "models", "flat_detail", "fps"), 5.0),  # flat detail faster
+        (5, ("conditioning", "variants", 1, "high"), 0.02),  # another clip's subgoal: no material change
+        (6, ("conditioning", "baselines", 0, "high"), 0.01),  # repeating the last frame is as good
     ],
 )
 def test_each_claim_flips_with_the_numbers(evals, tmp_path, claim, path, value):
     assert verdicts(evals)[claim] == "holds"
     _set(evals, path, value)
-    expected = ["holds"] * 5
+    expected = ["holds"] * 7
     expected[claim] = "does not hold"
+    if path[-1] == "high":  # an interval wholly below the material threshold
+        _set(evals, path[:-1] + ("low",), -0.05)
     assert verdicts(evals) == expected
     report.write_full_report(evals, tmp_path / "out", SETUP)
     assert summary_verdicts(tmp_path / "out" / "summary.md") == expected
+
+
+def test_an_interval_straddling_the_threshold_is_not_resolved(evals):
+    _set(evals, ("conditioning", "variants", 1, "low"), 0.01)
+    assert verdicts(evals)[5] == "not resolved at this sample size"
 
 
 def test_null_compression_slope_is_not_measured(evals):
@@ -384,3 +450,9 @@ def test_write_csv_known_bytes_and_exact_float_round_trip(tmp_path):
                                                  b'"say ""x""",1e-09,4,ok,-0.1\r\n')
     back = pd.read_csv(tmp_path / "t.csv")
     assert back["fvd"].tolist() == [12.345678901234567, 1e-09] and back["model"].tolist() == ["a, b", 'say "x"']
+
+
+def test_a_floor_on_too_few_clips_reads_na(evals):
+    evals["fvd"]["hierarchical"]["references"]["val"]["real_floor"] = {"fvd": None, "clips": 2, "reason": "few"}
+    floor = report.main_table(evals)[3]
+    assert floor["fvd_val"] == floor["fvd_val_n"] == "NA" and floor["fvd_heldout"] == 30.0

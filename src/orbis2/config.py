@@ -411,13 +411,65 @@ class ProbeSettings:
 
 
 @dataclass(frozen=True)
+class InverseDynamicsConfig:
+    """The learned inverse-dynamics instrument (``orbis2.eval.inverse_dynamics``): a CNN of base ``width``
+    trained for ``steps`` AdamW steps on pairs of consecutive train frames (resized by ``scale``, at most
+    ``max_train_clips`` clips) to regress speed and yaw rate; scored on ``eval_pairs`` val pairs."""
+
+    steps: int = 600
+    batch_size: int = 32
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    width: int = 16
+    scale: float = 0.5
+    max_train_clips: int | None = None
+    eval_pairs: int = 512
+    seed: int = 0
+
+    def validate(self, where: str) -> None:
+        _positive(self, where, "steps", "batch_size", "lr", "width", "scale", "eval_pairs")
+        if self.scale > 1:
+            raise ConfigError(f"{where}.scale must be in (0, 1] (frames are only ever shrunk)")
+
+
+@dataclass(frozen=True)
+class ConditioningSettings:
+    """The ``eval_conditioning`` stage (``orbis2.eval.conditioning``): does each predictor use its inputs?
+
+    Val windows every ``anchor_stride`` native frames (at most ``max_windows``, evenly
+    spread), ``draws`` noise draws per window shared by every variant. An input is
+    "used" when the clip-bootstrap lower bound of the error increase without it
+    exceeds ``threshold`` (a fraction of the error with it). The ego-motion probe
+    fits ridge regression (penalty ``ridge`` on standardised features) on train
+    frames every ``probe_stride`` frames.
+    """
+
+    draws: int = 3
+    anchor_stride: int = 5
+    max_windows: int = 512
+    batch_size: int = 32
+    threshold: float = 0.03
+    bootstrap_reps: int = 1000
+    probe_stride: int = 2
+    ridge: float = 10.0
+    strips: int = 4
+
+    def validate(self, where: str) -> None:
+        _positive(self, where, "draws", "anchor_stride", "max_windows", "batch_size", "bootstrap_reps",
+                  "probe_stride", "ridge", "strips")
+        if self.threshold < 0:
+            raise ConfigError(f"{where}.threshold must be >= 0 (a fraction of the reference error)")
+
+
+@dataclass(frozen=True)
 class EvaluationConfig:
     """The ``eval_*`` stages (paper Sec. 4.3 and 5).
 
     FVD over ``seconds`` of rollout on each split in ``fvd_splits``; chunked FVD
     over ``chunk_seconds`` windows of ``long_seconds`` rollouts on ``long_split``
     (whose first ``seconds`` also give that split's FVD). ``starts_per_clip``
-    context positions per evaluation clip, evenly spread. ``top_nfe`` and
+    context positions per evaluation clip, evenly spread (FVD needs many videos: its
+    covariance has rank videos - 1). ``top_nfe`` and
     ``bottom_nfe`` are the Euler steps of the top (abstract, 2 Hz) and bottom
     (detail, 10 Hz; also flat) predictors. Steering: ``steering_seconds`` rollouts
     of ``steering_split`` clips under each mode of ``steering_modes``.
@@ -436,6 +488,11 @@ class EvaluationConfig:
     batch_size: int = 8
     steering_split: str = "turns"
     steering_seconds: float = 6.0
+    steering_starts_per_clip: int = 1
+    # Material steering responses: recovered turn under yaw rate x1.5 minus x0.5 (degrees), and path length
+    # under speed x1.5 over x0.5 (commanded: 3).
+    steering_turn_material_deg: float = 2.0
+    steering_path_ratio_material: float = 1.1
     steering_modes: dict[str, list[float]] = field(default_factory=lambda: {
         "original": [1.0, 1.0], "speed_x0.5": [0.5, 1.0], "speed_x1.5": [1.5, 1.0],
         "yaw_rate_x0.5": [1.0, 0.5], "yaw_rate_x1.5": [1.0, 1.5]})
@@ -445,10 +502,25 @@ class EvaluationConfig:
     precision: str = "bf16"
     compile: bool = False
     kv_cache: bool = True
+    conditioning: ConditioningSettings = field(default_factory=ConditioningSettings)
+    # FVD intervals: clip-bootstrap resamples, random clip half-splits for the real-vs-real floor, and the
+    # smallest FVD(-slope) difference a claim counts as material (FVD units).
+    fvd_bootstrap_reps: int = 200
+    floor_splits: int = 50
+    fvd_material: float = 10.0
+    # Seeds (noise draws, rollout noise) over which the claim-bearing evaluation is repeated.
+    seeds: list[int] = field(default_factory=lambda: [0])
 
     def validate(self, where: str) -> None:
-        _positive(self, where, "seconds", "long_seconds", "chunk_seconds", "starts_per_clip", "top_nfe",
-                  "bottom_nfe", "batch_size", "steering_seconds", "speed_seconds", "speed_repeats")
+        self.conditioning.validate(f"{where}.conditioning")
+        _positive(self, where, "fvd_bootstrap_reps", "floor_splits")
+        if self.fvd_material < 0:
+            raise ConfigError(f"{where}.fvd_material must be >= 0 (FVD units)")
+        if not self.seeds or len(set(self.seeds)) != len(self.seeds):
+            raise ConfigError(f"{where}.seeds must be a non-empty list of distinct integers")
+        _positive(self, where, "seconds", "long_seconds", "chunk_seconds", "starts_per_clip",
+                  "steering_starts_per_clip", "top_nfe", "bottom_nfe", "batch_size", "steering_seconds",
+                  "speed_seconds", "speed_repeats")
         self.probe.validate(f"{where}.probe")
         if self.precision not in ("bf16", "fp32"):
             raise ConfigError(f"{where}.precision = {self.precision!r} must be 'bf16' (autocast on CUDA) or 'fp32'")
@@ -493,6 +565,7 @@ class PipelineConfig:
     flat_abstract_full: TeacherForcingConfig
     detail_distill: DistillConfig
     evaluation: EvaluationConfig
+    inverse_dynamics: InverseDynamicsConfig
 
     def section(self, name: str) -> Any:
         return getattr(self, SECTION_ATTRS.get(name, name))
@@ -605,6 +678,7 @@ SECTION_TYPES: dict[str, type] = {
     "detail_on_detail": DetailPredictorConfig,
     "flat_abstract_full": TeacherForcingConfig,
     "detail_distill": DistillConfig,
+    "inverse_dynamics": InverseDynamicsConfig,
     "evaluation": EvaluationConfig,
 }
 

@@ -219,14 +219,42 @@ def even_frame_indices(n_frames: int, k: int = CLIP_FRAMES) -> list[int]:
     return [(2 * i * (n_frames - 1) + k - 1) // (2 * (k - 1)) for i in range(k)]
 
 
-def clip_stats(videos: Videos, model: nn.Module, batch_size: int = 8, device=None) -> FeatureStats:
-    """Feature statistics of videos [N, T >= 16, H, W, 3], each reduced to its 16 evenly spaced frames."""
+def clip_features(videos: Videos, model: nn.Module, batch_size: int = 8, device=None) -> np.ndarray:
+    """I3D features [N, 400] of videos [N, T >= 16, H, W, 3], each reduced to its 16 evenly spaced frames.
+
+    Per-video rows (not only their statistics) are what a clip-level bootstrap resamples.
+    """
     frames = even_frame_indices(videos.shape[1])
-    features = [
+    return np.concatenate([
         i3d_features(videos[start : start + batch_size][:, frames], model, batch_size, device)
         for start in range(0, videos.shape[0], batch_size)
-    ]  # frame selection per batch, so a large uint8 set is never copied whole
-    return FeatureStats.from_features(np.concatenate(features))
+    ])  # frame selection per batch, so a large uint8 set is never copied whole
+
+
+def clip_stats(videos: Videos, model: nn.Module, batch_size: int = 8, device=None) -> FeatureStats:
+    """Feature statistics of videos [N, T >= 16, H, W, 3], each reduced to its 16 evenly spaced frames."""
+    return FeatureStats.from_features(clip_features(videos, model, batch_size, device))
+
+
+def cached_features(folder: str | Path, key: str, compute: Callable[[], np.ndarray]) -> np.ndarray:
+    """Per-video features saved under ``key`` in ``folder`` (checked on load), or ``compute()`` saved first."""
+    readable = re.sub(r"[^A-Za-z0-9_-]+", "_", key)[:48]
+    path = Path(folder) / f"i3d-rows-{readable}-{hashlib.sha256(key.encode()).hexdigest()[:16]}.npz"
+    if path.is_file():
+        with np.load(path, allow_pickle=False) as data:
+            if str(data["key"]) == key:
+                return data["features"]
+    features = np.asarray(compute(), np.float64)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}-", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, features=features, key=np.array(key))
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return features
 
 
 def fvd(real, fake) -> float:

@@ -349,7 +349,19 @@ def _step_lengths(motions: list, cfg: OpenCVOdometry) -> np.ndarray:
     return lengths
 
 
-INVERSE_DYNAMICS: dict[str, Callable[[], InverseDynamics]] = {"opencv": OpenCVOdometry}
+def _learned() -> InverseDynamics:
+    """The CNN the ``inverse_dynamics`` stage trains on the town (imported here: it needs torch)."""
+    from orbis2.eval.inverse_dynamics import Instrument
+
+    return Instrument.load()
+
+
+INVERSE_DYNAMICS: dict[str, Callable[[], InverseDynamics]] = {"opencv": OpenCVOdometry, "learned": _learned}
+
+
+def path_length(trajectory: np.ndarray) -> float:
+    """Length of a planar trajectory [T, 2] in its own units (before any scale alignment)."""
+    return float(np.linalg.norm(np.diff(np.asarray(trajectory, np.float64), axis=0), axis=1).sum())
 
 
 def endpoint_angle(trajectory: np.ndarray) -> float:
@@ -362,7 +374,8 @@ def endpoint_angle(trajectory: np.ndarray) -> float:
 
 
 def get_inverse_dynamics(name: str) -> InverseDynamics:
-    """The inverse-dynamics model registered under ``name`` ("opencv" ships with the project)."""
+    """The inverse-dynamics model registered under ``name``: "opencv" (visual odometry) or "learned" (the
+    ``inverse_dynamics`` stage's CNN)."""
     factory = INVERSE_DYNAMICS.get(name)
     if factory is None:
         raise OrbisError(

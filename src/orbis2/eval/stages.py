@@ -25,15 +25,17 @@ from orbis2.data.probes import cityscapes_frames, kitti_eigen_frames, split_by_e
 from orbis2.data.shards import Clip, iter_samples, load_manifest, shard_paths
 from orbis2.data.video import write_video
 from orbis2.errors import OrbisError
-from orbis2.eval.fvd import FeatureStats, cached_stats, chunk_windows, clip_stats, fvd_slope, video_fvd
+from orbis2.eval.fvd import cached_features, chunk_windows, clip_features
 from orbis2.eval.odometry import (
     camera_intrinsics,
     endpoint_angle,
     get_inverse_dynamics,
     integrate_controls,
+    path_length,
     trajectory_ade,
 )
 from orbis2.eval.probe import ProbeConfig, predictor_features, run_probe, teacher_features, tokenizer_features
+from orbis2.eval.references import fvd_with_interval, reference_rows
 from orbis2.eval.report import (
     compression_from_evals,
     load_eval,
@@ -43,6 +45,7 @@ from orbis2.eval.report import (
     write_main_report,
 )
 from orbis2.eval.speed import measure
+from orbis2.eval.stats import fvd_slope_interval, mean_interval, paired_difference
 from orbis2.eval.systems import (
     SYSTEMS,
     LoadedSystem,
@@ -111,11 +114,6 @@ def real_videos(clips: dict[str, Clip], samples: list[Sample], indices: list[np.
     return np.stack([clips[s.key].frames(idx) for s, idx in zip(samples, indices)])
 
 
-def real_stats(split: str, what: str, compute) -> FeatureStats:
-    """I3D statistics of real videos, cached under the split's shard hash and a description of the videos."""
-    return cached_stats(STATS_CACHE, f"{split}|{split_hash(split)}|{what}", compute)
-
-
 # --------------------------------------------------------------------------- rollouts
 
 
@@ -141,19 +139,21 @@ def load_fvd_network(cfg: PipelineConfig, dev: torch.device):
     return load_i3d(path).to(dev).eval()
 
 
-def fvd_record(result, seconds: float) -> dict[str, Any]:
-    return {"fvd": result.value, "videos": result.n_videos, "frames": result.frames, "seconds": seconds,
-            "resolution": [224, 224], "source_resolution": list(result.resolution), "seed": result.seed}
+def sample_clusters(cache: LatentCache, split: str, samples: list[Sample]) -> list[str]:
+    """What a bootstrap resamples: each sample's episode (clips and starts of one episode are not independent)."""
+    index = cache.index(split)
+    return [str(index[s.key].get("episode", s.key)) for s in samples]
 
 
 def run_fvd(name: str, cfg: PipelineConfig, run: StageRun) -> str:
-    """FVD over ``seconds`` on each split, chunked FVD and FVD-slope over ``long_seconds`` on ``long_split``.
+    """FVD over ``seconds`` on each split, chunked FVD and FVD-slope over ``long_seconds`` on ``long_split``,
+    each with a clip-bootstrap interval, beside the reference rows of :mod:`orbis2.eval.references`.
 
     The long split's FVD uses the first ``seconds`` of its long rollouts (same
-    contexts, same distribution as separate short rollouts). Also records, on the
-    first split, the per-frame latent MSE of the first 4 s of rollout against the
-    truth and against repeating the last context frame: a trivial baseline that a
-    world model must beat.
+    contexts, same distribution as separate short rollouts). Whether a rollout
+    beats repeating the last frame in latent space is the ``eval_conditioning``
+    stage's unbiased one-step comparison, not a sample's MSE (which pays twice the
+    conditional variance).
     """
     ev, dev = cfg.evaluation, device()
     system = load_system(name, dev, inference=inference_settings(cfg))
@@ -162,7 +162,8 @@ def run_fvd(name: str, cfg: PipelineConfig, run: StageRun) -> str:
     record: dict[str, Any] = {"model": name, "label": SYSTEMS[name].label, "parameters": system.parameters,
                               "latent_channels": system.bottom.model.latent_channels,
                               "predictors": SYSTEMS[name].stages, "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe},
-                              "fvd": {}}
+                              "starts_per_clip": ev.starts_per_clip, "fvd_material": ev.fvd_material, "fvd": {},
+                              "references": {}}
     media = EVAL / "media" / name
     with atomic_dir(media) as tmp:
         for split in ev.fvd_splits:
@@ -172,65 +173,100 @@ def run_fvd(name: str, cfg: PipelineConfig, run: StageRun) -> str:
     write_json(EVAL / f"fvd_{name}.json", record)
     run.log_artifact(EVAL / f"fvd_{name}.json")
     run.log_metrics({f"fvd_{split}": v["fvd"] for split, v in record["fvd"].items()})
+    run.log_metrics({f"fvd_{split}_{ref}": v["fvd"] for split, refs in record["references"].items()
+                     for ref, v in refs.items() if v["fvd"] is not None})
     if "chunked" in record:
         run.log_metrics({"fvd_slope": record["chunked"]["fvd_slope"]})
-    splits = ", ".join(f"{s} {v['fvd']:.1f} (n={v['videos']})" for s, v in record["fvd"].items())
+    splits = ", ".join(f"{s} {v['fvd']:.1f} [{v['low']:.1f}, {v['high']:.1f}] (n={v['videos']}, {v['clips']} clips)"
+                       for s, v in record["fvd"].items())
     slope = f"; FVD-slope {record['chunked']['fvd_slope']:.1f}" if "chunked" in record else ""
     return f"{name}: FVD {splits}{slope}"
 
 
 def fvd_split(split: str, system: LoadedSystem, cache: LatentCache, i3d, record: dict[str, Any], media: Path,
               cfg: PipelineConfig, dev: torch.device) -> None:
-    """Roll out one split, add its FVD (and, for the long split, chunked FVD) to ``record``; save a sample video."""
+    """Roll out one split, add its FVD, reference rows and (long split) chunked FVD to ``record``; save a video."""
     ev, data = cfg.evaluation, cfg.data
     long = split == ev.long_split
     steps = rollout_steps(data, ev.long_seconds if long else ev.seconds)
     n_short, n_long = round(ev.seconds * data.detail_hz), round(ev.long_seconds * data.detail_hz)
     samples = eval_samples(cache, split, data, steps, ev.starts_per_clip)
     indices = [generated_indices(data, s.context_end, steps) for s in samples]
+    clusters = sample_clusters(cache, split, samples)
     latents = generate(system, cache, split, samples, steps, cfg, dev)
-    if split == ev.fvd_splits[0]:
-        record["latent_mse"] = latent_baseline(system, cache, split, samples, indices, latents, data)
     fake = system.decode(latents)
     clips = split_clips(split)
     what = f"{len(samples)}x{ev.starts_per_clip}starts|{steps}steps|{data.width}x{data.height}"
-    real = real_stats(split, f"{what}|first{n_short}",
-                      lambda: clip_stats(real_videos(clips, samples, [i[:n_short] for i in indices]), i3d))
-    record["fvd"][split] = fvd_record(video_fvd(real, fake[:, :n_short], i3d, seed=ev.seed), ev.seconds)
+
+    def real(window: slice) -> np.ndarray:
+        return real_features(split, f"{what}|frames{window.start}-{window.stop}",
+                             lambda: clip_features(real_videos(clips, samples, [i[window] for i in indices]), i3d))
+
+    short = slice(0, n_short)
+    real_short = real(short)
+    record["fvd"][split] = {**fvd_with_interval(real_short, clip_features(fake[:, short], i3d), clusters,
+                                                ev.fvd_bootstrap_reps, ev.seed),
+                            "frames": 16, "seconds": ev.seconds, "resolution": [224, 224],
+                            "source_resolution": list(fake.shape[2:4]), "seed": ev.seed}
+    record["references"][split] = references(split, system, cache, samples, indices, short, real_short, clusters,
+                                             what, i3d, cfg)
     if long:
-        record["chunked"] = chunked_record(split, samples, indices, fake[:, :n_long], clips, what, i3d, cfg)
+        record["chunked"] = chunked_record(split, fake[:, :n_long], real, clusters, i3d, cfg)
         save_grid_frames(media / "grid.npz", fake[0], data.detail_hz)
     write_video(media / f"{split}.mp4", fake[0], data.detail_hz)
 
 
-def chunked_record(split: str, samples: list[Sample], indices: list[np.ndarray], fake: np.ndarray,
-                   clips: dict[str, Clip], what: str, i3d, cfg: PipelineConfig) -> dict[str, Any]:
-    """Chunked FVD over consecutive ``chunk_seconds`` windows, FVD over the whole span, and the FVD-slope."""
+def real_features(split: str, what: str, compute) -> np.ndarray:
+    """Per-video I3D features of real videos, cached under the split's shard hash and a description of the videos."""
+    return cached_features(STATS_CACHE, f"{split}|{split_hash(split)}|{what}", compute)
+
+
+def references(split: str, system: LoadedSystem, cache: LatentCache, samples: list[Sample],
+               indices: list[np.ndarray], window: slice, real: np.ndarray, clusters: list[str], what: str, i3d,
+               cfg: PipelineConfig) -> dict[str, Any]:
+    """Reference rows on the same clips and frames: real-vs-real floor, tokenizer reconstruction, repeat-last.
+
+    Cached by the decoding tokenizer's checksum: systems that decode with the same
+    tokenizer (all detail-level ones) share them.
+    """
+    ev, level = cfg.evaluation, system.output_level
+    key = f"{what}|frames{window.start}-{window.stop}|{level}|{system.tokenizers[level].checksum[:16]}"
+
+    def reconstruction() -> np.ndarray:
+        truth = cache_latents(cache, split, level, samples, [i[window] for i in indices])
+        return clip_features(system.decode(truth), i3d)
+
+    def repeat_last() -> np.ndarray:
+        last = cache_latents(cache, split, level, samples, [np.array([s.context_end]) for s in samples])
+        frames = system.decode(last)
+        return clip_features(np.broadcast_to(frames, (len(frames), window.stop - window.start, *frames.shape[2:])),
+                             i3d)
+
+    recon = real_features(split, f"{key}|reconstruction", reconstruction)
+    still = real_features(split, f"{key}|repeat_last", repeat_last)
+    return reference_rows(real, recon, still, clusters, ev.fvd_bootstrap_reps, ev.seed, ev.floor_splits)
+
+
+def chunked_record(split: str, fake: np.ndarray, real, clusters: list[str], i3d,
+                   cfg: PipelineConfig) -> dict[str, Any]:
+    """Chunked FVD over consecutive ``chunk_seconds`` windows, FVD over the whole span, and the FVD-slope,
+    each with a clip-bootstrap interval (all chunks on the same resamples)."""
     ev, data = cfg.evaluation, cfg.data
-
-    def fvd_of(window: slice) -> float:
-        real = real_stats(split, f"{what}|frames{window.start}-{window.stop}",
-                          lambda: clip_stats(real_videos(clips, samples, [i[window] for i in indices]), i3d))
-        return video_fvd(real, fake[:, window], i3d, seed=ev.seed).value
-
     windows = chunk_windows(fake.shape[1], data.detail_hz, ev.chunk_seconds)
-    chunks = [{"start_s": w.start / data.detail_hz, "end_s": w.stop / data.detail_hz, "fvd": fvd_of(w)}
-              for w in windows]
+    reals = [real(w) for w in windows]
+    fakes = [clip_features(fake[:, w], i3d) for w in windows]
+    chunks, slope, slope_draws = fvd_slope_interval(reals, fakes, clusters, ev.fvd_bootstrap_reps, seed=ev.seed)
+    whole = slice(0, windows[-1].stop)
+    full = fvd_with_interval(real(whole), clip_features(fake[:, whole], i3d), clusters,
+                             ev.fvd_bootstrap_reps, ev.seed)
     return {"split": split, "seconds": len(windows) * ev.chunk_seconds, "chunk_seconds": ev.chunk_seconds,
-            "videos": len(samples), "seed": ev.seed, "chunks": chunks,
-            "fvd_16s": fvd_of(slice(0, windows[-1].stop)), "fvd_slope": fvd_slope([c["fvd"] for c in chunks])}
-
-
-def latent_baseline(system: LoadedSystem, cache: LatentCache, split: str, samples: list[Sample],
-                    indices: list[np.ndarray], latents: torch.Tensor, data) -> dict[str, Any]:
-    """Per-frame MSE of the first 4 s of rollout vs. the true latents, and of repeating the last context frame."""
-    frames = min(latents.shape[1], round(4.0 * data.detail_hz))
-    level = system.output_level
-    truth = cache_latents(cache, split, level, samples, [i[:frames] for i in indices])
-    last = cache_latents(cache, split, level, samples, [np.array([s.context_end]) for s in samples])
-    return {"level": level, "seconds": frames / data.detail_hz, "videos": len(samples),
-            "rollout": float(((latents[:, :frames] - truth) ** 2).mean()),
-            "repeat_last": float(((last - truth) ** 2).mean())}
+            "videos": len(clusters), "clips": slope.clusters, "seed": ev.seed,
+            "chunks": [{"start_s": w.start / data.detail_hz, "end_s": w.stop / data.detail_hz, "fvd": c.estimate,
+                        "low": c.low, "high": c.high} for w, c in zip(windows, chunks)],
+            "fvd_16s": full["fvd"], "fvd_16s_low": full["low"], "fvd_16s_high": full["high"],
+            "fvd_slope": slope.estimate, "fvd_slope_low": slope.low, "fvd_slope_high": slope.high,
+            "bootstrap_reps": ev.fvd_bootstrap_reps, "bootstrap_seed": ev.seed,
+            "fvd_slope_draws": [float(d) for d in slope_draws]}
 
 
 def save_grid_frames(path: Path, frames: np.ndarray, fps: float) -> None:
@@ -244,15 +280,18 @@ def save_grid_frames(path: Path, frames: np.ndarray, fps: float) -> None:
 
 
 def run_steering(cfg: PipelineConfig, run: StageRun) -> str:
-    """Counterfactual steering ADE (paper Table 2, appendix "Counterfactual steering").
+    """Counterfactual steering (paper Table 2, appendix "Counterfactual steering"), read by two instruments.
 
     Rollouts of the hierarchical model with the steered top predictor (``action``)
-    on ``steering_split`` clips, under each mode's scaling of the clip's own speed
-    and yaw rate; inverse dynamics (visual odometry) recovers the trajectory of
-    each generated video, which is scale-aligned by least squares to the
-    commanded trajectory before the ADE in metres. The first frame is the decoded
-    last context frame, where both trajectories start. Sanity: the same odometry
-    on the real videos of those spans, in order and with shuffled frames.
+    on ``steering_split`` starts, under each mode's scaling of the clip's own speed
+    and yaw rate. Each video's trajectory is recovered by ``evaluation.inverse_dynamics``
+    (the learned instrument by default) and by OpenCV visual odometry (second column);
+    ADE in metres after least-squares scale alignment to the commanded trajectory.
+    Scale-free responses, paired per start: the recovered turn (end-point angle, the
+    clip's own turn direction positive) under yaw rate x1.5 minus under x0.5, and the
+    path-length ratio (before alignment) under speed x1.5 over x0.5 (3 if the video
+    follows). Every figure has a clip-bootstrap interval. Sanity: each instrument on
+    the real videos of those spans, in order and with shuffled frames.
     """
     ev, data = cfg.evaluation, cfg.data
     if data.detail_stride != 1:
@@ -266,15 +305,17 @@ def run_steering(cfg: PipelineConfig, run: StageRun) -> str:
     cache = open_cache(LATENTS)
     steps = rollout_steps(data, ev.steering_seconds)
     split = ev.steering_split
-    samples = eval_samples(cache, split, data, steps, ev.starts_per_clip)
+    samples = eval_samples(cache, split, data, steps, ev.steering_starts_per_clip)
+    clusters = sample_clusters(cache, split, samples)
     indices = [generated_indices(data, s.context_end, steps) for s in samples]
     odometry = cache.arrays(split)["odometry"]
     K = camera_intrinsics(data.width, data.height, cfg.town.hfov_deg)
-    inverse = get_inverse_dynamics(ev.inverse_dynamics)
+    instruments = {name: get_inverse_dynamics(name) for name in dict.fromkeys([ev.inverse_dynamics, "opencv"])}
     first = cache_latents(cache, split, "detail", samples, [np.array([s.context_end]) for s in samples])
     first_frames = system.decode(first)  # [N, 1, H, W, 3]
     speed_norm, yaw_norm = steer_meta["scale"]
     modes: dict[str, Any] = {}
+    per_sample: dict[str, dict[str, dict[str, np.ndarray]]] = {}
     strip = {}
     for mode, (speed_scale, yaw_scale) in ev.steering_modes.items():
         controls, steering = [], []
@@ -286,34 +327,83 @@ def run_steering(cfg: PipelineConfig, run: StageRun) -> str:
             controls.append((speed[s.context_end:], yaw[s.context_end:]))
         latents = generate(system, cache, split, samples, steps, cfg, dev, torch.stack(steering), desc=mode)
         videos = np.concatenate([first_frames, system.decode(latents)], axis=1)
-        scored = [trajectory_ade(v, sp, yw, data.detail_hz, K, inverse) for v, (sp, yw) in zip(videos, controls)]
-        # Turn statistic, signed so that the clip's own turn direction is positive: a model that steers
-        # turns further under yaw rate x1.5 than x0.5, whatever the odometry's scale.
-        sign = [np.sign(endpoint_angle(r["reference"])) or 1.0 for r in scored]
-        modes[mode] = {"ade": float(np.mean([r["ade"] for r in scored])), "samples": len(samples),
-                       "speed_scale": speed_scale, "yaw_rate_scale": yaw_scale,
-                       "turn_deg": float(np.mean([g * endpoint_angle(r["estimated"]) for g, r in zip(sign, scored)])),
-                       "commanded_turn_deg": float(np.mean([g * endpoint_angle(r["reference"])
-                                                            for g, r in zip(sign, scored)]))}
+        per_sample[mode] = {name: score_videos(videos, controls, inverse, K, data.detail_hz)
+                            for name, inverse in instruments.items()}
+        modes[mode] = mode_record(per_sample[mode], clusters, speed_scale, yaw_scale, ev.seed)
         sp, yw = controls[0]
         strip[mode] = (videos[0], integrate_controls(sp[:videos.shape[1] - 1], yw[:videos.shape[1] - 1],
                                                      1.0 / data.detail_hz))
-    sanity = odometry_sanity(split, samples, indices, odometry, K, inverse, data)
-    record = {"split": split, "seconds": ev.steering_seconds, "samples": len(samples), "seed": ev.seed,
-              "inverse_dynamics": ev.inverse_dynamics, "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe},
-              "modes": modes, "odometry_sanity": sanity}
+    sanity = {name: odometry_sanity(split, samples, indices, odometry, K, inverse, data, clusters, ev.seed)
+              for name, inverse in instruments.items()}
+    record = {"split": split, "seconds": ev.steering_seconds, "samples": len(samples), "clips": len(set(clusters)),
+              "seed": ev.seed, "inverse_dynamics": ev.inverse_dynamics, "instruments": list(instruments),
+              "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe}, "modes": modes,
+              "responses": {name: steering_responses(per_sample, name, clusters, ev.seed) for name in instruments},
+              "material": {"turn_deg": ev.steering_turn_material_deg, "path_ratio": ev.steering_path_ratio_material},
+              "odometry_sanity": sanity[ev.inverse_dynamics], "sanity": sanity}
     write_json(EVAL / "steering.json", record)
     run.log_artifact(EVAL / "steering.json")
     save_strip(strip, data.detail_hz, run)
     run.log_metrics({f"ade_{m}": v["ade"] for m, v in modes.items()})
+    response, floor = record["responses"][ev.inverse_dynamics], sanity[ev.inverse_dynamics]
     return ("ADE (turn) " + ", ".join(f"{m} {v['ade']:.2f} m ({v['turn_deg']:.0f} deg)" for m, v in modes.items())
-            + f" (n={len(samples)}); odometry on real video {sanity['real_ade']:.2f} m, "
-              f"shuffled {sanity['shuffled_ade']:.2f} m")
+            + f" (n={len(samples)}, {ev.inverse_dynamics}); turn response "
+              f"{response['turn_response_deg']['estimate']:.1f} deg, path ratio x1.5/x0.5 "
+              f"{response['path_ratio']['estimate']:.2f}; real video ADE {floor['real_ade']:.2f} m, shuffled "
+              f"{floor['shuffled_ade']:.2f} m")
+
+
+def score_videos(videos: np.ndarray, controls: list, inverse, K: np.ndarray, fps: float) -> dict[str, np.ndarray]:
+    """Per video: aligned ADE, signed turn (clip's own direction positive, degrees) and unaligned path length."""
+    scored = [trajectory_ade(v, sp, yw, fps, K, inverse) for v, (sp, yw) in zip(videos, controls)]
+    sign = np.array([np.sign(endpoint_angle(r["reference"])) or 1.0 for r in scored])
+    return {"ade": np.array([r["ade"] for r in scored]),
+            "turn_deg": sign * np.array([endpoint_angle(r["estimated"]) for r in scored]),
+            "commanded_turn_deg": sign * np.array([endpoint_angle(r["reference"]) for r in scored]),
+            "path_length": np.array([path_length(r["estimated"]) for r in scored])}
+
+
+def mode_record(scores: dict[str, dict[str, np.ndarray]], clusters: list[str], speed_scale: float, yaw_scale: float,
+                seed: int) -> dict[str, Any]:
+    """One mode's figures per instrument with clip-bootstrap intervals; the first instrument's on top."""
+    per = {}
+    for name, sc in scores.items():
+        ade_iv, turn_iv = mean_interval(sc["ade"], clusters, seed=seed), mean_interval(sc["turn_deg"], clusters,
+                                                                                       seed=seed)
+        per[name] = {"ade": ade_iv.estimate, "ade_low": ade_iv.low, "ade_high": ade_iv.high,
+                     "turn_deg": turn_iv.estimate, "turn_low": turn_iv.low, "turn_high": turn_iv.high,
+                     "path_length": float(sc["path_length"].mean())}
+    main = next(iter(scores))
+    return {**per[main], "samples": len(clusters), "speed_scale": speed_scale, "yaw_rate_scale": yaw_scale,
+            "commanded_turn_deg": float(scores[main]["commanded_turn_deg"].mean()), "instruments": per}
+
+
+def steering_responses(per_sample: dict, name: str, clusters: list[str], seed: int) -> dict[str, Any]:
+    """Scale-free, paired per start: turn(x1.5) - turn(x0.5) in degrees, and path length(x1.5) / (x0.5)."""
+    out: dict[str, Any] = {}
+    yaw = ("yaw_rate_x0.5", "yaw_rate_x1.5")
+    if all(m in per_sample for m in yaw):
+        lo, hi = (per_sample[m][name] for m in yaw)
+        iv = paired_difference(hi["turn_deg"], lo["turn_deg"], clusters, seed=seed)
+        out["turn_response_deg"] = iv.to_dict()
+        cmd = float((hi["commanded_turn_deg"] - lo["commanded_turn_deg"]).mean())
+        out["commanded_turn_response_deg"] = cmd
+        out["turn_by_mode_deg"] = {m: float(per_sample[m][name]["turn_deg"].mean())
+                                   for m in ("yaw_rate_x0.5", "original", "yaw_rate_x1.5") if m in per_sample}
+    speed = ("speed_x0.5", "speed_x1.5")
+    if all(m in per_sample for m in speed):
+        lo, hi = (per_sample[m][name]["path_length"] for m in speed)
+        ratio = np.log(np.maximum(hi, 1e-9) / np.maximum(lo, 1e-9))
+        iv = mean_interval(ratio, clusters, seed=seed)
+        out["path_ratio"] = {"estimate": float(np.exp(iv.estimate)), "low": float(np.exp(iv.low)),
+                             "high": float(np.exp(iv.high)), "commanded": 3.0, "clusters": iv.clusters,
+                             "note": "geometric mean of path length under speed x1.5 over x0.5, before alignment"}
+    return out
 
 
 def odometry_sanity(split: str, samples: list[Sample], indices: list[np.ndarray], odometry: np.ndarray, K,
-                    inverse, data) -> dict[str, Any]:
-    """Visual odometry on the real videos of the evaluated spans, in order and with a fixed frame shuffle."""
+                    inverse, data, clusters: list[str], seed: int) -> dict[str, Any]:
+    """An instrument on the real videos of the evaluated spans, in order and with a fixed frame shuffle."""
     clips = split_clips(split)
     rng = np.random.default_rng(0)
     real, shuffled = [], []
@@ -324,7 +414,10 @@ def odometry_sanity(split: str, samples: list[Sample], indices: list[np.ndarray]
         real.append(trajectory_ade(video, rows[:, 0], rows[:, 1], data.detail_hz, K, inverse)["ade"])
         order = rng.permutation(len(video))
         shuffled.append(trajectory_ade(video[order], rows[:, 0], rows[:, 1], data.detail_hz, K, inverse)["ade"])
-    return {"real_ade": float(np.mean(real)), "shuffled_ade": float(np.mean(shuffled)), "videos": len(samples)}
+    real_iv, shuffled_iv = mean_interval(real, clusters, seed=seed), mean_interval(shuffled, clusters, seed=seed)
+    return {"real_ade": real_iv.estimate, "real_low": real_iv.low, "real_high": real_iv.high,
+            "shuffled_ade": shuffled_iv.estimate, "shuffled_low": shuffled_iv.low,
+            "shuffled_high": shuffled_iv.high, "videos": len(samples)}
 
 
 def save_strip(strip: dict[str, tuple[np.ndarray, np.ndarray]], fps: float, run: StageRun) -> None:

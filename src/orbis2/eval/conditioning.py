@@ -1,0 +1,474 @@
+"""Does each predictor use its inputs, and does it beat trivial predictions? (the ``eval_conditioning`` stage)
+
+Generated-video metrics cannot separate "the model ignores its conditioning" from
+"the conditioning carries little"; this stage measures it directly on real val
+windows, as the predictors see them (scaled cached latents):
+
+- **Variants.** The same windows and the same noise draws (``draws`` per window)
+  under the true conditioning and under altered ones: for the detail predictor a
+  subgoal taken from ANOTHER clip, or none; for the steered abstract predictor
+  null steering, another clip's steering, yaw rate negated, speed halved. Two
+  errors per window: the flow-matching loss (eq. 1 with the window's tau) and
+  the error of the one-step conditional mean. Swaps always come from another
+  clip (:func:`orbis2.eval.stats.other_clip_donors`): windows of the same clip a
+  fraction of a second apart carry nearly the same subgoal.
+- **One-step conditional mean.** At tau = 1 the input is pure noise, so a
+  perfect velocity field gives ``eps - v(eps, 1) = E[x | context, conditioning]``;
+  its MSE to the target is the conditional variance, the lowest any predictor
+  can reach. A *sample*'s MSE is twice that, which is why comparing a sample
+  with "repeat the last frame" is biased against the model. Every main predictor
+  is compared at 0.5 s and 1 s ahead (the 1-s figure feeds the first step's
+  conditional mean back as context, with the true conditioning of the next
+  window) with repeating the last context frame and with the dataset mean.
+- **Latents.** How much of each latent set's energy varies frame to frame around
+  a fixed per-position template (the train mean per position and channel), how
+  much of that variation is within a clip, the repeat-last MSE at 0.5 s, and a
+  ridge probe of ego-motion (speed, yaw rate over 0.5 s) from two abstract latents
+  0.5 s apart pooled to vertical strips x channels (trained on train, R^2 on val).
+
+Effects are relative to the true-conditioning error, with clip-bootstrap
+intervals; an input is "used" when the lower bound exceeds ``threshold``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from orbis2.config import DataConfig, PipelineConfig
+from orbis2.errors import OrbisError
+from orbis2.eval.stats import (
+    bootstrap_statistic,
+    decide,
+    other_clip_donors,
+    relative_difference,
+)
+from orbis2.eval.systems import predictor_file
+from orbis2.flow import interpolate
+from orbis2.io import write_json
+from orbis2.latents import KINDS, LATENT_SETS, LatentCache, LatentWindowDataset, open_cache
+from orbis2.models.stdit import load_predictor
+from orbis2.tasks.predictors import (
+    STAGES,
+    collate,
+    detail_condition,
+    rate_geometry,
+    steering_interval,
+    window_key,
+)
+from orbis2.tracking import StageRun
+
+ModelFn = Callable[..., torch.Tensor]
+# The predictors of the main systems (and the steered top predictor), as ``eval_conditioning`` reads them.
+MAIN_PREDICTORS = ("abstract_tf", "detail", "action", "flat_detail", "flat_abstract")
+METRICS = ("loss", "one_step_mse")
+
+
+# --------------------------------------------------------------------------- per-window errors
+
+
+def one_step_mean(model_fn: ModelFn, context: torch.Tensor, eps: torch.Tensor, **cond) -> torch.Tensor:
+    """One Euler step from pure noise: x_hat = eps - v(eps, tau = 1), the conditional mean of the targets."""
+    b, n_context = context.shape[:2]
+    tau = torch.cat([torch.zeros(b, n_context), torch.ones(b, eps.shape[1])], dim=1).to(context)
+    velocity = model_fn(torch.cat([context, eps], dim=1), tau, **cond)[:, n_context:]
+    return eps - velocity.to(eps.dtype)
+
+
+def flow_loss(model_fn: ModelFn, context: torch.Tensor, target: torch.Tensor, eps: torch.Tensor,
+              tau: torch.Tensor, **cond) -> torch.Tensor:
+    """Per-window eq. 1 loss [B] at target noise level ``tau`` [B], clean context."""
+    b, n_context = context.shape[:2]
+    tau_target = tau[:, None].expand(b, target.shape[1])
+    x = torch.cat([context, interpolate(target, eps, tau_target)], dim=1)
+    tau_all = torch.cat([torch.zeros(b, n_context).to(tau), tau_target], dim=1)
+    velocity = model_fn(x, tau_all, **cond)[:, n_context:]
+    return per_window_mse(velocity, eps - target)
+
+
+def per_window_mse(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return ((a.float() - b.float()) ** 2).flatten(1).mean(dim=1)
+
+
+@torch.no_grad()
+def variant_errors(model_fn: ModelFn, context: torch.Tensor, target: torch.Tensor,
+                   variants: dict[str, dict[str, Any]], eps: torch.Tensor, tau: torch.Tensor) -> dict[str, dict]:
+    """Per variant, per-window loss and one-step-mean MSE [B] averaged over the draws eps [K, B, ...], tau [K, B].
+
+    Every variant sees exactly the same draws, so their differences are paired.
+    """
+    out = {}
+    for name, cond in variants.items():
+        loss = torch.stack([flow_loss(model_fn, context, target, e, t, **cond) for e, t in zip(eps, tau)]).mean(0)
+        mse = torch.stack([per_window_mse(one_step_mean(model_fn, context, e, **cond), target)
+                           for e in eps]).mean(0)
+        out[name] = {"loss": loss.cpu().numpy(), "one_step_mse": mse.cpu().numpy()}
+    return out
+
+
+def concat_errors(parts: list[dict[str, dict[str, np.ndarray]]]) -> dict[str, dict[str, np.ndarray]]:
+    """Join per-batch ``variant_errors`` results along the window axis."""
+    return {v: {m: np.concatenate([p[v][m] for p in parts]) for m in parts[0][v]} for v in parts[0]}
+
+
+def mean_over_seeds(per_seed: list[dict[str, dict[str, np.ndarray]]]) -> dict[str, dict[str, np.ndarray]]:
+    """Average each window's errors over seeds (more draws per window; the windows stay the units)."""
+    return {v: {m: np.mean([s[v][m] for s in per_seed], axis=0) for m in per_seed[0][v]} for v in per_seed[0]}
+
+
+def effect_rows(model: str, errors: dict[str, dict[str, np.ndarray]], reference: str, clusters, threshold: float,
+                reps: int, seed: int, per_seed: list[dict[str, dict[str, np.ndarray]]] | None = None) -> list[dict]:
+    """Rows (model, metric, variant, errors, relative effect vs ``reference`` with its interval, verdict).
+
+    effect = (error without the true input - error with it) / error with it; "used"
+    when the interval's lower bound clears ``threshold``. ``per_seed`` adds each
+    seed's verdict (do the seeds agree?).
+    """
+    rows = []
+    for metric in METRICS:
+        ref = errors[reference][metric]
+        rows.append({"model": model, "metric": metric, "variant": reference, "error": float(ref.mean()),
+                     "effect": 0.0, "low": 0.0, "high": 0.0, "verdict": "reference", "windows": len(ref)})
+        for variant in errors:
+            if variant == reference:
+                continue
+            iv = relative_difference(errors[variant][metric], ref, clusters, reps, seed=seed)
+            row = {"model": model, "metric": metric, "variant": variant, "error": float(errors[variant][metric].mean()),
+                   "effect": iv.estimate, "low": iv.low, "high": iv.high, "verdict": decide(iv, threshold),
+                   "windows": len(ref), "clips": iv.clusters}
+            if per_seed is not None:
+                row["seed_verdicts"] = [decide(relative_difference(s[variant][metric], s[reference][metric], clusters,
+                                                                   reps, seed=seed), threshold) for s in per_seed]
+            rows.append(row)
+    return rows
+
+
+def baseline_rows(model: str, horizon_s: float, model_err: np.ndarray, baselines: dict[str, np.ndarray], clusters,
+                  threshold: float, reps: int, seed: int) -> list[dict]:
+    """Does the one-step conditional mean beat each trivial prediction by a material margin?
+
+    effect = (baseline error - model error) / model error; "holds" when its lower bound
+    clears ``threshold``, "does not hold" when the whole interval is below it.
+    """
+    rows = []
+    for name, err in baselines.items():
+        iv = relative_difference(err, model_err, clusters, reps, seed=seed)
+        rows.append({"model": model, "horizon_s": horizon_s, "baseline": name, "model_mse": float(model_err.mean()),
+                     "baseline_mse": float(err.mean()), "effect": iv.estimate, "low": iv.low, "high": iv.high,
+                     "verdict": decide(iv, threshold, "claim"), "windows": len(err), "clips": iv.clusters})
+    return rows
+
+
+# --------------------------------------------------------------------------- latent statistics
+
+
+def energy_shares(clips: list[np.ndarray], template: np.ndarray, step: int) -> dict[str, float]:
+    """How much of a latent set's energy moves, and how much of that moves within a clip.
+
+    ``clips``: per clip, latents [T, ...] as the predictors see them; ``template``: the
+    per-position, per-channel mean [...] (from train). ``varying_share`` = E|x - template|^2 /
+    E|x|^2; ``within_clip_share`` = E|x - clip mean|^2 / E|x - template|^2;
+    ``repeat_last_mse`` = E|x_t - x_{t - step}|^2 per element, also relative to the variation.
+    """
+    total = varying = within = repeat = 0.0
+    elements = pairs = 0
+    for x in clips:
+        x = x.astype(np.float64)
+        total += float((x ** 2).sum())
+        varying += float(((x - template) ** 2).sum())
+        within += float(((x - x.mean(axis=0)) ** 2).sum())
+        elements += x.size
+        if len(x) > step:
+            repeat += float(((x[step:] - x[:-step]) ** 2).sum())
+            pairs += x[step:].size
+    if elements == 0 or varying == 0:
+        raise ValueError("energy_shares needs at least one non-constant clip")
+    variation = varying / elements
+    repeat_mse = repeat / pairs if pairs else float("nan")
+    return {"varying_share": varying / total, "within_clip_share": within / varying,
+            "variation_mse": variation, "repeat_last_mse": repeat_mse,
+            "repeat_last_relative": repeat_mse / variation, "frames": int(sum(len(x) for x in clips))}
+
+
+def strip_features(latents: np.ndarray, strips: int) -> np.ndarray:
+    """[N, C, h, w] -> [N, C * strips]: channel means over ``strips`` vertical strips (left to right)."""
+    parts = np.array_split(np.asarray(latents, np.float64), strips, axis=-1)
+    return np.concatenate([p.mean(axis=(-2, -1)) for p in parts], axis=1)
+
+
+def ego_motion_pairs(latents: list[np.ndarray], odometry: list[np.ndarray], labels: list[str], step: int,
+                     stride: int, strips: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Features (strips of the latents at t and t + step), targets (mean speed, yaw rate over [t, t + step)), clips."""
+    xs, ys, cs = [], [], []
+    for lat, odo, label in zip(latents, odometry, labels):
+        feats = strip_features(lat, strips)
+        for t in range(0, len(lat) - step, stride):
+            y = np.asarray(odo[t:t + step], np.float64).mean(axis=0)
+            if np.isfinite(y).all():
+                xs.append(np.concatenate([feats[t], feats[t + step]]))
+                ys.append(y)
+                cs.append(label)
+    if not xs:
+        raise ValueError("no ego-motion pairs: every clip is shorter than the step or lacks odometry")
+    return np.stack(xs), np.stack(ys), np.asarray(cs)
+
+
+def ridge_fit(x: np.ndarray, y: np.ndarray, penalty: float) -> tuple[np.ndarray, ...]:
+    """Ridge regression on standardised features (intercept unpenalised): (mean, scale, weights, bias)."""
+    mean, scale = x.mean(axis=0), x.std(axis=0) + 1e-8
+    z = (x - mean) / scale
+    bias = y.mean(axis=0)
+    weights = np.linalg.solve(z.T @ z + penalty * np.eye(z.shape[1]), z.T @ (y - bias))
+    return mean, scale, weights, bias
+
+
+def ridge_predict(model: tuple[np.ndarray, ...], x: np.ndarray) -> np.ndarray:
+    mean, scale, weights, bias = model
+    return (x - mean) / scale @ weights + bias
+
+
+def weighted_r2(y: np.ndarray, pred: np.ndarray, weights: np.ndarray) -> float:
+    centre = weights @ y / weights.sum()
+    return float(1.0 - weights @ (y - pred) ** 2 / (weights @ (y - centre) ** 2))
+
+
+def ego_motion_probe(train: tuple[np.ndarray, np.ndarray], val: tuple[np.ndarray, np.ndarray], val_clips,
+                     penalty: float, reps: int, seed: int, names=("speed", "yaw_rate")) -> dict[str, Any]:
+    """Val R^2 (clip-bootstrap interval) of a ridge probe per target, and of the same probe on shuffled targets.
+
+    The shuffled control trains on train targets permuted across pairs: what R^2 a probe
+    reaches without any real relation (about zero or below).
+    """
+    model = ridge_fit(*train, penalty)
+    pred = ridge_predict(model, val[0])
+    rng = np.random.default_rng(seed)
+    control = ridge_predict(ridge_fit(train[0], train[1][rng.permutation(len(train[1]))], penalty), val[0])
+    out: dict[str, Any] = {"train_pairs": len(train[0]), "val_pairs": len(val[0])}
+    for k, name in enumerate(names):
+        y = val[1][:, k]
+        iv = bootstrap_statistic(val_clips, lambda w, k=k, y=y: weighted_r2(y, pred[:, k], w), reps, seed=seed)
+        out[name] = {"r2": iv.estimate, "low": iv.low, "high": iv.high,
+                     "shuffled_r2": weighted_r2(y, control[:, k], np.ones(len(y)))}
+    return out
+
+
+# --------------------------------------------------------------------------- swaps
+
+
+def swapped(values: torch.Tensor, clusters, seed: int) -> torch.Tensor:
+    """Each window's ``values`` replaced by those of a window from another clip."""
+    donors = torch.from_numpy(other_clip_donors(clusters, seed))
+    return values[donors.to(values.device)]
+
+
+# --------------------------------------------------------------------------- the stage
+
+
+def val_window_pairs(cache: LatentCache, data: DataConfig, settings) -> tuple[dict, dict, np.ndarray]:
+    """Val windows at anchors a (every ``anchor_stride``, at most ``max_windows``) and their successors a + 0.5 s.
+
+    Returns both collated batches (all windows in memory) and each window's clip key.
+    """
+    dataset = LatentWindowDataset(cache, "val", data)
+    advance = (data.detail_window - data.detail_context) * data.detail_stride
+    position = {(int(c), int(a)): i for i, (c, a) in enumerate(dataset.items)}
+    pairs = [(i, position[int(c), int(a) + advance]) for i, (c, a) in enumerate(dataset.items)
+             if (int(c), int(a) + advance) in position and int(a) % settings.anchor_stride == 0]
+    if len(pairs) > settings.max_windows:
+        pairs = [pairs[int(k)] for k in np.linspace(0, len(pairs) - 1, settings.max_windows).round()]
+    keys = np.array([dataset.keys[int(dataset.items[i][0])] for i, _ in pairs])
+    if len(set(keys)) < 2:
+        raise OrbisError(f"{cache.root}: the val split gives windows from {len(set(keys))} clip(s); the conditioning "
+                         f"evaluation needs at least 2 clips (add val episodes or lower "
+                         f"evaluation.conditioning.anchor_stride)")
+    first = collate([dataset[i] for i, _ in pairs])
+    second = collate([dataset[j] for _, j in pairs])
+    return first, second, keys
+
+
+def condition_variants(stage: str, meta: dict, window: dict, keys, data: DataConfig, seed: int,
+                       frame_rate: float) -> dict[str, dict[str, Any]]:
+    """Per variant the model's keyword inputs for ALL windows (sliced per batch later); "true" first."""
+    base = {"frame_rate": frame_rate}
+    spec = STAGES[stage]
+    if spec.condition is not None:
+        slow = window[window_key(spec.condition, "slow")]
+        other = slow.clone()
+        other[:, -1] = swapped(slow[:, -1], keys, seed)
+        frames, mask = detail_condition(slow, data)
+        other_frames, _ = detail_condition(other, data)
+        return {"true": {**base, "cond_frames": frames, "cond_mask": mask},
+                "subgoal_other_clip": {**base, "cond_frames": other_frames, "cond_mask": mask},
+                "none": {**base, "cond_frames": torch.zeros_like(frames), "cond_mask": torch.zeros_like(mask)}}
+    if spec.steering:
+        speed_norm, yaw_norm = meta["steering"]["scale"]
+        raw = window["odometry"][:, steering_interval(data)]
+        unknown = ~window["has_odometry"].bool() | torch.isnan(raw).flatten(1).any(dim=1)
+
+        def steer(values: torch.Tensor, drop: torch.Tensor | None = None) -> dict[str, Any]:
+            scaled = torch.nan_to_num(values / values.new_tensor([speed_norm, yaw_norm]))
+            return {**base, "steering": scaled, "steering_drop": unknown if drop is None else drop}
+
+        return {"true": steer(raw), "null": steer(torch.zeros_like(raw), torch.ones_like(unknown)),
+                "steering_other_clip": steer(swapped(raw, keys, seed)),
+                "yaw_rate_negated": steer(raw * raw.new_tensor([1.0, -1.0])),
+                "speed_halved": steer(raw * raw.new_tensor([0.5, 1.0]))}
+    return {"true": base}
+
+
+def _batch(cond: dict[str, Any], rows: slice, dev: torch.device) -> dict[str, Any]:
+    return {k: v[rows].to(dev) if isinstance(v, torch.Tensor) else v for k, v in cond.items()}
+
+
+@torch.no_grad()
+def evaluate_predictor(stage: str, predictor, first: dict, second: dict, keys, templates: dict[str, torch.Tensor],
+                       data: DataConfig, settings, seed: int, dev: torch.device) -> tuple[dict, dict]:
+    """(variant errors per window, one-step-mean and baseline errors at 0.5 s and 1 s per window) for one seed."""
+    spec = STAGES[stage]
+    key, (rate, _, n_context) = window_key(spec.level, spec.rate), rate_geometry(data, spec.rate)
+    model = predictor.model.eval()
+    variants = condition_variants(stage, predictor.meta, first, keys, data, seed, float(rate))
+    nexts = condition_variants(stage, predictor.meta, second, keys, data, seed, float(rate))["true"]
+    generator = torch.Generator(dev).manual_seed(seed)
+    template = templates[spec.level].to(dev)
+    parts, ahead = [], {name: [] for name in ("model_0.5", "repeat_0.5", "mean_0.5", "model_1", "repeat_1", "mean_1")}
+    k = settings.draws
+    for start in range(0, len(keys), settings.batch_size):
+        rows = slice(start, start + settings.batch_size)
+        frames, frames2 = first[key][rows].to(dev), second[key][rows].to(dev)
+        context, target = frames[:, :n_context], frames[:, n_context:]
+        b = len(frames)
+        eps = torch.randn((k, *target.shape), generator=generator, device=dev)
+        tau = torch.rand((k, b), generator=generator, device=dev)
+        cond = {name: _batch(v, rows, dev) for name, v in variants.items()}
+        parts.append(variant_errors(model, context, target, cond, eps, tau))
+        # Horizons: the frame 0.5 s after the last context frame, then 1 s (the first step's mean fed back).
+        eps2 = torch.randn((k, *target.shape), generator=generator, device=dev)
+        target2 = frames2[:, n_context:]
+        mean1 = torch.stack([one_step_mean(model, context, e, **cond["true"]) for e in eps]).mean(0)
+        context2 = torch.cat([context, mean1], dim=1)[:, -n_context:]
+        mean2 = torch.stack([one_step_mean(model, context2, e, **_batch(nexts, rows, dev)) for e in eps2]).mean(0)
+        last = context[:, -1]
+        for horizon, pred, truth in (("0.5", mean1[:, -1], target[:, -1]), ("1", mean2[:, -1], target2[:, -1])):
+            ahead[f"model_{horizon}"].append(per_window_mse(pred, truth).cpu().numpy())
+            ahead[f"repeat_{horizon}"].append(per_window_mse(last, truth).cpu().numpy())
+            ahead[f"mean_{horizon}"].append(per_window_mse(template.expand_as(truth), truth).cpu().numpy())
+    return concat_errors(parts), {name: np.concatenate(v) for name, v in ahead.items()}
+
+
+def clip_latents(cache: LatentCache, split: str, level: str) -> tuple[list[np.ndarray], list[np.ndarray], list[str]]:
+    """Per clip of a split: normalised latents [T, ...] of ``level`` (as the predictors see them), odometry, key."""
+    index, arrays = cache.index(split), cache.arrays(split)
+    keys = sorted(index, key=lambda k: index[k]["offset"])
+    rows = [slice(index[k]["offset"], index[k]["offset"] + index[k]["length"]) for k in keys]
+    return ([cache.normalize(level, arrays[level][r]).numpy() for r in rows], [arrays["odometry"][r] for r in rows],
+            keys)
+
+
+def latent_template(cache: LatentCache, level: str, chunk: int = 4096) -> np.ndarray:
+    """The train mean per position and channel of the normalised latents (the fixed template)."""
+    array, total = cache.arrays("train")[level], None
+    for start in range(0, len(array), chunk):
+        part = array[start:start + chunk].astype(np.float64).sum(axis=0)
+        total = part if total is None else total + part
+    return cache.normalize(level, total / len(array)).numpy()  # the normalisation is affine: it commutes with the mean
+
+
+def latent_statistics(cache: LatentCache, data: DataConfig, settings,
+                      seed: int) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """Energy shares per latent set on val and the ego-motion probe from abstract latents 0.5 s apart;
+    also the per-level templates (train means) for the dataset-mean baseline."""
+    step = (data.detail_window - data.detail_context) * data.detail_stride
+    out: dict[str, Any] = {"step_frames": step, "step_s": step / data.fps}
+    templates = {}
+    for level in KINDS:
+        templates[level] = latent_template(cache, level)
+        latents, _, _ = clip_latents(cache, "val", level)
+        out[level] = energy_shares(latents, templates[level], step)
+    pairs = {}
+    for split in ("train", "val"):
+        latents, odometry, keys = clip_latents(cache, split, "abstract")
+        pairs[split] = ego_motion_pairs(latents, odometry, keys, step, settings.probe_stride, settings.strips)
+    out["ego_motion_probe"] = {**ego_motion_probe(pairs["train"][:2], pairs["val"][:2], pairs["val"][2],
+                                                  settings.ridge, settings.bootstrap_reps, seed),
+                               "features": f"abstract latents at t and t + {step / data.fps:g} s, "
+                                           f"{settings.strips} vertical strips x channels"}
+    return out, {level: torch.from_numpy(t) for level, t in templates.items()}
+
+
+def run_conditioning(cfg: PipelineConfig, run: StageRun, device: torch.device, out_path: Path) -> str:
+    """The stage body: every main predictor on the same val windows and draws, over ``evaluation.seeds``."""
+    ev, data, settings = cfg.evaluation, cfg.data, cfg.evaluation.conditioning
+    cache = open_cache(LATENT_SETS["compressed"].root)
+    first, second, keys = val_window_pairs(cache, data, settings)
+    latents, templates = latent_statistics(cache, data, settings, ev.seed)
+    record: dict[str, Any] = {"split": "val", "windows": len(keys), "clips": len(set(keys)), "draws": settings.draws,
+                              "seeds": list(ev.seeds), "threshold": settings.threshold,
+                              "bootstrap_reps": settings.bootstrap_reps, "variants": [], "baselines": [],
+                              "latents": latents}
+    reps, threshold = settings.bootstrap_reps, settings.threshold
+    for stage in MAIN_PREDICTORS:
+        predictor = load_predictor(predictor_file(stage), device)
+        per_seed = [evaluate_predictor(stage, predictor, first, second, keys, templates, data, settings,
+                                       seed, device) for seed in ev.seeds]
+        errors = mean_over_seeds([p[0] for p in per_seed])
+        if len(errors) > 1:
+            record["variants"] += effect_rows(stage, errors, "true", keys, threshold, reps, ev.seed,
+                                              [p[0] for p in per_seed])
+        ahead = {name: np.mean([p[1][name] for p in per_seed], axis=0) for name in per_seed[0][1]}
+        for horizon, seconds in (("0.5", 0.5), ("1", 1.0)):
+            record["baselines"] += baseline_rows(
+                stage, seconds, ahead[f"model_{horizon}"],
+                {"repeat_last": ahead[f"repeat_{horizon}"], "dataset_mean": ahead[f"mean_{horizon}"]},
+                keys, threshold, reps, ev.seed)
+        del predictor
+    write_json(out_path, record)
+    run.log_artifact(out_path)
+    run.log_metrics({f"{r['model']}_{r['metric']}_{r['variant']}_effect": r["effect"]
+                     for r in record["variants"] if r["verdict"] != "reference"})
+    run.log_metrics({f"{r['model']}_{r['baseline']}_{r['horizon_s']:g}s_effect": r["effect"]
+                     for r in record["baselines"]})
+    run.log_metrics({f"latents_{level}_{k}": latents[level][k] for level in KINDS
+                     for k in ("varying_share", "within_clip_share", "repeat_last_relative")})
+    run.log_metrics({f"ego_probe_{name}_r2": latents["ego_motion_probe"][name]["r2"] for name in ("speed", "yaw_rate")
+                     if np.isfinite(latents["ego_motion_probe"][name]["r2"])})
+    used = [f"{r['model']}/{r['variant']}" for r in record["variants"]
+            if r["metric"] == "one_step_mse" and r["verdict"] == "used"]
+    probe = latents["ego_motion_probe"]
+    return (f"{len(keys)} val windows from {record['clips']} clips x {settings.draws} draws x {len(ev.seeds)} seeds; "
+            f"inputs used (one-step mean): {', '.join(used) or 'none shown'}; ego-motion probe R^2 speed "
+            f"{probe['speed']['r2']:.2f}, yaw rate {probe['yaw_rate']['r2']:.2f}")
+
+
+# --------------------------------------------------------------------------- report rows
+
+
+def claim_verdict(row: dict, threshold: float) -> str:
+    """The claim reading of a stored row: "holds" / "does not hold" / "not resolved at this sample size"."""
+    if row["low"] > threshold:
+        return "holds"
+    return "does not hold" if row["high"] < threshold else "not resolved at this sample size"
+
+
+def conditioning_rows(doc: dict) -> list[dict]:
+    """One table of the stage's record: per model and check, the error with the true input (or of the model),
+    the alternative's error, effect = (alternative - error) / error with its interval, and the verdict."""
+    rows = []
+    for r in doc["variants"]:
+        if r["verdict"] == "reference":
+            continue
+        ref = next(x for x in doc["variants"] if x["model"] == r["model"] and x["metric"] == r["metric"]
+                   and x["verdict"] == "reference")
+        rows.append({"model": r["model"], "check": f"input: {r['variant']}", "metric": r["metric"],
+                     "error": ref["error"], "alternative_error": r["error"], "effect": r["effect"], "low": r["low"],
+                     "high": r["high"], "verdict": r["verdict"], "windows": r["windows"], "clips": r["clips"]})
+    for r in doc["baselines"]:
+        rows.append({"model": r["model"], "check": f"beats {r['baseline']} at {r['horizon_s']:g} s",
+                     "metric": "one_step_mse", "error": r["model_mse"], "alternative_error": r["baseline_mse"],
+                     "effect": r["effect"], "low": r["low"], "high": r["high"], "verdict": r["verdict"],
+                     "windows": r["windows"], "clips": r["clips"]})
+    return rows

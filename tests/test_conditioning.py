@@ -1,0 +1,129 @@
+"""Known answers for the conditioning diagnostics: a model that ignores its input shows no material gap,
+one that uses it does; the one-step mean of an exact velocity field is the conditional mean; the
+ego-motion probe recovers a linear signal; energy shares of constructed latents."""
+
+import numpy as np
+import pytest
+import torch
+
+from orbis2.eval.conditioning import (
+    effect_rows,
+    ego_motion_pairs,
+    ego_motion_probe,
+    energy_shares,
+    flow_loss,
+    one_step_mean,
+    strip_features,
+    swapped,
+    variant_errors,
+)
+
+CLIPS, PER_CLIP, N_CONTEXT, N_TARGET, SHAPE = 8, 4, 2, 3, (2, 3, 4)
+
+
+def oracle(predict):
+    """A velocity field that is exact for targets equal to ``predict(context, **cond)``: v = (x - m) / tau."""
+
+    def model_fn(x, tau, **cond):
+        m = predict(x[:, :N_CONTEXT], **cond)[:, None].expand(-1, x.shape[1], *SHAPE)
+        t = tau.clamp(min=1e-3).reshape(*tau.shape, 1, 1, 1)
+        return (x - m) / t
+
+    return model_fn
+
+
+def uses_subgoal(context, subgoal, **_):
+    return subgoal
+
+
+def ignores_subgoal(context, subgoal, **_):
+    return context[:, -1]
+
+
+@pytest.fixture
+def windows():
+    gen = torch.Generator().manual_seed(0)
+    labels = np.repeat([f"clip{c}" for c in range(CLIPS)], PER_CLIP)
+    subgoal = torch.randn(CLIPS, *SHAPE, generator=gen).repeat_interleave(PER_CLIP, 0)
+    context = torch.randn(len(labels), N_CONTEXT, *SHAPE, generator=gen)
+    target = subgoal[:, None] + 0.05 * torch.randn(len(labels), N_TARGET, *SHAPE, generator=gen)
+    eps = torch.randn(3, len(labels), N_TARGET, *SHAPE, generator=gen)
+    tau = torch.rand(3, len(labels), generator=gen)
+    return labels, subgoal, context, target, eps, tau
+
+
+def test_one_step_mean_of_an_exact_field_is_the_conditional_mean(windows):
+    labels, subgoal, context, target, eps, tau = windows
+    model = oracle(uses_subgoal)
+    mean = one_step_mean(model, context, eps[0], subgoal=subgoal)
+    assert torch.allclose(mean, subgoal[:, None].expand_as(mean), atol=1e-5)
+    exact = subgoal[:, None].expand_as(target)
+    assert flow_loss(model, context, exact, eps[0], tau[0], subgoal=subgoal).abs().max() < 1e-8
+
+
+def run_variants(model, windows):
+    labels, subgoal, context, target, eps, tau = windows
+    variants = {"true": {"subgoal": subgoal}, "subgoal_other_clip": {"subgoal": swapped(subgoal, labels, 3)}}
+    errors = variant_errors(model, context, target, variants, eps, tau)
+    return {(r["metric"], r["variant"]): r for r in effect_rows("m", errors, "true", labels, 0.03, 300, 0)}
+
+
+def test_a_model_that_uses_its_subgoal_shows_a_material_gap(windows):
+    rows = run_variants(oracle(uses_subgoal), windows)
+    for metric in ("loss", "one_step_mse"):
+        row = rows[metric, "subgoal_other_clip"]
+        assert row["verdict"] == "used" and row["low"] > 1.0
+
+
+def test_a_model_that_ignores_its_subgoal_shows_no_material_gap(windows):
+    rows = run_variants(oracle(ignores_subgoal), windows)
+    for metric in ("loss", "one_step_mse"):
+        row = rows[metric, "subgoal_other_clip"]
+        assert row["verdict"] == "not shown" and abs(row["effect"]) < 1e-6
+
+
+def test_swapped_values_come_from_other_clips(windows):
+    labels, subgoal = windows[0], windows[1]
+    other = swapped(subgoal, labels, 1)
+    clip_of = {tuple(s.flatten().tolist()): c for s, c in zip(subgoal, labels)}
+    assert all(clip_of[tuple(o.flatten().tolist())] != c for o, c in zip(other, labels))
+
+
+def test_ego_motion_probe_recovers_a_linear_signal_and_not_a_shuffled_one():
+    rng = np.random.default_rng(0)
+    weights = rng.normal(size=(12, 2))
+
+    def make(n):
+        x = rng.normal(size=(n, 12))
+        return x, x @ weights + 0.05 * rng.normal(size=(n, 2))
+
+    train, val = make(400), make(160)
+    result = ego_motion_probe(train, val, np.repeat(np.arange(16), 10), penalty=1.0, reps=100, seed=0)
+    for name in ("speed", "yaw_rate"):
+        assert result[name]["r2"] > 0.95 and result[name]["low"] > 0.9
+        assert result[name]["shuffled_r2"] < 0.2
+
+
+def test_ego_motion_pairs_pair_latents_a_step_apart_with_the_mean_motion_between():
+    lat = np.arange(6, dtype=np.float64).reshape(6, 1, 1, 1) * np.ones((6, 1, 2, 4))
+    odo = np.stack([np.arange(6.0), -np.arange(6.0)], axis=1)
+    odo[5] = np.nan  # a missing row after the last pair's interval: still usable
+    x, y, clips = ego_motion_pairs([lat], [odo], ["a"], step=2, stride=1, strips=2)
+    assert x.shape == (4, 4) and list(clips) == ["a"] * 4
+    assert x[1].tolist() == [1.0, 1.0, 3.0, 3.0]
+    assert y[1].tolist() == [1.5, -1.5]
+    assert strip_features(np.arange(8.0).reshape(1, 1, 1, 8), 4).tolist() == [[0.5, 2.5, 4.5, 6.5]]
+
+
+def test_energy_shares_of_constructed_latents():
+    template = np.zeros((1, 2, 2))
+    # Each clip is a constant offset from the template: all variation is between clips, none frame to frame.
+    clips = [np.full((5, 1, 2, 2), v) for v in (1.0, -1.0, 2.0)]
+    shares = energy_shares(clips, template, step=2)
+    assert shares["varying_share"] == pytest.approx(1.0)
+    assert shares["within_clip_share"] == pytest.approx(0.0)
+    assert shares["repeat_last_mse"] == pytest.approx(0.0)
+    shares = energy_shares([np.full((5, 1, 2, 2), 1.0)], np.full((1, 2, 2), 0.5), step=1)
+    assert shares["varying_share"] == pytest.approx(0.25)
+    with pytest.raises(ValueError):
+        energy_shares([np.zeros((3, 1, 2, 2))], template, step=1)

@@ -1,0 +1,48 @@
+"""Scale-free steering responses: paired per start, intervals over clips, known answers."""
+
+import numpy as np
+import pytest
+
+from orbis2.eval.stages import mode_record, steering_responses
+
+
+def scores(turn, path, ade=1.0, n=16):
+    return {"ade": np.full(n, ade), "turn_deg": np.asarray(turn, float), "commanded_turn_deg": np.full(n, 10.0),
+            "path_length": np.asarray(path, float)}
+
+
+def per_sample(turn_lo, turn_hi, path_lo, path_hi):
+    base = scores(np.full(16, 10.0), np.full(16, 20.0))
+    return {"original": {"learned": base},
+            "yaw_rate_x0.5": {"learned": scores(turn_lo, np.full(16, 20.0))},
+            "yaw_rate_x1.5": {"learned": scores(turn_hi, np.full(16, 20.0))},
+            "speed_x0.5": {"learned": scores(np.full(16, 10.0), path_lo)},
+            "speed_x1.5": {"learned": scores(np.full(16, 10.0), path_hi)}}
+
+
+def test_a_model_that_follows_the_commands_shows_both_responses():
+    rng = np.random.default_rng(0)
+    clips = np.repeat([f"c{i}" for i in range(8)], 2)
+    turn = 10.0 + rng.normal(0, 3, 16)  # per-start spread shared by both modes (paired)
+    path = 20.0 * np.exp(rng.normal(0, 0.2, 16))
+    out = steering_responses(per_sample(turn - 5.0, turn + 5.0, path * 0.5, path * 1.5), "learned", clips, 0)
+    assert out["turn_response_deg"]["estimate"] == pytest.approx(10.0)
+    assert out["turn_response_deg"]["low"] == pytest.approx(10.0)  # paired: the start-to-start spread cancels
+    assert out["path_ratio"]["estimate"] == pytest.approx(3.0) and out["path_ratio"]["low"] == pytest.approx(3.0)
+
+
+def test_a_model_that_ignores_the_commands_shows_none():
+    rng = np.random.default_rng(1)
+    clips = np.repeat([f"c{i}" for i in range(8)], 2)
+    out = steering_responses(per_sample(rng.normal(10, 3, 16), rng.normal(10, 3, 16), np.full(16, 20.0),
+                                        np.full(16, 20.0)), "learned", clips, 0)
+    assert out["turn_response_deg"]["low"] < 0 < out["turn_response_deg"]["high"]
+    assert out["path_ratio"]["estimate"] == pytest.approx(1.0)
+
+
+def test_mode_record_puts_the_main_instrument_first_with_intervals():
+    clips = np.repeat([f"c{i}" for i in range(8)], 2)
+    record = mode_record({"learned": scores(np.full(16, 5.0), np.ones(16), ade=0.5),
+                          "opencv": scores(np.full(16, 1.0), np.ones(16), ade=3.0)}, list(clips), 1.0, 1.5, 0)
+    assert record["ade"] == 0.5 and record["instruments"]["opencv"]["ade"] == 3.0
+    assert record["ade_low"] == record["ade_high"] == 0.5 and record["yaw_rate_scale"] == 1.5
