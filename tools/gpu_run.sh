@@ -33,7 +33,14 @@ EOF
   )
   if [ "${#missing[@]}" -gt 0 ]; then
     log "installing ${#missing[@]} wheels into $DEPS"
-    "$PY" -m pip install --quiet --no-index --no-deps --no-compile --target "$DEPS" "${missing[@]}" \
+    # Wheels repacked from installed copies carry console scripts outside the package (../bin), which
+    # `pip install --target` refuses: unpack those as plain archives (their scripts are not needed).
+    plain=() unpacked=()
+    for wheel in "${missing[@]}"; do
+      if unzip -l "$wheel" | grep -q '\.\./'; then unpacked+=("$wheel"); else plain+=("$wheel"); fi
+    done
+    for wheel in "${unpacked[@]}"; do unzip -q -o "$wheel" -x '../*' -d "$DEPS"; done
+    "$PY" -m pip install --quiet --no-index --no-deps --no-compile --target "$DEPS" "${plain[@]}" \
       >> "$OUT/gpu_run.log" 2>&1
   fi
 fi
