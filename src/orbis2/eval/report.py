@@ -21,29 +21,19 @@ import numpy as np
 
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file
+from orbis2.registry import registry
 
+# Table 3's systems, in the chunked-FVD figure's order; load_eval reads every system of registry.yaml.
 FVD_MODELS = ("flat_detail", "flat_abstract", "hierarchical", "top_detail", "top_abstract_10hz")
-# Read when present; the compression table needs them (compression_from_evals).
-COMPRESSION_MODELS = ("flat_abstract_full",)
-PROBE_TARGETS = (
-    "abstract_tokenizer",
-    "teacher",
-    "abstract_df",
-    "abstract_tf",
-    "abstract_tf_only",
-    "detail",
-    "flat_detail",
-    "flat_abstract",
-    "top_detail",
-    "detail_on_detail",
-    "flat_abstract_full",
-    "abstract_tokenizer_full",
-)
+# Probe targets in the per-block figure's order; load_eval reads every target of registry.yaml.
+PROBE_TARGETS = ("abstract_tokenizer", "teacher", "abstract_df", "abstract_tf", "abstract_tf_only", "detail",
+                 "flat_detail", "flat_abstract", "top_detail", "detail_on_detail", "flat_abstract_full",
+                 "abstract_tokenizer_full")
 FVD_SPLITS = ("val", "heldout", "turns")
 STEERING_MODES = ("original", "speed_x0.5", "speed_x1.5", "yaw_rate_x0.5", "yaw_rate_x1.5")
-MAIN_MODELS = ("flat_detail", "flat_abstract", "hierarchical")
-# The hierarchy is probed at its abstract (top) predictor, as in the paper.
-MAIN_PROBE = {"flat_detail": "flat_detail", "flat_abstract": "flat_abstract", "hierarchical": "abstract_tf"}
+# The main table's rows and the predictor probed for each (the hierarchy at its top one): registry.yaml.
+MAIN_PROBE = dict(registry().main_table)
+MAIN_MODELS = tuple(MAIN_PROBE)
 TRAINING_ROWS = (
     ("abstract tokenizer", "abstract_tokenizer"),
     ("TF only", "abstract_tf_only"),
@@ -95,7 +85,8 @@ def load_eval(folder: str | Path) -> dict:
     """Every evaluation JSON present in ``folder``, keyed by kind and name; absent files are simply absent."""
     folder = Path(folder)
     evals: dict = {"folder": str(folder), "fvd": {}, "probe": {}}
-    for kind, names, key in (("fvd", FVD_MODELS + COMPRESSION_MODELS, "model"), ("probe", PROBE_TARGETS, "target")):
+    reg = registry()
+    for kind, names, key in (("fvd", list(reg.systems), "model"), ("probe", reg.probe_targets, "target")):
         for name in names:
             path = folder / f"{kind}_{name}.json"
             if path.exists():

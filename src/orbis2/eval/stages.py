@@ -60,16 +60,17 @@ from orbis2.models.i3d import load_i3d
 from orbis2.models.stdit import load_predictor
 from orbis2.models.teachers import build_teacher
 from orbis2.models.tokenizer import load_tokenizer
+from orbis2.registry import path, registry
 from orbis2.rollout import rollout_schedule, steering_sequences
 from orbis2.tasks.predictors import STAGES
 from orbis2.tasks.tokenizers import TEACHER_ASSETS, asset_path
 from orbis2.tracking import StageRun
 
 LATENTS = LATENT_SETS["compressed"].root
-SHARDS = Path("data/shards")
-EVAL = Path("reports/eval")
+SHARDS = path("shards")
+EVAL = path("eval")
 # Real-data I3D statistics, keyed by the shards' hashes; outside every stage's outputs so they survive re-runs.
-STATS_CACHE = Path("data/eval_cache")
+STATS_CACHE = path("eval_cache")
 # Times (s) of the frames shown in the qualitative rollout grid and the steering strip.
 GRID_TIMES = (0.5, 4.0, 8.0, 12.0, 16.0)
 
@@ -368,7 +369,6 @@ def run_speed(cfg: PipelineConfig, run: StageRun) -> str:
 # --------------------------------------------------------------------------- linear probes
 
 # Probe targets beyond the predictors: the abstract tokenizers' latents and the frozen teacher.
-REPRESENTATIONS = ("abstract_tokenizer", "abstract_tokenizer_full", "teacher")
 # The main model's predictors are probed at ``block_main`` (the paper's 4th from the end), ablations at
 # ``block_ablation``. Per-block curves (paper Fig. 5: diffusion forcing vs teacher forcing at every block)
 # for the DF-only and TF-only predictors; both are ablation targets, so the main report does not wait for them.
@@ -377,7 +377,8 @@ PER_BLOCK = ("abstract_df", "abstract_tf_only")
 
 
 def probe_targets() -> list[str]:
-    return [*REPRESENTATIONS, *(s for s in STAGES if s != "action")]
+    """Representations and predictors that are linearly probed (registry.yaml)."""
+    return registry().probe_targets
 
 
 def probe_sets(cfg: PipelineConfig) -> list[tuple[str, list, list]]:
@@ -428,12 +429,13 @@ def run_probe_stage(target: str, cfg: PipelineConfig, run: StageRun) -> str:
     probe_cfg = ProbeConfig(**{name: getattr(ps, name) for name in shared}, device=str(dev))
     sets = probe_sets(cfg)
     record: dict[str, Any] = {"target": target, "block": None}
-    if target in ("abstract_tokenizer", "abstract_tokenizer_full"):
-        latents = "full" if target.endswith("_full") else "compressed"
+    representation = registry().representations.get(target)
+    if representation is not None and not representation.teacher:
+        latents = representation.latents
         record["label"] = f"Abstract tokenizer ({latents})"
         tokenizer = load_tokenizer(LATENT_SETS[latents].tokenizers["abstract"], dev)
         result = probe_all(tokenizer_features(tokenizer), sets, probe_cfg)
-    elif target == "teacher":
+    elif representation is not None:
         tc = cfg.tokenizer_abstract
         teacher = build_teacher(tc.teacher, asset_path(Path(cfg.assets.dir), TEACHER_ASSETS[tc.teacher])).to(dev)
         record["label"] = f"Teacher ({tc.teacher})"

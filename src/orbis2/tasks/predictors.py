@@ -1,6 +1,6 @@
 """Training the predictors of the hierarchy (paper Sec. 3.3-3.4) and of its ablations with the shared loop.
 
-One task class; what distinguishes the stages is their :class:`StageSpec` in ``STAGES``
+One task class; what distinguishes the stages is their spec in registry.yaml (``STAGES``)
 and their params.yaml section (same name):
 
 - ``abstract_df``: the abstract predictor F_H (causal, 6 frames at 2 Hz) pre-trained
@@ -37,7 +37,6 @@ because it is a pure function of the config.
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -59,6 +58,7 @@ from orbis2.flow import diffusion_forcing_loss, teacher_forcing_loss
 from orbis2.io import sha256_file
 from orbis2.latents import LATENT_SETS, LatentCache, LatentWindowDataset, open_cache
 from orbis2.models.stdit import build_stdit, load_predictor, save_predictor
+from orbis2.registry import PredictorSpec, path, registry
 from orbis2.stage import publish_training, training_dir
 from orbis2.tracking import StageRun
 from orbis2.train import DataSpec, load_weights, train
@@ -68,44 +68,9 @@ VAL_SEED_OFFSET = 7919
 STEERING_FEATURES = ("speed", "yaw_rate")
 
 
-@dataclass(frozen=True)
-class StageSpec:
-    """What distinguishes the predictor stages.
-
-    ``rate`` picks the window: ``slow`` is the abstract_hz one (5 context frames,
-    1 predicted; causal, as the paper's top predictor), ``fast`` the detail_hz one
-    (5 + 5; bidirectional). ``condition`` names the latents of the slow subgoals a
-    bottom predictor is conditioned on (None: a flat or top predictor).
-    """
-
-    level: str  # "abstract" or "detail": which latents the predictor models
-    rate: str  # "slow" or "fast"
-    objective: str  # "diffusion_forcing" or "teacher_forcing"
-    condition: str | None = None
-    steering: bool = False
-    latents: str = "compressed"  # which LATENT_SETS entry it trains on
-
-    @property
-    def causal(self) -> bool:
-        return self.rate == "slow"
-
-    @property
-    def batch_key(self) -> str:
-        return window_key(self.level, self.rate)
-
-
-STAGES = {
-    "abstract_df": StageSpec("abstract", "slow", "diffusion_forcing"),
-    "abstract_tf": StageSpec("abstract", "slow", "teacher_forcing"),
-    "detail": StageSpec("detail", "fast", "teacher_forcing", condition="abstract"),
-    "action": StageSpec("abstract", "slow", "teacher_forcing", steering=True),
-    "abstract_tf_only": StageSpec("abstract", "slow", "teacher_forcing"),
-    "flat_detail": StageSpec("detail", "fast", "teacher_forcing"),
-    "flat_abstract": StageSpec("abstract", "fast", "teacher_forcing"),
-    "top_detail": StageSpec("detail", "slow", "teacher_forcing"),
-    "detail_on_detail": StageSpec("detail", "fast", "teacher_forcing", condition="detail"),
-    "flat_abstract_full": StageSpec("abstract", "fast", "teacher_forcing", latents="full"),
-}
+# What distinguishes the predictor stages: registry.yaml, ``predictors``.
+StageSpec = PredictorSpec
+STAGES: dict[str, StageSpec] = registry().predictors
 
 
 def window_key(level: str, rate: str) -> str:
@@ -122,7 +87,7 @@ def rate_geometry(data: DataConfig, rate: str) -> tuple[int, int, int]:
 
 
 def predictor_path(stage: str) -> Path:
-    return Path("data/predictors") / stage / "predictor.pt"
+    return path("predictor", stage) / "predictor.pt"
 
 
 # --------------------------------------------------------------------------- conditioning
@@ -231,6 +196,7 @@ class PredictorTask:
             raise ValueError(f"unknown predictor stage {stage!r}; choose from {sorted(STAGES)}")
         self.stage, self.spec, self.cfg, self.data, self.cache = stage, STAGES[stage], cfg, data, cache
         self.init_state = init_state
+        self.batch_key = window_key(self.spec.level, self.spec.rate)
         self.train_set = LatentWindowDataset(cache, "train", data, cfg.anchor_stride)
         self.val_set = LatentWindowDataset(cache, "val", data, cfg.anchor_stride)
         self.frame_rate = float(rate_geometry(data, self.spec.rate)[0])
@@ -275,7 +241,7 @@ class PredictorTask:
     def objective(self, model: nn.Module, batch: dict[str, torch.Tensor], generator: torch.Generator,
                   augment: bool) -> tuple[torch.Tensor, dict[str, float]]:
         """The flow-matching loss of this stage; ``augment`` switches on context noise/drop and steering dropout."""
-        frames = batch[self.spec.batch_key]
+        frames = batch[self.batch_key]
         cond: dict[str, Any] = {"frame_rate": self.frame_rate}
         if self.spec.condition is not None:
             subgoals = batch[window_key(self.spec.condition, "slow")]
@@ -300,7 +266,7 @@ class PredictorTask:
         return loss, {**tf_metrics, **metrics}
 
     def loss(self, model: nn.Module, batch: dict[str, torch.Tensor], step: int) -> tuple[torch.Tensor, dict]:
-        device = batch[self.spec.batch_key].device
+        device = batch[self.batch_key].device
         return self.objective(model, batch, step_generator(self.cfg.train.seed, self.rank, step, device), True)
 
     def val_windows(self) -> list[dict[str, torch.Tensor]]:
