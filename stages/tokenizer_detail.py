@@ -4,20 +4,22 @@ Checkpoints live in data/runs/ (see `training_dir`): a killed run resumes there;
 tokenizer.pt, the samples and the report are published atomically at the end.
 """
 
+import sys
 from pathlib import Path
 
+from orbis2.registry import path
 from orbis2.stage import publish_training, stage_main, training_dir
 from orbis2.tasks.tokenizers import train_detail_tokenizer
 
-OUT = Path("data/tokenizers/detail")
-REPORT = Path("reports/tokenizer_detail.json")
+OUT = path("tokenizer", "detail")
+REPORT = path("report", "tokenizer_detail")
 SECTIONS = ["data", "tokenizer_detail"]
 
 
 def run(cfg, args, run):
     """Train the detail tokenizer (VQGAN objective), measure it, and save tokenizer.pt with its latent scale."""
     work = training_dir("tokenizer_detail", cfg, SECTIONS)
-    metrics = train_detail_tokenizer(cfg, Path("data/shards"), work, Path(cfg.assets.dir), run)
+    metrics = train_detail_tokenizer(cfg, path("shards"), work, Path(cfg.assets.dir), run)
     if not metrics:
         return "training rank done; rank 0 writes the outputs"
     run.log_metrics(metrics, step=int(metrics["steps"]))
@@ -28,4 +30,7 @@ def run(cfg, args, run):
 
 
 if __name__ == "__main__":
-    stage_main("tokenizer_detail", SECTIONS, run)
+    argv = sys.argv[1:]
+    if argv and argv[0] == "tokenizer_detail":  # the DAG names the stage; there is one detail tokenizer
+        argv.pop(0)
+    stage_main("tokenizer_detail", SECTIONS, run, argv=argv)

@@ -607,12 +607,16 @@ def section_chain(raw: dict[str, Any], name: str) -> list[str]:
 
 def load_config(path: str | Path = "params.yaml", profile: str | None = None) -> PipelineConfig:
     """Read params.yaml and return the validated config of ``profile`` (default: its ``profile`` key)."""
-    raw = load_params(path)
+    return parse_config(load_params(path), profile)
+
+
+def parse_config(raw: dict[str, Any], profile: str | None = None) -> PipelineConfig:
+    """The validated config of ``profile`` (default: ``raw["profile"]``) from params.yaml's mapping."""
     profile = profile or raw.get("profile")
     if profile not in PROFILES:
         raise ConfigError(f"profile = {profile!r} must be one of {list(PROFILES)}")
     types_ = section_types()
-    unknown = {key for key in raw if not key.startswith("_")} - {"profile", *types_}
+    unknown = {key for key in raw if not key.startswith("_")} - {"profile", "train_launcher", *types_}
     if unknown:
         raise ConfigError(f"params.yaml: unknown top-level key(s) {sorted(unknown)}; a stage section needs a "
                           f"registry.yaml entry, a shared base a name starting with '_'")
