@@ -5,7 +5,7 @@ Every table is a list of ordered rows built by a pure function from the dict
 comes with the sample count it was measured on (``<metric>_n``), and a metric
 that an input lacks stops the report with an ``OrbisError`` naming the file and
 the stage that writes it, so no table is ever padded with guesses. The only
-``NA`` cells are values the compression stage itself reports as null (not
+``NA`` cells are compression-ablation values its inputs report as null (not
 measured).
 """
 
@@ -78,6 +78,8 @@ Row = dict[str, Any]
 def _file_and_stage(kind: str, name: str | None) -> tuple[str, str]:
     if kind in ("fvd", "probe"):
         return f"{kind}_{name}.json", f"eval_{kind}_{name}"
+    if kind == "compression":  # built by compression_from_evals, not read from a file
+        return "the compression rows (fvd_flat_abstract_full.json)", "eval_fvd_flat_abstract_full"
     return f"{kind}.json", f"eval_{kind}"
 
 
@@ -95,7 +97,7 @@ def load_eval(folder: str | Path) -> dict:
                     found = data.get(key)
                     raise OrbisError(f"{path} says {key}={found!r}, expected {name!r}: re-run eval_{kind}_{name}")
                 evals[kind][name] = data
-    for kind in ("steering", "speed", "compression"):
+    for kind in ("steering", "speed"):
         path = folder / f"{kind}.json"
         if path.exists():
             evals[kind] = _read_json(path)
@@ -338,13 +340,13 @@ def claim_hierarchy_slope(evals: Mapping) -> tuple[str, str]:
 def claim_compression(evals: Mapping) -> tuple[str, str]:
     """(3) Compressed abstract latents roll out more stably (lower FVD-slope) than full-dimension ones."""
     if not _has(evals, "compression"):
-        return UNMEASURED, "needs eval_compression"
+        return UNMEASURED, "needs eval_fvd_flat_abstract_full"
     rows = sorted(compression_table(evals), key=lambda r: r["latent_dim"])
     small, large = rows[0], rows[-1]
     if small["latent_dim"] == large["latent_dim"]:
         raise OrbisError(f"{_where(evals, 'compression')}: the rows must differ in latent_dim")
     if NA in (small["fvd_slope"], large["fvd_slope"]):
-        return UNMEASURED, "the compression stage reports a null FVD-slope"
+        return UNMEASURED, "a compression row has a null FVD-slope"
     ok = small["fvd_slope"] < large["fvd_slope"]
     text = (
         f"FVD-slope with {small['latent_dim']}-d latents {_fmt(small['fvd_slope'])}, "
@@ -499,8 +501,9 @@ def write_full_report(
 ) -> list[Path]:
     """Every table, the ablations and the JSON-driven figures, with a summary covering all of them.
 
-    compression.json is optional: without it compression_ablation.csv is not
-    written (a stale one is removed) and the summary marks claim 3 not measured.
+    ``evals["compression"]`` (from :func:`compression_from_evals`) is optional: without it
+    compression_ablation.csv is not written (a stale one is removed) and the summary marks
+    claim 3 not measured.
     Everything is checked before the first file is written.
     """
     out_dir = Path(out_dir)
