@@ -18,7 +18,7 @@ from snakemake.utils import validate
 
 from orbis2.config import parse_config, resolve_section
 from orbis2.dag import code_inputs
-from orbis2.registry import path, registry
+from orbis2.registry import layout_path, registry
 
 configfile: "params.yaml"
 
@@ -35,7 +35,7 @@ def section(name):
 
 def P(kind, name=None):
     """A path from registry.yaml's layout."""
-    return str(path(kind, name))
+    return str(layout_path(kind, name))
 
 
 def latent_inputs(latent_set):

@@ -11,10 +11,10 @@ import sys
 
 from orbis2.data.shards import load_manifest
 from orbis2.latents import LATENT_SETS, build_latent_cache
-from orbis2.registry import path, registry
+from orbis2.registry import layout_path, registry
 from orbis2.stage import stage_main
 
-SHARDS = path("shards")
+SHARDS = layout_path("shards")
 # Stage name -> latent set (registry.yaml, latent_sets).
 VARIANTS = {entry.stage: name for name, entry in registry().latent_sets.items()}
 

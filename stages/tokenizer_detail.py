@@ -7,19 +7,19 @@ tokenizer.pt, the samples and the report are published atomically at the end.
 import sys
 from pathlib import Path
 
-from orbis2.registry import path
+from orbis2.registry import layout_path
 from orbis2.stage import publish_training, stage_main, training_dir
 from orbis2.tasks.tokenizers import train_detail_tokenizer
 
-OUT = path("tokenizer", "detail")
-REPORT = path("report", "tokenizer_detail")
+OUT = layout_path("tokenizer", "detail")
+REPORT = layout_path("report", "tokenizer_detail")
 SECTIONS = ["data", "tokenizer_detail"]
 
 
 def run(cfg, args, run):
     """Train the detail tokenizer (VQGAN objective), measure it, and save tokenizer.pt with its latent scale."""
     work = training_dir("tokenizer_detail", cfg, SECTIONS)
-    metrics = train_detail_tokenizer(cfg, path("shards"), work, Path(cfg.assets.dir), run)
+    metrics = train_detail_tokenizer(cfg, layout_path("shards"), work, Path(cfg.assets.dir), run)
     if not metrics:
         return "training rank done; rank 0 writes the outputs"
     run.log_metrics(metrics, step=int(metrics["steps"]))

@@ -21,10 +21,10 @@ from tqdm import tqdm
 
 from orbis2.config import load_config
 from orbis2.data.importer import read_odometry_csv
-from orbis2.data.town import integrate_odometry
 from orbis2.data.video import probe, read_video, resample_stride, write_video
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file
+from orbis2.kinematics import integrate_odometry
 from orbis2.latents import encode_frames
 from orbis2.models.stdit import PredictorFile, load_predictor
 from orbis2.models.tokenizer import TokenizerFile, load_tokenizer

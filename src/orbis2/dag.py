@@ -21,7 +21,7 @@ from typing import Any
 import yaml
 
 from orbis2.config import load_params, section_chain
-from orbis2.registry import path
+from orbis2.registry import layout_path
 
 ROOT = Path(__file__).resolve().parents[2]
 SRC = ROOT / "src"
@@ -137,7 +137,7 @@ def _out_entry(out: str, assets: str) -> Any:
 def dvc_stage(rule, raw: dict, source: str) -> dict:
     """One dvc.yaml stage from a Snakemake rule."""
     deps = [str(f) for f in rule.input]
-    raw_dir = str(path("raw", source))
+    raw_dir = str(layout_path("raw", source))
     deps = ["data/raw/${data.all.source}" if d == raw_dir else d for d in deps]
     if rule.name == "import":
         deps = ["${import.all.videos}" if d == raw["import"]["all"]["videos"] else d for d in deps]
@@ -151,7 +151,7 @@ def dvc_stage(rule, raw: dict, source: str) -> dict:
     if "spec" in rule.params.keys():  # a predictor's registry.yaml entry
         params.append({"registry.yaml": [f"predictors.{rule.name}"]})
     stage: dict[str, Any] = {"cmd": dvc_command(rule), "deps": deps, "params": params}
-    assets = str(path("assets"))
+    assets = str(layout_path("assets"))
     outs = [str(f) for f in rule.output]
     metrics = [o for o in outs if o.startswith("reports/") and o.endswith(".json")]
     stage["outs"] = [_out_entry(o, assets) for o in outs if o not in metrics]

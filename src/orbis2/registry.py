@@ -3,7 +3,7 @@
 One declarative file that the Snakefile, the dvc.yaml generator, the config and
 the reports read, so that an ablation is one entry there plus one params.yaml
 section. It also holds the folder layout: library code takes its default paths
-from :func:`path` instead of spelling ``data/...`` itself.
+from :func:`layout_path` instead of spelling ``data/...`` itself.
 
 The file is looked up in ``$ORBIS2_REGISTRY``, else ``./registry.yaml`` (the
 project root the DAG runs in), else beside the source tree (editable installs).
@@ -71,10 +71,10 @@ class LatentSetEntry:
 
     @property
     def root(self) -> Path:
-        return path("latents", self.stage)
+        return layout_path("latents", self.stage)
 
     def tokenizer_file(self, level: str) -> Path:
-        return path("tokenizer", self.tokenizers[level]) / "tokenizer.pt"
+        return layout_path("tokenizer", self.tokenizers[level]) / "tokenizer.pt"
 
 
 @dataclass(frozen=True)
@@ -180,8 +180,8 @@ def registry() -> Registry:
     return _load(str(registry_file()))
 
 
-def path(kind: str, name: str | None = None) -> Path:
-    """Where an artifact lives, from ``layout`` (``path("predictor", "detail")`` -> data/predictors/detail)."""
+def layout_path(kind: str, name: str | None = None) -> Path:
+    """Where an artifact lives, from ``layout`` (``layout_path("predictor", "detail")`` -> data/predictors/detail)."""
     layout = registry().layout
     if kind not in layout:
         raise RegistryError(f"{registry_file()}: layout has no {kind!r}")

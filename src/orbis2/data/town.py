@@ -67,6 +67,8 @@ import cv2
 import numpy as np
 from numba import njit
 
+from orbis2.kinematics import integrate_odometry
+
 __all__ = [
     "CITYSCAPES_TRAIN_IDS", "TownStyle", "TOWN_STYLES", "Camera", "Town", "Renderer", "EgoTrack",
     "simulate_ego", "integrate_odometry", "render_episode",
@@ -1792,25 +1794,6 @@ class EgoTrack:
     def total_abs_yaw(self) -> float:
         """Total absolute heading change (rad): sum |yaw_rate| / fps."""
         return float(np.sum(np.abs(self.yaw_rate)) / self.fps)
-
-
-def integrate_odometry(speed, yaw_rate, fps, x0=0.0, y0=0.0, yaw0=0.0):
-    """Poses from per-step controls, exact unicycle arcs (see the module docstring).
-
-    Pose 0 is (x0, y0, yaw0); pose k+1 follows pose k by driving speed[k] / fps metres along a
-    circular arc turning by yaw_rate[k] / fps radians (a straight line when yaw_rate is 0).
-    Returns (x, y, yaw), each of len(speed).
-    """
-    v = np.asarray(speed, np.float64)
-    w = np.asarray(yaw_rate, np.float64)
-    n, dt = len(v), 1.0 / fps
-    dyaw = w * dt
-    yaw = yaw0 + np.concatenate([[0.0], np.cumsum(dyaw)])[:n]
-    # Chord of the arc: length v dt sinc(dyaw / 2), direction yaw + dyaw / 2 (exact, stable at 0).
-    chord = v * dt * np.sinc(dyaw / (2 * np.pi))
-    x = x0 + np.concatenate([[0.0], np.cumsum(chord * np.cos(yaw + dyaw / 2))])[:n]
-    y = y0 + np.concatenate([[0.0], np.cumsum(chord * np.sin(yaw + dyaw / 2))])[:n]
-    return x, y, yaw
 
 
 _V_MAX = 12.0

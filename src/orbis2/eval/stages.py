@@ -60,17 +60,17 @@ from orbis2.models.i3d import load_i3d
 from orbis2.models.stdit import load_predictor
 from orbis2.models.teachers import build_teacher
 from orbis2.models.tokenizer import load_tokenizer
-from orbis2.registry import path, registry
+from orbis2.registry import layout_path, registry
 from orbis2.rollout import rollout_schedule, steering_sequences
 from orbis2.tasks.predictors import STAGES
 from orbis2.tasks.tokenizers import TEACHER_ASSETS, asset_path
 from orbis2.tracking import StageRun
 
 LATENTS = LATENT_SETS["compressed"].root
-SHARDS = path("shards")
-EVAL = path("eval")
+SHARDS = layout_path("shards")
+EVAL = layout_path("eval")
 # Real-data I3D statistics, keyed by the shards' hashes; outside every stage's outputs so they survive re-runs.
-STATS_CACHE = path("eval_cache")
+STATS_CACHE = layout_path("eval_cache")
 # Times (s) of the frames shown in the qualitative rollout grid and the steering strip.
 GRID_TIMES = (0.5, 4.0, 8.0, 12.0, 16.0)
 

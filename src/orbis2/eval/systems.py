@@ -36,7 +36,7 @@ from orbis2.errors import OrbisError
 from orbis2.latents import LATENT_SETS, LatentCache
 from orbis2.models.stdit import PredictorFile, load_predictor
 from orbis2.models.tokenizer import TokenizerFile, load_tokenizer
-from orbis2.registry import System, path, registry
+from orbis2.registry import System, layout_path, registry
 from orbis2.rollout import ScheduleStep, cascaded_rollout, first_context_end, flat_rollout, rollout_schedule
 
 # The systems and the main table's rows: registry.yaml (``systems``, ``main_table``).
@@ -45,7 +45,7 @@ MAIN_SYSTEMS = tuple(registry().main_table)
 
 
 def predictor_file(stage: str) -> Path:
-    return path("predictor", stage) / "predictor.pt"
+    return layout_path("predictor", stage) / "predictor.pt"
 
 
 @dataclass

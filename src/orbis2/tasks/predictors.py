@@ -52,16 +52,16 @@ from orbis2.config import (
     PredictorConfig,
     TeacherForcingConfig,
 )
-from orbis2.data.shards import window_indices, window_span
 from orbis2.errors import OrbisError
 from orbis2.flow import diffusion_forcing_loss, teacher_forcing_loss
 from orbis2.io import sha256_file
 from orbis2.latents import LATENT_SETS, LatentCache, LatentWindowDataset, open_cache
 from orbis2.models.stdit import build_stdit, load_predictor, save_predictor
-from orbis2.registry import PredictorSpec, path, registry
+from orbis2.registry import PredictorSpec, layout_path, registry
 from orbis2.stage import publish_training, training_dir
 from orbis2.tracking import StageRun
 from orbis2.train import DataSpec, load_weights, train
+from orbis2.windows import window_indices, window_span
 
 # Offset of the validation generator's seed from the training seed: a different stream, fixed across steps.
 VAL_SEED_OFFSET = 7919
@@ -87,7 +87,7 @@ def rate_geometry(data: DataConfig, rate: str) -> tuple[int, int, int]:
 
 
 def predictor_path(stage: str) -> Path:
-    return path("predictor", stage) / "predictor.pt"
+    return layout_path("predictor", stage) / "predictor.pt"
 
 
 # --------------------------------------------------------------------------- conditioning
