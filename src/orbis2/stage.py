@@ -14,6 +14,7 @@ from typing import Callable
 from orbis2.config import PipelineConfig, as_dict, load_config
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_dir, write_json
+from orbis2.registry import layout_path
 from orbis2.tracking import StageRun, stage_run
 
 StageBody = Callable[[PipelineConfig, argparse.Namespace, StageRun], str]
@@ -74,7 +75,7 @@ def training_dir(name: str, cfg: PipelineConfig, sections: list[str], inputs: di
     if inputs:
         key["inputs"] = inputs
     blob = json.dumps(key, sort_keys=True).encode()
-    return Path("data/runs") / f"{name}-{cfg.profile}-{hashlib.sha256(blob).hexdigest()[:12]}"
+    return layout_path("runs") / f"{name}-{cfg.profile}-{hashlib.sha256(blob).hexdigest()[:12]}"
 
 
 def publish_training(run_dir: Path, out: Path, files: list[str], report: Path, metrics: dict[str, float],

@@ -254,7 +254,7 @@ def run_steering(cfg: PipelineConfig, run: StageRun) -> str:
     system = load_system("hierarchical", dev, top_override="action")
     steer_meta = system.top.meta.get("steering")
     if steer_meta is None:
-        raise OrbisError("data/predictors/action/predictor.pt is not steered; re-run the `action` stage")
+        raise OrbisError(f"{predictor_file('action')} is not steered; re-run the `action` stage")
     cache = open_cache(LATENTS)
     steps = rollout_steps(data, ev.steering_seconds)
     split = ev.steering_split
@@ -486,10 +486,10 @@ def run_report(scope: str, cfg: PipelineConfig, run: StageRun) -> str:
     evals = load_eval(EVAL)
     setup, rates = report_setup(cfg), {"detail_hz": cfg.data.detail_hz, "abstract_hz": cfg.data.abstract_hz}
     if scope == "main":
-        written = write_main_report(evals, Path("reports"), setup, **rates)
+        written = write_main_report(evals, layout_path("reports"), setup, **rates)
     else:
         evals["compression"] = compression_from_evals(evals)
-        with atomic_dir(Path("reports/all")) as tmp:
+        with atomic_dir(layout_path("report_all")) as tmp:
             write_full_report(evals, tmp, setup, **rates)
             shutil.copy2(EVAL / "steering_strip.png", tmp / "figures" / "steering_strip.png")
             grids = [(n, np.load(EVAL / "media" / n / "grid.npz")) for n in SYSTEMS
@@ -498,7 +498,7 @@ def run_report(scope: str, cfg: PipelineConfig, run: StageRun) -> str:
                 times = min((g["times"] for _, g in grids), key=len)
                 save_rollout_grid([g["frames"][:len(times)] for _, g in grids], [SYSTEMS[n].label for n, _ in grids],
                                   list(times), tmp / "figures" / "rollout_grid.png")
-        written = sorted(p for p in Path("reports/all").rglob("*") if p.is_file())
+        written = sorted(p for p in layout_path("report_all").rglob("*") if p.is_file())
     for path in written:
         run.log_artifact(path, None if scope == "main" else "all")
     return f"{len(written)} files: " + ", ".join(p.name for p in written)

@@ -404,6 +404,6 @@ def run_stage(stage: str, cfg: PipelineConfig, run: StageRun) -> str:
         return "training rank done; rank 0 writes the outputs"
     run.log_metrics(metrics, step=int(metrics["steps"]))
     out = predictor_path(stage)
-    publish_training(work, out.parent, [out.name], Path("reports") / f"{stage}.json", metrics, run)
+    publish_training(work, out.parent, [out.name], layout_path("report", stage), metrics, run)
     return (f"{metrics['steps']} steps, {metrics['parameters'] / 1e6:.2f}M parameters, val loss "
             f"{metrics['val_loss']:.4f} (at initialisation {metrics['val_loss_init']:.4f}) -> {out}")
