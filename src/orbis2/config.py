@@ -1,10 +1,16 @@
 """Typed, validated configuration read from ``params.yaml``.
 
+Over 600 lines on purpose: one typed class per params.yaml section, so the whole
+schema of the settings reads in one file.
+
 ``params.yaml`` is the single source of every hyper-parameter and seed. Each
 stage has a section; inside a section, ``all`` holds the values shared by every
 profile and ``smoke`` / ``default`` / ``paper`` hold what differs. The
 top-level ``profile`` key picks one; the resolved section is ``all`` updated by
-the profile's mapping (nested mappings are merged key by key).
+the profile's mapping (nested mappings are merged key by key), on top of the
+section named by ``extends`` if any (shared bases are named ``_...``). Which
+tokenizer and predictor sections exist, and their types, follows registry.yaml;
+``preset`` (model size) defaults to the profile.
 
 Resolution is strict: an unknown key, a value of the wrong type or an
 impossible value stops with a :class:`ConfigError` naming the key, e.g.

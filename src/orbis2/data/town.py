@@ -1,7 +1,8 @@
 """Procedural driving town: layout, traffic, ego driver and a pinhole renderer with exact ground truth.
 
 This is the default data source of the pipeline: it stands in for dashcam footage and comes with
-exact odometry, metric depth and Cityscapes semantic labels.
+exact odometry, metric depth and Cityscapes semantic labels. One file on purpose: the world, its
+traffic and the numba renderer share private geometry that splitting would expose.
 
 World model
 -----------

@@ -1,5 +1,8 @@
 """The paper's tables, figures and a summary built from the evaluation JSON files.
 
+Over 600 lines on purpose: every table, claim and figure of the paper is here, each a short
+pure function, so that the report reads as one document.
+
 Every table is a list of ordered rows built by a pure function from the dict
 ``load_eval`` returns; the writers only serialise them. A metric cell always
 comes with the sample count it was measured on (``<metric>_n``), and a metric
