@@ -26,12 +26,10 @@ from orbis2.errors import OrbisError
 from orbis2.io import atomic_file
 from orbis2.registry import registry
 
-# Table 3's systems, in the chunked-FVD figure's order; load_eval reads every system of registry.yaml.
-FVD_MODELS = ("flat_detail", "flat_abstract", "hierarchical", "top_detail", "top_abstract_10hz")
-# Probe targets in the per-block figure's order; load_eval reads every target of registry.yaml.
-PROBE_TARGETS = ("abstract_tokenizer", "teacher", "abstract_df", "abstract_tf", "abstract_tf_only", "detail",
-                 "flat_detail", "flat_abstract", "top_detail", "detail_on_detail", "flat_abstract_full",
-                 "abstract_tokenizer_full")
+# From registry.yaml: the systems on the paper's compressed latents (the chunked-FVD figure), and every
+# probe target (the per-block figure draws those that have per-block curves).
+FVD_MODELS = tuple(name for name, system in registry().systems.items() if system.latents == "compressed")
+PROBE_TARGETS = tuple(registry().probe_targets)
 FVD_SPLITS = ("val", "heldout", "turns")
 STEERING_MODES = ("original", "speed_x0.5", "speed_x1.5", "yaw_rate_x0.5", "yaw_rate_x1.5")
 # The main table's rows and the predictor probed for each (the hierarchy at its top one): registry.yaml.
@@ -90,8 +88,7 @@ def load_eval(folder: str | Path) -> dict:
     """Every evaluation JSON present in ``folder``, keyed by kind and name; absent files are simply absent."""
     folder = Path(folder)
     evals: dict = {"folder": str(folder), "fvd": {}, "probe": {}}
-    reg = registry()
-    for kind, names, key in (("fvd", list(reg.systems), "model"), ("probe", reg.probe_targets, "target")):
+    for kind, names, key in (("fvd", list(registry().systems), "model"), ("probe", PROBE_TARGETS, "target")):
         for name in names:
             path = folder / f"{kind}_{name}.json"
             if path.exists():
