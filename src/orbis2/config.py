@@ -443,6 +443,12 @@ class PipelineConfig:
             return self.stages[name]
         return getattr(self, SECTION_ATTRS.get(name, name))
 
+    def with_section(self, name: str, value: Any) -> PipelineConfig:
+        """A copy with one section replaced (``dataclasses.replace`` for registry sections too)."""
+        if name in self.stages:
+            return dataclasses.replace(self, stages={**self.stages, name: value})
+        return dataclasses.replace(self, **{SECTION_ATTRS.get(name, name): value})
+
     def __getattr__(self, name: str) -> Any:
         if name.startswith("__") or name == "stages":
             raise AttributeError(name)
