@@ -1,6 +1,7 @@
 # The tokenizers (one rule per registry.yaml entry) and the latent caches they write.
-# Rules made in a loop pass their name through {rule}: a shell command reads loop
-# variables only when it runs, after the loop has moved on.
+# Rules made in a loop pass per-rule values through {rule} and {params.*}: Snakemake
+# evaluates a shell command's expression when the job runs, after the loop has
+# moved on, so a loop variable in it would hold the last entry.
 
 for tokenizer, kind in REG.tokenizers.items():
 
@@ -17,12 +18,13 @@ for tokenizer, kind in REG.tokenizers.items():
             report=P("report", f"tokenizer_{tokenizer}"),
         params:
             profile=PROFILE,
+            script=f"stages/tokenizer_{kind}.py",  # a param: the command is formatted when it runs
             data=section("data"),
             **{f"tokenizer_{tokenizer}": section(f"tokenizer_{tokenizer}")},
         log: log(f"tokenizer_{tokenizer}")
         benchmark: bench(f"tokenizer_{tokenizer}")
         shell:
-            "{config[train_launcher]} stages/tokenizer_" + kind + ".py {rule} --profile {params.profile}" + TEE
+            "{config[train_launcher]} {params.script} {rule} --profile {params.profile}" + TEE
 
 
 for latent_set, entry in REG.latent_sets.items():

@@ -62,7 +62,9 @@ def snakemake_rules(root: Path = ROOT) -> dict[str, dict]:
     raw = load_params(root / "params.yaml")
     rules = {}
     for rule in dag.snakemake_rules(root):
-        cmd = (rule.shellcmd.split(" 2>&1 | tee")[0].strip().replace("{params.profile}", raw["profile"])
+        cmd = rule.shellcmd.split(" 2>&1 | tee")[0].strip()
+        cmd = (cmd.replace("{params.script}", rule.params.script) if "script" in rule.params.keys() else cmd)
+        cmd = (cmd.replace("{params.profile}", raw["profile"])
                .replace("{rule}", rule.name).replace("{config[train_launcher]}", raw["train_launcher"]))
         sections = {s for key in rule.params.keys() if key not in dag.NOT_SECTIONS
                     for s in dag.section_chain(raw, key)}

@@ -59,7 +59,7 @@ SLURM_BASE = {"executor": "slurm", "jobs": 50, "latency-wait": 120,
               "retries": 1,  # a killed training job resumes from its last checkpoint
               "default-resources": {"slurm_partition": "cpu"}}
 # Rule params that are not params.yaml sections.
-NOT_SECTIONS = ("profile", "spec")
+NOT_SECTIONS = ("profile", "spec", "script")
 
 
 # --------------------------------------------------------------------------- code inputs
@@ -122,6 +122,8 @@ def snakemake_rules(root: Path, profile: str | None = None) -> list:
 def dvc_command(rule) -> str:
     """The rule's shell command with Snakemake's placeholders turned into DVC's (no log redirection)."""
     cmd = rule.shellcmd.split(" 2>&1 | tee")[0].strip()
+    if "script" in rule.params.keys():
+        cmd = cmd.replace("{params.script}", rule.params.script)
     return (cmd.replace("{params.profile}", "${profile}").replace("{rule}", rule.name)
             .replace("{config[train_launcher]}", "${train_launcher}"))
 
