@@ -1,5 +1,7 @@
 """registry.yaml: the entries the DAG is built from, cross-checked, with errors that name the entry."""
 
+import pickle
+
 import pytest
 import yaml
 
@@ -44,3 +46,11 @@ def test_layout_paths():
     assert str(layout_path("shards")) == "data/shards"
     with pytest.raises(RegistryError, match="layout has no 'nowhere'"):
         layout_path("nowhere")
+
+
+def test_registry_names_pickle_like_literals():
+    """Checkpoint meta holds registry strings; interned, they pickle byte-identically to the literals."""
+    spec = registry().predictors["detail"]
+    from_registry = [spec.level, spec.rate, spec.objective, spec.condition, "detail", "abstract"]
+    assert pickle.dumps(from_registry) == pickle.dumps(["detail", "fast", "teacher_forcing", "abstract", "detail",
+                                                        "abstract"])

@@ -12,6 +12,7 @@ project root the DAG runs in), else beside the source tree (editable installs).
 from __future__ import annotations
 
 import os
+import sys
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -114,10 +115,11 @@ def registry_file() -> Path:
 
 
 def _entries(raw: dict, key: str, cls: type, where: Path) -> dict:
+    """``cls`` per entry; strings interned, so a name pickles (in a checkpoint's meta) as the literal would."""
     out = {}
     for name, value in (raw.get(key) or {}).items():
         try:
-            out[name] = cls(**value)
+            out[name] = cls(**{k: sys.intern(v) if isinstance(v, str) else v for k, v in value.items()})
         except TypeError as err:
             raise RegistryError(f"{where}: {key}.{name}: {err}; see the comment above `{key}`") from err
     return out
