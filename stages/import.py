@@ -6,9 +6,10 @@ from pathlib import Path
 
 from orbis2.data.importer import check_outside, import_videos
 from orbis2.io import atomic_dir
+from orbis2.registry import layout_path
 from orbis2.stage import stage_main
 
-OUT = Path("data/raw/import")
+OUT = layout_path("raw", "import")
 
 
 def add_arguments(parser):

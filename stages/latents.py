@@ -8,14 +8,15 @@ the tokenizers' probes read, from the frames.
 """
 
 import sys
-from pathlib import Path
 
 from orbis2.data.shards import load_manifest
 from orbis2.latents import LATENT_SETS, build_latent_cache
+from orbis2.registry import layout_path, registry
 from orbis2.stage import stage_main
 
-SHARDS = Path("data/shards")
-VARIANTS = {"latents": "compressed", "latents_full": "full"}
+SHARDS = layout_path("shards")
+# Stage name -> latent set (registry.yaml, latent_sets).
+VARIANTS = {entry.stage: name for name, entry in registry().latent_sets.items()}
 
 
 def body(name: str):
@@ -23,9 +24,8 @@ def body(name: str):
 
     def run(cfg, args, run):
         """Encode every native frame of every clip with the detail and abstract tokenizers, once."""
-        splits = None
-        if name == "latents_full":
-            splits = [s for s in load_manifest(SHARDS)["splits"] if s != "probe"]
+        skip = registry().latent_sets[VARIANTS[name]].skip_splits
+        splits = [s for s in load_manifest(SHARDS)["splits"] if s not in skip] if skip else None
         meta = build_latent_cache(SHARDS, latents.root, latents.tokenizers["detail"], latents.tokenizers["abstract"],
                                   cfg.latents.batch_size, splits)
         frames = {split: info["frames"] for split, info in meta["splits"].items()}

@@ -1,17 +1,17 @@
 """Stage `shards`: cut raw episodes into clips and write WebDataset shards + manifest to data/shards."""
 
-from pathlib import Path
 
 from orbis2.data.shards import write_shards
 from orbis2.io import atomic_dir
+from orbis2.registry import layout_path
 from orbis2.stage import stage_main
 
-OUT = Path("data/shards")
+OUT = layout_path("shards")
 
 
 def run(cfg, args, run):
     """Write one WebDataset sample per clip, per split, with a manifest of counts and hashes."""
-    raw = Path("data/raw") / cfg.data.source
+    raw = layout_path("raw", cfg.data.source)
     with atomic_dir(OUT) as tmp:
         manifest = write_shards(raw, tmp, cfg.data, cfg.shards)
     for split, info in manifest["splits"].items():

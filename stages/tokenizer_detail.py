@@ -4,14 +4,16 @@ Checkpoints live in data/runs/ (see `training_dir`): a killed run resumes there;
 tokenizer.pt, the samples and the report are published atomically at the end.
 """
 
+import sys
 from pathlib import Path
 
+from orbis2.registry import layout_path
 from orbis2.stage import publish_training, stage_main, training_dir
 from orbis2.tasks.tokenizers import train_detail_tokenizer
 
-OUT = Path("data/tokenizers/detail")
-REPORT = Path("reports/tokenizer_detail.json")
-SHARDS = Path("data/shards")
+OUT = layout_path("tokenizer", "detail")
+REPORT = layout_path("report", "tokenizer_detail")
+SHARDS = layout_path("shards")
 SECTIONS = ["data", "tokenizer_detail"]
 
 
@@ -29,4 +31,7 @@ def run(cfg, args, run):
 
 
 if __name__ == "__main__":
-    stage_main("tokenizer_detail", SECTIONS, run)
+    argv = sys.argv[1:]
+    if argv and argv[0] == "tokenizer_detail":  # the DAG names the stage; there is one detail tokenizer
+        argv.pop(0)
+    stage_main("tokenizer_detail", SECTIONS, run, argv=argv)

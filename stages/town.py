@@ -4,9 +4,10 @@ from pathlib import Path
 
 from orbis2.data.town_dataset import build_town_dataset, split_motion_statistics, write_previews
 from orbis2.io import atomic_dir, write_json
+from orbis2.registry import layout_path
 from orbis2.stage import stage_main
 
-OUT = Path("data/raw/town")
+OUT = layout_path("raw", "town")
 SHEET = Path("reports/town_contact_sheet.png")
 PREVIEW = Path("reports/town_preview.mp4")
 

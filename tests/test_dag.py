@@ -1,61 +1,79 @@
-"""Snakefile and dvc.yaml describe the same DAG: names, commands, inputs, outputs, params."""
+"""The DAG: dvc.yaml is generated from the Snakefile and current, both tools describe the same stages,
+re-run on the same params.yaml edits, and a registry entry adds a predictor to both."""
 
+import copy
 import re
+import shutil
 from pathlib import Path
 
 import pytest
 import yaml
 
-from orbis2.config import load_params, resolve_section
+from orbis2 import dag
+from orbis2.config import PROFILES, load_params, resolve_section
 
 from conftest import ROOT
 
+DVC_FILES = ("dvc.yaml", "pipelines/import/dvc.yaml")
 
-def dvc_stages(root: Path = ROOT) -> dict[str, dict]:
-    """Every dvc.yaml's stages with ``${a.b}`` templates filled from params.yaml, the way DVC does."""
-    params = load_params(root / "params.yaml")
 
+def fill_templates(text: str, params: dict) -> str:
+    """``${a.b}`` filled from params.yaml, the way DVC does."""
     def lookup(match):
         value = params
         for part in match.group(1).split("."):
             value = value[part]
         return str(value)
 
-    def fill(text: str) -> str:
-        return re.sub(r"\$\{([^}]+)\}", lookup, text)
+    return re.sub(r"\$\{([^}]+)\}", lookup, text)
 
+
+def tracked_sections(params: list) -> set[str]:
+    """DVC's params entries as section names (``spec`` for a predictor's registry.yaml entry)."""
+    out = set()
+    for entry in params:
+        if isinstance(entry, dict):
+            out.add("spec")
+        else:
+            out.add(entry.split(".")[0])
+    return out
+
+
+def dvc_stages(root: Path = ROOT, texts: dict[str, str] | None = None) -> dict[str, dict]:
+    """Every dvc.yaml's stages with templates filled from params.yaml; params as tracked keys and sections."""
+    params = load_params(root / "params.yaml")
     stages = {}
-    for path in [root / "dvc.yaml", *sorted((root / "pipelines").glob("*/dvc.yaml"))]:
-        stages.update(yaml.safe_load(path.read_text())["stages"])
+    for name in DVC_FILES:
+        text = texts[name] if texts else (root / name).read_text()
+        stages.update(yaml.safe_load(text)["stages"])
     out = {}
     for name, stage in stages.items():
         outs = [next(iter(o)) if isinstance(o, dict) else o for o in stage.get("outs", []) + stage.get("metrics", [])]
-        out[name] = {"cmd": fill(stage["cmd"]), "deps": {fill(d) for d in stage.get("deps", [])},
-                     "outs": {fill(o) for o in outs}, "params": set(stage.get("params", []))}
+        out[name] = {"cmd": fill_templates(stage["cmd"], params),
+                     "deps": {fill_templates(d, params) for d in stage.get("deps", [])},
+                     "outs": {fill_templates(o, params) for o in outs},
+                     "params": tracked_sections(stage.get("params", [])),
+                     "keys": {fill_templates(p, params) for p in stage.get("params", []) if isinstance(p, str)}}
     return out
 
 
 def snakemake_rules(root: Path = ROOT, videos_as_folder: bool = True) -> dict[str, dict]:
-    from snakemake.api import SnakemakeApi
-    from snakemake.settings.types import ConfigSettings, OutputSettings, ResourceSettings
-
-    params = load_params(root / "params.yaml")
-    profile = params["profile"]
-    videos = resolve_section(params, "import", profile)["videos"] if videos_as_folder else None
-    with SnakemakeApi(OutputSettings(quiet={"all"})) as api:
-        workflow = api.workflow(resource_settings=ResourceSettings(cores=1),
-                                config_settings=ConfigSettings(config={"profile": profile}),
-                                snakefile=root / "Snakefile", workdir=root)._workflow
-        rules = {}
-        for rule in workflow.rules:
-            if rule.name == "all":
-                continue
-            cmd = rule.shellcmd.replace("{params.profile}", profile).replace("{rule}", rule.name)
-            rules[rule.name] = {"cmd": cmd,
-                                "deps": {_as_folder(str(f), videos) for f in rule.input},
-                                "outs": {str(f) for f in rule.output},
-                                "params": set(rule.params.keys())}
-        return rules
+    """Every rule with its command as the shell would run it (no log redirection) and its params' sections."""
+    raw = load_params(root / "params.yaml")
+    videos = resolve_section(raw, "import", raw["profile"])["videos"] if videos_as_folder else None
+    rules = {}
+    for rule in dag.snakemake_rules(root):
+        cmd = rule.shellcmd.split(" 2>&1 | tee")[0].strip()
+        cmd = (cmd.replace("{params.script}", rule.params.script) if "script" in rule.params.keys() else cmd)
+        cmd = (cmd.replace("{params.profile}", raw["profile"])
+               .replace("{rule}", rule.name).replace("{config[train_launcher]}", raw["train_launcher"]))
+        sections = {s for key in rule.params.keys() if key not in dag.NOT_SECTIONS
+                    for s in dag.section_chain(raw, key)}
+        rules[rule.name] = {"cmd": cmd, "deps": {_as_folder(str(f), videos) for f in rule.input},
+                            "outs": {str(f) for f in rule.output},
+                            "params": sections | ({"profile"} | ({"spec"} & set(rule.params.keys()))),
+                            "param_keys": [k for k in rule.params.keys() if k not in dag.NOT_SECTIONS]}
+    return rules
 
 
 def _as_folder(dep: str, folder: str | None) -> str:
@@ -76,6 +94,11 @@ def drift(dvc: dict, snake: dict) -> list[str]:
 @pytest.fixture(scope="module")
 def both():
     return dvc_stages(), snakemake_rules()
+
+
+def test_generated_files_are_current():
+    stale = [str(f.relative_to(ROOT)) for f, text in dag.generate().items() if f.read_text() != text]
+    assert stale == [], f"run `python -m orbis2.dag`: {stale} differ from the Snakefile"
 
 
 def test_snakefile_and_dvc_yaml_agree(both):
@@ -100,4 +123,65 @@ def test_drift_is_detected(both):
 def test_every_stage_params_section_exists(both):
     params = load_params(ROOT / "params.yaml")
     for name, stage in both[0].items():
-        assert stage["params"] <= set(params), name
+        assert stage["params"] - {"spec"} <= set(params), name
+
+
+def test_code_inputs_follow_the_import_graph():
+    code = dag.code_inputs("stages/predictor.py")
+    assert {"stages/predictor.py", "src/orbis2/tasks/predictors.py", "src/orbis2/models/stdit.py",
+            "src/orbis2/flow.py", "src/orbis2/train.py"} <= set(code)
+    assert "src/orbis2/eval/report.py" not in code  # training does not import the report
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+def test_dvc_and_snakemake_rerun_on_the_same_edits(both, profile):
+    """An edit to any part of any params.yaml section changes a rule's resolved params (Snakemake re-runs)
+    exactly when DVC tracks that part for the stage."""
+    dvc, snake = both
+    raw = load_params(ROOT / "params.yaml")
+    sections = [s for s, v in raw.items() if isinstance(v, dict)]
+    for name, rule in snake.items():
+        tracked = {k.replace(raw["profile"], profile) if k.endswith("." + raw["profile"]) else k
+                   for k in dvc[name]["keys"]}
+        before = {key: resolve_section(raw, key, profile) for key in rule["param_keys"]}
+        for section in sections:
+            for part in ("all", *PROFILES):
+                edited = copy.deepcopy(raw)
+                edited[section][part] = {**(edited[section][part] or {}), "edited": 1}
+                changed = any(resolve_section(edited, key, profile) != before[key] for key in rule["param_keys"])
+                assert changed == (f"{section}.{part}" in tracked), (name, section, part)
+
+
+def project_copy(dest: Path) -> Path:
+    for name in ("Snakefile", "params.yaml", "params.schema.yaml", "registry.yaml"):
+        shutil.copy2(ROOT / name, dest / name)
+    for folder in ("rules", "stages", "pipelines"):
+        shutil.copytree(ROOT / folder, dest / folder)
+    return dest
+
+
+def test_a_registry_entry_adds_a_predictor_to_both_dags(tmp_path, monkeypatch):
+    root = project_copy(tmp_path)
+    registry = yaml.safe_load((root / "registry.yaml").read_text())
+    registry["predictors"]["dummy_ablation"] = {"level": "abstract", "rate": "fast", "objective": "teacher_forcing"}
+    (root / "registry.yaml").write_text(yaml.safe_dump(registry, sort_keys=False))
+    with (root / "params.yaml").open("a") as f:
+        f.write("\ndummy_ablation:\n  extends: _teacher_forcing\n  all: {train: {seed: 99}}\n"
+                "  smoke: {}\n  default: {}\n  gpu: {}\n  paper: {}\n")
+    monkeypatch.setenv("ORBIS2_REGISTRY", str(root / "registry.yaml"))
+    snake = snakemake_rules(root)
+    dvc = dvc_stages(root, {str(f.relative_to(root)): text for f, text in dag.generate(root).items()})
+    for name in ("dummy_ablation", "eval_probe_dummy_ablation"):
+        assert name in snake and name in dvc, name
+    assert "data/predictors/dummy_ablation" in dvc["eval_probe_dummy_ablation"]["deps"]
+    assert {"_teacher_forcing", "_predictor", "dummy_ablation", "spec"} <= dvc["dummy_ablation"]["params"]
+    assert drift(dvc, snake) == []
+
+
+def test_a_params_typo_fails_when_the_snakefile_is_read(tmp_path):
+    root = project_copy(tmp_path)
+    text = (root / "params.yaml").read_text()
+    (root / "params.yaml").write_text(text.replace("abstract_df:\n  extends: _predictor\n  all:",
+                                                   "abstract_df:\n  extends: _predictor\n  al:", 1))
+    with pytest.raises(Exception, match=r"abstract_df: unknown key\(s\) \['al'\]"):
+        snakemake_rules(root)

@@ -66,13 +66,21 @@ def mlflow_runs(db: Path) -> list[tuple[str, str, str | None]]:
 PREDICTORS = sorted(STAGE_SPECS)
 STAGES = sorted(name for name in dvc_stages() if name != "import")  # the whole DAG on the embedded town
 TARGETS = ["reports/main_table.csv", "reports/all"]
-ABLATION_ONLY = {"abstract_tf_only", "top_detail", "detail_on_detail", "eval_fvd_top_detail",
-                 "eval_fvd_top_abstract_10hz", "report_all", "tokenizer_abstract_full", "latents_full",
-                 "flat_abstract_full", "eval_fvd_flat_abstract_full",
-                 *(f"eval_probe_{t}" for t in ("abstract_tokenizer", "teacher", "abstract_df", "abstract_tf_only",
-                                               "detail", "top_detail", "detail_on_detail", "abstract_tokenizer_full",
-                                               "flat_abstract_full"))}
-MAIN_STAGES = sorted(set(STAGES) - ABLATION_ONLY)  # what reports/main_table.csv needs
+
+
+def upstream(target: str, stages: dict[str, dict]) -> set[str]:
+    """``target`` and every stage whose outputs it reads, directly or not (from dvc.yaml's deps and outs)."""
+    producer = {out: name for name, stage in stages.items() for out in stage["outs"]}
+    found, todo = set(), [target]
+    while todo:
+        name = todo.pop()
+        if name not in found:
+            found.add(name)
+            todo += [producer[d] for d in stages[name]["deps"] if d in producer]
+    return found
+
+
+MAIN_STAGES = sorted(upstream("report_main", dvc_stages()) & set(STAGES))  # what reports/main_table.csv needs
 
 
 def check_outputs(root: Path, full: bool = True) -> None:

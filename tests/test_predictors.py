@@ -170,7 +170,7 @@ def test_variants_read_their_own_latents_and_window(tiny_cache, smoke_cfg):
     for stage, (frames, causal, cond) in shapes.items():
         task = PredictorTask(stage, tiny_cfg(smoke_cfg, stage), smoke_cfg.data, tiny_cache)
         batch = task.val_windows()[0]
-        assert batch[task.spec.batch_key].shape[1] == frames, stage
+        assert batch[task.batch_key].shape[1] == frames, stage
         assert (task.build["causal"], task.build["abstract_channels"]) == (causal, cond), stage
     batch = PredictorTask("flat_abstract", tiny_cfg(smoke_cfg, "flat_abstract"), smoke_cfg.data,
                           tiny_cache).val_windows()[0]

@@ -157,8 +157,7 @@ def conditioning_doc() -> dict:
 
 def write_evals(folder: Path, skip: tuple[str, ...] = ()) -> Path:
     docs = {f"fvd_{m}": fvd_doc(m) for m in FVD} | {f"probe_{t}": probe_doc(t) for t in PROBES}
-    docs |= {"steering": steering_doc(), "speed": speed_doc(), "compression": compression_doc(),
-             "conditioning": conditioning_doc()}
+    docs |= {"steering": steering_doc(), "speed": speed_doc(), "conditioning": conditioning_doc()}
     folder.mkdir(parents=True, exist_ok=True)
     for name, doc in docs.items():
         if name not in skip:
@@ -168,7 +167,8 @@ def write_evals(folder: Path, skip: tuple[str, ...] = ()) -> Path:
 
 @pytest.fixture
 def evals(tmp_path):
-    return report.load_eval(write_evals(tmp_path / "eval"))
+    """Every evaluation, and the compression rows the report stage derives from them."""
+    return report.load_eval(write_evals(tmp_path / "eval")) | {"compression": compression_doc()}
 
 
 def read_csv(path: Path) -> list[dict[str, str]]:
@@ -187,7 +187,7 @@ def summary_verdicts(path: Path) -> list[str]:
 def test_load_eval_reads_every_file(evals):
     assert set(evals["fvd"]) == set(report.FVD_MODELS)
     assert set(evals["probe"]) == set(report.PROBE_TARGETS)
-    assert {"steering", "speed", "compression"} <= set(evals)
+    assert {"steering", "speed"} <= set(evals)
 
 
 def test_load_eval_rejects_a_file_under_the_wrong_name(tmp_path):
@@ -258,7 +258,7 @@ def test_main_report_tables_round_trip(evals, tmp_path):
 
 
 def test_main_report_marks_absent_ablations_not_measured(tmp_path):
-    folder = write_evals(tmp_path / "eval", skip=("probe_abstract_df", "compression"))
+    folder = write_evals(tmp_path / "eval", skip=("probe_abstract_df",))
     report.write_main_report(report.load_eval(folder), tmp_path / "out", SETUP)
     assert summary_verdicts(tmp_path / "out" / "summary.md") == [
         "not measured",
@@ -398,7 +398,7 @@ def test_full_report_without_compression_drops_that_table(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     (out / "compression_ablation.csv").write_text("stale\n")
-    evals = report.load_eval(write_evals(tmp_path / "eval", skip=("compression",)))
+    evals = report.load_eval(write_evals(tmp_path / "eval"))
     report.write_full_report(evals, out, SETUP)
     assert not (out / "compression_ablation.csv").exists()
     assert summary_verdicts(out / "summary.md")[2] == "not measured"

@@ -145,7 +145,7 @@ def test_discriminator_waits_for_disc_start(shard_root, smoke_cfg, tmp_path):
 def test_detail_tokenizer_stage_trains_saves_and_resumes(shard_root, smoke_cfg, tmp_path):
     tc = dataclasses.replace(smoke_cfg.tokenizer_detail, train=tiny_train(), disc_start=4, eval_images=4,
                              fid_images=6, scale_images=4)
-    cfg = dataclasses.replace(smoke_cfg, tokenizer_detail=tc)
+    cfg = smoke_cfg.with_section("tokenizer_detail", tc)
     fake_inception(tmp_path / "inception_v3_fid.pt")
     out, log = tmp_path / "detail", Recorder()
     metrics = train_detail_tokenizer(cfg, shard_root, out, tmp_path, log)

@@ -77,7 +77,7 @@ class CurveTask(PredictorTask):
         device = next(model.parameters()).device
         spec, data = self.spec, self.data
         n_context = rate_geometry(data, spec.rate)[2]
-        frames = self.batch[spec.batch_key].to(device)
+        frames = self.batch[self.batch_key].to(device)
         context, target = frames[:, :n_context], frames[:, n_context:]
         variants: dict[str, dict] = {"true": {}}
         if spec.condition is not None:

@@ -29,8 +29,9 @@ import torch
 from orbis2.io import sha256_file
 from orbis2.models.i3d import convert_i3d_pickle
 from orbis2.models.teachers import load_dinov2_state_dict
+from orbis2.registry import layout_path
 
-DEFAULT_DEST = Path("data/assets")
+DEFAULT_DEST = layout_path("assets")
 
 
 class AssetError(RuntimeError):

@@ -23,17 +23,18 @@ from tqdm import tqdm
 from orbis2.accel import compile_decoder, compile_predictor, inference_autocast, set_tf32
 from orbis2.config import PROFILES, load_config
 from orbis2.data.importer import read_odometry_csv
-from orbis2.data.town import integrate_odometry
 from orbis2.data.video import probe, read_video, resample_stride, write_video
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file
+from orbis2.kinematics import integrate_odometry
 from orbis2.latents import encode_frames
 from orbis2.models.stdit import PredictorFile, load_predictor
 from orbis2.models.tokenizer import TokenizerFile, load_tokenizer
+from orbis2.registry import layout_path
 from orbis2.rollout import cascaded_rollout, first_context_end, rollout_schedule, steering_sequences
 
-DEFAULT_ACTION = Path("data/predictors/action/predictor.pt")
-DEFAULT_ABSTRACT_TF = Path("data/predictors/abstract_tf/predictor.pt")
+DEFAULT_ACTION = layout_path("predictor", "action") / "predictor.pt"
+DEFAULT_ABSTRACT_TF = layout_path("predictor", "abstract_tf") / "predictor.pt"
 # Steering inputs are divided by these (m/s, rad/s) unless the predictor's meta["steering"]["scale"] records its own.
 DEFAULT_STEERING_SCALE = (10.0, 0.5)
 
@@ -286,11 +287,11 @@ def add_rollout_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--yaw-rate-scale", type=float, default=1.0, help="multiply the yaw rates (counterfactuals)")
     p.add_argument("--seconds", type=float, default=16.0, help="rollout length in seconds")
     p.add_argument("--out", type=Path, required=True, help="output mp4; a GIF with the same stem is written too")
-    p.add_argument("--detail-tokenizer", type=Path, default=Path("data/tokenizers/detail/tokenizer.pt"))
-    p.add_argument("--abstract-tokenizer", type=Path, default=Path("data/tokenizers/abstract/tokenizer.pt"))
+    p.add_argument("--detail-tokenizer", type=Path, default=layout_path("tokenizer", "detail") / "tokenizer.pt")
+    p.add_argument("--abstract-tokenizer", type=Path, default=layout_path("tokenizer", "abstract") / "tokenizer.pt")
     p.add_argument("--abstract-predictor", type=Path, default=None,
                    help=f"default: {DEFAULT_ACTION}, else {DEFAULT_ABSTRACT_TF}")
-    p.add_argument("--detail-predictor", type=Path, default=Path("data/predictors/detail/predictor.pt"))
+    p.add_argument("--detail-predictor", type=Path, default=layout_path("predictor", "detail") / "predictor.pt")
     p.add_argument("--params", type=Path, default=Path("params.yaml"))
     p.add_argument("--profile", default=None, help="smoke | default | gpu | paper (default: the file's `profile`)")
     p.add_argument("--side-by-side", action="store_true", help="show the real continuation on the left")

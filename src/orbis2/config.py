@@ -1,10 +1,16 @@
 """Typed, validated configuration read from ``params.yaml``.
 
+Over 600 lines on purpose: one typed class per params.yaml section, so the whole
+schema of the settings reads in one file.
+
 ``params.yaml`` is the single source of every hyper-parameter and seed. Each
 stage has a section; inside a section, ``all`` holds the values shared by every
 profile and ``smoke`` / ``default`` / ``gpu`` / ``paper`` hold what differs. The
 top-level ``profile`` key picks one; the resolved section is ``all`` updated by
-the profile's mapping (nested mappings are merged key by key).
+the profile's mapping (nested mappings are merged key by key), on top of the
+section named by ``extends`` if any (shared bases are named ``_...``). Which
+tokenizer and predictor sections exist, and their types, follows registry.yaml;
+``preset`` (model size) defaults to the profile.
 
 Resolution is strict: an unknown key, a value of the wrong type or an
 impossible value stops with a :class:`ConfigError` naming the key, e.g.
@@ -549,26 +555,30 @@ class PipelineConfig:
     import_: ImportConfig
     shards: ShardsConfig
     assets: AssetsConfig
-    tokenizer_detail: DetailTokenizerConfig
-    tokenizer_abstract: AbstractTokenizerConfig
-    tokenizer_abstract_full: AbstractTokenizerConfig
     latents: LatentsConfig
-    abstract_df: PredictorConfig
-    abstract_tf: TeacherForcingConfig
-    detail: DetailPredictorConfig
-    action: ActionConfig
-    abstract_tf_only: TeacherForcingConfig
-    flat_detail: TeacherForcingConfig
-    flat_abstract: TeacherForcingConfig
-    top_detail: TeacherForcingConfig
-    detail_on_detail: DetailPredictorConfig
-    flat_abstract_full: TeacherForcingConfig
-    detail_distill: DistillConfig
     evaluation: EvaluationConfig
     inverse_dynamics: InverseDynamicsConfig
+    # The tokenizer and predictor sections, one per registry.yaml entry (also reachable as attributes).
+    stages: dict[str, Any] = field(default_factory=dict)
 
     def section(self, name: str) -> Any:
+        if name in self.stages:
+            return self.stages[name]
         return getattr(self, SECTION_ATTRS.get(name, name))
+
+    def with_section(self, name: str, value: Any) -> PipelineConfig:
+        """A copy with one section replaced (``dataclasses.replace`` for registry sections too)."""
+        if name in self.stages:
+            return dataclasses.replace(self, stages={**self.stages, name: value})
+        return dataclasses.replace(self, **{SECTION_ATTRS.get(name, name): value})
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("__") or name == "stages":
+            raise AttributeError(name)
+        try:
+            return self.stages[name]
+        except KeyError:
+            raise AttributeError(f"PipelineConfig has no section {name!r}") from None
 
     def validate(self) -> None:
         d = self.data
@@ -657,30 +667,38 @@ class TrainConfig:
 
 # Section names in params.yaml whose Python attribute differs (``import`` is a keyword).
 SECTION_ATTRS = {"import": "import_"}
-SECTION_TYPES: dict[str, type] = {
+FIXED_SECTIONS: dict[str, type] = {
     "data": DataConfig,
     "town": TownConfig,
     "import": ImportConfig,
     "shards": ShardsConfig,
     "assets": AssetsConfig,
-    "tokenizer_detail": DetailTokenizerConfig,
-    "tokenizer_abstract": AbstractTokenizerConfig,
-    "tokenizer_abstract_full": AbstractTokenizerConfig,
     "latents": LatentsConfig,
-    "abstract_df": PredictorConfig,
-    "abstract_tf": TeacherForcingConfig,
-    "detail": DetailPredictorConfig,
-    "action": ActionConfig,
-    "abstract_tf_only": TeacherForcingConfig,
-    "flat_detail": TeacherForcingConfig,
-    "flat_abstract": TeacherForcingConfig,
-    "top_detail": TeacherForcingConfig,
-    "detail_on_detail": DetailPredictorConfig,
-    "flat_abstract_full": TeacherForcingConfig,
-    "detail_distill": DistillConfig,
-    "inverse_dynamics": InverseDynamicsConfig,
     "evaluation": EvaluationConfig,
+    "inverse_dynamics": InverseDynamicsConfig,
 }
+
+
+def predictor_config_type(spec: Any) -> type:
+    """The typed section of a registry predictor: steering, distillation, diffusion forcing, conditioned, or teacher forcing."""
+    if spec.objective == "reflow":
+        return DistillConfig
+    if spec.steering:
+        return ActionConfig
+    if spec.objective == "diffusion_forcing":
+        return PredictorConfig
+    return DetailPredictorConfig if spec.condition else TeacherForcingConfig
+
+
+def section_types() -> dict[str, type]:
+    """Every params.yaml stage section and its type: the fixed ones plus one per registry.yaml tokenizer/predictor."""
+    from orbis2.registry import registry
+
+    reg = registry()
+    kinds = {"detail": DetailTokenizerConfig, "abstract": AbstractTokenizerConfig}
+    stages = {f"tokenizer_{name}": kinds[kind] for name, kind in reg.tokenizers.items()}
+    stages |= {name: predictor_config_type(spec) for name, spec in reg.predictors.items()}
+    return {**FIXED_SECTIONS, **stages}
 
 
 # --------------------------------------------------------------------------- loading
@@ -721,17 +739,25 @@ def load_params(path: str | Path = "params.yaml") -> dict[str, Any]:
     return raw
 
 
-def resolve_section(raw: dict[str, Any], name: str, profile: str) -> dict[str, Any]:
-    """Merge ``<name>.all`` with ``<name>.<profile>``; a plain mapping, validated later."""
+def resolve_section(raw: dict[str, Any], name: str, profile: str, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
+    """``<name>.all`` updated by ``<name>.<profile>``, on top of the section it ``extends`` (resolved the same way).
+
+    A plain mapping, validated later; nested mappings are merged key by key.
+    """
     if name not in raw:
-        raise ConfigError(f"params.yaml has no section '{name}'")
+        where = f"{_seen[-1]}.extends" if _seen else "params.yaml"
+        raise ConfigError(f"{where}: no section '{name}' in params.yaml")
+    if name in _seen:
+        raise ConfigError(f"params.yaml: sections extend each other in a loop: {' -> '.join([*_seen, name])}")
     section = raw[name]
     if not isinstance(section, dict):
         raise ConfigError(f"{name} must be a mapping with keys 'all' and the profiles {list(PROFILES)}")
-    unknown = set(section) - {"all", *PROFILES}
+    unknown = set(section) - {"all", "extends", *PROFILES}
     if unknown:
-        raise ConfigError(f"{name}: unknown key(s) {sorted(unknown)}; allowed: 'all', {list(PROFILES)}")
+        raise ConfigError(f"{name}: unknown key(s) {sorted(unknown)}; allowed: 'all', 'extends', {list(PROFILES)}")
     merged: dict[str, Any] = {}
+    if section.get("extends") is not None:
+        merged = resolve_section(raw, section["extends"], profile, (*_seen, name))
     for part in ("all", profile):
         value = section.get(part) or {}
         if not isinstance(value, dict):
@@ -740,21 +766,40 @@ def resolve_section(raw: dict[str, Any], name: str, profile: str) -> dict[str, A
     return merged
 
 
+def section_chain(raw: dict[str, Any], name: str) -> list[str]:
+    """``name`` and the sections it extends, nearest first (what a stage's params depend on)."""
+    chain = [name]
+    while isinstance(raw.get(chain[-1]), dict) and raw[chain[-1]].get("extends") and len(chain) <= len(raw):
+        chain.append(raw[chain[-1]]["extends"])
+    return chain
+
+
 def load_config(path: str | Path = "params.yaml", profile: str | None = None) -> PipelineConfig:
     """Read params.yaml and return the validated config of ``profile`` (default: its ``profile`` key)."""
-    raw = load_params(path)
+    return parse_config(load_params(path), profile)
+
+
+def parse_config(raw: dict[str, Any], profile: str | None = None) -> PipelineConfig:
+    """The validated config of ``profile`` (default: ``raw["profile"]``) from params.yaml's mapping."""
     profile = profile or raw.get("profile")
     if profile not in PROFILES:
         raise ConfigError(f"profile = {profile!r} must be one of {list(PROFILES)}")
-    unknown = set(raw) - {"profile", *SECTION_TYPES}
+    types_ = section_types()
+    unknown = {key for key in raw if not key.startswith("_")} - {"profile", "train_launcher", *types_}
     if unknown:
-        raise ConfigError(f"params.yaml: unknown top-level key(s) {sorted(unknown)}")
-    sections = {}
-    for name, cls in SECTION_TYPES.items():
+        raise ConfigError(f"params.yaml: unknown top-level key(s) {sorted(unknown)}; a stage section needs a "
+                          f"registry.yaml entry, a shared base a name starting with '_'")
+    sections: dict[str, Any] = {"stages": {}}
+    for name, cls in types_.items():
         values = resolve_section(raw, name, profile)
+        if "preset" in {f.name for f in dataclasses.fields(cls)}:
+            values.setdefault("preset", profile)  # model size follows the profile unless the section says otherwise
         obj = build(cls, values, f"{name}.{profile}")
         obj.validate(f"{name}.{profile}")
-        sections[SECTION_ATTRS.get(name, name)] = obj
+        if name in FIXED_SECTIONS:
+            sections[SECTION_ATTRS.get(name, name)] = obj
+        else:
+            sections["stages"][name] = obj
     cfg = PipelineConfig(profile=profile, **sections)
     cfg.validate()
     return cfg

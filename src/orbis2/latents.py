@@ -51,6 +51,7 @@ from orbis2.data.shards import (
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_dir, sha256_file, write_json
 from orbis2.models.tokenizer import TokenizerFile, load_tokenizer
+from orbis2.registry import registry
 
 FORMAT = 2
 KINDS = ("detail", "abstract")
@@ -67,15 +68,10 @@ class LatentSet:
     tokenizers: dict[str, Path]
 
 
-_DETAIL_TOKENIZER = Path("data/tokenizers/detail/tokenizer.pt")
 # "compressed": the paper's 16-d abstract latents; "full": the uncompressed teacher-dimensional ones
-# (tokenizer_abstract_full, compress: false), for the compression ablation.
-LATENT_SETS = {
-    "compressed": LatentSet(Path("data/latents"), {"detail": _DETAIL_TOKENIZER,
-                                                   "abstract": Path("data/tokenizers/abstract/tokenizer.pt")}),
-    "full": LatentSet(Path("data/latents_full"), {"detail": _DETAIL_TOKENIZER,
-                                                  "abstract": Path("data/tokenizers/abstract_full/tokenizer.pt")}),
-}
+# (tokenizer_abstract_full, compress: false), for the compression ablation. Entries: registry.yaml.
+LATENT_SETS = {name: LatentSet(entry.root, {level: entry.tokenizer_file(level) for level in entry.tokenizers})
+               for name, entry in registry().latent_sets.items()}
 
 
 class LatentCacheError(OrbisError):

@@ -24,8 +24,8 @@ import numpy as np
 import torch
 
 from orbis2.config import DataConfig
-from orbis2.data.shards import window_indices
 from orbis2.flow import ModelFn, euler_sample
+from orbis2.windows import window_indices
 
 StepCallback = Callable[[int], None]
 

@@ -16,6 +16,7 @@ import orbis2
 from orbis2.config import BOOKKEEPING_FIELDS, PipelineConfig, as_dict, load_config
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_dir, sha256_file, write_json
+from orbis2.registry import layout_path
 from orbis2.tracking import StageRun, stage_run
 
 StageBody = Callable[[PipelineConfig, argparse.Namespace, StageRun], str]
@@ -83,7 +84,7 @@ def training_dir(name: str, cfg: PipelineConfig, sections: list[str], inputs: di
     key["inputs"] = {label: sha256_file(path) for label, path in sorted(inputs.items())}
     key["code"] = code_version()
     blob = json.dumps(key, sort_keys=True).encode()
-    return Path("data/runs") / f"{name}-{cfg.profile}-{hashlib.sha256(blob).hexdigest()[:12]}"
+    return layout_path("runs") / f"{name}-{cfg.profile}-{hashlib.sha256(blob).hexdigest()[:12]}"
 
 
 def _without_bookkeeping(section: dict) -> dict:

@@ -30,9 +30,9 @@ from tqdm import tqdm
 
 from orbis2.config import SPLITS, DataConfig, ImportConfig
 from orbis2.data.episodes import EpisodeRecord, RawIndex, write_odometry
-from orbis2.data.town import integrate_odometry
 from orbis2.data.video import VIDEO_SUFFIXES, VideoError, probe, read_video, resample_stride, write_video
 from orbis2.errors import OrbisError
+from orbis2.kinematics import integrate_odometry
 
 CSV_COLUMNS = ("timestamp", "speed", "yaw_rate")
 

@@ -43,6 +43,7 @@ from orbis2.data.episodes import RawIndex, read_odometry
 from orbis2.data.video import read_video
 from orbis2.errors import OrbisError
 from orbis2.io import load_npy, load_npz, npy_bytes, npz_bytes, sha256_file, write_json
+from orbis2.windows import window_indices, window_span
 
 MANIFEST = "manifest.json"
 
@@ -255,18 +256,6 @@ class Clip:
 
     def __len__(self) -> int:
         return len(self.pixels) if self.pixels is not None else len(self.jpegs)
-
-
-def window_indices(data: DataConfig, anchor: int) -> tuple[np.ndarray, np.ndarray]:
-    """Native frame indices of the detail and abstract windows around ``anchor``."""
-    detail = anchor + data.detail_stride * (np.arange(data.detail_window) - (data.detail_context - 1))
-    abstract = anchor + data.abstract_stride * (np.arange(data.abstract_window) - (data.abstract_context - 1))
-    return detail, abstract
-
-
-def window_span(detail: np.ndarray, abstract: np.ndarray) -> np.ndarray:
-    """Every native frame from the first to the last frame of the two windows."""
-    return np.arange(min(detail.min(), abstract.min()), max(detail.max(), abstract.max()) + 1)
 
 
 def anchor_range(data: DataConfig, n_frames: int) -> range:

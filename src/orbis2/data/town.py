@@ -1,7 +1,8 @@
 """Procedural driving town: layout, traffic, ego driver and a pinhole renderer with exact ground truth.
 
 This is the default data source of the pipeline: it stands in for dashcam footage and comes with
-exact odometry, metric depth and Cityscapes semantic labels.
+exact odometry, metric depth and Cityscapes semantic labels. One file on purpose: the world, its
+traffic and the numba renderer share private geometry that splitting would expose.
 
 World model
 -----------
@@ -66,6 +67,8 @@ from typing import Iterator
 import cv2
 import numpy as np
 from numba import njit
+
+from orbis2.kinematics import integrate_odometry
 
 __all__ = [
     "CITYSCAPES_TRAIN_IDS", "TownStyle", "TOWN_STYLES", "Camera", "Town", "Renderer", "EgoTrack",
@@ -1801,25 +1804,6 @@ class EgoTrack:
     def total_abs_yaw(self) -> float:
         """Total absolute heading change (rad): sum |yaw_rate| / fps."""
         return float(np.sum(np.abs(self.yaw_rate)) / self.fps)
-
-
-def integrate_odometry(speed, yaw_rate, fps, x0=0.0, y0=0.0, yaw0=0.0):
-    """Poses from per-step controls, exact unicycle arcs (see the module docstring).
-
-    Pose 0 is (x0, y0, yaw0); pose k+1 follows pose k by driving speed[k] / fps metres along a
-    circular arc turning by yaw_rate[k] / fps radians (a straight line when yaw_rate is 0).
-    Returns (x, y, yaw), each of len(speed).
-    """
-    v = np.asarray(speed, np.float64)
-    w = np.asarray(yaw_rate, np.float64)
-    n, dt = len(v), 1.0 / fps
-    dyaw = w * dt
-    yaw = yaw0 + np.concatenate([[0.0], np.cumsum(dyaw)])[:n]
-    # Chord of the arc: length v dt sinc(dyaw / 2), direction yaw + dyaw / 2 (exact, stable at 0).
-    chord = v * dt * np.sinc(dyaw / (2 * np.pi))
-    x = x0 + np.concatenate([[0.0], np.cumsum(chord * np.cos(yaw + dyaw / 2))])[:n]
-    y = y0 + np.concatenate([[0.0], np.cumsum(chord * np.sin(yaw + dyaw / 2))])[:n]
-    return x, y, yaw
 
 
 _A_ACCEL, _A_BRAKE, _A_PLAN = 2.5, 4.5, 2.5  # m/s^2: accelerate, strongest braking, planned braking

@@ -36,13 +36,14 @@ from orbis2.io import atomic_dir, write_json
 from orbis2.latents import encode_frames
 from orbis2.models.inverse_dynamics import InverseDynamicsNet
 from orbis2.models.tokenizer import load_tokenizer
+from orbis2.registry import layout_path
 from orbis2.tracking import StageRun
 
-OUT = Path("data/inverse_dynamics")
+OUT = layout_path("inverse_dynamics")
 WEIGHTS = OUT / "model.pt"
-REPORT = Path("reports/inverse_dynamics.json")
-SHARDS = Path("data/shards")
-DETAIL_TOKENIZER = Path("data/tokenizers/detail/tokenizer.pt")
+REPORT = layout_path("report", "inverse_dynamics")
+SHARDS = layout_path("shards")
+DETAIL_TOKENIZER = layout_path("tokenizer", "detail") / "tokenizer.pt"
 
 
 @dataclass

@@ -26,8 +26,8 @@ from typing import Callable, Protocol, runtime_checkable
 import cv2
 import numpy as np
 
-from orbis2.data.town import integrate_odometry
 from orbis2.errors import OrbisError
+from orbis2.kinematics import integrate_odometry
 
 # ----------------------------------------------------------------------------- controls and geometry
 

@@ -1,11 +1,14 @@
 """The paper's tables, figures and a summary built from the evaluation JSON files.
 
+Over 600 lines on purpose: every table, claim and figure of the paper is here, each a short
+pure function, so that the report reads as one document.
+
 Every table is a list of ordered rows built by a pure function from the dict
 ``load_eval`` returns; the writers only serialise them. A metric cell always
 comes with the sample count it was measured on (``<metric>_n``), and a metric
 that an input lacks stops the report with an ``OrbisError`` naming the file and
 the stage that writes it, so no table is ever padded with guesses. The only
-``NA`` cells are values the compression stage itself reports as null (not
+``NA`` cells are compression-ablation values its inputs report as null (not
 measured).
 """
 
@@ -23,29 +26,17 @@ from orbis2.errors import OrbisError
 from orbis2.eval.conditioning import claim_verdict, conditioning_rows
 from orbis2.eval.stats import paired_draws_interval
 from orbis2.io import atomic_file
+from orbis2.registry import registry
 
-FVD_MODELS = ("flat_detail", "flat_abstract", "hierarchical", "top_detail", "top_abstract_10hz")
-# Read when present; the compression table needs them (compression_from_evals).
-COMPRESSION_MODELS = ("flat_abstract_full",)
-PROBE_TARGETS = (
-    "abstract_tokenizer",
-    "teacher",
-    "abstract_df",
-    "abstract_tf",
-    "abstract_tf_only",
-    "detail",
-    "flat_detail",
-    "flat_abstract",
-    "top_detail",
-    "detail_on_detail",
-    "flat_abstract_full",
-    "abstract_tokenizer_full",
-)
+# From registry.yaml: the systems on the paper's compressed latents (the chunked-FVD figure), and every
+# probe target (the per-block figure draws those that have per-block curves).
+FVD_MODELS = tuple(name for name, system in registry().systems.items() if system.latents == "compressed")
+PROBE_TARGETS = tuple(registry().probe_targets)
 FVD_SPLITS = ("val", "heldout", "turns")
 STEERING_MODES = ("original", "speed_x0.5", "speed_x1.5", "yaw_rate_x0.5", "yaw_rate_x1.5")
-MAIN_MODELS = ("flat_detail", "flat_abstract", "hierarchical")
-# The hierarchy is probed at its abstract (top) predictor, as in the paper.
-MAIN_PROBE = {"flat_detail": "flat_detail", "flat_abstract": "flat_abstract", "hierarchical": "abstract_tf"}
+# The main table's rows and the predictor probed for each (the hierarchy at its top one): registry.yaml.
+MAIN_PROBE = dict(registry().main_table)
+MAIN_MODELS = tuple(MAIN_PROBE)
 TRAINING_ROWS = (
     ("abstract tokenizer", "abstract_tokenizer"),
     ("TF only", "abstract_tf_only"),
@@ -92,6 +83,8 @@ Row = dict[str, Any]
 def _file_and_stage(kind: str, name: str | None) -> tuple[str, str]:
     if kind in ("fvd", "probe"):
         return f"{kind}_{name}.json", f"eval_{kind}_{name}"
+    if kind == "compression":  # built by compression_from_evals, not read from a file
+        return "the compression rows (fvd_flat_abstract_full.json)", "eval_fvd_flat_abstract_full"
     return f"{kind}.json", f"eval_{kind}"
 
 
@@ -99,7 +92,7 @@ def load_eval(folder: str | Path) -> dict:
     """Every evaluation JSON present in ``folder``, keyed by kind and name; absent files are simply absent."""
     folder = Path(folder)
     evals: dict = {"folder": str(folder), "fvd": {}, "probe": {}}
-    for kind, names, key in (("fvd", FVD_MODELS + COMPRESSION_MODELS, "model"), ("probe", PROBE_TARGETS, "target")):
+    for kind, names, key in (("fvd", list(registry().systems), "model"), ("probe", PROBE_TARGETS, "target")):
         for name in names:
             path = folder / f"{kind}_{name}.json"
             if path.exists():
@@ -108,7 +101,7 @@ def load_eval(folder: str | Path) -> dict:
                     found = data.get(key)
                     raise OrbisError(f"{path} says {key}={found!r}, expected {name!r}: re-run eval_{kind}_{name}")
                 evals[kind][name] = data
-    for kind in ("steering", "speed", "compression", "conditioning"):
+    for kind in ("steering", "speed", "conditioning"):
         path = folder / f"{kind}.json"
         if path.exists():
             evals[kind] = _read_json(path)
@@ -400,13 +393,13 @@ def claim_hierarchy_slope(evals: Mapping) -> tuple[str, str]:
 def claim_compression(evals: Mapping) -> tuple[str, str]:
     """(3) Compressed abstract latents roll out more stably (lower FVD-slope) than full-dimension ones."""
     if not _has(evals, "compression"):
-        return UNMEASURED, "needs eval_compression"
+        return UNMEASURED, "needs eval_fvd_flat_abstract_full"
     rows = sorted(compression_table(evals), key=lambda r: r["latent_dim"])
     small, large = rows[0], rows[-1]
     if small["latent_dim"] == large["latent_dim"]:
         raise OrbisError(f"{_where(evals, 'compression')}: the rows must differ in latent_dim")
     if NA in (small["fvd_slope"], large["fvd_slope"]):
-        return UNMEASURED, "the compression stage reports a null FVD-slope"
+        return UNMEASURED, "a compression row has a null FVD-slope"
     ok = small["fvd_slope"] < large["fvd_slope"]
     text = (
         f"FVD-slope with {small['latent_dim']}-d latents {_fmt(small['fvd_slope'])}, "
@@ -595,8 +588,9 @@ def write_full_report(
 ) -> list[Path]:
     """Every table, the ablations and the JSON-driven figures, with a summary covering all of them.
 
-    compression.json is optional: without it compression_ablation.csv is not
-    written (a stale one is removed) and the summary marks claim 3 not measured.
+    ``evals["compression"]`` (from :func:`compression_from_evals`) is optional: without it
+    compression_ablation.csv is not written (a stale one is removed) and the summary marks
+    claim 3 not measured.
     Everything is checked before the first file is written.
     """
     out_dir = Path(out_dir)

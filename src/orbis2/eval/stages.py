@@ -64,16 +64,17 @@ from orbis2.models.i3d import load_i3d
 from orbis2.models.stdit import load_predictor
 from orbis2.models.teachers import build_teacher
 from orbis2.models.tokenizer import load_tokenizer
+from orbis2.registry import layout_path, registry
 from orbis2.rollout import rollout_schedule, steering_sequences
 from orbis2.tasks.predictors import STAGES
 from orbis2.tasks.tokenizers import TEACHER_ASSETS, asset_path
 from orbis2.tracking import StageRun
 
 LATENTS = LATENT_SETS["compressed"].root
-SHARDS = Path("data/shards")
-EVAL = Path("reports/eval")
+SHARDS = layout_path("shards")
+EVAL = layout_path("eval")
 # Real-data I3D statistics, keyed by the shards' hashes; outside every stage's outputs so they survive re-runs.
-STATS_CACHE = Path("data/eval_cache")
+STATS_CACHE = layout_path("eval_cache")
 # Times (s) of the frames shown in the qualitative rollout grid and the steering strip.
 GRID_TIMES = (0.5, 4.0, 8.0, 12.0, 16.0)
 
@@ -301,7 +302,7 @@ def run_steering(cfg: PipelineConfig, run: StageRun) -> str:
     system = load_system("hierarchical", dev, top_override="action", inference=inference_settings(cfg))
     steer_meta = system.top.meta.get("steering")
     if steer_meta is None:
-        raise OrbisError("data/predictors/action/predictor.pt is not steered; re-run the `action` stage")
+        raise OrbisError(f"{predictor_file('action')} is not steered; re-run the `action` stage")
     cache = open_cache(LATENTS)
     steps = rollout_steps(data, ev.steering_seconds)
     split = ev.steering_split
@@ -490,7 +491,6 @@ def run_speed(cfg: PipelineConfig, run: StageRun) -> str:
 # --------------------------------------------------------------------------- linear probes
 
 # Probe targets beyond the predictors: the abstract tokenizers' latents and the frozen teacher.
-REPRESENTATIONS = ("abstract_tokenizer", "abstract_tokenizer_full", "teacher")
 # The main model's predictors are probed at ``block_main`` (the paper's 4th from the end), ablations at
 # ``block_ablation``. Per-block curves (paper Fig. 5: diffusion forcing vs teacher forcing at every block)
 # for the DF-only and TF-only predictors; both are ablation targets, so the main report does not wait for them.
@@ -498,13 +498,9 @@ MAIN_PROBES = ("abstract_tf", "detail")
 PER_BLOCK = ("abstract_df", "abstract_tf_only")
 
 
-# Predictors not probed: the steered fine-tune, and the distilled detail predictor (a faster sampler of
-# ``detail``'s distribution, not another representation).
-NOT_PROBED = ("action", "detail_distill")
-
-
 def probe_targets() -> list[str]:
-    return [*REPRESENTATIONS, *(s for s in STAGES if s not in NOT_PROBED)]
+    """Representations and predictors that are linearly probed (registry.yaml)."""
+    return registry().probe_targets
 
 
 def probe_sets(cfg: PipelineConfig) -> list[tuple[str, list, list]]:
@@ -555,12 +551,13 @@ def run_probe_stage(target: str, cfg: PipelineConfig, run: StageRun) -> str:
     probe_cfg = ProbeConfig(**{name: getattr(ps, name) for name in shared}, device=str(dev))
     sets = probe_sets(cfg)
     record: dict[str, Any] = {"target": target, "block": None}
-    if target in ("abstract_tokenizer", "abstract_tokenizer_full"):
-        latents = "full" if target.endswith("_full") else "compressed"
+    representation = registry().representations.get(target)
+    if representation is not None and not representation.teacher:
+        latents = representation.latents
         record["label"] = f"Abstract tokenizer ({latents})"
         tokenizer = load_tokenizer(LATENT_SETS[latents].tokenizers["abstract"], dev)
         result = probe_all(tokenizer_features(tokenizer), sets, probe_cfg)
-    elif target == "teacher":
+    elif representation is not None:
         tc = cfg.tokenizer_abstract
         teacher = build_teacher(tc.teacher, asset_path(Path(cfg.assets.dir), TEACHER_ASSETS[tc.teacher]),
                                 tc.teacher_layer).to(dev)
@@ -612,10 +609,10 @@ def run_report(scope: str, cfg: PipelineConfig, run: StageRun) -> str:
     evals = load_eval(EVAL)
     setup, rates = report_setup(cfg), {"detail_hz": cfg.data.detail_hz, "abstract_hz": cfg.data.abstract_hz}
     if scope == "main":
-        written = write_main_report(evals, Path("reports"), setup, **rates)
+        written = write_main_report(evals, layout_path("reports"), setup, **rates)
     else:
         evals["compression"] = compression_from_evals(evals)
-        with atomic_dir(Path("reports/all")) as tmp:
+        with atomic_dir(layout_path("report_all")) as tmp:
             write_full_report(evals, tmp, setup, **rates)
             shutil.copy2(EVAL / "steering_strip.png", tmp / "figures" / "steering_strip.png")
             grids = [(n, np.load(EVAL / "media" / n / "grid.npz")) for n in SYSTEMS
@@ -624,7 +621,7 @@ def run_report(scope: str, cfg: PipelineConfig, run: StageRun) -> str:
                 times = min((g["times"] for _, g in grids), key=len)
                 save_rollout_grid([g["frames"][:len(times)] for _, g in grids], [SYSTEMS[n].label for n, _ in grids],
                                   list(times), tmp / "figures" / "rollout_grid.png")
-        written = sorted(p for p in Path("reports/all").rglob("*") if p.is_file())
+        written = sorted(p for p in layout_path("report_all").rglob("*") if p.is_file())
     for path in written:
         run.log_artifact(path, None if scope == "main" else "all")
     return f"{len(written)} files: " + ", ".join(p.name for p in written)

@@ -37,44 +37,19 @@ from orbis2.errors import OrbisError
 from orbis2.latents import LATENT_SETS, LatentCache
 from orbis2.models.stdit import PredictorFile, load_predictor
 from orbis2.models.tokenizer import TokenizerFile, load_tokenizer
+from orbis2.registry import System, layout_path, registry
 from orbis2.rollout import ScheduleStep, cascaded_rollout, first_context_end, flat_rollout, rollout_schedule
 
-PREDICTORS = Path("data/predictors")
-
-
-@dataclass(frozen=True)
-class System:
-    """Names the predictor stages of one evaluated system."""
-
-    label: str
-    bottom: str
-    top: str | None = None
-    latents: str = "compressed"  # the LATENT_SETS entry its predictors were trained on
-
-    @property
-    def stages(self) -> list[str]:
-        return [s for s in (self.top, self.bottom) if s is not None]
-
-
-SYSTEMS = {
-    "flat_detail": System("Flat detail-level (10 Hz)", "flat_detail"),
-    "flat_abstract": System("Flat abstract-level (10 Hz)", "flat_abstract"),
-    "hierarchical": System("Hierarchical (ours)", "detail", "abstract_tf"),
-    "top_detail": System("Top detail 2 Hz -> bottom detail 10 Hz", "detail_on_detail", "top_detail"),
-    "top_abstract_10hz": System("Top abstract 10 Hz -> bottom detail 10 Hz", "detail", "flat_abstract"),
-    "flat_abstract_full": System("Flat abstract-level (10 Hz), uncompressed latents", "flat_abstract_full",
-                                 latents="full"),
-}
-MAIN_SYSTEMS = ("flat_detail", "flat_abstract", "hierarchical")
-# Systems timed by the speed stage only: the hierarchy with the few-step (distilled) detail predictor,
-# sampled with the NFE its predictor file records.
-SPEED_SYSTEMS = {
-    "hierarchical_distilled": System("Hierarchical, few-step detail (distilled)", "detail_distill", "abstract_tf"),
-}
+# The systems and the main table's rows: registry.yaml (``systems``, ``main_table``).
+SYSTEMS: dict[str, System] = registry().systems
+MAIN_SYSTEMS = tuple(registry().main_table)
+# Systems timed by the speed stage only (``speed_systems``): the hierarchy with the few-step (distilled)
+# detail predictor, sampled with the NFE its predictor file records.
+SPEED_SYSTEMS: dict[str, System] = registry().speed_systems
 
 
 def predictor_file(stage: str) -> Path:
-    return PREDICTORS / stage / "predictor.pt"
+    return layout_path("predictor", stage) / "predictor.pt"
 
 
 @dataclass

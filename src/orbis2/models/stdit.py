@@ -620,13 +620,13 @@ STDIT_PRESETS: dict[str, dict] = {
     },
     # Laptop run: 16x9 latents, 6 (abstract) or 10 (detail) frames, batch 8 on 2 CPU cores.
     "default": {
-        "hidden_size": 192,
+        "hidden_size": 128,
         "depth": 4,
         "num_heads": 4,
         "mlp_ratio": 4.0,
         "patch_size": 1,
         "max_frames": 16,
-        "cond_dim": 96,
+        "cond_dim": 64,
         "steering_features": 2,
         "steering_len": 16,
     },

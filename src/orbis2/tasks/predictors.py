@@ -1,6 +1,6 @@
 """Training the predictors of the hierarchy (paper Sec. 3.3-3.4) and of its ablations with the shared loop.
 
-One task class; what distinguishes the stages is their :class:`StageSpec` in ``STAGES``
+One task class; what distinguishes the stages is their spec in registry.yaml (``STAGES``)
 and their params.yaml section (same name):
 
 - ``abstract_df``: the abstract predictor F_H (causal, 6 frames at 2 Hz) pre-trained
@@ -42,7 +42,6 @@ because it is a pure function of the config.
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -59,60 +58,25 @@ from orbis2.config import (
     PredictorConfig,
     TeacherForcingConfig,
 )
-from orbis2.data.shards import window_indices, window_span
 from orbis2.errors import OrbisError
 from orbis2.flow import diffusion_forcing_loss, euler_sample, reflow_loss, teacher_forcing_loss
 from orbis2.io import sha256_file
 from orbis2.latents import LATENT_SETS, LatentCache, LatentWindowDataset, open_cache
 from orbis2.models.stdit import build_stdit, load_predictor, save_predictor
+from orbis2.registry import PredictorSpec, layout_path, registry
 from orbis2.stage import publish_training, training_dir
 from orbis2.tracking import StageRun
 from orbis2.train import DataSpec, load_weights, train
+from orbis2.windows import window_indices, window_span
 
 # Offset of the validation generator's seed from the training seed: a different stream, fixed across steps.
 VAL_SEED_OFFSET = 7919
 STEERING_FEATURES = ("speed", "yaw_rate")
 
 
-@dataclass(frozen=True)
-class StageSpec:
-    """What distinguishes the predictor stages.
-
-    ``rate`` picks the window: ``slow`` is the abstract_hz one (5 context frames,
-    1 predicted; causal, as the paper's top predictor), ``fast`` the detail_hz one
-    (5 + 5; bidirectional). ``condition`` names the latents of the slow subgoals a
-    bottom predictor is conditioned on (None: a flat or top predictor).
-    """
-
-    level: str  # "abstract" or "detail": which latents the predictor models
-    rate: str  # "slow" or "fast"
-    objective: str  # "diffusion_forcing", "teacher_forcing" or "reflow" (distillation from init_from)
-    condition: str | None = None
-    steering: bool = False
-    latents: str = "compressed"  # which LATENT_SETS entry it trains on
-
-    @property
-    def causal(self) -> bool:
-        return self.rate == "slow"
-
-    @property
-    def batch_key(self) -> str:
-        return window_key(self.level, self.rate)
-
-
-STAGES = {
-    "abstract_df": StageSpec("abstract", "slow", "diffusion_forcing"),
-    "abstract_tf": StageSpec("abstract", "slow", "teacher_forcing"),
-    "detail": StageSpec("detail", "fast", "teacher_forcing", condition="abstract"),
-    "action": StageSpec("abstract", "slow", "teacher_forcing", steering=True),
-    "abstract_tf_only": StageSpec("abstract", "slow", "teacher_forcing"),
-    "flat_detail": StageSpec("detail", "fast", "teacher_forcing"),
-    "flat_abstract": StageSpec("abstract", "fast", "teacher_forcing"),
-    "top_detail": StageSpec("detail", "slow", "teacher_forcing"),
-    "detail_on_detail": StageSpec("detail", "fast", "teacher_forcing", condition="detail"),
-    "flat_abstract_full": StageSpec("abstract", "fast", "teacher_forcing", latents="full"),
-    "detail_distill": StageSpec("detail", "fast", "reflow", condition="abstract"),
-}
+# What distinguishes the predictor stages: registry.yaml, ``predictors``.
+StageSpec = PredictorSpec
+STAGES: dict[str, StageSpec] = registry().predictors
 
 
 def window_key(level: str, rate: str) -> str:
@@ -129,7 +93,7 @@ def rate_geometry(data: DataConfig, rate: str) -> tuple[int, int, int]:
 
 
 def predictor_path(stage: str) -> Path:
-    return Path("data/predictors") / stage / "predictor.pt"
+    return layout_path("predictor", stage) / "predictor.pt"
 
 
 # --------------------------------------------------------------------------- conditioning
@@ -238,6 +202,7 @@ class PredictorTask:
             raise ValueError(f"unknown predictor stage {stage!r}; choose from {sorted(STAGES)}")
         self.stage, self.spec, self.cfg, self.data, self.cache = stage, STAGES[stage], cfg, data, cache
         self.init_state = init_state
+        self.batch_key = window_key(self.spec.level, self.spec.rate)
         self.train_set = LatentWindowDataset(cache, "train", data, cfg.anchor_stride)
         self.val_set = LatentWindowDataset(cache, "val", data, cfg.anchor_stride)
         self.frame_rate = float(rate_geometry(data, self.spec.rate)[0])
@@ -293,7 +258,7 @@ class PredictorTask:
     def objective(self, model: nn.Module, batch: dict[str, torch.Tensor], generator: torch.Generator,
                   augment: bool) -> tuple[torch.Tensor, dict[str, float]]:
         """The flow-matching loss of this stage; ``augment`` switches on context noise/drop and steering dropout."""
-        frames = batch[self.spec.batch_key]
+        frames = batch[self.batch_key]
         cond: dict[str, Any] = {"frame_rate": self.frame_rate}
         if self.spec.condition is not None:
             subgoals = batch[window_key(self.spec.condition, "slow")]
@@ -322,7 +287,7 @@ class PredictorTask:
         return loss, {**tf_metrics, **metrics}
 
     def loss(self, model: nn.Module, batch: dict[str, torch.Tensor], step: int) -> tuple[torch.Tensor, dict]:
-        device = batch[self.spec.batch_key].device
+        device = batch[self.batch_key].device
         return self.objective(model, batch, step_generator(self.cfg.train.seed, self.rank, step, device), True)
 
     def val_windows(self) -> list[dict[str, torch.Tensor]]:
@@ -362,7 +327,7 @@ class PredictorTask:
         generator = torch.Generator(device).manual_seed(self.cfg.train.seed + VAL_SEED_OFFSET)
         for batch in self.val_windows():
             batch = {k: v.to(device) for k, v in batch.items()}
-            frames = batch[self.spec.batch_key]
+            frames = batch[window_key(self.spec.level, self.spec.rate)]
             context, n_target = frames[:, :n_context], frames.shape[1] - n_context
             cond: dict[str, Any] = {"frame_rate": self.frame_rate}
             cond["cond_frames"], cond["cond_mask"] = detail_condition(batch[window_key(self.spec.condition, "slow")],
@@ -488,7 +453,7 @@ def run_stage(stage: str, cfg: PipelineConfig, run: StageRun) -> str:
         return "training rank done; rank 0 writes the outputs"
     run.log_metrics(metrics, step=int(metrics["steps"]))
     out = predictor_path(stage)
-    publish_training(work, out.parent, [out.name], Path("reports") / f"{stage}.json", metrics, run)
+    publish_training(work, out.parent, [out.name], layout_path("report", stage), metrics, run)
     few = (f"; {pc.student_nfe}-step MSE to the teacher's {pc.teacher_nfe}-step sample "
            f"{metrics['few_step_mse_student']:.4f} (teacher's own {metrics['few_step_mse_teacher']:.4f})"
            if "few_step_mse_student" in metrics else "")

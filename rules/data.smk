@@ -1,0 +1,82 @@
+# Raw episodes (the embedded town or your videos) -> shards; pretrained assets.
+
+from orbis2.data.importer import input_files
+
+SOURCE = section("data")["source"]
+
+
+rule all:
+    input:
+        "reports/main_table.csv",
+
+
+rule town:
+    threads: CPU["threads"]  # one process per core
+    resources: **resources_of(CPU)
+    input:
+        code_inputs("stages/town.py"),
+    output:
+        raw=directory(P("raw", "town")),
+        sheet="reports/town_contact_sheet.png",
+        preview="reports/town_preview.mp4",
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        town=section("town"),
+    log: log("town")
+    benchmark: bench("town")
+    shell:
+        "python stages/town.py --profile {params.profile}" + TEE
+
+
+rule import_videos:
+    name: "import"
+    threads: LIGHT["threads"]
+    resources: **resources_of(LIGHT)
+    input:
+        code_inputs("stages/import.py"),
+        *input_files(section("import")["videos"]),  # every video file, so a changed one re-imports
+    output:
+        raw=directory(P("raw", "import")),
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        **{"import": section("import")},
+    log: log("import")
+    benchmark: bench("import")
+    shell:
+        "python stages/import.py --profile {params.profile}" + TEE
+
+
+rule shards:
+    threads: CPU["threads"]
+    resources: **resources_of(CPU)
+    input:
+        code_inputs("stages/shards.py"),
+        P("raw", SOURCE),
+    output:
+        shards=directory(P("shards")),
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        shards=section("shards"),
+    log: log("shards")
+    benchmark: bench("shards")
+    shell:
+        "python stages/shards.py --profile {params.profile}" + TEE
+
+
+rule assets:
+    threads: LIGHT["threads"]
+    resources: **resources_of(LIGHT)
+    input:
+        code_inputs("stages/assets.py"),
+    output:
+        assets=directory(P("assets")),
+    params:
+        profile=PROFILE,
+        assets=section("assets"),
+    log: log("assets")
+    benchmark: bench("assets")
+    shell:
+        "python stages/assets.py --profile {params.profile}" + TEE

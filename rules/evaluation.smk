@@ -1,0 +1,139 @@
+# Evaluation: FVD of every system, linear probes of every probe target, the inverse-dynamics
+# instrument, steering, speed, conditioning diagnostics.
+
+from orbis2.eval.conditioning import MAIN_PREDICTORS as CONDITIONING_PREDICTORS
+
+MAIN_SYSTEMS = list(REG.main_table)
+
+for system_name, system in REG.systems.items():
+
+    rule:
+        name: f"eval_fvd_{system_name}"
+        threads: GPU["threads"]
+        resources: **resources_of(GPU)
+        input:
+            code_inputs("stages/eval_fvd.py"),
+            *latent_inputs(system.latents),
+            rules.shards.output.shards,
+            rules.assets.output.assets,
+            *[P("predictor", stage) for stage in system.stages],
+        output:
+            fvd=P("fvd", system_name),
+            media=directory(P("media", system_name)),
+        params:
+            profile=PROFILE,
+            data=section("data"),
+            assets=section("assets"),
+            evaluation=section("evaluation"),
+        log: log(f"eval_fvd_{system_name}")
+        benchmark: bench(f"eval_fvd_{system_name}")
+        shell:
+            "python stages/eval_fvd.py {rule} --profile {params.profile}" + TEE
+
+
+for target in REG.probe_targets:
+    representation = REG.representations.get(target)
+
+    rule:
+        name: f"eval_probe_{target}"
+        threads: LIGHT["threads"]  # a frozen network's features and a 1x1 conv; several run side by side
+        resources: **resources_of(LIGHT)
+        input:
+            code_inputs("stages/eval_probe.py"),
+            rules.shards.output.shards,
+            *latent_inputs(REG.target_latents(target))[1:],
+            *([rules.assets.output.assets] if representation is not None and representation.teacher else []),
+            *([P("predictor", target)] if representation is None else []),
+        output:
+            probe=P("probe", target),
+        params:
+            profile=PROFILE,
+            data=section("data"),
+            evaluation=section("evaluation"),
+        log: log(f"eval_probe_{target}")
+        benchmark: bench(f"eval_probe_{target}")
+        shell:
+            "python stages/eval_probe.py {rule} --profile {params.profile}" + TEE
+
+
+rule inverse_dynamics:
+    threads: GPU["threads"]  # trains a CNN on dense optical flow
+    resources: **resources_of(GPU)
+    input:
+        code_inputs("stages/inverse_dynamics.py"),
+        rules.shards.output.shards,
+        P("tokenizer", "detail"),
+    output:
+        model=directory(P("inverse_dynamics")),
+        report=P("report", "inverse_dynamics"),
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        inverse_dynamics=section("inverse_dynamics"),
+    log: log("inverse_dynamics")
+    benchmark: bench("inverse_dynamics")
+    shell:
+        "python stages/inverse_dynamics.py --profile {params.profile}" + TEE
+
+
+rule eval_steering:
+    threads: GPU["threads"]
+    resources: **resources_of(GPU)
+    input:
+        code_inputs("stages/eval_steering.py"),
+        *latent_inputs("compressed"),
+        rules.shards.output.shards,
+        P("predictor", "detail"),
+        P("predictor", "action"),
+        rules.inverse_dynamics.output.model,
+    output:
+        steering=P("eval") + "/steering.json",
+        strip=P("eval") + "/steering_strip.png",
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        town=section("town"),
+        evaluation=section("evaluation"),
+    log: log("eval_steering")
+    benchmark: bench("eval_steering")
+    shell:
+        "python stages/eval_steering.py --profile {params.profile}" + TEE
+
+
+rule eval_speed:
+    threads: GPU["threads"]  # timings need the machine to themselves
+    resources: **resources_of(GPU)
+    input:
+        code_inputs("stages/eval_speed.py"),
+        *latent_inputs("compressed"),
+        *sorted({P("predictor", s) for system in [*(REG.systems[n] for n in MAIN_SYSTEMS), *REG.speed_systems.values()]
+                 for s in system.stages}),
+    output:
+        speed=P("eval") + "/speed.json",
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        evaluation=section("evaluation"),
+    log: log("eval_speed")
+    benchmark: bench("eval_speed")
+    shell:
+        "python stages/eval_speed.py --profile {params.profile}" + TEE
+
+
+rule eval_conditioning:
+    threads: GPU["threads"]  # batched forward passes of every main predictor
+    resources: **resources_of(GPU)
+    input:
+        code_inputs("stages/eval_conditioning.py"),
+        *latent_inputs("compressed"),
+        *[P("predictor", stage) for stage in CONDITIONING_PREDICTORS],
+    output:
+        conditioning=P("eval") + "/conditioning.json",
+    params:
+        profile=PROFILE,
+        data=section("data"),
+        evaluation=section("evaluation"),
+    log: log("eval_conditioning")
+    benchmark: bench("eval_conditioning")
+    shell:
+        "python stages/eval_conditioning.py --profile {params.profile}" + TEE

@@ -1,0 +1,49 @@
+# The tokenizers (one rule per registry.yaml entry) and the latent caches they write.
+# Rules made in a loop pass per-rule values through {rule} and {params.*}: Snakemake
+# evaluates a shell command's expression when the job runs, after the loop has
+# moved on, so a loop variable in it would hold the last entry.
+
+for tokenizer, kind in REG.tokenizers.items():
+
+    rule:
+        name: f"tokenizer_{tokenizer}"
+        threads: TRAIN["threads"]
+        resources: **resources_of(TRAIN)
+        input:
+            code_inputs(f"stages/tokenizer_{kind}.py"),
+            rules.shards.output.shards,
+            rules.assets.output.assets,
+        output:
+            weights=directory(P("tokenizer", tokenizer)),
+            report=P("report", f"tokenizer_{tokenizer}"),
+        params:
+            profile=PROFILE,
+            script=f"stages/tokenizer_{kind}.py",  # a param: the command is formatted when it runs
+            data=section("data"),
+            **{f"tokenizer_{tokenizer}": section(f"tokenizer_{tokenizer}")},
+        log: log(f"tokenizer_{tokenizer}")
+        benchmark: bench(f"tokenizer_{tokenizer}")
+        shell:
+            "{config[train_launcher]} {params.script} {rule} --profile {params.profile}" + TEE
+
+
+for latent_set, entry in REG.latent_sets.items():
+
+    rule:
+        name: entry.stage
+        threads: GPU["threads"]
+        resources: **resources_of(GPU)
+        input:
+            code_inputs("stages/latents.py"),
+            rules.shards.output.shards,
+            *latent_inputs(latent_set)[1:],
+        output:
+            latents=directory(P("latents", entry.stage)),
+        params:
+            profile=PROFILE,
+            data=section("data"),
+            latents=section("latents"),
+        log: log(entry.stage)
+        benchmark: bench(entry.stage)
+        shell:
+            "python stages/latents.py {rule} --profile {params.profile}" + TEE

@@ -1,0 +1,193 @@
+"""The DAG's registry (``registry.yaml``): tokenizers, latent sets, predictors, systems, probe targets, main table.
+
+One declarative file that the Snakefile, the dvc.yaml generator, the config and
+the reports read, so that an ablation is one entry there plus one params.yaml
+section. It also holds the folder layout: library code takes its default paths
+from :func:`layout_path` instead of spelling ``data/...`` itself.
+
+The file is looked up in ``$ORBIS2_REGISTRY``, else ``./registry.yaml`` (the
+project root the DAG runs in), else beside the source tree (editable installs).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+
+import yaml
+
+from orbis2.errors import OrbisError
+
+LEVELS = ("abstract", "detail")
+RATES = ("slow", "fast")
+OBJECTIVES = ("diffusion_forcing", "teacher_forcing", "reflow")
+TOKENIZER_KINDS = ("detail", "abstract")
+
+
+class RegistryError(OrbisError):
+    """registry.yaml is missing, malformed or refers to an entry it does not define."""
+
+
+@dataclass(frozen=True)
+class PredictorSpec:
+    """What distinguishes the predictor stages (see ``registry.yaml``, ``predictors``)."""
+
+    level: str  # "abstract" or "detail": which latents the predictor models
+    rate: str  # "slow" (abstract_hz window, causal) or "fast" (detail_hz window, bidirectional)
+    objective: str  # "diffusion_forcing", "teacher_forcing" or "reflow" (distillation from init_from)
+    condition: str | None = None  # latents of the slow subgoals a bottom predictor is conditioned on
+    steering: bool = False
+    latents: str = "compressed"  # which latent set it trains on
+    probe: bool = True  # linearly probed (eval_probe_<name>)
+
+    @property
+    def causal(self) -> bool:
+        return self.rate == "slow"
+
+
+@dataclass(frozen=True)
+class System:
+    """Names the predictor stages of one evaluated system."""
+
+    label: str
+    bottom: str
+    top: str | None = None
+    latents: str = "compressed"  # the latent set its predictors were trained on
+
+    @property
+    def stages(self) -> list[str]:
+        return [s for s in (self.top, self.bottom) if s is not None]
+
+
+@dataclass(frozen=True)
+class LatentSetEntry:
+    """A latent cache (the DAG stage ``stage``) and the tokenizer of each level."""
+
+    stage: str
+    tokenizers: dict[str, str]  # level -> tokenizers entry
+    skip_splits: tuple[str, ...] = ()
+
+    @property
+    def root(self) -> Path:
+        return layout_path("latents", self.stage)
+
+    def tokenizer_file(self, level: str) -> Path:
+        return layout_path("tokenizer", self.tokenizers[level]) / "tokenizer.pt"
+
+
+@dataclass(frozen=True)
+class Representation:
+    """A probe target that is not a predictor: a tokenizer encoder, or the teacher."""
+
+    latents: str
+    teacher: bool = False
+
+
+@dataclass(frozen=True)
+class Registry:
+    layout: dict[str, str]
+    tokenizers: dict[str, str]  # name -> kind
+    latent_sets: dict[str, LatentSetEntry]
+    predictors: dict[str, PredictorSpec]
+    systems: dict[str, System]
+    speed_systems: dict[str, System]  # timed by eval_speed only
+    representations: dict[str, Representation]
+    main_table: dict[str, str] = field(default_factory=dict)  # system -> probed predictor, row order
+
+    @property
+    def probe_targets(self) -> list[str]:
+        return [*self.representations, *(n for n, s in self.predictors.items() if s.probe)]
+
+    def target_latents(self, target: str) -> str:
+        """The latent set whose tokenizers a probe target is read with."""
+        if target in self.representations:
+            return self.representations[target].latents
+        return self.predictors[target].latents
+
+
+def registry_file() -> Path:
+    if os.environ.get("ORBIS2_REGISTRY"):
+        return Path(os.environ["ORBIS2_REGISTRY"])
+    here = Path("registry.yaml")
+    return here if here.is_file() else Path(__file__).resolve().parents[2] / "registry.yaml"
+
+
+def _entries(raw: dict, key: str, cls: type, where: Path) -> dict:
+    """``cls`` per entry; strings interned, so a name pickles (in a checkpoint's meta) as the literal would."""
+    out = {}
+    for name, value in (raw.get(key) or {}).items():
+        try:
+            out[name] = cls(**{k: sys.intern(v) if isinstance(v, str) else v for k, v in value.items()})
+        except TypeError as err:
+            raise RegistryError(f"{where}: {key}.{name}: {err}; see the comment above `{key}`") from err
+    return out
+
+
+def parse_registry(raw: dict, where: Path = Path("registry.yaml")) -> Registry:
+    """Build and cross-check a :class:`Registry` from the file's mapping."""
+    if not isinstance(raw, dict):
+        raise RegistryError(f"{where}: the top level must be a mapping")
+    sets = {n: LatentSetEntry(v["stage"], dict(v["tokenizers"]), tuple(v.get("skip_splits", ())))
+            for n, v in (raw.get("latent_sets") or {}).items()}
+    reg = Registry(layout=dict(raw.get("layout") or {}),
+                   tokenizers={n: v["kind"] for n, v in (raw.get("tokenizers") or {}).items()},
+                   latent_sets=sets,
+                   predictors=_entries(raw, "predictors", PredictorSpec, where),
+                   systems=_entries(raw, "systems", System, where),
+                   speed_systems=_entries(raw, "speed_systems", System, where),
+                   representations=_entries(raw, "representations", Representation, where),
+                   main_table=dict(raw.get("main_table") or {}))
+    problems = [f"tokenizers.{n}.kind = {k!r} must be one of {TOKENIZER_KINDS}"
+                for n, k in reg.tokenizers.items() if k not in TOKENIZER_KINDS]
+    for name, s in reg.latent_sets.items():
+        problems += [f"latent_sets.{name}.tokenizers.{level} = {t!r} is not under `tokenizers`"
+                     for level, t in s.tokenizers.items() if t not in reg.tokenizers]
+    for name, p in reg.predictors.items():
+        for key, value, allowed in (("level", p.level, LEVELS), ("rate", p.rate, RATES),
+                                    ("objective", p.objective, OBJECTIVES),
+                                    ("condition", p.condition, (None, *LEVELS)),
+                                    ("latents", p.latents, tuple(reg.latent_sets))):
+            if value not in allowed:
+                problems.append(f"predictors.{name}.{key} = {value!r} must be one of {list(allowed)}")
+    for name, s in [*reg.systems.items(), *reg.speed_systems.items()]:
+        problems += [f"systems.{name}: predictor {p!r} is not under `predictors`"
+                     for p in s.stages if p not in reg.predictors]
+        if s.latents not in reg.latent_sets:
+            problems.append(f"systems.{name}.latents = {s.latents!r} is not under `latent_sets`")
+    problems += [f"representations.{n}.latents = {r.latents!r} is not under `latent_sets`"
+                 for n, r in reg.representations.items() if r.latents not in reg.latent_sets]
+    for system, target in reg.main_table.items():
+        if system not in reg.systems or target not in reg.probe_targets:
+            problems.append(f"main_table.{system}: {target!r} must name a system and a probe target")
+    if problems:
+        raise RegistryError(f"{where}: " + "; ".join(problems))
+    return reg
+
+
+@lru_cache(maxsize=None)
+def _load(file: str) -> Registry:
+    where = Path(file)
+    if not where.is_file():
+        raise RegistryError(f"{where}: not found; run from the project root or set ORBIS2_REGISTRY")
+    try:
+        raw = yaml.safe_load(where.read_text())
+    except yaml.YAMLError as err:
+        raise RegistryError(f"{where}: not valid YAML: {err}") from err
+    return parse_registry(raw, where)
+
+
+def registry() -> Registry:
+    """The registry in use (read once per file)."""
+    return _load(str(registry_file()))
+
+
+def layout_path(kind: str, name: str | None = None) -> Path:
+    """Where an artifact lives, from ``layout`` (``layout_path("predictor", "detail")`` -> data/predictors/detail)."""
+    layout = registry().layout
+    if kind not in layout:
+        raise RegistryError(f"{registry_file()}: layout has no {kind!r}")
+    template = layout[kind]
+    return Path(template.format(name=name) if "{name}" in template else template)

@@ -1,0 +1,72 @@
+"""Lower layers of the library never import higher ones (imports anywhere in a module count, lazy ones too).
+
+The layers, lowest first; a module may import its own layer and those below.
+Stage scripts (stages/) and the DAG sit above them all.
+"""
+
+import ast
+from pathlib import Path
+
+from conftest import ROOT
+
+SRC = ROOT / "src"
+LAYERS = (
+    ("orbis2.errors", "orbis2.io", "orbis2.flow", "orbis2.losses", "orbis2.kinematics", "orbis2.accel", "orbis2.models"),
+    ("orbis2.registry", "orbis2.config"),  # config checks model presets; both read registry.yaml
+    ("orbis2.windows", "orbis2.data", "orbis2.tracking"),
+    ("orbis2.latents", "orbis2.rollout", "orbis2.train", "orbis2.assets", "orbis2.stage"),
+    ("orbis2.tasks", "orbis2.eval"),
+    ("orbis2.cli", "orbis2.dag"),
+)
+
+
+def layer(module: str) -> int:
+    for level, prefixes in enumerate(LAYERS):
+        if any(module == p or module.startswith(p + ".") for p in prefixes):
+            return level
+    raise AssertionError(f"{module} is in no layer: add it to LAYERS in {Path(__file__).name}")
+
+
+def module_name(file: Path, src: Path = SRC) -> str:
+    parts = file.relative_to(src).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def imports(file: Path) -> set[str]:
+    found = set()
+    for node in ast.walk(ast.parse(file.read_text())):
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.add(node.module)
+    return {name for name in found if name.startswith("orbis2.")}
+
+
+def violations(src: Path = SRC) -> list[str]:
+    out = []
+    for file in sorted(src.rglob("*.py")):
+        name = module_name(file, src)
+        if name == "orbis2":
+            continue
+        for target in sorted(imports(file)):
+            if layer(target) > layer(name):
+                out.append(f"{name} (layer {layer(name)}) imports {target} (layer {layer(target)})")
+    return out
+
+
+def test_lower_layers_never_import_higher_ones():
+    assert violations() == []
+
+
+def test_every_module_has_a_layer():
+    for file in SRC.rglob("*.py"):
+        name = module_name(file)
+        if name != "orbis2":
+            layer(name)
+
+
+def test_a_violation_is_found(tmp_path):
+    (tmp_path / "orbis2" / "models").mkdir(parents=True)
+    (tmp_path / "orbis2" / "models" / "probe.py").write_text("def f():\n    from orbis2.eval.report import load_eval\n")
+    (tmp_path / "orbis2" / "eval.py").write_text("from orbis2.models import probe\n")  # downwards: fine
+    assert violations(tmp_path) == ["orbis2.models.probe (layer 0) imports orbis2.eval.report (layer 4)"]
