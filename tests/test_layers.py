@@ -11,7 +11,8 @@ from conftest import ROOT
 
 SRC = ROOT / "src"
 LAYERS = (
-    ("orbis2.errors", "orbis2.io", "orbis2.flow", "orbis2.losses", "orbis2.kinematics", "orbis2.accel", "orbis2.models"),
+    ("orbis2.errors", "orbis2.io", "orbis2.flow", "orbis2.losses", "orbis2.kinematics", "orbis2.accel",
+     "orbis2.models"),
     ("orbis2.registry", "orbis2.config"),  # config checks model presets; both read registry.yaml
     ("orbis2.windows", "orbis2.data", "orbis2.tracking"),
     ("orbis2.latents", "orbis2.rollout", "orbis2.train", "orbis2.assets", "orbis2.stage"),

@@ -186,8 +186,8 @@ def test_import_source_feeds_the_shards(tmp_path, make_video):
     """With data.all.source = import, both tools build the shards from your videos, not the town."""
     root = project_copy(tmp_path / "project")
     videos = root / "data" / "videos"
-    for i in range(2):
-        make_video(f"drive{i}.mp4", 80, fps=20, folder=videos)  # 4 s -> one 3 s smoke clip each
+    for split, frames in (("train", 80), ("val", 140)):  # the import needs both splits
+        make_video(f"drive_{split}.mp4", frames, fps=20, folder=videos / split)  # one 3 s / 6 s smoke clip each
     params = yaml.safe_load((root / "params.yaml").read_text())
     params["data"]["all"]["source"] = "import"
     (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
@@ -195,7 +195,8 @@ def test_import_source_feeds_the_shards(tmp_path, make_video):
     out = run(["dvc", "repro", "shards"], root)
     assert "Running stage 'pipelines/import/dvc.yaml:import'" in out and "stage 'town'" not in out
     manifest = load_manifest(root / "data/shards")
-    assert manifest["source"] == "import" and manifest["splits"]["train"]["samples"] == 2
+    assert manifest["source"] == "import" and manifest["splits"]["train"]["samples"] == 1
+    assert manifest["splits"]["val"]["samples"] == 1
 
     shutil.rmtree(root / "data/shards")
     out = run(["snakemake", "--cores", "2", "data/shards"], root)

@@ -12,7 +12,7 @@ from orbis2.stage import code_version, training_dir
 def with_train(cfg, section, **changes):
     sec = cfg.section(section)
     changed = dataclasses.replace(sec, train=dataclasses.replace(sec.train, **changes))
-    return dataclasses.replace(cfg, **{section: changed})
+    return cfg.with_section(section, changed)
 
 
 def test_key_ignores_bookkeeping_but_not_the_trajectory(smoke_cfg, tmp_path):

@@ -46,7 +46,7 @@ from orbis2.tasks.predictors import (
     steering_features,
     window_key,
 )
-from orbis2.train import TrainConfig, train
+from orbis2.train import train
 
 
 def other_clip_order(keys: list[str]) -> np.ndarray:

@@ -680,7 +680,8 @@ FIXED_SECTIONS: dict[str, type] = {
 
 
 def predictor_config_type(spec: Any) -> type:
-    """The typed section of a registry predictor: steering, distillation, diffusion forcing, conditioned, or teacher forcing."""
+    """The typed section of a registry predictor: steering, distillation, diffusion forcing, conditioned,
+    or teacher forcing."""
     if spec.objective == "reflow":
         return DistillConfig
     if spec.steering:

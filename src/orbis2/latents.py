@@ -195,7 +195,8 @@ def build_latent_cache(shards_root: str | Path, out_root: str | Path, detail: To
         "dtype": "float16",
         "shards": {"root": str(shards_root), "manifest_sha256": sha256_file(shards_root / MANIFEST)},
         "data": {key: manifest[key] for key in ("source", "fps", "width", "height")},
-        "tokenizers": {kind: {"checksum": tokenizers[kind].checksum, "file": files[kind], "build": tokenizers[kind].build, "shape": list(shapes[kind])}
+        "tokenizers": {kind: {"checksum": tokenizers[kind].checksum, "file": files[kind],
+                              "build": tokenizers[kind].build, "shape": list(shapes[kind])}
                        for kind in KINDS},
         "splits": {},
     }

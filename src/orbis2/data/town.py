@@ -1876,7 +1876,8 @@ def _plan_route(town: Town, rng: np.random.Generator, length: float, ds: float =
                 weights.append((1.0 - st.straight_weight) * share)
         choice = options[rng.choice(len(options), p=np.asarray(weights) / np.sum(weights))]
         nodes.append({"stop_xy": lane_point(axis, road, d, node_s - d * (hw + 6.3)), "ij": ij,
-                      "lane": (axis, road, d), "stop": rng.random() < st.stop_prob, "wait": rng.uniform(*st.stop_wait_s),
+                      "lane": (axis, road, d), "stop": rng.random() < st.stop_prob,
+                      "wait": rng.uniform(*st.stop_wait_s),
                       "cruise": rng.uniform(*st.cruise_ms), "first": count})
         if choice == 0:
             end = lane_point(axis, road, d, node_s + d * (hw + 1.0))

@@ -405,7 +405,8 @@ def predictor_meta(stage: str, cfg: PipelineConfig, cache: LatentCache, metrics:
     meta = {
         "stage": stage, "level": spec.level, "rate": spec.rate, "objective": spec.objective, "init_from": pc.init_from,
         "condition": spec.condition,
-        "tokenizers": {kind: {"checksum": cache.meta["tokenizers"][kind]["checksum"]} for kind in ("detail", "abstract")},
+        "tokenizers": {kind: {"checksum": cache.meta["tokenizers"][kind]["checksum"]}
+                       for kind in ("detail", "abstract")},
         "frame_rate": rate,
         "window": {"window": window, "context": context},
         "rates": {"fps": d.fps, "detail_hz": d.detail_hz, "abstract_hz": d.abstract_hz},
