@@ -29,13 +29,14 @@ import dataclasses
 import json
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from orbis2.config import load_config
-from orbis2.flow import euler_sample
+from orbis2.eval.conditioning import flow_loss, one_step_mean, per_window_mse
 from orbis2.latents import LATENT_SETS, open_cache
 from orbis2.tasks.predictors import (
     STAGES,
@@ -97,33 +98,21 @@ class CurveTask(PredictorTask):
             variants["negated_yaw"] = {"steering": negated, "steering_drop": unknown}
         out = {"samples": float(step * self.cfg.train.batch_size)}
         repeat = context[:, -1:].expand_as(target)
-        out["mse_repeat"] = _mse(repeat, target)
-        out["mse_zero"] = _mse(torch.zeros_like(target), target)
+        out["mse_repeat"] = _np(per_window_mse(repeat, target))
+        out["mse_zero"] = _np(per_window_mse(torch.zeros_like(target), target))
+        g = torch.Generator(device).manual_seed(1234)  # one noise draw and tau per window, shared by all variants
+        eps = torch.randn(target.shape, generator=g, device=device)
+        tau = torch.rand(len(target), generator=g, device=device)
         for name, cond in variants.items():
-            g = torch.Generator(device).manual_seed(1234)
-            mean = euler_sample(model, context, target.shape[1], 1, g, frame_rate=self.frame_rate, **cond)
-            out[f"mse_{name}"] = _mse(mean, target)
-            g = torch.Generator(device).manual_seed(4321)
-            out[f"loss_{name}"] = _flow_loss(model, context, target, g, self.frame_rate, cond)
+            model_fn = partial(model, frame_rate=self.frame_rate)
+            out[f"mse_{name}"] = _np(per_window_mse(one_step_mean(model_fn, context, eps, **cond), target))
+            out[f"loss_{name}"] = _np(flow_loss(model_fn, context, target, eps, tau, **cond))
         return {k: float(np.mean(v)) if isinstance(v, np.ndarray) else v for k, v in out.items()} | {
             f"clips/{k}": _per_clip(v, self.clip_of) for k, v in out.items() if isinstance(v, np.ndarray)}
 
 
-def _mse(a: torch.Tensor, b: torch.Tensor) -> np.ndarray:
-    """Per-window MSE."""
-    return (a - b).float().square().flatten(1).mean(1).cpu().numpy()
-
-
-def _flow_loss(model, context, target, generator, frame_rate, cond) -> np.ndarray:
-    """Per-window teacher-forcing flow loss with a fixed tau and noise draw per window."""
-    b = len(target)
-    eps = torch.randn(target.shape, generator=generator, device=generator.device).to(target)
-    tau = torch.rand((b, 1), generator=generator, device=generator.device).to(target).expand(b, target.shape[1])
-    t = tau[..., None, None, None]
-    x = torch.cat([context, (1 - t) * target + t * eps], 1)
-    full_tau = torch.cat([torch.zeros(b, context.shape[1], device=target.device), tau], 1)
-    v = model(x, full_tau, frame_rate=frame_rate, **cond)[:, context.shape[1]:]
-    return (v - (eps - target)).float().square().flatten(1).mean(1).cpu().numpy()
+def _np(values: torch.Tensor) -> np.ndarray:
+    return values.cpu().numpy()
 
 
 def _per_clip(values: np.ndarray, clips: list[str]) -> dict[str, float]:
