@@ -593,10 +593,10 @@ TOKENIZER_PRESETS: dict[str, dict] = {
         "abstract_decoder_res_blocks": 1,
         "disc_channels": 16,
     },
-    # Laptop run: 256x144, patch 16 -> 9x16 grid, thousands of steps on 2 CPU cores.
+    # Laptop run: 256x160, patch 16 -> 10x16 grid, hundreds of steps on 2 CPU cores.
     "default": {
         **_COMMON,
-        "image_size": (144, 256),
+        "image_size": (160, 256),
         "patch_size": 16,
         "embed_dim": 192,
         "depth": 4,
