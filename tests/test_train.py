@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import pandas as pd
 import pytest
 import torch
 import torch.nn.functional as F
@@ -207,6 +208,12 @@ def test_resume_after_kill_is_bit_identical(tmp_path):
     assert task.evaluated == [(15, False, False), (20, False, False), (25, False, False), (30, False, False)]
     assert [step for step, metrics in result.history if "val_loss" in metrics] == [15, 20, 25, 30]
     assert_states_equal(saved_state(tmp_path / "straight"), saved_state(tmp_path / "killed"))
+    # The curves carry every logged row once: those before the kill come back from the checkpoint.
+    straight, killed = (pd.read_csv(tmp_path / run / "curves" / "train.csv") for run in ("straight", "killed"))
+    assert list(killed["step"]) == list(range(cfg.log_every, 31, cfg.log_every))
+    spans_resume = killed["step"] == 15  # averages only step 15, the first after the resume at 14
+    pd.testing.assert_frame_equal(straight[~spans_resume], killed[~spans_resume])
+    assert list(pd.read_csv(tmp_path / "killed" / "curves" / "eval.csv")["step"]) == [15, 20, 25, 30]
     # A second re-run finds the work done and leaves the weights alone.
     again = train(Regression(noise=0.1), cfg, tmp_path / "killed")
     assert again.start_step == again.step == 30

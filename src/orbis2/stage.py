@@ -110,13 +110,14 @@ def code_version(root: Path = Path(orbis2.__file__).parent) -> str:
 
 def publish_training(run_dir: Path, out: Path, files: list[str], report: Path, metrics: dict[str, float],
                      run: StageRun) -> None:
-    """Copy a finished training run's ``files`` and ``samples/`` into the stage output, atomically;
-    write the metrics report, log the samples and the model (weights + config)."""
+    """Copy a finished training run's ``files``, ``samples/`` and ``curves/`` into the stage output,
+    atomically; write the metrics report, log the samples and the model (weights + config)."""
     with atomic_dir(out) as tmp:
         for name in files:
             shutil.copy2(run_dir / name, tmp / name)
-        if (run_dir / "samples").is_dir():
-            shutil.copytree(run_dir / "samples", tmp / "samples")
+        for folder in ("samples", "curves"):
+            if (run_dir / folder).is_dir():
+                shutil.copytree(run_dir / folder, tmp / folder)
     for png in sorted((out / "samples").glob("*.png")):
         run.log_artifact(png, "samples")
     write_json(report, metrics)

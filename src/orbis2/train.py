@@ -10,7 +10,10 @@ behind a checksum (:func:`load_checkpoint`); a re-run resumes from it,
 bit-identically on CPU. The schedule is a pure function
 of the step (:func:`lr_at`), so the step is the whole scheduler state.
 ``out_dir/model.pt`` holds ``{"model": EMA weights if EMA is on else raw, "raw",
-"ema", "step", "config"}``; read it with :func:`load_weights`. Under ``torchrun``
+"ema", "step", "config"}``; read it with :func:`load_weights`. Beside it,
+``out_dir/curves/train.csv`` and ``curves/eval.csv`` hold every logged row (``step`` +
+metrics; kept through resumes, where the first row after a resume averages only the steps
+since it), the files ``dvc plots`` draws. Under ``torchrun``
 every rank calls :func:`train`; rank 0 alone logs, evaluates and writes files.
 """
 
@@ -35,6 +38,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
 
 import numpy as np
+import pandas as pd
 import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
@@ -144,6 +148,8 @@ def unwrap(model: nn.Module) -> nn.Module:
 
 
 CHECKPOINT_MAGIC = b"ORBIS2-CHECKPOINT-1 sha256="
+# The logged rows, by source: the running training metrics and the task's evaluations.
+CURVES = ("train", "eval")
 
 
 def load_checkpoint(path: Path) -> dict[str, Any]:
@@ -282,6 +288,7 @@ class _Run:
         self.step = self.start_step = self.position = 0
         self.metrics: dict[str, float] = {}
         self.history: list[tuple[int, dict[str, float]]] = []
+        self.curves: dict[str, list[dict[str, float]]] = {name: [] for name in CURVES}
         seed = rank_seed(cfg.seed, env.rank)  # a resume replaces these streams with the saved ones
         random.seed(seed)
         np.random.seed(seed)
@@ -349,13 +356,13 @@ class _Run:
             if bad:
                 raise OrbisError(f"training diverged at step {step} ({bad}) in {self.out_dir}: lower lr or set "
                                  f"grad_clip, then delete {self.checkpoint_path} and run again")
-            self.log(self.metrics)
+            self.log(self.metrics, "train")
             bar.set_postfix_str(f"loss {self.metrics.get('loss', math.nan):.4g}", refresh=False)
         if cfg.eval_every and (step % cfg.eval_every == 0 or last) and hasattr(self.task, "evaluate"):
             if self.env.rank == 0:
                 model = self.ema if self.ema is not None else self.raw
                 with _eval_mode(model), _preserved_rng(self.env.device):
-                    self.log(dict(self.task.evaluate(model, step)))
+                    self.log(dict(self.task.evaluate(model, step)), "eval")
         if step % cfg.checkpoint_every == 0 and not last:
             self.save_checkpoint()
 
@@ -364,8 +371,9 @@ class _Run:
             return torch.autocast("cuda", dtype=torch.bfloat16)
         return contextlib.nullcontext()
 
-    def log(self, metrics: dict[str, float]) -> None:
+    def log(self, metrics: dict[str, float], curve: str) -> None:
         self.history.append((self.step, metrics))
+        self.curves[curve].append({"step": self.step, **metrics})
         if self.env.rank == 0 and self.logger is not None:
             self.logger.log_metrics(metrics, self.step)
 
@@ -394,6 +402,7 @@ class _Run:
             raise ResumeError(f"{path} does not fit this model ({err}); delete it to start this stage over") from err
         self.step = self.start_step = saved["step"]
         self.position = saved["data_position"]
+        self.curves = saved["curves"]
         _set_rng_state(saved["rng"][self.env.rank], self.env.device)
 
     def save_checkpoint(self) -> None:
@@ -404,6 +413,7 @@ class _Run:
                 "world_size": self.env.world_size, "step": self.step, "data_position": self.position,
                 "model": self.raw.state_dict(), "ema": None if self.ema is None else self.ema.state_dict(),
                 "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()}, "rng": rng,
+                "curves": self.curves,
             }, self.checkpoint_path)
         _barrier(self.env)
 
@@ -411,6 +421,10 @@ class _Run:
         final = self.ema if self.ema is not None else self.raw
         _atomic_save({"model": final.state_dict(), "raw": self.raw.state_dict(), "ema": self.ema is not None,
                       "step": self.step, "config": dataclasses.asdict(self.cfg)}, self.out_dir / "model.pt")
+        for name, rows in self.curves.items():
+            with atomic_file(self.out_dir / "curves" / f"{name}.csv") as tmp:
+                pd.DataFrame(rows, columns=["step", *dict.fromkeys(k for row in rows for k in row if k != "step")]
+                             ).to_csv(tmp, index=False, lineterminator="\n")
 
     def summary(self, seconds: float) -> str:
         ran, weights = self.step - self.start_step, self.out_dir / "model.pt"

@@ -65,6 +65,7 @@ HIERARCHY_CSV = "hierarchy_ablation.csv"
 TRAINING_CSV = "training_ablation.csv"
 COMPRESSION_CSV = "compression_ablation.csv"
 CONDITIONING_CSV = "conditioning.csv"
+CHUNKED_CSV = "fvd_chunked.csv"  # Fig. 4's data: end_s, one FVD column per system (`dvc plots show`)
 SUMMARY_MD = "summary.md"
 FIGURES = "figures"
 FIG_CHUNKED = "fvd_chunked.png"
@@ -601,9 +602,10 @@ def write_full_report(
         (out_dir / COMPRESSION_CSV).unlink(missing_ok=True)
     figures = out_dir / FIGURES
     plot_chunked_fvd(evals, figures / FIG_CHUNKED)
+    write_chunked_fvd(evals, out_dir / CHUNKED_CSV)
     plot_probe_blocks(evals, figures / FIG_BLOCKS)
     plot_bubble(evals, figures / FIG_BUBBLE)
-    return written + [figures / FIG_CHUNKED, figures / FIG_BLOCKS, figures / FIG_BUBBLE]
+    return written + [out_dir / CHUNKED_CSV, figures / FIG_CHUNKED, figures / FIG_BLOCKS, figures / FIG_BUBBLE]
 
 
 # ---------------------------------------------------------------- figures
@@ -642,6 +644,15 @@ def plot_chunked_fvd(evals: Mapping, path: str | Path, models: Sequence[str] = F
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     _save(fig, path)
+
+
+def write_chunked_fvd(evals: Mapping, path: str | Path, models: Sequence[str] = FVD_MODELS) -> None:
+    """Fig. 4's numbers as a table: the end of each window (s) and one FVD column per system."""
+    rows = [{"system": model, "end_s": chunk["end_s"], "fvd": chunk["fvd"]}
+            for model in models for chunk in _get(evals, "fvd", model, "chunked", "chunks")]
+    table = pd.DataFrame(rows).pivot(index="end_s", columns="system", values="fvd")[list(models)]
+    with atomic_file(Path(path)) as tmp:
+        table.reset_index().to_csv(tmp, index=False, lineterminator="\n", float_format="%.6g")
 
 
 def _per_block_targets(evals: Mapping) -> list[str]:
