@@ -24,7 +24,7 @@ FPS = 10
 def render_frames(args: tuple[int, int, int, int, mp.Barrier | None]) -> tuple[float, float, int, float]:
     """Render `frames` frames of ego episode `seed`; returns (start, end, frames, cpu seconds)."""
     width, height, frames, seed, barrier = args
-    from orbis2.data.town import Camera, Renderer, Town, simulate_ego
+    from orbis2.sim import Camera, Renderer, Town, simulate_ego
 
     town = Town.generate("default", TOWN_SEED)
     track = simulate_ego(town, seed, frames / FPS, FPS)
@@ -76,7 +76,7 @@ def main() -> None:
           f"({total} frames, different episodes side by side; {1000 * cpu:.2f} ms CPU/frame, "
           f"{a.workers / cpu:.0f} frames/s with {a.workers} cores to ourselves)")
 
-    from orbis2.data.town import Camera, Town, render_episode, simulate_ego
+    from orbis2.sim import Camera, Town, render_episode, simulate_ego
 
     town = Town.generate("default", TOWN_SEED)
     t = time.perf_counter()

@@ -6,9 +6,9 @@ import pytest
 import torch
 
 from orbis2.config import InverseDynamicsConfig
-from orbis2.data.town import Camera, Town, render_episode, simulate_ego
 from orbis2.eval.inverse_dynamics import ClipFrames, Instrument, evaluate_instrument, pair_index, train_instrument
 from orbis2.eval.odometry import camera_intrinsics, trajectory_ade
+from orbis2.sim import Camera, Town, render_episode, simulate_ego
 
 FPS = 10
 

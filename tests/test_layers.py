@@ -5,6 +5,7 @@ Stage scripts (stages/) and the DAG sit above them all.
 """
 
 import ast
+import sys
 from pathlib import Path
 
 from conftest import ROOT
@@ -13,6 +14,7 @@ SRC = ROOT / "src"
 LAYERS = (
     ("orbis2.errors", "orbis2.io", "orbis2.flow", "orbis2.losses", "orbis2.kinematics", "orbis2.accel",
      "orbis2.models"),
+    ("orbis2.sim",),  # the driving simulator: numpy/numba/cv2 and orbis2.kinematics only
     ("orbis2.registry", "orbis2.config"),  # config checks model presets; both read registry.yaml
     ("orbis2.windows", "orbis2.data", "orbis2.tracking"),
     ("orbis2.latents", "orbis2.rollout", "orbis2.train", "orbis2.assets", "orbis2.stage"),
@@ -70,4 +72,20 @@ def test_a_violation_is_found(tmp_path):
     (tmp_path / "orbis2" / "models").mkdir(parents=True)
     (tmp_path / "orbis2" / "models" / "probe.py").write_text("def f():\n    from orbis2.eval.report import load_eval\n")
     (tmp_path / "orbis2" / "eval.py").write_text("from orbis2.models import probe\n")  # downwards: fine
-    assert violations(tmp_path) == ["orbis2.models.probe (layer 0) imports orbis2.eval.report (layer 4)"]
+    assert violations(tmp_path) == ["orbis2.models.probe (layer 0) imports orbis2.eval.report (layer 5)"]
+
+
+def test_the_simulator_needs_only_numpy_numba_cv2_and_kinematics():
+    allowed = {"numpy", "numba", "cv2", "orbis2.kinematics", "orbis2.errors", "orbis2.sim"}
+    for file in (SRC / "orbis2" / "sim").rglob("*.py"):
+        for node in ast.walk(ast.parse(file.read_text())):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0:
+                names = [node.module]
+            else:
+                continue
+            for name in names:
+                if name.split(".")[0] in sys.stdlib_module_names:
+                    continue
+                assert any(name == a or name.startswith(a + ".") for a in allowed), f"{file.name} imports {name}"

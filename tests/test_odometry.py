@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 
-from orbis2.data.town import Camera, Town, integrate_odometry, render_episode, simulate_ego
 from orbis2.errors import OrbisError
 from orbis2.eval.odometry import (
     InverseDynamics,
@@ -21,6 +20,8 @@ from orbis2.eval.odometry import (
     trajectory_ade,
     visual_odometry,
 )
+from orbis2.kinematics import integrate_odometry
+from orbis2.sim import Camera, Town, render_episode, simulate_ego
 
 FPS = 10
 W, H = 256, 144

@@ -7,14 +7,14 @@ import math
 import numpy as np
 import pytest
 
-from orbis2.data.town import (
+from orbis2.kinematics import integrate_odometry
+from orbis2.sim import (
     CITYSCAPES_TRAIN_IDS,
     TOWN_STYLES,
     Camera,
     EgoTrack,
     Renderer,
     Town,
-    integrate_odometry,
     render_episode,
     simulate_ego,
 )

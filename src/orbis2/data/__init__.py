@@ -1,1 +1,1 @@
-"""Data: the embedded driving world, video I/O, the raw episode layout and shards."""
+"""Data: the town dataset (rendered by `orbis2.sim`), imported videos, video I/O, the raw episode layout and shards."""

@@ -12,7 +12,7 @@ Odometry columns: ``frame`` (int), ``t`` (s), ``speed`` (m/s), ``yaw_rate`` (rad
 counter-clockwise positive), ``x``, ``y``, ``yaw`` (camera pose in a world frame;
 NaN where unknown). Speed and yaw rate at frame k are the controls over
 ``[t_k, t_k+1)``; integrating them reproduces the pose column (see
-:func:`orbis2.data.town.integrate_odometry`). Videos without odometry have NaN
+:func:`orbis2.kinematics.integrate_odometry`). Videos without odometry have NaN
 speed and yaw rate, and ``has_odometry = false`` in the index.
 """
 

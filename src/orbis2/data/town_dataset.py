@@ -27,9 +27,9 @@ from tqdm import tqdm
 from orbis2.config import SPLITS, DataConfig, TownConfig
 from orbis2.data.episodes import EpisodeRecord, RawIndex, read_odometry, write_labels, write_odometry
 from orbis2.data.motion import motion_statistics
-from orbis2.data.town import Camera, Town, render_episode, simulate_ego
 from orbis2.data.video import write_video
 from orbis2.io import atomic_file
+from orbis2.sim import Camera, Town, render_episode, simulate_ego
 
 SPLIT_CODES = {split: code for code, split in enumerate(SPLITS)}
 

@@ -8,7 +8,7 @@ report the average displacement error (ADE) in metres (paper appendix "Counterfa
 
 Conventions: planar trajectories are ``[T, 2]`` arrays of (x, y) in the frame of the first
 camera, x forward and y left (metres for references, arbitrary units for estimates), so the
-first point is the origin. Controls follow :mod:`orbis2.data.town`: ``speed[k]`` and
+first point is the origin. Controls follow :mod:`orbis2.sim.ego`: ``speed[k]`` and
 ``yaw_rate[k]`` (CCW positive) are constant over ``[t_k, t_{k+1})`` and poses are their exact
 arc integration.
 
@@ -55,7 +55,7 @@ def camera_intrinsics(width: int, height: int, hfov_deg: float = 90.0) -> np.nda
     """Pinhole matrix K of the town camera: square pixels, principal point at the image centre.
 
     fx = fy = (W / 2) / tan(hfov / 2), cx = (W - 1) / 2, cy = (H - 1) / 2 (pixel centres at
-    integer coordinates), matching :class:`orbis2.data.town.Camera`.
+    integer coordinates), matching :class:`orbis2.sim.camera.Camera`.
     """
     if width <= 0 or height <= 0 or not 0 < hfov_deg < 180:
         raise OrbisError(f"bad camera: {width}x{height}, hfov {hfov_deg} deg")
