@@ -1,18 +1,76 @@
 """Stage `eval_conditioning`: does each main predictor use its conditioning and beat trivial predictions?
 -> reports/eval/conditioning.json.
+
+Paired variant errors on val windows, one-step conditional means vs baselines, and
+latent statistics (:mod:`orbis2.eval.conditioning`): every main predictor on the
+same val windows and noise draws, over ``evaluation.seeds``.
 """
 
-from pathlib import Path
+from typing import Any
 
-from orbis2.eval.conditioning import run_conditioning
-from orbis2.eval.stages import EVAL, device
-from orbis2.stage import stage_main
+import numpy as np
+
+from orbis2.accel import default_device
+from orbis2.eval.conditioning import (
+    MAIN_PREDICTORS,
+    evaluate_predictor,
+    latent_statistics,
+    predictor_rows,
+    val_window_pairs,
+)
+from orbis2.eval.systems import predictor_file
+from orbis2.io import write_json
+from orbis2.latents import KINDS, LATENT_SETS, open_cache
+from orbis2.models.stdit import load_predictor
+from orbis2.registry import layout_path
+from orbis2.stage import open_stage, stage_parser
+
+LATENTS = LATENT_SETS["compressed"].root
+OUT = layout_path("eval") / "conditioning.json"
 
 
-def run(cfg, args, run):
-    """Paired variant errors on val windows, one-step conditional means vs baselines, latent statistics."""
-    return run_conditioning(cfg, run, device(), Path(EVAL) / "conditioning.json")
+def main(argv: list[str] | None = None) -> None:
+    args = stage_parser("eval_conditioning.py", __doc__).parse_args(argv)
+    with open_stage("eval_conditioning", args, ["data", "evaluation"]) as stage:
+        cfg, run = stage.cfg, stage.run
+        ev, data, settings = cfg.evaluation, cfg.data, cfg.evaluation.conditioning
+        dev = default_device()
+        cache = open_cache(LATENTS)
+        first, second, keys = val_window_pairs(cache, data, settings)
+        latents, templates = latent_statistics(cache, data, settings, ev.seed)
+
+        record: dict[str, Any] = {"split": "val", "windows": len(keys), "clips": len(set(keys)),
+                                  "draws": settings.draws, "seeds": list(ev.seeds), "threshold": settings.threshold,
+                                  "bootstrap_reps": settings.bootstrap_reps, "variants": [], "baselines": [],
+                                  "latents": latents}
+        for name in MAIN_PREDICTORS:
+            predictor = load_predictor(predictor_file(name), dev)
+            per_seed = [evaluate_predictor(name, predictor, first, second, keys, templates, data, settings, seed, dev)
+                        for seed in ev.seeds]
+            variants, baselines = predictor_rows(name, per_seed, keys, settings.threshold, settings.bootstrap_reps,
+                                                 ev.seed)
+            record["variants"] += variants
+            record["baselines"] += baselines
+            del predictor
+
+        write_json(OUT, record)
+        run.log_artifact(OUT)
+        run.log_metrics({f"{r['model']}_{r['metric']}_{r['variant']}_effect": r["effect"]
+                         for r in record["variants"] if r["verdict"] != "reference"})
+        run.log_metrics({f"{r['model']}_{r['baseline']}_{r['horizon_s']:g}s_effect": r["effect"]
+                         for r in record["baselines"]})
+        run.log_metrics({f"latents_{level}_{k}": latents[level][k] for level in KINDS
+                         for k in ("varying_share", "within_clip_share", "repeat_last_relative")})
+        probe = latents["ego_motion_probe"]
+        run.log_metrics({f"ego_probe_{name}_r2": probe[name]["r2"] for name in ("speed", "yaw_rate")
+                         if np.isfinite(probe[name]["r2"])})
+        used = [f"{r['model']}/{r['variant']}" for r in record["variants"]
+                if r["metric"] == "one_step_mse" and r["verdict"] == "used"]
+        stage.summary = (f"{len(keys)} val windows from {record['clips']} clips x {settings.draws} draws x "
+                         f"{len(ev.seeds)} seeds; inputs used (one-step mean): {', '.join(used) or 'none shown'}; "
+                         f"ego-motion probe R^2 speed {probe['speed']['r2']:.2f}, yaw rate "
+                         f"{probe['yaw_rate']['r2']:.2f}")
 
 
 if __name__ == "__main__":
-    stage_main("eval_conditioning", ["data", "evaluation"], run)
+    main()

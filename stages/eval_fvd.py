@@ -5,23 +5,79 @@
 
 Systems (``orbis2.eval.systems.SYSTEMS``): flat_detail, flat_abstract, hierarchical
 (the main table), top_detail and top_abstract_10hz (hierarchy Exps. 4 and 5).
+
+Each split gets FVD over ``seconds`` with a clip-bootstrap interval beside the
+reference rows of :mod:`orbis2.eval.references`; ``long_split`` also chunked FVD and
+the FVD-slope over ``long_seconds`` (:mod:`orbis2.eval.rollout_fvd`). Whether a
+rollout beats repeating the last frame in latent space is the ``eval_conditioning``
+stage's unbiased one-step comparison, not a sample's MSE (which pays twice the
+conditional variance).
 """
 
-import sys
+from pathlib import Path
+from typing import Any
 
-from orbis2.eval.stages import run_fvd
-from orbis2.eval.systems import SYSTEMS
-from orbis2.stage import named_stage_main
+from orbis2.accel import default_device
+from orbis2.assets import ensure_asset
+from orbis2.eval.rollout_fvd import split_fvd
+from orbis2.eval.systems import SYSTEMS, inference_settings, load_system
+from orbis2.io import atomic_dir, write_json
+from orbis2.latents import LATENT_SETS, open_cache
+from orbis2.models.i3d import load_i3d
+from orbis2.registry import layout_path
+from orbis2.stage import add_name_argument, open_stage, stage_parser
+
+SHARDS = layout_path("shards")
+EVAL = layout_path("eval")
+# Real-data I3D statistics, keyed by the shards' hashes; outside every stage's outputs so they survive re-runs.
+STATS_CACHE = layout_path("eval_cache")
 
 
-def body(name: str):
-    def run(cfg, args, run):
-        """Roll out one system on the evaluation splits and measure FVD, chunked FVD and FVD-slope."""
-        return run_fvd(name, cfg, run)
+def main(argv: list[str] | None = None) -> None:
+    parser = stage_parser("eval_fvd.py", __doc__)
+    add_name_argument(parser, SYSTEMS, prefix="eval_fvd_")
+    args = parser.parse_args(argv)
+    name = args.name
+    with open_stage(f"eval_fvd_{name}", args, ["data", "assets", "evaluation"]) as stage:
+        cfg, run = stage.cfg, stage.run
+        ev, dev = cfg.evaluation, default_device()
 
-    return run
+        system = load_system(name, dev, inference=inference_settings(ev))
+        cache = open_cache(LATENT_SETS[system.system.latents].root)
+        i3d_file = ensure_asset("i3d_kinetics400", Path(cfg.assets.dir), cfg.assets.local.get("i3d_kinetics400"),
+                                download=False)
+        i3d = load_i3d(i3d_file).to(dev).eval()
+
+        record: dict[str, Any] = {"model": name, "label": SYSTEMS[name].label, "parameters": system.parameters,
+                                  "latent_channels": system.bottom.model.latent_channels,
+                                  "predictors": SYSTEMS[name].stages,
+                                  "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe},
+                                  "starts_per_clip": ev.starts_per_clip, "fvd_material": ev.fvd_material, "fvd": {},
+                                  "references": {}}
+        media = EVAL / "media" / name
+        with atomic_dir(media) as tmp:
+            for split in ev.fvd_splits:
+                result = split_fvd(split, system, cache, i3d, tmp, cfg.data, ev, dev, SHARDS, STATS_CACHE)
+                record["fvd"][split] = result["fvd"]
+                record["references"][split] = result["references"]
+                if "chunked" in result:
+                    record["chunked"] = result["chunked"]
+
+        for video in sorted(media.glob("*.mp4")):
+            run.log_artifact(video, "videos")
+        report = EVAL / f"fvd_{name}.json"
+        write_json(report, record)
+        run.log_artifact(report)
+        run.log_metrics({f"fvd_{split}": v["fvd"] for split, v in record["fvd"].items()})
+        run.log_metrics({f"fvd_{split}_{ref}": v["fvd"] for split, refs in record["references"].items()
+                         for ref, v in refs.items() if v["fvd"] is not None})
+        if "chunked" in record:
+            run.log_metrics({"fvd_slope": record["chunked"]["fvd_slope"]})
+        splits = ", ".join(f"{s} {v['fvd']:.1f} [{v['low']:.1f}, {v['high']:.1f}] (n={v['videos']}, "
+                           f"{v['clips']} clips)" for s, v in record["fvd"].items())
+        slope = f"; FVD-slope {record['chunked']['fvd_slope']:.1f}" if "chunked" in record else ""
+        stage.summary = f"{name}: FVD {splits}{slope}"
 
 
 if __name__ == "__main__":
-    named_stage_main("eval_fvd.py", "eval_fvd_", list(SYSTEMS), ["data", "assets", "evaluation"], body,
-                     sys.argv[1:])
+    main()

@@ -3,23 +3,91 @@
 
     python stages/eval_probe.py abstract_tf --profile default
 
-Targets: abstract_tokenizer, teacher, and every predictor stage but action
-(``orbis2.eval.stages.probe_targets``).
+Targets (registry.yaml, ``probe_targets``): abstract_tokenizer, teacher, and every
+predictor stage but action. Predictors follow the null-context protocol of
+:func:`orbis2.eval.probe.predictor_features` (paper appendix "Linear probing
+details"); the k-th block from the end is clamped to the network's depth.
 """
 
-import sys
+from pathlib import Path
+from typing import Any
 
-from orbis2.eval.stages import probe_targets, run_probe_stage
-from orbis2.stage import named_stage_main
+from orbis2.accel import default_device
+from orbis2.eval.probe import (
+    predictor_features,
+    probe_all,
+    probe_config,
+    probe_sets,
+    teacher_features,
+    tokenizer_features,
+)
+from orbis2.eval.systems import predictor_file
+from orbis2.io import write_json
+from orbis2.latents import LATENT_SETS
+from orbis2.models.stdit import load_predictor
+from orbis2.models.teachers import build_teacher
+from orbis2.models.tokenizer import load_tokenizer
+from orbis2.registry import layout_path, registry
+from orbis2.stage import add_name_argument, open_stage, stage_parser
+from orbis2.tasks.predictors import STAGES
+from orbis2.tasks.tokenizers import TEACHER_ASSETS, asset_path
+
+SHARDS = layout_path("shards")
+EVAL = layout_path("eval")
+# The main model's predictors are probed at ``block_main`` (the paper's 4th from the end), ablations at
+# ``block_ablation``. Per-block curves (paper Fig. 5: diffusion forcing vs teacher forcing at every block)
+# for the DF-only and TF-only predictors; both are ablation targets, so the main report does not wait for them.
+MAIN_PROBES = ("abstract_tf", "detail")
+PER_BLOCK = ("abstract_df", "abstract_tf_only")
 
 
-def body(target: str):
-    def run(cfg, args, run):
-        """Train linear probes on one frozen representation and score them on held-out probe frames."""
-        return run_probe_stage(target, cfg, run)
+def main(argv: list[str] | None = None) -> None:
+    parser = stage_parser("eval_probe.py", __doc__)
+    add_name_argument(parser, registry().probe_targets, prefix="eval_probe_")
+    args = parser.parse_args(argv)
+    target = args.name
+    with open_stage(f"eval_probe_{target}", args, ["data", "evaluation"]) as stage:
+        cfg, run = stage.cfg, stage.run
+        ps, dev = cfg.evaluation.probe, default_device()
+        probe_cfg = probe_config(ps, str(dev))
+        sets = probe_sets(ps, (cfg.data.width, cfg.data.height), SHARDS)
 
-    return run
+        record: dict[str, Any] = {"target": target, "block": None}
+        representation = registry().representations.get(target)
+        if representation is not None and not representation.teacher:
+            latents = representation.latents
+            record["label"] = f"Abstract tokenizer ({latents})"
+            tokenizer = load_tokenizer(LATENT_SETS[latents].tokenizers["abstract"], dev)
+            result = probe_all(tokenizer_features(tokenizer), sets, probe_cfg)
+        elif representation is not None:
+            tc = cfg.tokenizer_abstract
+            teacher = build_teacher(tc.teacher, asset_path(Path(cfg.assets.dir), TEACHER_ASSETS[tc.teacher]),
+                                    tc.teacher_layer).to(dev)
+            record["label"] = f"Teacher ({tc.teacher})"
+            result = probe_all(teacher_features(teacher), sets, probe_cfg)
+        else:
+            predictor = load_predictor(predictor_file(target), dev)
+            tokenizer = load_tokenizer(LATENT_SETS[STAGES[target].latents].tokenizers[predictor.meta["level"]], dev)
+            depth = len(predictor.model.blocks)
+            wanted = ps.block_main if target in MAIN_PROBES else ps.block_ablation
+            block = min(wanted, depth)
+            record.update(label=target, block=block, depth=depth)
+            result = probe_all(predictor_features(predictor, tokenizer, block), sets, probe_cfg)
+            if target in PER_BLOCK:
+                record["per_block"] = []
+                for k in range(1, depth + 1):
+                    r = result if k == block else probe_all(predictor_features(predictor, tokenizer, k), sets,
+                                                            probe_cfg)
+                    record["per_block"].append({"block": k, "miou": r["segmentation"]["miou"],
+                                                "rmse": r["depth"]["rmse"]})
+        record.update(segmentation=result["segmentation"], depth=result["depth"], data=result["data"])
+
+        write_json(EVAL / f"probe_{target}.json", record)
+        run.log_artifact(EVAL / f"probe_{target}.json")
+        run.log_metrics({"miou": result["segmentation"]["miou"], "depth_rmse": result["depth"]["rmse"]})
+        stage.summary = (f"{target}: mIoU {result['segmentation']['miou']:.3f} ({result['data']['segmentation']}), "
+                         f"depth RMSE {result['depth']['rmse']:.2f} m ({result['data']['depth']})")
 
 
 if __name__ == "__main__":
-    named_stage_main("eval_probe.py", "eval_probe_", probe_targets(), ["data", "evaluation"], body, sys.argv[1:])
+    main()

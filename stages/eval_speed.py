@@ -1,15 +1,77 @@
 """Stage `eval_speed`: generated frames per second and peak memory of the main systems
 -> reports/eval/speed.json.
+
+The systems of ``SPEED_RUNS`` one after another in one process (paper Table 5):
+batch 1, ``speed_seconds`` of rollout from a val context with the evaluation's NFE
+(the distilled detail predictor with its own), the last-decoded frames included
+(generation as a user sees it); bf16 / compile / KV cache per ``evaluation``.
 """
 
-from orbis2.eval.stages import run_speed
-from orbis2.stage import stage_main
+import torch
+
+from orbis2.accel import default_device
+from orbis2.eval.speed import measure
+from orbis2.eval.systems import contexts_for, eval_samples, inference_settings, load_system, rollout_steps
+from orbis2.io import write_json
+from orbis2.latents import LATENT_SETS, open_cache
+from orbis2.registry import layout_path
+from orbis2.stage import open_stage, stage_parser
+
+LATENTS = LATENT_SETS["compressed"].root
+EVAL = layout_path("eval")
+# Speed rows: name -> (system, frames per step; None = the system's own). ``v1_style`` runs the flat detail
+# network like Orbis v1, one frame per step at 10 Hz with the full NFE (same parameters, 5x the calls).
+SPEED_RUNS = {
+    "hierarchical": ("hierarchical", None),
+    "hierarchical_distilled": ("hierarchical_distilled", None),
+    "flat_detail": ("flat_detail", None),
+    "flat_abstract": ("flat_abstract", None),
+    "v1_style": ("flat_detail", 1),
+}
 
 
-def run(cfg, args, run):
-    """Time rollouts of the hierarchical and flat systems side by side in one process."""
-    return run_speed(cfg, run)
+def main(argv: list[str] | None = None) -> None:
+    args = stage_parser("eval_speed.py", __doc__).parse_args(argv)
+    with open_stage("eval_speed", args, ["data", "evaluation"]) as stage:
+        cfg, run = stage.cfg, stage.run
+        ev, data = cfg.evaluation, cfg.data
+        dev = default_device()
+        cache = open_cache(LATENTS)
+        steps = rollout_steps(data, ev.speed_seconds)
+        settings = inference_settings(ev)
+
+        models = {}
+        for name, (system_name, frames_per_step) in SPEED_RUNS.items():
+            system = load_system(system_name, dev, inference=settings)
+            sample = eval_samples(cache, "val", data, steps, 1)[:1]
+            contexts = contexts_for(system, cache, "val", data, sample, dev)
+            bottom_nfe = system.bottom_nfe(ev.bottom_nfe)
+
+            def one_rollout(system=system, contexts=contexts, nfe=bottom_nfe, per_step=frames_per_step) -> int:
+                latents = system.rollout(contexts, steps, torch.Generator(dev).manual_seed(ev.seed), ev.top_nfe,
+                                         nfe, frames_per_step=per_step)
+                return system.decode(latents).shape[1]
+
+            result = measure(one_rollout, warmup=1, repeats=ev.speed_repeats, device=dev)
+            models[name] = {"fps": result["fps"], "peak_memory_mb": result["peak_memory_mb"],
+                            "parameters": system.parameters, "frames": result["frames"],
+                            "memory_kind": result["memory_kind"], "bottom_nfe": bottom_nfe,
+                            "top_nfe": ev.top_nfe if system.top is not None else None,
+                            "frames_per_step": frames_per_step or 5}
+            del system, contexts
+
+        record = {"device": torch.cuda.get_device_name() if dev.type == "cuda"
+                  else f"cpu ({torch.get_num_threads()} threads)",
+                  "memory_kind": next(iter(models.values()))["memory_kind"], "batch": 1,
+                  "seconds": steps * 0.5, "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe}, "models": models,
+                  "precision": settings.precision if dev.type == "cuda" else "fp32", "compile": settings.compile,
+                  "kv_cache": settings.kv_cache}
+        write_json(EVAL / "speed.json", record)
+        run.log_artifact(EVAL / "speed.json")
+        run.log_metrics({f"fps_{m}": v["fps"] for m, v in models.items()})
+        stage.summary = ", ".join(f"{m} {v['fps']:.2f} frames/s, {v['peak_memory_mb']:.0f} MB"
+                                  for m, v in models.items())
 
 
 if __name__ == "__main__":
-    stage_main("eval_speed", ["data", "evaluation"], run)
+    main()

@@ -1,4 +1,8 @@
-"""Stage `import`: bring a folder of user videos (+ optional odometry CSVs) into data/raw/import."""
+"""Stage `import`: bring a folder of user videos (+ optional odometry CSVs) into data/raw/import.
+
+User videos are resampled, resized and re-encoded into the raw episode layout;
+unusable ones stop the stage, or with --skip-bad are listed in skipped.json.
+"""
 
 import json
 from dataclasses import asdict
@@ -7,30 +11,32 @@ from pathlib import Path
 from orbis2.data.importer import check_outside, import_videos
 from orbis2.io import atomic_dir
 from orbis2.registry import layout_path
-from orbis2.stage import stage_main
+from orbis2.stage import open_stage, stage_parser
 
 OUT = layout_path("raw", "import")
 
 
-def add_arguments(parser):
+def main(argv: list[str] | None = None) -> None:
+    parser = stage_parser("import.py", __doc__)
     parser.add_argument("--videos", type=Path, default=None, help="input folder (default: import.videos)")
     parser.add_argument("--skip-bad", action="store_true", default=None,
                         help="skip unusable videos and list them in data/raw/import/skipped.json")
+    args = parser.parse_args(argv)
+    with open_stage("import", args, ["data", "import"]) as stage:
+        cfg, run = stage.cfg, stage.run
+        folder = args.videos or Path(cfg.import_.videos)
+        check_outside(folder, OUT)
+        skip_bad = cfg.import_.skip_bad if args.skip_bad is None else args.skip_bad
 
+        with atomic_dir(OUT) as tmp:
+            index, skipped = import_videos(folder, tmp, cfg.data, cfg.import_, skip_bad)
+            (tmp / "skipped.json").write_text(json.dumps([asdict(s) for s in skipped], indent=2) + "\n")
+        for s in skipped:
+            print(f"[import] skipped {s.path}: {s.problem}")
 
-def run(cfg, args, run):
-    """Resample, resize and re-encode user videos into the raw episode layout."""
-    folder = args.videos or Path(cfg.import_.videos)
-    check_outside(folder, OUT)
-    skip_bad = cfg.import_.skip_bad if args.skip_bad is None else args.skip_bad
-    with atomic_dir(OUT) as tmp:
-        index, skipped = import_videos(folder, tmp, cfg.data, cfg.import_, skip_bad)
-        (tmp / "skipped.json").write_text(json.dumps([asdict(s) for s in skipped], indent=2) + "\n")
-    for s in skipped:
-        print(f"[import] skipped {s.path}: {s.problem}")
-    run.log_metrics({"episodes": len(index.episodes), "skipped": len(skipped)})
-    return f"{len(index.episodes)} videos imported, {len(skipped)} skipped -> {OUT}"
+        run.log_metrics({"episodes": len(index.episodes), "skipped": len(skipped)})
+        stage.summary = f"{len(index.episodes)} videos imported, {len(skipped)} skipped -> {OUT}"
 
 
 if __name__ == "__main__":
-    stage_main("import", ["data", "import"], run, add_arguments)
+    main()

@@ -7,38 +7,37 @@ The uncompressed cache (compression ablation) skips the probe split, which only
 the tokenizers' probes read, from the frames.
 """
 
-import sys
-
 from orbis2.data.shards import load_manifest
 from orbis2.latents import LATENT_SETS, build_latent_cache
 from orbis2.registry import layout_path, registry
-from orbis2.stage import stage_main
+from orbis2.stage import add_name_argument, open_stage, stage_parser
 
 SHARDS = layout_path("shards")
 # Stage name -> latent set (registry.yaml, latent_sets).
 VARIANTS = {entry.stage: name for name, entry in registry().latent_sets.items()}
 
 
-def body(name: str):
-    latents = LATENT_SETS[VARIANTS[name]]
-
-    def run(cfg, args, run):
-        """Encode every native frame of every clip with the detail and abstract tokenizers, once."""
+def main(argv: list[str] | None = None) -> None:
+    parser = stage_parser("latents.py", __doc__)
+    add_name_argument(parser, VARIANTS, default="latents")
+    args = parser.parse_args(argv)
+    name = args.name
+    with open_stage(name, args, ["data", "latents"]) as stage:
+        cfg, run = stage.cfg, stage.run
+        latents = LATENT_SETS[VARIANTS[name]]
         skip = registry().latent_sets[VARIANTS[name]].skip_splits
         splits = [s for s in load_manifest(SHARDS)["splits"] if s not in skip] if skip else None
+
         meta = build_latent_cache(SHARDS, latents.root, latents.tokenizers["detail"], latents.tokenizers["abstract"],
                                   cfg.latents.batch_size, splits)
+
         frames = {split: info["frames"] for split, info in meta["splits"].items()}
         mb = sum(f.stat().st_size for f in latents.root.rglob("*") if f.is_file()) / 2**20
         run.log_metrics({"frames_encoded": sum(frames.values()), "mb_written": mb,
                          **{f"{split}_frames": n for split, n in frames.items()}})
         run.log_artifact(latents.root / "meta.json")
-        return f"{sum(frames.values())} frames encoded {frames}, {mb:.1f} MB written -> {latents.root}"
-
-    return run
+        stage.summary = f"{sum(frames.values())} frames encoded {frames}, {mb:.1f} MB written -> {latents.root}"
 
 
 if __name__ == "__main__":
-    argv = sys.argv[1:]
-    name = argv.pop(0) if argv and argv[0] in VARIANTS else "latents"
-    stage_main(name, ["data", "latents"], body(name), argv=argv)
+    main()

@@ -7,24 +7,62 @@ The predictor names are the keys of ``orbis2.tasks.predictors.STAGES`` (each
 with its params.yaml section of the same name): abstract_df, abstract_tf,
 detail, action, and the ablations abstract_tf_only, flat_detail,
 flat_abstract, top_detail, detail_on_detail. Checkpoints live in data/runs/
-(see ``run_stage``): a killed run resumes there; predictor.pt and the report
-are published atomically at the end.
+(see ``orbis2.stage.training_dir``), in a folder keyed by the params, the code and
+the upstream files (the latent cache's meta, which names the tokenizers and
+shards, and the ``init_from`` predictor): a killed run resumes there, while a
+retrained upstream starts a fresh run instead of resuming one that trained on
+other inputs. predictor.pt and the report are published atomically at the end.
 """
 
-import sys
+from pathlib import Path
 
-from orbis2.stage import named_stage_main
-from orbis2.tasks.predictors import STAGES, run_stage, stage_sections
+from orbis2.errors import OrbisError
+from orbis2.latents import LATENT_SETS, open_cache
+from orbis2.registry import layout_path
+from orbis2.stage import add_name_argument, open_stage, publish_training, stage_parser, training_dir
+from orbis2.tasks.predictors import STAGES, tokenizer_checksums, train_predictor
 
 
-def body(stage: str):
-    def run(cfg, args, run):
-        """Train one predictor and publish predictor.pt with its validation loss."""
-        return run_stage(stage, cfg, run)
+def predictor_path(name: str) -> Path:
+    return layout_path("predictor", name) / "predictor.pt"
 
-    return run
+
+def main(argv: list[str] | None = None) -> None:
+    parser = stage_parser("predictor.py", __doc__)
+    add_name_argument(parser, STAGES)
+    args = parser.parse_args(argv)
+    name = args.name
+    sections = ["data", name]
+    with open_stage(name, args, sections) as stage:
+        cfg, run = stage.cfg, stage.run
+        pc = cfg.section(name)
+        latents = LATENT_SETS[STAGES[name].latents]
+        cache = open_cache(latents.root,
+                           *tokenizer_checksums(latents.tokenizers["detail"], latents.tokenizers["abstract"]))
+        inputs = {"latents": latents.root / "meta.json"}
+        init_file = None
+        if pc.init_from is not None:
+            init_file = predictor_path(pc.init_from)
+            if not init_file.is_file():
+                raise OrbisError(f"{init_file}: not found; `{name}` starts from it (init_from), run "
+                                 f"`{pc.init_from}` first")
+            inputs[pc.init_from] = init_file
+
+        work = training_dir(name, cfg, sections, inputs)
+        metrics = train_predictor(name, cfg, cache, work, run, init_file)
+        if not metrics:
+            stage.summary = "training rank done; rank 0 writes the outputs"
+            return
+
+        run.log_metrics(metrics, step=int(metrics["steps"]))
+        out = predictor_path(name)
+        publish_training(work, out.parent, [out.name], layout_path("report", name), metrics, run)
+        few = (f"; {pc.student_nfe}-step MSE to the teacher's {pc.teacher_nfe}-step sample "
+               f"{metrics['few_step_mse_student']:.4f} (teacher's own {metrics['few_step_mse_teacher']:.4f})"
+               if "few_step_mse_student" in metrics else "")
+        stage.summary = (f"{metrics['steps']} steps, {metrics['parameters'] / 1e6:.2f}M parameters, val loss "
+                         f"{metrics['val_loss']:.4f} (at initialisation {metrics['val_loss_init']:.4f}){few} -> {out}")
 
 
 if __name__ == "__main__":
-    stage = sys.argv[1] if len(sys.argv) > 1 else ""
-    named_stage_main("predictor.py", "", list(STAGES), stage_sections(stage), body, sys.argv[1:])
+    main()

@@ -1,26 +1,31 @@
-"""Stage `shards`: cut raw episodes into clips and write WebDataset shards + manifest to data/shards."""
+"""Stage `shards`: cut raw episodes into clips and write WebDataset shards + manifest to data/shards.
 
+One WebDataset sample per clip, per split, with a manifest of counts and hashes.
+"""
 
 from orbis2.data.shards import write_shards
 from orbis2.io import atomic_dir
 from orbis2.registry import layout_path
-from orbis2.stage import stage_main
+from orbis2.stage import open_stage, stage_parser
 
 OUT = layout_path("shards")
 
 
-def run(cfg, args, run):
-    """Write one WebDataset sample per clip, per split, with a manifest of counts and hashes."""
-    raw = layout_path("raw", cfg.data.source)
-    with atomic_dir(OUT) as tmp:
-        manifest = write_shards(raw, tmp, cfg.data, cfg.shards)
-    for split, info in manifest["splits"].items():
-        run.log_metrics({f"{split}_clips": info["samples"], f"{split}_shards": len(info["shards"]),
-                         f"{split}_mb": sum(s["bytes"] for s in info["shards"]) / 2**20})
-    run.log_artifact(OUT / "manifest.json")
-    counts = {split: info["samples"] for split, info in manifest["splits"].items()}
-    return f"clips per split {counts} -> {OUT}"
+def main(argv: list[str] | None = None) -> None:
+    args = stage_parser("shards.py", __doc__).parse_args(argv)
+    with open_stage("shards", args, ["data", "shards"]) as stage:
+        cfg, run = stage.cfg, stage.run
+        raw = layout_path("raw", cfg.data.source)
+        with atomic_dir(OUT) as tmp:
+            manifest = write_shards(raw, tmp, cfg.data, cfg.shards)
+
+        for split, info in manifest["splits"].items():
+            run.log_metrics({f"{split}_clips": info["samples"], f"{split}_shards": len(info["shards"]),
+                             f"{split}_mb": sum(s["bytes"] for s in info["shards"]) / 2**20})
+        run.log_artifact(OUT / "manifest.json")
+        counts = {split: info["samples"] for split, info in manifest["splits"].items()}
+        stage.summary = f"clips per split {counts} -> {OUT}"
 
 
 if __name__ == "__main__":
-    stage_main("shards", ["data", "shards"], run)
+    main()

@@ -1,7 +1,9 @@
 """Lower layers of the library never import higher ones (imports anywhere in a module count, lazy ones too).
 
 The layers, lowest first; a module may import its own layer and those below.
-Stage scripts (stages/) and the DAG sit above them all.
+MLflow tracking and the stage helpers (orbis2.tracking, orbis2.stage) sit above the
+library proper: the models, data, tasks and evaluation code is pure functions and
+classes that know nothing of MLflow. Stage scripts (stages/) and the DAG sit above them all.
 """
 
 import ast
@@ -16,11 +18,15 @@ LAYERS = (
      "orbis2.models"),
     ("orbis2.sim",),  # the driving simulator: numpy/numba/cv2 and orbis2.kinematics only
     ("orbis2.registry", "orbis2.config"),  # config checks model presets; both read registry.yaml
-    ("orbis2.windows", "orbis2.data", "orbis2.tracking"),
-    ("orbis2.latents", "orbis2.rollout", "orbis2.train", "orbis2.assets", "orbis2.stage"),
+    ("orbis2.windows", "orbis2.data"),
+    ("orbis2.latents", "orbis2.rollout", "orbis2.train", "orbis2.assets"),
     ("orbis2.tasks", "orbis2.eval"),
+    ("orbis2.tracking", "orbis2.stage"),  # the MLflow run and what stage scripts share
     ("orbis2.cli", "orbis2.dag"),
 )
+# Library packages that must not know about experiment tracking, even through a lazy import.
+PURE = ("orbis2.models", "orbis2.data", "orbis2.tasks", "orbis2.eval")
+TRACKING = ("mlflow", "orbis2.tracking", "orbis2.stage")
 
 
 def layer(module: str) -> int:
@@ -45,6 +51,30 @@ def imports(file: Path) -> set[str]:
     return {name for name in found if name.startswith("orbis2.")}
 
 
+def all_imports(file: Path) -> set[str]:
+    """Every absolute module name ``file`` imports, anywhere in its body."""
+    found = set()
+    for node in ast.walk(ast.parse(file.read_text())):
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.add(node.module)
+    return found
+
+
+def tracking_imports(src: Path = SRC) -> list[str]:
+    """``module imports name`` for every import of MLflow or of the tracking/stage modules by a pure package."""
+    out = []
+    for file in sorted(src.rglob("*.py")):
+        name = module_name(file, src)
+        if not any(name == p or name.startswith(p + ".") for p in PURE):
+            continue
+        for target in sorted(all_imports(file)):
+            if any(target == t or target.startswith(t + ".") for t in TRACKING):
+                out.append(f"{name} imports {target}")
+    return out
+
+
 def violations(src: Path = SRC) -> list[str]:
     out = []
     for file in sorted(src.rglob("*.py")):
@@ -59,6 +89,20 @@ def violations(src: Path = SRC) -> list[str]:
 
 def test_lower_layers_never_import_higher_ones():
     assert violations() == []
+
+
+def test_library_code_knows_nothing_of_mlflow():
+    assert tracking_imports() == []
+
+
+def test_a_tracking_import_is_found(tmp_path):
+    (tmp_path / "orbis2" / "eval").mkdir(parents=True)
+    (tmp_path / "orbis2" / "eval" / "speed.py").write_text("def f(run):\n    import mlflow.data\n")
+    (tmp_path / "orbis2" / "tasks").mkdir()
+    (tmp_path / "orbis2" / "tasks" / "x.py").write_text("from orbis2.tracking import StageRun\n")
+    (tmp_path / "orbis2" / "stage.py").write_text("from orbis2.tracking import stage_run\n")  # not a pure package
+    assert tracking_imports(tmp_path) == ["orbis2.eval.speed imports mlflow.data",
+                                          "orbis2.tasks.x imports orbis2.tracking"]
 
 
 def test_every_module_has_a_layer():

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from orbis2.eval.stages import mode_record, steering_responses
+from orbis2.eval.steering import mode_record, steering_responses
 
 
 def scores(turn, path, ade=1.0, n=16):

@@ -38,6 +38,11 @@ class Inference:
             raise ValueError(f"precision = {self.precision!r} must be one of {list(PRECISIONS)}")
 
 
+def default_device() -> torch.device:
+    """CUDA when available, else the CPU."""
+    return torch.device("cuda") if torch.cuda.is_available() else torch.device("cpu")
+
+
 def set_tf32(enabled: bool = True) -> None:
     """The process-wide fp32 policy on CUDA: TF32 tensor cores for matmuls and cuDNN convolutions, or exact fp32."""
     torch.set_float32_matmul_precision("high" if enabled else "highest")

@@ -1,16 +1,27 @@
-"""What every stage script shares: arguments, config, the MLflow run, errors, the summary line."""
+"""What every stage script shares: its arguments, the MLflow run around its work, run folders, publishing.
+
+A stage script's ``main()`` reads top to bottom::
+
+    args = stage_parser("town.py", __doc__).parse_args(argv)
+    with open_stage("town", args, ["data", "town"]) as stage:
+        cfg, run = stage.cfg, stage.run
+        ...                      # load inputs, call the library, save outputs, log to ``run``
+        stage.summary = "..."    # the line printed when the stage ends
+"""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import hashlib
 import json
 import shutil
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Iterator, Sequence
 
 import orbis2
 from orbis2.config import BOOKKEEPING_FIELDS, PipelineConfig, as_dict, load_config
@@ -19,50 +30,65 @@ from orbis2.io import atomic_dir, sha256_file, write_json
 from orbis2.registry import layout_path
 from orbis2.tracking import StageRun, stage_run
 
-StageBody = Callable[[PipelineConfig, argparse.Namespace, StageRun], str]
 
-
-def stage_main(name: str, sections: list[str], body: StageBody,
-               add_arguments: Callable[[argparse.ArgumentParser], None] | None = None,
-               argv: list[str] | None = None) -> None:
-    """Parse ``--params/--profile``, run ``body`` inside the stage's MLflow run, print its summary.
-
-    ``sections`` are the params.yaml sections the stage reads; they are logged as the
-    run's parameters. A user-fixable problem (:class:`OrbisError`) exits with status 2.
-    """
-    parser = argparse.ArgumentParser(prog=f"stages/{name}.py", description=body.__doc__)
+def stage_parser(script: str, description: str | None = None) -> argparse.ArgumentParser:
+    """The arguments every stage takes: ``--params`` and ``--profile``."""
+    parser = argparse.ArgumentParser(prog=f"stages/{script}", description=description,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--params", default="params.yaml", help="params file (default: params.yaml)")
     parser.add_argument("--profile", default=None, help="smoke | default | gpu | paper (default: the file's `profile`)")
-    if add_arguments:
-        add_arguments(parser)
-    args = parser.parse_args(argv)
+    return parser
+
+
+def add_name_argument(parser: argparse.ArgumentParser, names: Sequence[str], prefix: str = "",
+                      default: str | None = None) -> None:
+    """``args.name``: which stage of a family one script serves (``python stages/eval_fvd.py hierarchical``).
+
+    The DAG passes the full stage name (``<prefix><name>``, e.g. ``eval_fvd_hierarchical``);
+    by hand the short name is enough. With a ``default`` the name may be left out.
+    """
+    names = list(names)
+
+    def short(value: str) -> str:
+        rest = value[len(prefix):]
+        return rest if prefix and value.startswith(prefix) and rest in names else value
+
+    parser.add_argument("name", type=short, choices=names, metavar="name", default=default,
+                        nargs="?" if default is not None else None,
+                        help=f"one of {', '.join(names)}" + (f" (default: {default})" if default else ""))
+
+
+@dataclass
+class Stage:
+    """A running stage: its resolved config, its MLflow run, and the summary line it prints at the end."""
+
+    name: str
+    cfg: PipelineConfig
+    run: StageRun
+    summary: str = ""
+
+
+@contextlib.contextmanager
+def open_stage(name: str, args: argparse.Namespace, sections: list[str]) -> Iterator[Stage]:
+    """Load the config of ``args.params``/``args.profile`` and open the stage's MLflow run for the block.
+
+    ``sections`` are the params.yaml sections the stage reads; they are logged as the
+    run's parameters. On leaving the block the wall time is logged and
+    ``[<name>] <summary> (<s> s, profile <p>)`` printed. A user-fixable problem
+    (:class:`OrbisError`) prints ``[<name>] error: ...`` and exits with status 2.
+    """
     started = time.perf_counter()
     try:
         cfg = load_config(args.params, args.profile)
         params = {"profile": cfg.profile, **{s: as_dict(cfg.section(s)) for s in sections}}
         with stage_run(name, params) as run:
-            summary = body(cfg, args, run)
+            stage = Stage(name, cfg, run)
+            yield stage
             run.log_metrics({"wall_seconds": time.perf_counter() - started})
     except OrbisError as err:
         print(f"[{name}] error: {err}", file=sys.stderr)
         sys.exit(2)
-    print(f"[{name}] {summary} ({time.perf_counter() - started:.1f} s, profile {cfg.profile})")
-
-
-def named_stage_main(script: str, prefix: str, names: list[str], sections: list[str],
-                     body_for: Callable[[str], StageBody], argv: list[str]) -> None:
-    """``python stages/<script> <name> [--profile P]``: one script serving a family of stages.
-
-    The DAG passes the full stage name (``<prefix><name>``, e.g. ``eval_fvd_hierarchical``);
-    by hand the short name is enough.
-    """
-    if argv and argv[0].startswith(prefix) and argv[0][len(prefix):] in names:
-        argv = [argv[0][len(prefix):], *argv[1:]]
-    if not argv or argv[0] not in names:
-        given = repr(argv[0]) if argv else "nothing"
-        sys.exit(f"usage: python stages/{script} <name> [--profile P]; <name> is one of {', '.join(names)} "
-                 f"(got {given})")
-    stage_main(f"{prefix}{argv[0]}", sections, body_for(argv[0]), argv=argv[1:])
+    print(f"[{name}] {stage.summary} ({time.perf_counter() - started:.1f} s, profile {cfg.profile})")
 
 
 def training_dir(name: str, cfg: PipelineConfig, sections: list[str], inputs: dict[str, Path]) -> Path:

@@ -25,6 +25,7 @@ frame with the default 10 Hz / 2 Hz / 5-frame settings).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import zlib
@@ -256,6 +257,18 @@ class Clip:
 
     def __len__(self) -> int:
         return len(self.pixels) if self.pixels is not None else len(self.jpegs)
+
+
+def split_clips(root: Path, split: str) -> dict[str, Clip]:
+    """Every clip of a split's shards by key (JPEGs stay compressed until frames are asked for)."""
+    return {clip.key: clip for path in shard_paths(root, split)
+            for clip in (Clip.from_sample(s, str(path)) for s in iter_samples(path))}
+
+
+def split_digest(root: Path, split: str) -> str:
+    """A digest of a split's shards (their SHA-256 from the manifest), e.g. to key statistics cached from them."""
+    shards = load_manifest(root)["splits"][split]["shards"]
+    return hashlib.sha256("".join(s["sha256"] for s in shards).encode()).hexdigest()[:16]
 
 
 def anchor_range(data: DataConfig, n_frames: int) -> range:

@@ -33,13 +33,12 @@ intervals; an input is "used" when the lower bound exceeds ``threshold``.
 from __future__ import annotations
 
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from orbis2.config import DataConfig, PipelineConfig
+from orbis2.config import DataConfig
 from orbis2.errors import OrbisError
 from orbis2.eval.stats import (
     bootstrap_statistic,
@@ -47,11 +46,8 @@ from orbis2.eval.stats import (
     other_clip_donors,
     relative_difference,
 )
-from orbis2.eval.systems import predictor_file
 from orbis2.flow import interpolate
-from orbis2.io import write_json
-from orbis2.latents import KINDS, LATENT_SETS, LatentCache, LatentWindowDataset, open_cache
-from orbis2.models.stdit import load_predictor
+from orbis2.latents import KINDS, LatentCache, LatentWindowDataset
 from orbis2.tasks.predictors import (
     STAGES,
     collate,
@@ -60,7 +56,6 @@ from orbis2.tasks.predictors import (
     steering_interval,
     window_key,
 )
-from orbis2.tracking import StageRun
 
 ModelFn = Callable[..., torch.Tensor]
 # The predictors of the main systems (and the steered top predictor), as ``eval_conditioning`` reads them.
@@ -400,48 +395,21 @@ def latent_statistics(cache: LatentCache, data: DataConfig, settings,
     return out, {level: torch.from_numpy(t) for level, t in templates.items()}
 
 
-def run_conditioning(cfg: PipelineConfig, run: StageRun, device: torch.device, out_path: Path) -> str:
-    """The stage body: every main predictor on the same val windows and draws, over ``evaluation.seeds``."""
-    ev, data, settings = cfg.evaluation, cfg.data, cfg.evaluation.conditioning
-    cache = open_cache(LATENT_SETS["compressed"].root)
-    first, second, keys = val_window_pairs(cache, data, settings)
-    latents, templates = latent_statistics(cache, data, settings, ev.seed)
-    record: dict[str, Any] = {"split": "val", "windows": len(keys), "clips": len(set(keys)), "draws": settings.draws,
-                              "seeds": list(ev.seeds), "threshold": settings.threshold,
-                              "bootstrap_reps": settings.bootstrap_reps, "variants": [], "baselines": [],
-                              "latents": latents}
-    reps, threshold = settings.bootstrap_reps, settings.threshold
-    for stage in MAIN_PREDICTORS:
-        predictor = load_predictor(predictor_file(stage), device)
-        per_seed = [evaluate_predictor(stage, predictor, first, second, keys, templates, data, settings,
-                                       seed, device) for seed in ev.seeds]
-        errors = mean_over_seeds([p[0] for p in per_seed])
-        if len(errors) > 1:
-            record["variants"] += effect_rows(stage, errors, "true", keys, threshold, reps, ev.seed,
-                                              [p[0] for p in per_seed])
-        ahead = {name: np.mean([p[1][name] for p in per_seed], axis=0) for name in per_seed[0][1]}
-        for horizon, seconds in (("0.5", 0.5), ("1", 1.0)):
-            record["baselines"] += baseline_rows(
-                stage, seconds, ahead[f"model_{horizon}"],
-                {"repeat_last": ahead[f"repeat_{horizon}"], "dataset_mean": ahead[f"mean_{horizon}"]},
-                keys, threshold, reps, ev.seed)
-        del predictor
-    write_json(out_path, record)
-    run.log_artifact(out_path)
-    run.log_metrics({f"{r['model']}_{r['metric']}_{r['variant']}_effect": r["effect"]
-                     for r in record["variants"] if r["verdict"] != "reference"})
-    run.log_metrics({f"{r['model']}_{r['baseline']}_{r['horizon_s']:g}s_effect": r["effect"]
-                     for r in record["baselines"]})
-    run.log_metrics({f"latents_{level}_{k}": latents[level][k] for level in KINDS
-                     for k in ("varying_share", "within_clip_share", "repeat_last_relative")})
-    run.log_metrics({f"ego_probe_{name}_r2": latents["ego_motion_probe"][name]["r2"] for name in ("speed", "yaw_rate")
-                     if np.isfinite(latents["ego_motion_probe"][name]["r2"])})
-    used = [f"{r['model']}/{r['variant']}" for r in record["variants"]
-            if r["metric"] == "one_step_mse" and r["verdict"] == "used"]
-    probe = latents["ego_motion_probe"]
-    return (f"{len(keys)} val windows from {record['clips']} clips x {settings.draws} draws x {len(ev.seeds)} seeds; "
-            f"inputs used (one-step mean): {', '.join(used) or 'none shown'}; ego-motion probe R^2 speed "
-            f"{probe['speed']['r2']:.2f}, yaw rate {probe['yaw_rate']['r2']:.2f}")
+def predictor_rows(stage: str, per_seed: list[tuple[dict, dict]], keys, threshold: float, reps: int,
+                   seed: int) -> tuple[list[dict], list[dict]]:
+    """One predictor's variant rows (when it has altered inputs) and baseline rows at 0.5 s and 1 s, from
+    :func:`evaluate_predictor`'s results for each of ``evaluation.seeds``, averaged over the seeds."""
+    errors = mean_over_seeds([p[0] for p in per_seed])
+    variants = (effect_rows(stage, errors, "true", keys, threshold, reps, seed, [p[0] for p in per_seed])
+                if len(errors) > 1 else [])
+    ahead = {name: np.mean([p[1][name] for p in per_seed], axis=0) for name in per_seed[0][1]}
+    baselines = []
+    for horizon, seconds in (("0.5", 0.5), ("1", 1.0)):
+        baselines += baseline_rows(
+            stage, seconds, ahead[f"model_{horizon}"],
+            {"repeat_last": ahead[f"repeat_{horizon}"], "dataset_mean": ahead[f"mean_{horizon}"]},
+            keys, threshold, reps, seed)
+    return variants, baselines
 
 
 # --------------------------------------------------------------------------- report rows

@@ -28,22 +28,17 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from orbis2.config import InverseDynamicsConfig, PipelineConfig
+from orbis2.config import InverseDynamicsConfig
 from orbis2.data.shards import Clip, iter_samples, shard_paths
 from orbis2.errors import OrbisError
 from orbis2.eval.odometry import integrate_controls
-from orbis2.io import atomic_dir, write_json
 from orbis2.latents import encode_frames
 from orbis2.models.inverse_dynamics import InverseDynamicsNet
 from orbis2.models.tokenizer import load_tokenizer
 from orbis2.registry import layout_path
-from orbis2.tracking import StageRun
 
-OUT = layout_path("inverse_dynamics")
-WEIGHTS = OUT / "model.pt"
-REPORT = layout_path("report", "inverse_dynamics")
-SHARDS = layout_path("shards")
-DETAIL_TOKENIZER = layout_path("tokenizer", "detail") / "tokenizer.pt"
+# Where the ``inverse_dynamics`` stage publishes the instrument (what ``evaluation.inverse_dynamics: learned`` loads).
+WEIGHTS = layout_path("inverse_dynamics") / "model.pt"
 
 
 @dataclass
@@ -63,8 +58,9 @@ def resize(frames: np.ndarray, scale: float) -> np.ndarray:
     return np.stack([cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in frames])
 
 
-def load_clips(split: str, scale: float, max_clips: int | None = None, shards: Path = SHARDS) -> ClipFrames:
-    """Every clip of ``split`` with odometry (at most ``max_clips``, evenly spread), frames resized by ``scale``."""
+def load_clips(shards: Path, split: str, scale: float, max_clips: int | None = None) -> ClipFrames:
+    """Every clip of ``split`` of the shards in ``shards`` with odometry (at most ``max_clips``, evenly spread),
+    frames resized by ``scale``."""
     clips = [Clip.from_sample(s, str(p)) for p in shard_paths(shards, split) for s in iter_samples(p)]
     clips = [c for c in clips if c.meta["has_odometry"]]
     if max_clips is not None and len(clips) > max_clips:
@@ -207,10 +203,12 @@ def evaluate_instrument(instrument: Instrument, data: ClipFrames, max_pairs: int
     return out
 
 
-def reconstruct(split: str, data: ClipFrames, scale: float, device: torch.device, chunk: int = 32) -> ClipFrames:
-    """The same clips through the detail tokenizer (encode, decode) at full resolution, then resized."""
-    tokenizer = load_tokenizer(DETAIL_TOKENIZER, device)
-    clips = {c.key: c for p in shard_paths(SHARDS, split) for s in iter_samples(p)
+def reconstruct(tokenizer_file: Path, shards: Path, split: str, data: ClipFrames, scale: float, device: torch.device,
+                chunk: int = 32) -> ClipFrames:
+    """The same clips (of ``split`` in ``shards``) through the tokenizer of ``tokenizer_file`` (encode, decode)
+    at full resolution, then resized."""
+    tokenizer = load_tokenizer(tokenizer_file, device)
+    clips = {c.key: c for p in shard_paths(shards, split) for s in iter_samples(p)
              for c in [Clip.from_sample(s, str(p))] if c.key in set(data.keys)}
     frames = []
     for key in data.keys:
@@ -222,28 +220,3 @@ def reconstruct(split: str, data: ClipFrames, scale: float, device: torch.device
                 parts.append(((image.clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8).permute(0, 2, 3, 1).cpu())
         frames.append(resize(torch.cat(parts).numpy(), scale))
     return ClipFrames(frames, data.odometry, data.keys)
-
-
-def run_inverse_dynamics(cfg: PipelineConfig, run: StageRun, device: torch.device) -> str:
-    """The stage body: train on train, score on val (real, reconstructed, shuffled), publish weights + report."""
-    ic, fps = cfg.inverse_dynamics, float(cfg.data.fps)
-    train = load_clips("train", ic.scale, ic.max_train_clips)
-    instrument = train_instrument(train, ic, fps, device,
-                                  log=lambda step, loss: run.log_metrics({"train_loss": loss}, step=step))
-    val = load_clips("val", ic.scale)
-    result = evaluate_instrument(instrument, val, ic.eval_pairs, ic.seed, reconstruct("val", val, ic.scale, device))
-    record = {"train_clips": len(train.keys), "train_pairs": len(pair_index(train)), "steps": ic.steps,
-              "fps": fps, "input": list(train.frames[0].shape[1:3]), "seed": ic.seed, "val": result}
-    with atomic_dir(OUT) as tmp:
-        instrument.save(tmp / WEIGHTS.name, record)
-    write_json(REPORT, record)
-    run.log_artifact(REPORT)
-    run.log_metrics({f"val_{kind}_{k}": v for kind in ("real", "reconstructed", "shuffled")
-                     for k, v in result[kind].items() if v is not None})
-
-    def pair(kind: str) -> str:
-        return " / ".join("undefined" if result[kind][k] is None else f"{result[kind][k]:.2f}"
-                          for k in ("speed_r2", "yaw_rate_r2"))
-
-    return (f"val R^2 speed / yaw rate: real {pair('real')}, reconstructed {pair('reconstructed')}, shuffled "
-            f"control {pair('shuffled')} ({result['pairs']} pairs; undefined: no variance in the val targets)")

@@ -29,8 +29,10 @@ the tokenizer latent, a frozen teacher, or an intermediate block of a predictor.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -39,7 +41,16 @@ import torch.nn.functional as F
 from torch import nn
 from tqdm import tqdm
 
-from orbis2.data.probes import IGNORE, NUM_CLASSES, ProbeFrame
+from orbis2.config import ProbeSettings
+from orbis2.data.probes import (
+    IGNORE,
+    NUM_CLASSES,
+    ProbeFrame,
+    cityscapes_frames,
+    kitti_eigen_frames,
+    split_by_episode,
+    town_probe_frames,
+)
 from orbis2.errors import OrbisError
 from orbis2.latents import to_model_input
 from orbis2.models.stdit import PredictorFile
@@ -306,6 +317,48 @@ def run_probe(feature_fn: FeatureFn, train_frames: Sequence[ProbeFrame], test_fr
     train_features = extract_features(feature_fn, train_frames, cfg.batch_size, "probe: train features")
     test_features = extract_features(feature_fn, test_frames, cfg.batch_size, "probe: test features")
     return probe_on_features(train_features, train_frames, test_features, test_frames, cfg)
+
+
+def probe_config(settings: ProbeSettings, device: str) -> ProbeConfig:
+    """The probe training settings of ``evaluation.probe`` (which also holds data sources and blocks)."""
+    shared = {f.name for f in dataclasses.fields(ProbeConfig)} & {f.name for f in dataclasses.fields(settings)}
+    return ProbeConfig(**{name: getattr(settings, name) for name in shared}, device=device)
+
+
+ProbeSet = tuple[str, list[ProbeFrame], list[ProbeFrame]]
+
+
+def probe_sets(settings: ProbeSettings, size: tuple[int, int], shards: Path) -> list[ProbeSet]:
+    """(name, train frames, test frames) per probe data source, frames at ``size`` (width, height).
+
+    The town's labelled ``probe`` split of ``shards`` (divided by episode) serves both
+    tasks unless Cityscapes and/or KITTI are configured, which then take over
+    segmentation and/or depth (paper appendix "Linear probing details").
+    """
+    ps, sets = settings, []
+    if ps.cityscapes is not None:
+        sets.append(("cityscapes", cityscapes_frames(ps.cityscapes, "train", size, ps.max_frames),
+                     cityscapes_frames(ps.cityscapes, "val", size, ps.max_frames)))
+    if ps.kitti is not None:
+        sets.append(("kitti eigen", kitti_eigen_frames(ps.kitti, ps.kitti_train_split, size, ps.kitti_depth,
+                                                       ps.max_frames),
+                     kitti_eigen_frames(ps.kitti, ps.kitti_test_split, size, ps.kitti_depth, ps.max_frames)))
+    if len(sets) < 2:
+        train, test = split_by_episode(town_probe_frames(shards, "probe", size), ps.test_fraction, ps.seed)
+        sets.append(("town probe split", train, test))
+    return sets
+
+
+def probe_all(feature_fn: FeatureFn, sets: list[ProbeSet], cfg: ProbeConfig) -> dict[str, Any]:
+    """Segmentation from the first source with semantics, depth from the first with depth."""
+    out: dict[str, Any] = {"segmentation": None, "depth": None, "data": {}}
+    for name, train, test in sets:
+        result = run_probe(feature_fn, train, test, cfg)
+        for task in ("segmentation", "depth"):
+            if out[task] is None and result[task] is not None:
+                out[task] = result[task]
+                out["data"][task] = name
+    return out
 
 
 # --------------------------------------------------------------------------- feature extractors

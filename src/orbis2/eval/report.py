@@ -22,6 +22,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
+from orbis2.config import PipelineConfig
 from orbis2.errors import OrbisError
 from orbis2.eval.conditioning import claim_verdict, conditioning_rows
 from orbis2.eval.stats import paired_draws_interval
@@ -567,6 +568,20 @@ def _write_tables(
     with atomic_file(out_dir / SUMMARY_MD) as tmp:
         tmp.write_text(summary)
     return written + [out_dir / SUMMARY_MD]
+
+
+def report_setup(cfg: PipelineConfig) -> dict[str, Any]:
+    """What the summary states about how the numbers were made."""
+    ev = cfg.evaluation
+    return {"profile": cfg.profile, "resolution": f"{cfg.data.width}x{cfg.data.height}",
+            "evaluation seed": ev.seed, "NFE (top / bottom)": f"{ev.top_nfe} / {ev.bottom_nfe}",
+            "FVD rollouts": f"{ev.seconds} s on {', '.join(ev.fvd_splits)}; chunked {ev.long_seconds} s on "
+                            f"{ev.long_split} in {ev.chunk_seconds} s chunks",
+            "starts per clip": ev.starts_per_clip, "steering": f"{ev.steering_seconds} s on {ev.steering_split}",
+            "probe": f"town probe split, {ev.probe.seg_epochs} / {ev.probe.depth_epochs} epochs, "
+                     f"seed {ev.probe.seed}",
+            "training seeds": {s: cfg.section(s).train.seed for s in ("abstract_df", "abstract_tf", "detail",
+                                                                       "action", "flat_detail", "flat_abstract")}}
 
 
 def write_main_report(

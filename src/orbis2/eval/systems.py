@@ -30,9 +30,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
-from orbis2.accel import Inference, compile_decoder, compile_predictor, inference_autocast
-from orbis2.config import DataConfig
+from orbis2.accel import Inference, compile_decoder, compile_predictor, inference_autocast, set_tf32
+from orbis2.config import DataConfig, EvaluationConfig
 from orbis2.errors import OrbisError
 from orbis2.latents import LATENT_SETS, LatentCache
 from orbis2.models.stdit import PredictorFile, load_predictor
@@ -223,3 +224,35 @@ def cache_latents(cache: LatentCache, split: str, level: str, samples: list[Samp
 def generated_indices(data: DataConfig, context_end: int, steps: int) -> np.ndarray:
     """Native indices of the frames a rollout generates, in order."""
     return np.array([i for step in rollout_schedule(data, context_end, steps) for i in step.detail_target])
+
+
+# --------------------------------------------------------------------------- rollouts
+
+
+def inference_settings(ev: EvaluationConfig) -> Inference:
+    """Rollout precision, KV cache and compilation from ``evaluation``; sets the TF32 policy on CUDA."""
+    if torch.cuda.is_available():
+        set_tf32(True)
+    return Inference(precision=ev.precision, compile=ev.compile, kv_cache=ev.kv_cache)
+
+
+def generate(system: LoadedSystem, cache: LatentCache, split: str, samples: list[Sample], steps: int,
+             data: DataConfig, ev: EvaluationConfig, device: torch.device, steering: torch.Tensor | None = None,
+             desc: str = "") -> torch.Tensor:
+    """Rollout latents [N, 5 * steps, ...] of ``samples``, in batches of ``evaluation.batch_size``, with noise
+    from one generator seeded by ``evaluation.seed``."""
+    gen = torch.Generator(device).manual_seed(ev.seed)
+    out = []
+    batches = range(0, len(samples), ev.batch_size)
+    for start in tqdm(batches, desc=desc or f"{system.name} {split}", unit="batch"):
+        part = samples[start:start + ev.batch_size]
+        contexts = contexts_for(system, cache, split, data, part, device)
+        steer = None if steering is None else steering[start:start + ev.batch_size].to(device)
+        out.append(system.rollout(contexts, steps, gen, ev.top_nfe, ev.bottom_nfe, steer).cpu())
+    return torch.cat(out)
+
+
+def sample_clusters(cache: LatentCache, split: str, samples: list[Sample]) -> list[str]:
+    """What a bootstrap resamples: each sample's episode (clips and starts of one episode are not independent)."""
+    index = cache.index(split)
+    return [str(index[s.key].get("episode", s.key)) for s in samples]

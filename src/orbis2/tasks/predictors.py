@@ -61,11 +61,9 @@ from orbis2.config import (
 from orbis2.errors import OrbisError
 from orbis2.flow import diffusion_forcing_loss, euler_sample, reflow_loss, teacher_forcing_loss
 from orbis2.io import sha256_file
-from orbis2.latents import LATENT_SETS, LatentCache, LatentWindowDataset, open_cache
+from orbis2.latents import LatentCache, LatentWindowDataset
 from orbis2.models.stdit import build_stdit, load_predictor, save_predictor
-from orbis2.registry import PredictorSpec, layout_path, registry
-from orbis2.stage import publish_training, training_dir
-from orbis2.tracking import StageRun
+from orbis2.registry import PredictorSpec, registry
 from orbis2.train import DataSpec, load_weights, train
 from orbis2.windows import window_indices, window_span
 
@@ -90,10 +88,6 @@ def rate_geometry(data: DataConfig, rate: str) -> tuple[int, int, int]:
     if rate == "slow":
         return data.abstract_hz, data.abstract_window, data.abstract_context
     return data.detail_hz, data.detail_window, data.detail_context
-
-
-def predictor_path(stage: str) -> Path:
-    return layout_path("predictor", stage) / "predictor.pt"
 
 
 # --------------------------------------------------------------------------- conditioning
@@ -362,25 +356,29 @@ def tokenizer_checksums(detail: Path, abstract: Path) -> tuple[str, str]:
     return sha256_file(detail), sha256_file(abstract)
 
 
-def load_init_state(stage: str, source: str, cache: LatentCache) -> dict[str, torch.Tensor]:
-    """The weights of the published predictor of stage ``source``, refusing one trained on other latents."""
-    loaded = load_predictor(predictor_path(source))
+def load_init_state(stage: str, source: str, path: Path, cache: LatentCache) -> dict[str, torch.Tensor]:
+    """The weights of ``path``, the published predictor of stage ``source``, refusing one trained on other latents."""
+    loaded = load_predictor(path)
     for kind in ("detail", "abstract"):
         theirs = loaded.meta["tokenizers"][kind]["checksum"]
         if theirs != cache.meta["tokenizers"][kind]["checksum"]:
-            raise OrbisError(f"{predictor_path(source)} was trained on latents of another {kind} tokenizer; "
+            raise OrbisError(f"{path} was trained on latents of another {kind} tokenizer; "
                              f"re-run `{source}` before `{stage}`")
     return loaded.model.state_dict()
 
 
-def train_predictor(stage: str, cfg: PipelineConfig, cache: LatentCache, out_dir: Path,
-                    logger: Any = None) -> dict[str, float]:
+def train_predictor(stage: str, cfg: PipelineConfig, cache: LatentCache, out_dir: Path, logger: Any = None,
+                    init_file: Path | None = None) -> dict[str, float]:
     """A predictor stage: train (resuming), then measure the final val loss and write ``predictor.pt``.
 
+    ``init_file`` is the published predictor of the stage's ``init_from`` (required when it
+    has one); ``logger`` receives the training metrics (``log_metrics(metrics, step)``).
     Returns the final metrics on rank 0 and ``{}`` on other ranks (under torchrun).
     """
     pc: PredictorConfig = cfg.section(stage)
-    init_state = None if pc.init_from is None else load_init_state(stage, pc.init_from, cache)
+    if (pc.init_from is None) != (init_file is None):
+        raise ValueError(f"{stage}: init_from is {pc.init_from!r} but init_file is {init_file}")
+    init_state = None if init_file is None else load_init_state(stage, pc.init_from, init_file, cache)
     task = PredictorTask(stage, pc, cfg.data, cache, init_state)
     result = train(task, pc.train, Path(out_dir), logger)
     if task.rank != 0:
@@ -423,40 +421,3 @@ def predictor_meta(stage: str, cfg: PipelineConfig, cache: LatentCache, metrics:
                             "steps": interval.stop - interval.start,
                             "interval": "native odometry rows from the last context frame up to the predicted one"}
     return meta
-
-
-def stage_sections(stage: str) -> list[str]:
-    """The params.yaml sections a predictor stage reads."""
-    return ["data", stage]
-
-
-def run_stage(stage: str, cfg: PipelineConfig, run: StageRun) -> str:
-    """The body of ``stages/<stage>.py``: train in data/runs/, publish predictor.pt and reports/<stage>.json.
-
-    The run folder is keyed by the params, the code and the upstream files (the
-    latent cache's meta, which names the tokenizers and shards, and the ``init_from``
-    predictor): a retrained upstream starts a fresh run instead of resuming one
-    that trained on other inputs.
-    """
-    latents = LATENT_SETS[STAGES[stage].latents]
-    cache = open_cache(latents.root, *tokenizer_checksums(latents.tokenizers["detail"], latents.tokenizers["abstract"]))
-    init_from = cfg.section(stage).init_from
-    inputs = {"latents": latents.root / "meta.json"}
-    if init_from is not None:
-        source = predictor_path(init_from)
-        if not source.is_file():
-            raise OrbisError(f"{source}: not found; `{stage}` starts from it (init_from), run `{init_from}` first")
-        inputs[init_from] = source
-    pc = cfg.section(stage)
-    work = training_dir(stage, cfg, stage_sections(stage), inputs)
-    metrics = train_predictor(stage, cfg, cache, work, run)
-    if not metrics:
-        return "training rank done; rank 0 writes the outputs"
-    run.log_metrics(metrics, step=int(metrics["steps"]))
-    out = predictor_path(stage)
-    publish_training(work, out.parent, [out.name], layout_path("report", stage), metrics, run)
-    few = (f"; {pc.student_nfe}-step MSE to the teacher's {pc.teacher_nfe}-step sample "
-           f"{metrics['few_step_mse_student']:.4f} (teacher's own {metrics['few_step_mse_teacher']:.4f})"
-           if "few_step_mse_student" in metrics else "")
-    return (f"{metrics['steps']} steps, {metrics['parameters'] / 1e6:.2f}M parameters, val loss "
-            f"{metrics['val_loss']:.4f} (at initialisation {metrics['val_loss_init']:.4f}){few} -> {out}")

@@ -1,0 +1,124 @@
+"""Counterfactual steering, scored (paper Table 2, appendix "Counterfactual steering"; the ``eval_steering`` stage).
+
+Rollouts of the hierarchical model with the steered top predictor run under each
+mode's scaling of the clip's own speed and yaw rate (:func:`steering_inputs`).
+Each video's trajectory is recovered by an inverse-dynamics instrument
+(:mod:`orbis2.eval.odometry`) and compared with the commanded one: ADE in metres
+after least-squares scale alignment (:func:`score_videos`). Scale-free responses,
+paired per start (:func:`steering_responses`): the recovered turn (end-point
+angle, the clip's own turn direction positive) under yaw rate x1.5 minus under
+x0.5, and the path-length ratio (before alignment) under speed x1.5 over x0.5 (3
+if the video follows). Every figure has a clip-bootstrap interval. Sanity
+(:func:`odometry_sanity`): each instrument on the real videos of those spans, in
+order and with shuffled frames.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from orbis2.config import DataConfig
+from orbis2.data.shards import Clip
+from orbis2.eval.odometry import endpoint_angle, path_length, trajectory_ade
+from orbis2.eval.report import save_steering_strip
+from orbis2.eval.stats import mean_interval, paired_difference
+from orbis2.eval.systems import Sample
+from orbis2.rollout import rollout_schedule, steering_sequences
+
+# Times (s) of the frames shown in the steering strip (those the rollout reaches).
+STRIP_TIMES = (0.0, 2.0, 4.0, 6.0)
+
+
+def steering_inputs(samples: list[Sample], odometry: np.ndarray, data: DataConfig, steps: int, speed_scale: float,
+                    yaw_scale: float, scale: Sequence[float]) -> tuple[list[tuple[np.ndarray, np.ndarray]],
+                                                                      torch.Tensor]:
+    """One mode's commands: per sample the scaled (speed, yaw rate) from its last context frame on, and the
+    steering input [N, steps, ...] of the steered predictor (``scale``: its speed and yaw-rate normalisers)."""
+    speed_norm, yaw_norm = scale
+    controls, steering = [], []
+    for s in samples:
+        rows = odometry[s.offset: s.offset + s.context_end + steps * 5 + 1].astype(np.float64)
+        speed, yaw = rows[:, 0] * speed_scale, rows[:, 1] * yaw_scale
+        schedule = rollout_schedule(data, s.context_end, steps)
+        steering.append(steering_sequences(schedule, speed, yaw, speed_norm, yaw_norm))
+        controls.append((speed[s.context_end:], yaw[s.context_end:]))
+    return controls, torch.stack(steering)
+
+
+def score_videos(videos: np.ndarray, controls: list, inverse, K: np.ndarray, fps: float) -> dict[str, np.ndarray]:
+    """Per video: aligned ADE, signed turn (clip's own direction positive, degrees) and unaligned path length."""
+    scored = [trajectory_ade(v, sp, yw, fps, K, inverse) for v, (sp, yw) in zip(videos, controls)]
+    sign = np.array([np.sign(endpoint_angle(r["reference"])) or 1.0 for r in scored])
+    return {"ade": np.array([r["ade"] for r in scored]),
+            "turn_deg": sign * np.array([endpoint_angle(r["estimated"]) for r in scored]),
+            "commanded_turn_deg": sign * np.array([endpoint_angle(r["reference"]) for r in scored]),
+            "path_length": np.array([path_length(r["estimated"]) for r in scored])}
+
+
+def mode_record(scores: dict[str, dict[str, np.ndarray]], clusters: list[str], speed_scale: float, yaw_scale: float,
+                seed: int) -> dict[str, Any]:
+    """One mode's figures per instrument with clip-bootstrap intervals; the first instrument's on top."""
+    per = {}
+    for name, sc in scores.items():
+        ade_iv, turn_iv = mean_interval(sc["ade"], clusters, seed=seed), mean_interval(sc["turn_deg"], clusters,
+                                                                                       seed=seed)
+        per[name] = {"ade": ade_iv.estimate, "ade_low": ade_iv.low, "ade_high": ade_iv.high,
+                     "turn_deg": turn_iv.estimate, "turn_low": turn_iv.low, "turn_high": turn_iv.high,
+                     "path_length": float(sc["path_length"].mean())}
+    main = next(iter(scores))
+    return {**per[main], "samples": len(clusters), "speed_scale": speed_scale, "yaw_rate_scale": yaw_scale,
+            "commanded_turn_deg": float(scores[main]["commanded_turn_deg"].mean()), "instruments": per}
+
+
+def steering_responses(per_sample: dict, name: str, clusters: list[str], seed: int) -> dict[str, Any]:
+    """Scale-free, paired per start: turn(x1.5) - turn(x0.5) in degrees, and path length(x1.5) / (x0.5)."""
+    out: dict[str, Any] = {}
+    yaw = ("yaw_rate_x0.5", "yaw_rate_x1.5")
+    if all(m in per_sample for m in yaw):
+        lo, hi = (per_sample[m][name] for m in yaw)
+        iv = paired_difference(hi["turn_deg"], lo["turn_deg"], clusters, seed=seed)
+        out["turn_response_deg"] = iv.to_dict()
+        cmd = float((hi["commanded_turn_deg"] - lo["commanded_turn_deg"]).mean())
+        out["commanded_turn_response_deg"] = cmd
+        out["turn_by_mode_deg"] = {m: float(per_sample[m][name]["turn_deg"].mean())
+                                   for m in ("yaw_rate_x0.5", "original", "yaw_rate_x1.5") if m in per_sample}
+    speed = ("speed_x0.5", "speed_x1.5")
+    if all(m in per_sample for m in speed):
+        lo, hi = (per_sample[m][name]["path_length"] for m in speed)
+        ratio = np.log(np.maximum(hi, 1e-9) / np.maximum(lo, 1e-9))
+        iv = mean_interval(ratio, clusters, seed=seed)
+        out["path_ratio"] = {"estimate": float(np.exp(iv.estimate)), "low": float(np.exp(iv.low)),
+                             "high": float(np.exp(iv.high)), "commanded": 3.0, "clusters": iv.clusters,
+                             "note": "geometric mean of path length under speed x1.5 over x0.5, before alignment"}
+    return out
+
+
+def odometry_sanity(clips: dict[str, Clip], samples: list[Sample], indices: list[np.ndarray], odometry: np.ndarray,
+                    K, inverse, data: DataConfig, clusters: list[str], seed: int) -> dict[str, Any]:
+    """An instrument on the real videos of the evaluated spans, in order and with a fixed frame shuffle."""
+    rng = np.random.default_rng(0)
+    real, shuffled = [], []
+    for s, idx in zip(samples, indices):
+        span = np.concatenate([[s.context_end], idx])
+        video = clips[s.key].frames(span)
+        rows = odometry[s.offset + s.context_end: s.offset + span[-1]].astype(np.float64)
+        real.append(trajectory_ade(video, rows[:, 0], rows[:, 1], data.detail_hz, K, inverse)["ade"])
+        order = rng.permutation(len(video))
+        shuffled.append(trajectory_ade(video[order], rows[:, 0], rows[:, 1], data.detail_hz, K, inverse)["ade"])
+    real_iv, shuffled_iv = mean_interval(real, clusters, seed=seed), mean_interval(shuffled, clusters, seed=seed)
+    return {"real_ade": real_iv.estimate, "real_low": real_iv.low, "real_high": real_iv.high,
+            "shuffled_ade": shuffled_iv.estimate, "shuffled_low": shuffled_iv.low,
+            "shuffled_high": shuffled_iv.high, "videos": len(samples)}
+
+
+def save_strip(strip: dict[str, tuple[np.ndarray, np.ndarray]], fps: float, path: Path) -> None:
+    """The steering strip: per mode (rows) the first video's frames at ``STRIP_TIMES`` and its commanded path."""
+    frames = next(iter(strip.values()))[0]
+    times = [t for t in STRIP_TIMES if round(t * fps) < len(frames)]
+    picks = [round(t * fps) for t in times]
+    save_steering_strip([v[picks] for v, _ in strip.values()], list(strip), times,
+                        [path_ for _, path_ in strip.values()], path)
