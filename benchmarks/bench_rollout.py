@@ -35,7 +35,7 @@ from pathlib import Path
 import torch
 
 from orbis2.accel import compile_decoder, compile_predictor, inference_autocast, set_tf32
-from orbis2.models.stdit import STDIT_PRESETS, build_stdit
+from orbis2.models.stdit import STDIT_PRESETS, build_stdit, stdit_config
 from orbis2.models.tokenizer import TOKENIZER_PRESETS, build_detail_tokenizer
 from orbis2.rollout import cascaded_rollout, flat_rollout
 
@@ -60,15 +60,15 @@ def flat_baseline(preset: str) -> torch.nn.Module:
     (widths in steps of 8 per head, so flash attention applies: 1,152M against 1,069M at the paper preset)."""
     with torch.device("meta"):  # sizes only, nothing allocated
         target = sum(n_params(m) for m in hierarchy(preset))
-        step = 8 * STDIT_PRESETS[preset]["num_heads"]  # head size a multiple of 8: flash attention applies
-        widths = range(step, 8 * STDIT_PRESETS[preset]["hidden_size"], step)
-        size = lambda w: n_params(build_stdit(preset, LATENT_CHANNELS, False, hidden_size=w))  # noqa: E731
+        step = 8 * STDIT_PRESETS[preset].num_heads  # head size a multiple of 8: flash attention applies
+        widths = range(step, 8 * STDIT_PRESETS[preset].hidden_size, step)
+        size = lambda w: n_params(build_stdit(stdit_config(preset, hidden_size=w), LATENT_CHANNELS, False))  # noqa: E731
         lo, hi = 0, len(widths) - 1  # the count grows with the width: bisect to the first one >= target
         while lo < hi:
             mid = (lo + hi) // 2
             lo, hi = (mid + 1, hi) if size(widths[mid]) < target else (lo, mid)
         width = min(widths[max(lo - 1, 0)], widths[lo], key=lambda w: abs(size(w) - target))
-    return build_stdit(preset, LATENT_CHANNELS, causal=False, hidden_size=width)
+    return build_stdit(stdit_config(preset, hidden_size=width), LATENT_CHANNELS, causal=False)
 
 
 def decoder(preset: str) -> torch.nn.Module:

@@ -162,8 +162,8 @@ def sdpa_backends(device: torch.device, preset: str) -> dict[str, bool]:
     if device.type != "cuda":
         return {}
     cfg = STDIT_PRESETS[preset]
-    head = cfg["hidden_size"] // cfg["num_heads"]
-    q = torch.randn(2, cfg["num_heads"], 64, head, device=device, dtype=torch.bfloat16)
+    head = cfg.hidden_size // cfg.num_heads
+    q = torch.randn(2, cfg.num_heads, 64, head, device=device, dtype=torch.bfloat16)
     out = {}
     for name, backend in (("flash", SDPBackend.FLASH_ATTENTION), ("efficient", SDPBackend.EFFICIENT_ATTENTION)):
         try:

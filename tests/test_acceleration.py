@@ -6,13 +6,13 @@ import pytest
 import torch
 
 from orbis2.flow import euler_sample
-from orbis2.models.stdit import build_stdit
+from orbis2.models.stdit import build_stdit, stdit_config
 from orbis2.rollout import cascaded_rollout, flat_rollout, sample_frames
 
 
 def _abstract(steering: bool = False, **overrides) -> torch.nn.Module:
     torch.manual_seed(0)
-    model = build_stdit("smoke", latent_channels=4, causal=True, steering=steering, **overrides)
+    model = build_stdit(stdit_config("smoke", **overrides), latent_channels=4, causal=True, steering=steering)
     with torch.no_grad():  # a fresh model outputs zeros (adaLN-Zero): give every path non-zero weights
         for p in model.parameters():
             p.add_(0.05 * torch.randn_like(p))

@@ -42,6 +42,14 @@ def test_profile_key_selects_values(tmp_path):
     (lambda r: r.update(profile="huge"), "profile = 'huge' must be one of"),
     (lambda r: r.update(extra={}), "unknown top-level key(s) ['extra']"),
     (lambda r: r["data"].update(large={}), "data: unknown key(s) ['large']"),
+    (lambda r: r["detail"]["smoke"].update(preset="huge"), "detail.smoke.preset = 'huge' must be one of"),
+    (lambda r: r["tokenizer_detail"]["smoke"].update(preset="huge"), "tokenizer_detail.smoke.preset = 'huge' must be"),
+    (lambda r: r["detail"]["smoke"].update(model={"hiden_size": 64}),
+     "detail.smoke.model: ST-DiT: unknown key 'hiden_size' (known: cond_dim, depth, hidden_size,"),
+    (lambda r: r["detail"]["smoke"].update(model={"depth": 2.5}),
+     "detail.smoke.model: ST-DiT: depth must be int, got 2.5"),
+    (lambda r: r["detail"]["smoke"].update(model={"num_heads": 3}),
+     "detail.smoke.model: ST-DiT: hidden_size = 64 is not divisible by num_heads = 3"),
 ])
 def test_bad_values_name_the_key(tmp_path, mutate, key):
     def apply(raw):

@@ -8,7 +8,7 @@ import dataclasses
 import torch
 
 from orbis2.flow import euler_sample, reflow_loss
-from orbis2.models.stdit import build_stdit
+from orbis2.models.stdit import build_stdit, stdit_config
 
 TEACHER_NFE, FEW = 6, 1
 GRID = (2, 3)
@@ -16,8 +16,8 @@ GRID = (2, 3)
 
 def _teacher() -> torch.nn.Module:
     torch.manual_seed(0)
-    model = build_stdit("smoke", latent_channels=4, causal=False, abstract_channels=4, depth=1, hidden_size=32,
-                        cond_dim=16)
+    model = build_stdit(stdit_config("smoke", depth=1, hidden_size=32, cond_dim=16), latent_channels=4, causal=False,
+                        abstract_channels=4)
     with torch.no_grad():  # a curved velocity field: few Euler steps of it miss the many-step sample
         for p in model.parameters():
             p.add_(0.2 * torch.randn_like(p))

@@ -8,7 +8,7 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from orbis2.accel import compile_predictor, inference_autocast, set_tf32
 from orbis2.flow import teacher_forcing_loss
-from orbis2.models.stdit import build_stdit
+from orbis2.models.stdit import build_stdit, stdit_config
 from orbis2.rollout import cascaded_rollout
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
@@ -59,14 +59,14 @@ def test_compiled_rollout_matches_eager():
 def test_attention_runs_on_flash_or_efficient_kernels(preset):
     """With the math fallback excluded, every attention call of a bf16 forward/backward must still run."""
     cfg_grid = (18, 32) if preset == "paper" else (9, 16)
-    model = build_stdit(preset, 16, causal=False, abstract_channels=16, depth=1).to(DEVICE).train()
+    model = build_stdit(stdit_config(preset, depth=1), 16, causal=False, abstract_channels=16).to(DEVICE).train()
     x = torch.randn(1, 10, 16, *cfg_grid, device=DEVICE)
     mask = torch.zeros(1, 10, dtype=torch.bool, device=DEVICE)
     mask[:, [4, 9]] = True
     with sdpa_kernel(FAST_KERNELS), torch.autocast("cuda", dtype=torch.bfloat16):
         out = model(x, torch.rand(1, 10, device=DEVICE), 10.0, cond_frames=x, cond_mask=mask)
     out.float().pow(2).mean().backward()
-    causal = build_stdit(preset, 16, causal=True, depth=1).to(DEVICE).eval()
+    causal = build_stdit(stdit_config(preset, depth=1), 16, causal=True).to(DEVICE).eval()
     with sdpa_kernel(FAST_KERNELS), torch.autocast("cuda", dtype=torch.bfloat16), torch.no_grad():
         cache = causal.build_kv_cache(x[:, :5], 1, 2.0)
         causal.forward_cached(x[:, 5:6], torch.rand(1, 1, device=DEVICE), cache, 2.0)

@@ -38,7 +38,7 @@ from orbis2.eval.probe import (
     teacher_features,
     tokenizer_features,
 )
-from orbis2.models.stdit import build_stdit, load_predictor, save_predictor
+from orbis2.models.stdit import build_stdit_from, load_predictor, save_predictor
 from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer, load_tokenizer, save_tokenizer
 
 from conftest import moving_pattern
@@ -268,7 +268,7 @@ def models(tmp_path_factory):
               "detail": {"preset": "smoke", "latent_channels": 16, "causal": False, "abstract_channels": 16}}
     predictors = {}
     for level, build in builds.items():
-        model = build_stdit(**build)
+        model = build_stdit_from(build)
         for block in model.blocks:
             torch.nn.init.normal_(block.adaLN_modulation[-1].weight, std=0.05)
         meta = {"level": level, "frame_rate": 2.0 if level == "abstract" else 10.0, "window": windows[level],

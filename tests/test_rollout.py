@@ -13,7 +13,7 @@ from PIL import Image
 from orbis2.cli import main
 from orbis2.config import DataConfig
 from orbis2.data.video import read_video
-from orbis2.models.stdit import build_stdit, save_predictor
+from orbis2.models.stdit import build_stdit, build_stdit_from, save_predictor
 from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer, save_tokenizer
 from orbis2.rollout import cascaded_rollout, first_context_end, flat_rollout, rollout_schedule, steering_sequences
 
@@ -181,8 +181,8 @@ def checkpoints(tmp_path_factory):
                    3.45, {"preset": "smoke", "teacher_dim": 32, "compress": True})
     abstract_build = {"preset": "smoke", "latent_channels": 16, "causal": True, "steering": True}
     detail_build = {"preset": "smoke", "latent_channels": 16, "causal": False, "abstract_channels": 16}
-    save_predictor(paths["abstract"], build_stdit(**abstract_build), abstract_build, {})
-    save_predictor(paths["detail"], build_stdit(**detail_build), detail_build, {})
+    save_predictor(paths["abstract"], build_stdit_from(abstract_build), abstract_build, {})
+    save_predictor(paths["detail"], build_stdit_from(detail_build), detail_build, {})
     return paths
 
 
@@ -233,7 +233,7 @@ def test_cli_rejects_missing_and_mismatched_checkpoints(make_video, tmp_path, ch
                    str(missing), "not found")
     other = tmp_path / "other.pt"
     build = {"preset": "smoke", "latent_channels": 16, "causal": False, "abstract_channels": 16}
-    save_predictor(other, build_stdit(**build), build, {"tokenizers": {"detail": {"checksum": "0" * 64}}})
+    save_predictor(other, build_stdit_from(build), build, {"tokenizers": {"detail": {"checksum": "0" * 64}}})
     _expect_exit_2(_args(video, tmp_path / "o.mp4", checkpoints) + ["--detail-predictor", str(other)], capsys,
                    str(other), "--detail-tokenizer")
 

@@ -8,7 +8,18 @@ import pytest
 import torch
 
 from orbis2.flow import teacher_forcing_loss
-from orbis2.models.stdit import STDIT_PRESETS, SteeringEmbedder, build_stdit, patchify, stdit_config, unpatchify
+from orbis2.models.stdit import (
+    STDIT_PRESETS,
+    STDiTConfig,
+    SteeringEmbedder,
+    build_stdit,
+    build_stdit_from,
+    load_predictor,
+    patchify,
+    save_predictor,
+    stdit_config,
+    unpatchify,
+)
 
 C, H, W = 4, 3, 5  # latent channels and a small latent grid for the fast tests
 
@@ -168,7 +179,7 @@ def test_preset_shapes_and_probe_features(preset):
     torch.manual_seed(0)
     abstract = build_stdit(preset, 16, causal=True, steering=True)
     detail = build_stdit(preset, 16, causal=False, abstract_channels=16)
-    d, depth = STDIT_PRESETS[preset]["hidden_size"], STDIT_PRESETS[preset]["depth"]
+    d, depth = STDIT_PRESETS[preset].hidden_size, STDIT_PRESETS[preset].depth
     with torch.no_grad():
         x = latents(1, 6, 1, 16, 9, 16)
         assert abstract(x, torch.rand(1, 6), frame_rate=2.0, steering=torch.randn(1, 5, 2)).shape == x.shape
@@ -190,7 +201,7 @@ def test_patches_and_probe_features_keep_the_grid_layout():
     assert tokens.shape == (2, 3, 12, 16) and torch.equal(unpatchify(tokens, 2, 4, 6, 8), x)
     assert torch.equal(tokens[0, 0, 1, :4], x[0, 0, :, 0, 2])  # token 1 = patch row 0, column 1
     torch.manual_seed(0)
-    model = randomized(build_stdit("smoke", 4, causal=True, patch_size=2)).eval()
+    model = randomized(build_stdit(stdit_config("smoke", patch_size=2), 4, causal=True)).eval()
     seen = []
     model.final_layer.register_forward_hook(lambda module, args, out: seen.append(args[0]))
     tau = torch.rand(2, 3)
@@ -211,11 +222,32 @@ def test_paper_preset_parameter_counts():
 
 
 def test_preset_overrides_are_checked():
-    assert stdit_config("smoke", depth=3)["depth"] == 3
-    with pytest.raises(KeyError, match="unknown ST-DiT setting"):
+    cfg = stdit_config("smoke", depth=3, mlp_ratio=2)
+    assert (cfg.depth, cfg.mlp_ratio, cfg.hidden_size) == (3, 2.0, STDIT_PRESETS["smoke"].hidden_size)
+    assert isinstance(cfg.mlp_ratio, float) and STDIT_PRESETS["smoke"].depth == 2  # a copy; presets stay
+    with pytest.raises(ValueError, match=r"ST-DiT: unknown key 'hiden_size' \(known: cond_dim, depth, "):
         stdit_config("smoke", hiden_size=3)
-    with pytest.raises(KeyError, match="unknown ST-DiT preset"):
+    with pytest.raises(ValueError, match=r"ST-DiT: depth must be int, got 2.5 \(float\)"):
+        stdit_config("smoke", depth=2.5)
+    with pytest.raises(ValueError, match="ST-DiT: hidden_size must be int, got True"):
+        STDIT_PRESETS["smoke"].with_overrides(hidden_size=True)
+    with pytest.raises(ValueError, match="ST-DiT: hidden_size = 66 is not divisible by num_heads = 4"):
+        stdit_config("smoke", hidden_size=66, num_heads=4)
+    with pytest.raises(ValueError, match="ST-DiT: depth = 0 must be positive"):
+        STDiTConfig(hidden_size=64, depth=0, num_heads=2, cond_dim=32)
+    with pytest.raises(ValueError, match="ST-DiT: unknown preset 'huge'"):
         build_stdit("huge", 16, causal=True)
+
+
+def test_predictor_file_build_dicts_rebuild_the_sized_network(tmp_path):
+    """A file's ``build`` holds the preset, its overrides and the wiring; loading rebuilds the same network."""
+    build = {"preset": "smoke", "latent_channels": 4, "causal": False, "abstract_channels": 4, "steering": False,
+             "hidden_size": 32, "cond_dim": 16}
+    model = build_stdit_from(build)
+    assert (model.hidden_size, len(model.blocks)) == (32, 2)
+    save_predictor(tmp_path / "p.pt", model, build, {})
+    loaded = load_predictor(tmp_path / "p.pt")
+    assert loaded.build == build and loaded.model.state_dict().keys() == model.state_dict().keys()
 
 
 def test_smoke_model_overfits_a_fixed_batch_with_teacher_forcing():

@@ -122,8 +122,8 @@ def test_bypass_probability_is_respected_per_sample():
 @pytest.mark.parametrize("preset", ["smoke", "default", "paper"])
 def test_shapes_at_every_preset(preset):
     cfg = TOKENIZER_PRESETS[preset]
-    height, width = cfg["image_size"]
-    grid = (height // cfg["patch_size"], width // cfg["patch_size"])
+    height, width = cfg.image_size
+    grid = (height // cfg.patch_size, width // cfg.patch_size)
     device = torch.device("meta") if preset == "paper" else torch.device("cpu")
     with device:
         detail = build_detail_tokenizer(preset).eval()
@@ -134,7 +134,7 @@ def test_shapes_at_every_preset(preset):
     assert grid == (9, 16) if preset != "paper" else grid == (18, 32)
 
     with torch.no_grad():
-        assert detail.encoder(images).shape == (2, cfg["embed_dim"], *grid)
+        assert detail.encoder(images).shape == (2, cfg.embed_dim, *grid)
         z = detail.encode(images)
         assert z.shape == (2, 16, *grid)
         recon, vq = detail(images)
@@ -167,13 +167,21 @@ def test_paper_preset_parameter_counts():
 
 
 def test_overrides_are_checked():
-    assert tokenizer_config("smoke", codebook_size=64)["codebook_size"] == 64
-    with pytest.raises(KeyError):
+    cfg = tokenizer_config("smoke", codebook_size=64, decoder_mult=[1, 2, 2, 4])
+    assert cfg.codebook_size == 64 and cfg.decoder_mult == (1, 2, 2, 4)  # a list from YAML becomes a tuple
+    assert build_detail_tokenizer(cfg).quantizer.codebook.shape == (64, 16)
+    with pytest.raises(ValueError, match="tokenizer: unknown key 'codebook_sise' \\(known: "):
         tokenizer_config("smoke", codebook_sise=64)
-    with pytest.raises(KeyError):
+    with pytest.raises(ValueError, match="tokenizer: image_size must be tuple\\[int, int\\], got \\(72, 128, 3\\)"):
+        tokenizer_config("smoke", image_size=(72, 128, 3))
+    with pytest.raises(ValueError, match="tokenizer: disc_norm must be str, got 1"):
+        tokenizer_config("smoke", disc_norm=1)
+    with pytest.raises(ValueError, match="unknown preset 'huge'"):
         build_detail_tokenizer("huge")
-    with pytest.raises(ValueError, match="upsamples"):
-        build_detail_tokenizer("smoke", decoder_mult=(1, 2))
+    with pytest.raises(ValueError, match="decoder_mult: the decoder upsamples x2 but the patch size is 8"):
+        tokenizer_config("smoke", decoder_mult=(1, 2))
+    with pytest.raises(ValueError, match=r"image_size = \(72, 120\) is not divisible by patch_size = 16"):
+        tokenizer_config("smoke", image_size=(72, 120), patch_size=16)
 
 
 def test_load_mae_encoder_maps_official_keys(tmp_path):
@@ -207,7 +215,7 @@ def test_load_mae_encoder_maps_official_keys(tmp_path):
 def test_smoke_detail_tokenizer_overfits_a_fixed_batch():
     torch.manual_seed(0)
     tokenizer = build_detail_tokenizer("smoke")
-    height, width = TOKENIZER_PRESETS["smoke"]["image_size"]
+    height, width = TOKENIZER_PRESETS["smoke"].image_size
     images = structured_images(2, height, width)
     optimiser = torch.optim.Adam(tokenizer.parameters(), lr=2e-3, betas=(0.5, 0.9))
 
@@ -231,7 +239,7 @@ def test_smoke_detail_tokenizer_overfits_a_fixed_batch():
 def test_teacher_alignment_falls_for_abstract_tokenizer():
     torch.manual_seed(0)
     tokenizer = build_abstract_tokenizer("smoke", teacher_dim=32)
-    height, width = TOKENIZER_PRESETS["smoke"]["image_size"]
+    height, width = TOKENIZER_PRESETS["smoke"].image_size
     images = structured_images(2, height, width)
     # A fixed random low-rank "teacher" on a grid unlike ours (resized inside the loss).
     gen = torch.Generator().manual_seed(1)
@@ -255,7 +263,7 @@ def test_adaptive_gan_weight_is_finite_and_positive():
     torch.manual_seed(0)
     tokenizer = build_detail_tokenizer("smoke")
     disc = build_discriminator("smoke")
-    height, width = TOKENIZER_PRESETS["smoke"]["image_size"]
+    height, width = TOKENIZER_PRESETS["smoke"].image_size
     images = structured_images(2, height, width)
     recon, _ = tokenizer(images)
     weight = adaptive_gan_weight(

@@ -160,7 +160,6 @@ class ShardsConfig:
 
 
 ASSET_NAMES = ("i3d_kinetics400", "inception_v3", "dinov2_vitb14")
-TOKENIZER_PRESETS = ("smoke", "default", "paper")
 
 
 # The assets stage's output as the DAG (Snakefile, dvc.yaml) declares it; a test keeps them equal.
@@ -255,19 +254,16 @@ class LatentsConfig:
         _positive(self, where, "batch_size")
 
 
-STDIT_PRESET_NAMES = ("smoke", "default", "paper")
-
-
 @dataclass(frozen=True)
 class PredictorConfig:
     """A predictor training stage (paper Sec. 3.3-3.4): network size, optimisation, data and validation.
 
-    ``model`` overrides the ST-DiT preset (e.g. a narrower ``hidden_size`` for a
-    CPU budget). ``init_from`` names the predictor stage whose weights start this
-    one, or null for a fresh network: the training-strategy ablation (TF only,
-    DF only, DF+TF; paper Table "df_tf") is this parameter, not another script.
-    ``val_batches`` batches of the val split, with fixed noise, give the
-    validation loss. EMA is ``train.ema_decay``.
+    ``model`` overrides fields of the ST-DiT preset (a typed ``STDiTConfig``, e.g. a
+    narrower ``hidden_size`` for a CPU budget). ``init_from`` names the predictor
+    stage whose weights start this one, or null for a fresh network: the
+    training-strategy ablation (TF only, DF only, DF+TF; paper Table "df_tf") is
+    this parameter, not another script. ``val_batches`` batches of the val split,
+    with fixed noise, give the validation loss. EMA is ``train.ema_decay``.
     """
 
     preset: str
@@ -280,14 +276,9 @@ class PredictorConfig:
     INIT_SOURCES: typing.ClassVar[tuple[str, ...]] = ()
 
     def validate(self, where: str) -> None:
-        from orbis2.models.stdit import stdit_config
+        from orbis2.models.stdit import STDIT_PRESETS
 
-        if self.preset not in STDIT_PRESET_NAMES:
-            raise ConfigError(f"{where}.preset = {self.preset!r} must be one of {list(STDIT_PRESET_NAMES)}")
-        try:
-            stdit_config(self.preset, **self.model)
-        except KeyError as err:
-            raise ConfigError(f"{where}.model: {err.args[0]}") from err
+        _model_size(STDIT_PRESETS, self.preset, self.model, where)
         if self.init_from is not None and self.init_from not in self.INIT_SOURCES:
             allowed = [*self.INIT_SOURCES, None]
             raise ConfigError(f"{where}.init_from = {self.init_from!r} must be one of {allowed}")
@@ -538,8 +529,9 @@ class EvaluationConfig:
 
 
 def _tokenizer_common(cfg: Any, where: str) -> None:
-    if cfg.preset not in TOKENIZER_PRESETS:
-        raise ConfigError(f"{where}.preset = {cfg.preset!r} must be one of {list(TOKENIZER_PRESETS)}")
+    from orbis2.models.tokenizer import TOKENIZER_PRESETS
+
+    _model_size(TOKENIZER_PRESETS, cfg.preset, {}, where)
     _positive(cfg, where, "frames_per_clip", "eval_images", "scale_images")
     if cfg.latent_norm not in ("per_position", "global"):
         raise ConfigError(f"{where}.latent_norm = {cfg.latent_norm!r} must be 'per_position' or 'global'")
@@ -903,6 +895,16 @@ def _deep_merge(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
         else:
             out[key] = value
     return out
+
+
+def _model_size(presets: dict[str, Any], preset: str, model: dict[str, Any], where: str) -> None:
+    """``preset`` must name one of the model family's ``presets``; ``model`` overrides its typed fields."""
+    if preset not in presets:
+        raise ConfigError(f"{where}.preset = {preset!r} must be one of {list(presets)}")
+    try:
+        presets[preset].with_overrides(**model)
+    except ValueError as err:
+        raise ConfigError(f"{where}.model: {err}") from err
 
 
 def _positive(obj: Any, where: str, *names: str) -> None:

@@ -26,7 +26,7 @@ path and the cross-attention fit that budget.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
 
@@ -37,7 +37,7 @@ from torch.utils.checkpoint import checkpoint
 
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file, sha256_file
-from orbis2.models import preset_config
+from orbis2.models import ModelConfig, preset_config, split_build
 from orbis2.models.tokenizer import sincos_pos_embed_2d
 
 # Initial gates of the abstract conditioning paths: small but non-zero (paper Appendix "Model details").
@@ -603,74 +603,75 @@ class TemporalKVCache:
     n_target: int
 
 
-# --------------------------------------------------------------------------- presets
+# --------------------------------------------------------------------------- sizes
 
-STDIT_PRESETS: dict[str, dict] = {
+
+@dataclass(frozen=True)
+class STDiTConfig(ModelConfig):
+    """An ST-DiT's size: what :func:`build_stdit` needs besides the latents and the level's wiring."""
+
+    KIND = "ST-DiT"
+
+    hidden_size: int
+    depth: int
+    num_heads: int
+    cond_dim: int  # width of the abstract conditioning tokens (the detail predictor's adaLN and cross-attention)
+    mlp_ratio: float = 4.0
+    patch_size: int = 1
+    max_frames: int = 16
+    steering_features: int = 2
+    steering_len: int = 16
+
+    def check(self) -> None:
+        self.positive("hidden_size", "depth", "num_heads", "cond_dim", "mlp_ratio", "patch_size", "max_frames",
+                      "steering_features", "steering_len")
+        for name in ("hidden_size", "cond_dim"):
+            self.divisible(name, "num_heads")
+            self.divisible(name, 4)  # 2-D sin-cos positions
+
+
+STDIT_PRESETS: dict[str, STDiTConfig] = {
     # Tests and CI: a CPU step in tens of milliseconds.
-    "smoke": {
-        "hidden_size": 64,
-        "depth": 2,
-        "num_heads": 2,
-        "mlp_ratio": 4.0,
-        "patch_size": 1,
-        "max_frames": 16,
-        "cond_dim": 32,
-        "steering_features": 2,
-        "steering_len": 16,
-    },
-    # Laptop run: 16x9 latents, 6 (abstract) or 10 (detail) frames, batch 8 on 2 CPU cores.
-    "default": {
-        "hidden_size": 128,
-        "depth": 4,
-        "num_heads": 4,
-        "mlp_ratio": 4.0,
-        "patch_size": 1,
-        "max_frames": 16,
-        "cond_dim": 64,
-        "steering_features": 2,
-        "steering_len": 16,
-    },
+    "smoke": STDiTConfig(hidden_size=64, depth=2, num_heads=2, cond_dim=32),
+    # Laptop scale. The default profile reads its 16x10 latent grid in 2x2 patches (params.yaml
+    # `_predictor.default.model`: patch_size 2); the gpu profile widens this preset to 384 x 8 blocks.
+    "default": STDiTConfig(hidden_size=128, depth=4, num_heads=4, cond_dim=64),
     # Paper: 32x18 latents of 16 channels; 512M (abstract) and 555M (detail) parameters.
-    "paper": {
-        "hidden_size": 768,
-        "depth": 24,
-        "num_heads": 16,
-        "mlp_ratio": 4.0,
-        "patch_size": 1,
-        "max_frames": 16,
-        "cond_dim": 384,
-        "steering_features": 2,
-        "steering_len": 16,
-    },
+    "paper": STDiTConfig(hidden_size=768, depth=24, num_heads=16, cond_dim=384),
 }
 
 
-def stdit_config(preset: str, **overrides) -> dict:
-    """A preset's settings with ``overrides`` applied; unknown names raise."""
-    return preset_config(STDIT_PRESETS, "ST-DiT", preset, overrides)
+def stdit_config(preset: str, **overrides) -> STDiTConfig:
+    """A preset's size with ``overrides``; an unknown preset or key, a wrong type or an impossible size raises."""
+    return preset_config(STDIT_PRESETS, preset, overrides)
 
 
 def build_stdit(
-    preset: str,
+    config: STDiTConfig | str,
     latent_channels: int,
     causal: bool,
     abstract_channels: int | None = None,
     steering: bool = False,
-    **overrides,
 ) -> STDiT:
-    """An ST-DiT of a preset's size.
+    """An ST-DiT of ``config``'s size (a preset's name stands for ``STDIT_PRESETS[name]``).
 
     Abstract predictor: ``causal=True`` (and ``steering=True`` for the action
     fine-tune). Detail predictor: ``causal=False, abstract_channels=C_a``.
     """
-    cfg = stdit_config(preset, **overrides)
+    cfg = stdit_config(config) if isinstance(config, str) else config
     return STDiT(
         latent_channels=latent_channels,
         causal=causal,
         abstract_channels=abstract_channels,
         steering=steering,
-        **cfg,
+        **asdict(cfg),
     )
+
+
+def build_stdit_from(build: dict) -> STDiT:
+    """The ST-DiT a ``build`` dict describes: ``preset``, size overrides and the other :func:`build_stdit` arguments."""
+    cfg, rest = split_build(STDIT_PRESETS, build)
+    return build_stdit(cfg, **rest)
 
 
 # --------------------------------------------------------------------------- files
@@ -680,8 +681,10 @@ def build_stdit(
 class PredictorFile:
     """A trained predictor as rollouts and evaluation load it.
 
-    ``build`` holds the :func:`build_stdit` arguments; ``meta`` what the weights
-    mean: which latents (tokenizer checksums, scales), rates and windows.
+    ``build`` is what :func:`build_stdit_from` takes: the preset, its size
+    overrides and the level's wiring (latent channels, causal, conditioning,
+    steering); ``meta`` what the weights mean: which latents (tokenizer
+    checksums, scales), rates and windows.
     """
 
     model: STDiT
@@ -703,8 +706,7 @@ def load_predictor(path: Path, device: str | torch.device = "cpu") -> PredictorF
     if not path.is_file():
         raise OrbisError(f"{path}: predictor checkpoint not found; run its training stage first")
     blob = torch.load(path, map_location=device, weights_only=True)
-    build = dict(blob["build"])
-    model = build_stdit(**build)
+    model = build_stdit_from(blob["build"])
     model.load_state_dict(blob["state_dict"])
     model.to(device).eval().requires_grad_(False)
     return PredictorFile(model, blob["build"], blob["meta"], sha256_file(path))

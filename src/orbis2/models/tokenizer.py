@@ -26,7 +26,7 @@ from torch import nn
 
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file, sha256_file
-from orbis2.models import preset_config
+from orbis2.models import ModelConfig, preset_config, split_build
 
 # --------------------------------------------------------------------------- ViT encoder
 
@@ -560,135 +560,134 @@ class AbstractTokenizer(nn.Module):
         return z, self.predict_teacher(z), self.decoder(z)
 
 
-# --------------------------------------------------------------------------- presets
+# --------------------------------------------------------------------------- sizes
 
-# Shared by every preset unless overridden: reference values (the authors' code, "Tokenizer").
-_COMMON = {
-    "latent_dim": 16,
-    "beta": 0.25,
-    "bypass_prob": 0.5,
-    "entropy_temperature": 0.01,
-    "mlp_ratio": 4.0,
-    "learn_pos_embed": False,
-    "disc_channels": 64,
-    "disc_layers": 3,
-    "disc_norm": "group",
-}
 
-TOKENIZER_PRESETS: dict[str, dict] = {
+@dataclass(frozen=True)
+class TokenizerConfig(ModelConfig):
+    """A tokenizer's size: ViT encoder, quantiser, both decoders and the discriminator.
+
+    The defaults are the reference values every preset shares (the authors' code, "Tokenizer").
+    """
+
+    KIND = "tokenizer"
+
+    image_size: tuple[int, int]  # (height, width)
+    patch_size: int
+    embed_dim: int
+    depth: int
+    num_heads: int
+    codebook_size: int
+    decoder_channels: int
+    decoder_mult: tuple[int, ...]  # one channel multiplier per resolution: 2 ** (len - 1) = patch_size
+    decoder_res_blocks: int
+    abstract_decoder_channels: int
+    abstract_decoder_mult: tuple[int, ...]
+    abstract_decoder_res_blocks: int
+    latent_dim: int = 16
+    beta: float = 0.25
+    bypass_prob: float = 0.5
+    entropy_temperature: float = 0.01
+    mlp_ratio: float = 4.0
+    learn_pos_embed: bool = False
+    disc_channels: int = 64
+    disc_layers: int = 3
+    disc_norm: str = "group"
+
+    def check(self) -> None:
+        self.positive("patch_size", "embed_dim", "depth", "num_heads", "codebook_size", "decoder_channels",
+                      "abstract_decoder_channels", "latent_dim", "mlp_ratio", "disc_channels", "disc_layers")
+        height, width = self.image_size
+        if height % self.patch_size or width % self.patch_size:
+            self.fail(f"image_size = {self.image_size} is not divisible by patch_size = {self.patch_size}")
+        self.divisible("embed_dim", "num_heads")
+        self.divisible("embed_dim", 4)  # 2-D sin-cos positions
+        for name in ("decoder_mult", "abstract_decoder_mult"):
+            upscale = 2 ** (len(getattr(self, name)) - 1)
+            if upscale != self.patch_size:
+                self.fail(f"{name}: the decoder upsamples x{upscale} but the patch size is {self.patch_size}: "
+                          f"use {int(math.log2(self.patch_size)) + 1} channel multipliers")
+        if not 0 <= self.bypass_prob <= 1:
+            self.fail(f"bypass_prob = {self.bypass_prob} must lie in [0, 1]")
+        if self.disc_norm not in ("group", "batch"):
+            self.fail(f"disc_norm = {self.disc_norm!r} must be 'group' or 'batch'")
+
+
+TOKENIZER_PRESETS: dict[str, TokenizerConfig] = {
     # Tests and CI: 128x72, patch 8 -> 9x16 grid, a CPU step in a few tens of ms.
-    "smoke": {
-        **_COMMON,
-        "image_size": (72, 128),
-        "patch_size": 8,
-        "embed_dim": 64,
-        "depth": 2,
-        "num_heads": 2,
-        "codebook_size": 512,
-        "decoder_channels": 16,
-        "decoder_mult": (1, 1, 2, 4),
-        "decoder_res_blocks": 1,
-        "abstract_decoder_channels": 16,
-        "abstract_decoder_mult": (1, 1, 2, 2),
-        "abstract_decoder_res_blocks": 1,
-        "disc_channels": 16,
-    },
+    "smoke": TokenizerConfig(
+        image_size=(72, 128), patch_size=8, embed_dim=64, depth=2, num_heads=2, codebook_size=512,
+        decoder_channels=16, decoder_mult=(1, 1, 2, 4), decoder_res_blocks=1,
+        abstract_decoder_channels=16, abstract_decoder_mult=(1, 1, 2, 2), abstract_decoder_res_blocks=1,
+        disc_channels=16,
+    ),
     # Laptop run: 256x160, patch 16 -> 10x16 grid, hundreds of steps on 2 CPU cores.
-    "default": {
-        **_COMMON,
-        "image_size": (160, 256),
-        "patch_size": 16,
-        "embed_dim": 192,
-        "depth": 4,
-        "num_heads": 3,
-        "codebook_size": 1024,
-        "decoder_channels": 16,
-        "decoder_mult": (1, 1, 2, 2, 4),
-        "decoder_res_blocks": 1,
-        "abstract_decoder_channels": 16,
-        "abstract_decoder_mult": (1, 1, 1, 2, 2),
-        "abstract_decoder_res_blocks": 1,
-        "disc_channels": 16,
-    },
+    "default": TokenizerConfig(
+        image_size=(160, 256), patch_size=16, embed_dim=192, depth=4, num_heads=3, codebook_size=1024,
+        decoder_channels=16, decoder_mult=(1, 1, 2, 2, 4), decoder_res_blocks=1,
+        abstract_decoder_channels=16, abstract_decoder_mult=(1, 1, 1, 2, 2), abstract_decoder_res_blocks=1,
+        disc_channels=16,
+    ),
     # Paper: 512x288, ViT-B/16 encoder (86M, MAE-initialisable) and a taming
     # decoder whose width is set so that it has the paper's 91M parameters.
-    "paper": {
-        **_COMMON,
-        "image_size": (288, 512),
-        "patch_size": 16,
-        "embed_dim": 768,
-        "depth": 12,
-        "num_heads": 12,
-        "codebook_size": 16384,
-        "decoder_channels": 192,
-        "decoder_mult": (1, 1, 2, 2, 4),
-        "decoder_res_blocks": 3,
-        "abstract_decoder_channels": 64,
-        "abstract_decoder_mult": (1, 1, 2, 2, 4),
-        "abstract_decoder_res_blocks": 1,
-    },
+    "paper": TokenizerConfig(
+        image_size=(288, 512), patch_size=16, embed_dim=768, depth=12, num_heads=12, codebook_size=16384,
+        decoder_channels=192, decoder_mult=(1, 1, 2, 2, 4), decoder_res_blocks=3,
+        abstract_decoder_channels=64, abstract_decoder_mult=(1, 1, 2, 2, 4), abstract_decoder_res_blocks=1,
+    ),
 }
 
 
-def tokenizer_config(preset: str, **overrides) -> dict:
-    """A preset's settings with ``overrides`` applied; unknown names raise."""
-    return preset_config(TOKENIZER_PRESETS, "tokenizer", preset, overrides)
+def tokenizer_config(preset: str, **overrides) -> TokenizerConfig:
+    """A preset's size with ``overrides``; an unknown preset or key, a wrong type or an impossible size raises."""
+    return preset_config(TOKENIZER_PRESETS, preset, overrides)
 
 
-def _encoder(cfg: dict) -> ViTEncoder:
+def _config(config: TokenizerConfig | str) -> TokenizerConfig:
+    return tokenizer_config(config) if isinstance(config, str) else config
+
+
+def _encoder(cfg: TokenizerConfig) -> ViTEncoder:
     return ViTEncoder(
-        image_size=tuple(cfg["image_size"]),
-        patch_size=cfg["patch_size"],
-        embed_dim=cfg["embed_dim"],
-        depth=cfg["depth"],
-        num_heads=cfg["num_heads"],
-        mlp_ratio=cfg["mlp_ratio"],
-        learn_pos_embed=cfg["learn_pos_embed"],
+        image_size=cfg.image_size,
+        patch_size=cfg.patch_size,
+        embed_dim=cfg.embed_dim,
+        depth=cfg.depth,
+        num_heads=cfg.num_heads,
+        mlp_ratio=cfg.mlp_ratio,
+        learn_pos_embed=cfg.learn_pos_embed,
     )
 
 
-def build_detail_tokenizer(preset: str = "default", **overrides) -> DetailTokenizer:
-    cfg = tokenizer_config(preset, **overrides)
+def build_detail_tokenizer(config: TokenizerConfig | str = "default") -> DetailTokenizer:
+    """The detail tokenizer of ``config``'s size (a preset's name stands for ``TOKENIZER_PRESETS[name]``)."""
+    cfg = _config(config)
     quantizer = VectorQuantizer(
-        codebook_size=cfg["codebook_size"],
-        latent_dim=cfg["latent_dim"],
-        beta=cfg["beta"],
-        bypass_prob=cfg["bypass_prob"],
-        entropy_temperature=cfg["entropy_temperature"],
+        codebook_size=cfg.codebook_size,
+        latent_dim=cfg.latent_dim,
+        beta=cfg.beta,
+        bypass_prob=cfg.bypass_prob,
+        entropy_temperature=cfg.entropy_temperature,
     )
-    decoder = ConvDecoder(
-        cfg["latent_dim"], cfg["decoder_channels"], cfg["decoder_mult"], cfg["decoder_res_blocks"]
-    )
-    _check_upscale(cfg, decoder)
+    decoder = ConvDecoder(cfg.latent_dim, cfg.decoder_channels, cfg.decoder_mult, cfg.decoder_res_blocks)
     return DetailTokenizer(_encoder(cfg), quantizer, decoder)
 
 
 def build_abstract_tokenizer(
-    preset: str = "default", teacher_dim: int = 768, compress: bool = True, **overrides
+    config: TokenizerConfig | str = "default", teacher_dim: int = 768, compress: bool = True
 ) -> AbstractTokenizer:
-    cfg = tokenizer_config(preset, **overrides)
-    latent_dim = cfg["latent_dim"] if compress else teacher_dim
+    """The abstract tokenizer of ``config``'s size, aligned to a ``teacher_dim``-channel teacher."""
+    cfg = _config(config)
+    latent_dim = cfg.latent_dim if compress else teacher_dim
     decoder = ConvDecoder(
-        latent_dim,
-        cfg["abstract_decoder_channels"],
-        cfg["abstract_decoder_mult"],
-        cfg["abstract_decoder_res_blocks"],
+        latent_dim, cfg.abstract_decoder_channels, cfg.abstract_decoder_mult, cfg.abstract_decoder_res_blocks
     )
-    _check_upscale(cfg, decoder)
-    return AbstractTokenizer(_encoder(cfg), decoder, teacher_dim, cfg["latent_dim"], compress)
+    return AbstractTokenizer(_encoder(cfg), decoder, teacher_dim, cfg.latent_dim, compress)
 
 
-def build_discriminator(preset: str = "default", **overrides) -> PatchGANDiscriminator:
-    cfg = tokenizer_config(preset, **overrides)
-    return PatchGANDiscriminator(3, cfg["disc_channels"], cfg["disc_layers"], cfg["disc_norm"])
-
-
-def _check_upscale(cfg: dict, decoder: ConvDecoder) -> None:
-    if decoder.upscale != cfg["patch_size"]:
-        raise ValueError(
-            f"decoder upsamples x{decoder.upscale} but the patch size is {cfg['patch_size']}: "
-            f"use {int(math.log2(cfg['patch_size'])) + 1} channel multipliers"
-        )
+def build_discriminator(config: TokenizerConfig | str = "default") -> PatchGANDiscriminator:
+    cfg = _config(config)
+    return PatchGANDiscriminator(3, cfg.disc_channels, cfg.disc_layers, cfg.disc_norm)
 
 
 # --------------------------------------------------------------------------- files
@@ -709,7 +708,7 @@ class TokenizerFile:
     kind: str  # "detail" | "abstract"
     model: nn.Module
     scale: torch.Tensor  # [C, 1, 1]
-    build: dict  # arguments that rebuild the architecture: preset, teacher_dim, compress
+    build: dict  # what rebuilds the architecture: preset (and size overrides), teacher_dim, compress
     checksum: str
     shift: torch.Tensor  # [C, h, w]
 
@@ -762,12 +761,9 @@ def load_tokenizer(path: Path, device: str | torch.device = "cpu") -> TokenizerF
     if not path.is_file():
         raise OrbisError(f"{path}: tokenizer checkpoint not found; run its training stage first")
     blob = torch.load(path, map_location=device, weights_only=True)
-    build = dict(blob["build"])
-    preset = build.pop("preset")
-    if blob["kind"] == "detail":
-        model = build_detail_tokenizer(preset, **build)
-    else:
-        model = build_abstract_tokenizer(preset, **build)
+    cfg, rest = split_build(TOKENIZER_PRESETS, blob["build"])
+    builder = build_detail_tokenizer if blob["kind"] == "detail" else build_abstract_tokenizer
+    model = builder(cfg, **rest)
     model.load_state_dict(blob["state_dict"])
     model.to(device).eval().requires_grad_(False)
     if "shift" not in blob:

@@ -62,7 +62,7 @@ from orbis2.errors import OrbisError
 from orbis2.flow import diffusion_forcing_loss, euler_sample, reflow_loss, teacher_forcing_loss
 from orbis2.io import sha256_file
 from orbis2.latents import LatentCache, LatentWindowDataset
-from orbis2.models.stdit import build_stdit, load_predictor, save_predictor
+from orbis2.models.stdit import build_stdit_from, load_predictor, save_predictor
 from orbis2.registry import PredictorSpec, registry
 from orbis2.train import DataSpec, load_weights, train
 from orbis2.windows import window_indices, window_span
@@ -211,7 +211,7 @@ class PredictorTask:
 
     @property
     def build(self) -> dict[str, Any]:
-        """The :func:`build_stdit` arguments, as :func:`save_predictor` records them."""
+        """The :func:`build_stdit_from` dict (preset, ``model`` overrides, wiring) :func:`save_predictor` records."""
         shapes, condition = self.cache.meta["tokenizers"], self.spec.condition
         return {"preset": self.cfg.preset, "latent_channels": shapes[self.spec.level]["shape"][0],
                 "causal": self.spec.causal, "abstract_channels": shapes[condition]["shape"][0] if condition else None,
@@ -226,7 +226,7 @@ class PredictorTask:
         """
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(self.cfg.train.seed)
-            model = build_stdit(**self.build)
+            model = build_stdit_from(self.build)
         if self.init_state is not None:
             missing, unexpected = model.load_state_dict(self.init_state, strict=False)
             stray = [k for k in missing if not (self.spec.steering and k.startswith("steering."))]
@@ -244,7 +244,7 @@ class PredictorTask:
         if self.init_state is None:
             raise OrbisError(f"{self.stage}: distillation needs init_from (the teacher)")
         if self._teacher is None:
-            teacher = build_stdit(**self.build)
+            teacher = build_stdit_from(self.build)
             teacher.load_state_dict(self.init_state)
             self._teacher = teacher.eval().requires_grad_(False)
         return self._teacher.to(device)

@@ -199,7 +199,7 @@ def read_frames(root: Path, split: str, count: int, seed: int) -> np.ndarray:
 
 def _check_geometry(root: Path, preset: str) -> None:
     manifest = load_manifest(root)
-    height, width = tokenizer_config(preset)["image_size"]
+    height, width = tokenizer_config(preset).image_size
     if (manifest["width"], manifest["height"]) != (width, height):
         raise OrbisError(f"{Path(root) / 'manifest.json'}: frames are {manifest['width']}x{manifest['height']} but "
                          f"tokenizer preset '{preset}' takes {width}x{height}; use the profile whose data section "
@@ -526,8 +526,8 @@ def train_abstract_tokenizer(cfg: PipelineConfig, shards_root: Path, out_dir: Pa
     """
     tc, out_dir = cfg.section(section), Path(out_dir)
     teacher = build_teacher(tc.teacher, asset_path(assets_dir, TEACHER_ASSETS[tc.teacher]), tc.teacher_layer)
-    preset = tokenizer_config(tc.preset)
-    (height, width), patch = preset["image_size"], preset["patch_size"]
+    sizes = tokenizer_config(tc.preset)
+    (height, width), patch = sizes.image_size, sizes.patch_size
     size = (height // patch * DINOV2_PATCH, width // patch * DINOV2_PATCH) if tc.teacher == "dinov2" else None
     task = AbstractTokenizerTask(tc, shards_root, out_dir, teacher, size)
     result = train(task, tc.train, out_dir, logger)
