@@ -279,8 +279,15 @@ def test_full_report_ablations_and_figures(evals, tmp_path):
     assert names == {
         "main_table.csv", "steering.csv", "speed.csv", "summary.md",
         "hierarchy_ablation.csv", "training_ablation.csv", "compression_ablation.csv", "conditioning.csv",
+        "fvd_chunked.csv",
         "figures/fvd_chunked.png", "figures/probe_per_block.png", "figures/bubble_params_fvd_miou.png",
     }  # fmt: skip
+    # Fig. 4's numbers, one FVD column per system, one row per window end.
+    chunked = read_csv(out / "fvd_chunked.csv")
+    for model in report.FVD_MODELS:
+        chunks = report._get(evals, "fvd", model, "chunked", "chunks")
+        assert [float(r["end_s"]) for r in chunked] == [c["end_s"] for c in chunks]
+        assert [float(r[model]) for r in chunked] == pytest.approx([c["fvd"] for c in chunks], rel=1e-5)
 
     hierarchy = read_csv(out / "hierarchy_ablation.csv")
     assert [(r["exp"], r["branch"], r["abstraction"], float(r["frame_rate_hz"])) for r in hierarchy] == [

@@ -291,6 +291,6 @@ def test_cli_rejects_missing_corrupt_and_other_profile_checkpoints(make_video, t
                    f"{corrupt}: not a checkpoint this version can read")
     # The smoke checkpoints under the default profile: other frame size, other predictor preset.
     _expect_exit_2(_args(video, tmp_path / "o.mp4", checkpoints) + ["--profile", "default"], capsys,
-                   f"{checkpoints['detail_tok']}: made for 128x72 frames but profile default uses 256x144",
+                   f"{checkpoints['detail_tok']}: made for 128x72 frames but profile default uses 256x160",
                    "pass --profile smoke")
     assert not list(tmp_path.glob("o.*"))
