@@ -1,5 +1,8 @@
 """Spatio-Temporal DiT (ST-DiT) predictor of Orbis 2: every block in one file.
 
+Over 600 lines on purpose: the network, its blocks, its typed sizes and its file format
+read together, as DiT's models.py.
+
 One network serves both levels of the hierarchy (paper Sec. 3.2, 4.2 and
 Appendix "Model details"):
 

@@ -1,5 +1,8 @@
 """First-stage tokenizers of Orbis 2: every block in one file.
 
+Over 600 lines on purpose: both tokenizers share these blocks, their typed sizes and
+their file format; one file shows the whole first stage.
+
 Two tokenizers share the blocks below (paper Sec. 3.2 and Appendix "Tokenizer"):
 
 * ``DetailTokenizer`` (E_L): ViT encoder -> 1x1 conv to a 16-d latent -> L2
