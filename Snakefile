@@ -45,10 +45,46 @@ def P(kind, name=None):
     return str(layout_path(kind, name))
 
 
-def latent_inputs(latent_set):
-    """A latent set's cache folder and its tokenizers' folders."""
+# Every stage gets its input and output paths as options, from its rule's named inputs and outputs
+# ({input.shards}, {output.report}, ...): the rules decide where files live; a stage run by hand
+# without them falls back on the same layout. The helpers below name the inputs shared by many rules
+# and write the options that pass them.
+
+
+def tokenizer_inputs(latent_set):
+    """The folders of a latent set's tokenizers: inputs detail_tokenizer, abstract_tokenizer."""
     entry = REG.latent_sets[latent_set]
-    return [P("latents", entry.stage), *dict.fromkeys(P("tokenizer", t) for t in entry.tokenizers.values())]
+    return {f"{level}_tokenizer": P("tokenizer", entry.tokenizers[level]) for level in ("detail", "abstract")}
+
+
+def latent_inputs(latent_set):
+    """A latent set's cache folder (input latents) and its tokenizers' folders."""
+    return {"latents": P("latents", REG.latent_sets[latent_set].stage), **tokenizer_inputs(latent_set)}
+
+
+TOKENIZER_ARGS = " --detail-tokenizer {input.detail_tokenizer} --abstract-tokenizer {input.abstract_tokenizer}"
+LATENT_ARGS = " --latents {input.latents}" + TOKENIZER_ARGS
+
+
+def named_inputs(prefix, kind, names):
+    """Inputs <prefix><name>: the layout path of kind for each name (once each, in order)."""
+    return {f"{prefix}{name}": P(kind, name) for name in dict.fromkeys(names)}
+
+
+def named_args(option, prefix, names):
+    """` <option> <name>={input.<prefix><name>}` for each name: one family's paths, each with its entry's name.
+
+    Built when the rule is defined (a plain string), so a rule made in a loop may use it."""
+    return "".join(f" {option} {name}={{input.{prefix}{name}}}" for name in dict.fromkeys(names))
+
+
+def predictor_inputs(names):
+    """Predictor folders: inputs predictor_<name>, passed by predictor_args."""
+    return named_inputs("predictor_", "predictor", names)
+
+
+def predictor_args(names):
+    return named_args("--predictor", "predictor_", names)
 
 
 def log(name):

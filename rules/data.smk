@@ -26,7 +26,8 @@ rule town:
     log: log("town")
     benchmark: bench("town")
     shell:
-        "python stages/town.py --profile {params.profile}" + TEE
+        ("python stages/town.py --profile {params.profile} --out {output.raw} --sheet {output.sheet}"
+         " --preview {output.preview}" + TEE)
 
 
 rule import_videos:
@@ -45,7 +46,7 @@ rule import_videos:
     log: log("import")
     benchmark: bench("import")
     shell:
-        "python stages/import.py --profile {params.profile}" + TEE
+        "python stages/import.py --profile {params.profile} --out {output.raw}" + TEE
 
 
 rule shards:
@@ -53,7 +54,7 @@ rule shards:
     resources: **resources_of(CPU)
     input:
         code_inputs("stages/shards.py"),
-        P("raw", SOURCE),
+        raw=P("raw", SOURCE),
     output:
         shards=directory(P("shards")),
     params:
@@ -63,7 +64,7 @@ rule shards:
     log: log("shards")
     benchmark: bench("shards")
     shell:
-        "python stages/shards.py --profile {params.profile}" + TEE
+        "python stages/shards.py --profile {params.profile} --raw {input.raw} --out {output.shards}" + TEE
 
 
 rule assets:
@@ -79,4 +80,4 @@ rule assets:
     log: log("assets")
     benchmark: bench("assets")
     shell:
-        "python stages/assets.py --profile {params.profile}" + TEE
+        "python stages/assets.py --profile {params.profile} --out {output.assets}" + TEE

@@ -4,6 +4,11 @@
 from orbis2.eval.conditioning import MAIN_PREDICTORS as CONDITIONING_PREDICTORS
 
 MAIN_SYSTEMS = list(REG.main_table)
+# The hierarchy's bottom predictor under the steered top one.
+STEERING_PREDICTORS = ["detail", "action"]
+# Every predictor of the systems eval_speed times.
+SPEED_PREDICTORS = sorted({s for system in [*(REG.systems[n] for n in MAIN_SYSTEMS), *REG.speed_systems.values()]
+                           for s in system.stages})
 
 for system_name, system in REG.systems.items():
 
@@ -13,10 +18,10 @@ for system_name, system in REG.systems.items():
         resources: **resources_of(GPU)
         input:
             code_inputs("stages/eval_fvd.py"),
-            *latent_inputs(system.latents),
-            rules.shards.output.shards,
-            rules.assets.output.assets,
-            *[P("predictor", stage) for stage in system.stages],
+            **latent_inputs(system.latents),
+            shards=rules.shards.output.shards,
+            assets=rules.assets.output.assets,
+            **predictor_inputs(system.stages),
         output:
             fvd=P("fvd", system_name),
             media=directory(P("media", system_name)),
@@ -28,11 +33,15 @@ for system_name, system in REG.systems.items():
         log: log(f"eval_fvd_{system_name}")
         benchmark: bench(f"eval_fvd_{system_name}")
         shell:
-            "python stages/eval_fvd.py {rule} --profile {params.profile}" + TEE
+            ("python stages/eval_fvd.py {rule} --profile {params.profile}" + LATENT_ARGS
+             + " --shards {input.shards} --assets {input.assets}" + predictor_args(system.stages)
+             + " --fvd {output.fvd} --media {output.media}" + TEE)
 
 
 for target in REG.probe_targets:
     representation = REG.representations.get(target)
+    teacher = representation is not None and representation.teacher
+    own_predictor = [target] if representation is None else []  # a predictor target: its own folder
 
     rule:
         name: f"eval_probe_{target}"
@@ -40,10 +49,10 @@ for target in REG.probe_targets:
         resources: **resources_of(LIGHT)
         input:
             code_inputs("stages/eval_probe.py"),
-            rules.shards.output.shards,
-            *latent_inputs(REG.target_latents(target))[1:],
-            *([rules.assets.output.assets] if representation is not None and representation.teacher else []),
-            *([P("predictor", target)] if representation is None else []),
+            shards=rules.shards.output.shards,
+            **tokenizer_inputs(REG.target_latents(target)),
+            **({"assets": rules.assets.output.assets} if teacher else {}),
+            **predictor_inputs(own_predictor),
         output:
             probe=P("probe", target),
         params:
@@ -53,7 +62,9 @@ for target in REG.probe_targets:
         log: log(f"eval_probe_{target}")
         benchmark: bench(f"eval_probe_{target}")
         shell:
-            "python stages/eval_probe.py {rule} --profile {params.profile}" + TEE
+            ("python stages/eval_probe.py {rule} --profile {params.profile} --shards {input.shards}" + TOKENIZER_ARGS
+             + (" --assets {input.assets}" if teacher else "") + predictor_args(own_predictor)
+             + " --out {output.probe}" + TEE)
 
 
 rule inverse_dynamics:
@@ -61,8 +72,8 @@ rule inverse_dynamics:
     resources: **resources_of(GPU)
     input:
         code_inputs("stages/inverse_dynamics.py"),
-        rules.shards.output.shards,
-        P("tokenizer", "detail"),
+        shards=rules.shards.output.shards,
+        tokenizer=P("tokenizer", "detail"),
     output:
         model=directory(P("inverse_dynamics")),
         report=P("report", "inverse_dynamics"),
@@ -73,7 +84,8 @@ rule inverse_dynamics:
     log: log("inverse_dynamics")
     benchmark: bench("inverse_dynamics")
     shell:
-        "python stages/inverse_dynamics.py --profile {params.profile}" + TEE
+        ("python stages/inverse_dynamics.py --profile {params.profile} --shards {input.shards}"
+         " --tokenizer {input.tokenizer} --out {output.model} --report {output.report}" + TEE)
 
 
 rule eval_steering:
@@ -81,11 +93,10 @@ rule eval_steering:
     resources: **resources_of(GPU)
     input:
         code_inputs("stages/eval_steering.py"),
-        *latent_inputs("compressed"),
-        rules.shards.output.shards,
-        P("predictor", "detail"),
-        P("predictor", "action"),
-        rules.inverse_dynamics.output.model,
+        **latent_inputs("compressed"),
+        shards=rules.shards.output.shards,
+        **predictor_inputs(STEERING_PREDICTORS),
+        inverse_dynamics=rules.inverse_dynamics.output.model,
     output:
         steering=P("eval") + "/steering.json",
         strip=P("eval") + "/steering_strip.png",
@@ -97,7 +108,9 @@ rule eval_steering:
     log: log("eval_steering")
     benchmark: bench("eval_steering")
     shell:
-        "python stages/eval_steering.py --profile {params.profile}" + TEE
+        ("python stages/eval_steering.py --profile {params.profile}" + LATENT_ARGS + " --shards {input.shards}"
+         + predictor_args(STEERING_PREDICTORS) + " --inverse-dynamics {input.inverse_dynamics}"
+         " --out {output.steering} --strip {output.strip}" + TEE)
 
 
 rule eval_speed:
@@ -105,9 +118,8 @@ rule eval_speed:
     resources: **resources_of(GPU)
     input:
         code_inputs("stages/eval_speed.py"),
-        *latent_inputs("compressed"),
-        *sorted({P("predictor", s) for system in [*(REG.systems[n] for n in MAIN_SYSTEMS), *REG.speed_systems.values()]
-                 for s in system.stages}),
+        **latent_inputs("compressed"),
+        **predictor_inputs(SPEED_PREDICTORS),
     output:
         speed=P("eval") + "/speed.json",
     params:
@@ -117,7 +129,8 @@ rule eval_speed:
     log: log("eval_speed")
     benchmark: bench("eval_speed")
     shell:
-        "python stages/eval_speed.py --profile {params.profile}" + TEE
+        ("python stages/eval_speed.py --profile {params.profile}" + LATENT_ARGS + predictor_args(SPEED_PREDICTORS)
+         + " --out {output.speed}" + TEE)
 
 
 rule eval_conditioning:
@@ -125,8 +138,8 @@ rule eval_conditioning:
     resources: **resources_of(GPU)
     input:
         code_inputs("stages/eval_conditioning.py"),
-        *latent_inputs("compressed"),
-        *[P("predictor", stage) for stage in CONDITIONING_PREDICTORS],
+        **latent_inputs("compressed"),  # the cache's tokenizers: a retrained one re-runs the stage
+        **predictor_inputs(CONDITIONING_PREDICTORS),
     output:
         conditioning=P("eval") + "/conditioning.json",
     params:
@@ -136,4 +149,5 @@ rule eval_conditioning:
     log: log("eval_conditioning")
     benchmark: bench("eval_conditioning")
     shell:
-        "python stages/eval_conditioning.py --profile {params.profile}" + TEE
+        ("python stages/eval_conditioning.py --profile {params.profile} --latents {input.latents}"
+         + predictor_args(CONDITIONING_PREDICTORS) + " --out {output.conditioning}" + TEE)

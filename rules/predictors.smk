@@ -11,8 +11,8 @@ for predictor, spec in REG.predictors.items():
         resources: **resources_of(TRAIN)
         input:
             code_inputs("stages/predictor.py"),
-            *latent_inputs(spec.latents),
-            *([P("predictor", init_from)] if init_from else []),
+            **latent_inputs(spec.latents),
+            **({"init": P("predictor", init_from)} if init_from else {}),
         output:
             weights=directory(P("predictor", predictor)),
             report=P("report", predictor),
@@ -24,4 +24,6 @@ for predictor, spec in REG.predictors.items():
         log: log(predictor)
         benchmark: bench(predictor)
         shell:
-            "{config[train_launcher]} stages/predictor.py {rule} --profile {params.profile}" + TEE
+            ("{config[train_launcher]} stages/predictor.py {rule} --profile {params.profile}" + LATENT_ARGS
+             + (" --init {input.init}" if init_from else "") + " --out {output.weights} --report {output.report}"
+             + TEE)

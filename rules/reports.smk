@@ -1,21 +1,34 @@
 # The paper's tables: the main table (registry.yaml's main_table) and every ablation.
 
+REPORTS = P("reports")  # the main tables' folder
+# The records every report reads beside the FVD and probe ones.
+RECORD_ARGS = " --steering {input.steering} --speed {input.speed} --conditioning {input.conditioning}"
+
+
+def report_inputs(systems, targets):
+    """The FVD record of each system (inputs fvd_<name>) and the probe record of each target (probe_<name>)."""
+    return {**named_inputs("fvd_", "fvd", systems), **named_inputs("probe_", "probe", targets)}
+
+
+def report_args(systems, targets):
+    return named_args("--fvd", "fvd_", systems) + named_args("--probe", "probe_", targets) + RECORD_ARGS
+
+
 rule report_main:
     threads: LIGHT["threads"]
     resources: **resources_of(LIGHT)
     input:
         code_inputs("stages/report.py"),
-        *[P("fvd", name) for name in REG.main_table],
-        *[P("probe", target) for target in REG.main_table.values()],
-        rules.eval_steering.output.steering,
-        rules.eval_speed.output.speed,
-        rules.eval_conditioning.output.conditioning,
+        **report_inputs(REG.main_table, REG.main_table.values()),
+        steering=rules.eval_steering.output.steering,
+        speed=rules.eval_speed.output.speed,
+        conditioning=rules.eval_conditioning.output.conditioning,
     output:
-        "reports/main_table.csv",
-        "reports/steering.csv",
-        "reports/speed.csv",
-        "reports/conditioning.csv",
-        "reports/summary.md",
+        f"{REPORTS}/main_table.csv",
+        f"{REPORTS}/steering.csv",
+        f"{REPORTS}/speed.csv",
+        f"{REPORTS}/conditioning.csv",
+        f"{REPORTS}/summary.md",
     params:
         profile=PROFILE,
         data=section("data"),
@@ -23,7 +36,8 @@ rule report_main:
     log: log("report_main")
     benchmark: bench("report_main")
     shell:
-        "python stages/report.py main --profile {params.profile}" + TEE
+        ("python stages/report.py main --profile {params.profile}"
+         + report_args(REG.main_table, REG.main_table.values()) + f" --out {REPORTS}" + TEE)
 
 
 rule report_all:
@@ -31,14 +45,14 @@ rule report_all:
     resources: **resources_of(LIGHT)
     input:
         code_inputs("stages/report.py"),
-        *[P("fvd", name) for name in REG.systems],
-        *[P("media", name) for name in REG.systems],
-        *[P("probe", target) for target in REG.probe_targets],
-        rules.eval_steering.output,
-        rules.eval_speed.output.speed,
-        rules.eval_conditioning.output.conditioning,
+        **report_inputs(REG.systems, REG.probe_targets),
+        **named_inputs("media_", "media", REG.systems),
+        steering=rules.eval_steering.output.steering,
+        strip=rules.eval_steering.output.strip,
+        speed=rules.eval_speed.output.speed,
+        conditioning=rules.eval_conditioning.output.conditioning,
     output:
-        directory("reports/all"),
+        report=directory(P("report_all")),
     params:
         profile=PROFILE,
         data=section("data"),
@@ -46,4 +60,5 @@ rule report_all:
     log: log("report_all")
     benchmark: bench("report_all")
     shell:
-        "python stages/report.py all --profile {params.profile}" + TEE
+        ("python stages/report.py all --profile {params.profile}" + report_args(REG.systems, REG.probe_targets)
+         + named_args("--media", "media_", REG.systems) + " --strip {input.strip} --out {output.report}" + TEE)

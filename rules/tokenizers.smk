@@ -1,7 +1,8 @@
 # The tokenizers (one rule per registry.yaml entry) and the latent caches they write.
-# Rules made in a loop pass per-rule values through {rule} and {params.*}: Snakemake
-# evaluates a shell command's expression when the job runs, after the loop has
-# moved on, so a loop variable in it would hold the last entry.
+# Rules made in a loop pass per-rule values through {rule}, {params.*}, {input.*} and
+# {output.*}, or through plain strings built while the loop runs: Snakemake fills a
+# shell command's {...} when the job runs, after the loop has moved on, so a loop
+# variable named inside braces would hold the last entry.
 
 for tokenizer, kind in REG.tokenizers.items():
 
@@ -11,8 +12,8 @@ for tokenizer, kind in REG.tokenizers.items():
         resources: **resources_of(TRAIN)
         input:
             code_inputs(f"stages/tokenizer_{kind}.py"),
-            rules.shards.output.shards,
-            rules.assets.output.assets,
+            shards=rules.shards.output.shards,
+            assets=rules.assets.output.assets,
         output:
             weights=directory(P("tokenizer", tokenizer)),
             report=P("report", f"tokenizer_{tokenizer}"),
@@ -24,7 +25,8 @@ for tokenizer, kind in REG.tokenizers.items():
         log: log(f"tokenizer_{tokenizer}")
         benchmark: bench(f"tokenizer_{tokenizer}")
         shell:
-            "{config[train_launcher]} {params.script} {rule} --profile {params.profile}" + TEE
+            ("{config[train_launcher]} {params.script} {rule} --profile {params.profile} --shards {input.shards}"
+             " --assets {input.assets} --out {output.weights} --report {output.report}" + TEE)
 
 
 for latent_set, entry in REG.latent_sets.items():
@@ -35,8 +37,8 @@ for latent_set, entry in REG.latent_sets.items():
         resources: **resources_of(GPU)
         input:
             code_inputs("stages/latents.py"),
-            rules.shards.output.shards,
-            *latent_inputs(latent_set)[1:],
+            shards=rules.shards.output.shards,
+            **tokenizer_inputs(latent_set),
         output:
             latents=directory(P("latents", entry.stage)),
         params:
@@ -46,4 +48,5 @@ for latent_set, entry in REG.latent_sets.items():
         log: log(entry.stage)
         benchmark: bench(entry.stage)
         shell:
-            "python stages/latents.py {rule} --profile {params.profile}" + TEE
+            ("python stages/latents.py {rule} --profile {params.profile} --shards {input.shards}" + TOKENIZER_ARGS
+             + " --out {output.latents}" + TEE)

@@ -13,14 +13,16 @@ from orbis2.stage import open_stage, stage_parser
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = stage_parser("assets.py", __doc__).parse_args(argv)
+    parser = stage_parser("assets.py", __doc__)
+    parser.add_argument("--out", type=Path, default=None, help="assets folder (default: assets.dir)")
+    args = parser.parse_args(argv)
     with open_stage("assets", args, ["assets"]) as stage:
         cfg, run = stage.cfg, stage.run
         names = ["i3d_kinetics400", "inception_v3"]
         if cfg.assets.local.get("dinov2_vitb14"):
             names.append("dinov2_vitb14")
 
-        dest = Path(cfg.assets.dir)
+        dest = args.out or Path(cfg.assets.dir)
         files = {}
         for name in names:
             try:

@@ -6,6 +6,7 @@ latent statistics (:mod:`orbis2.eval.conditioning`): every main predictor on the
 same val windows and noise draws, over ``evaluation.seeds``.
 """
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -18,24 +19,29 @@ from orbis2.eval.conditioning import (
     predictor_rows,
     val_window_pairs,
 )
-from orbis2.eval.systems import predictor_file
 from orbis2.io import write_json
-from orbis2.latents import KINDS, LATENT_SETS, open_cache
+from orbis2.latents import KINDS, open_cache
 from orbis2.models.stdit import load_predictor
-from orbis2.registry import layout_path
-from orbis2.stage import open_stage, stage_parser
+from orbis2.registry import layout_path, registry
+from orbis2.stage import add_predictor_argument, open_stage, predictor_files, stage_parser
 
-LATENTS = LATENT_SETS["compressed"].root
-OUT = layout_path("eval") / "conditioning.json"
+LATENT_SET = "compressed"
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = stage_parser("eval_conditioning.py", __doc__).parse_args(argv)
+    parser = stage_parser("eval_conditioning.py", __doc__)
+    parser.add_argument("--latents", type=Path, default=registry().latent_sets[LATENT_SET].root, metavar="DIR",
+                        help="the latent cache (default: %(default)s)")
+    add_predictor_argument(parser)
+    parser.add_argument("--out", type=Path, default=layout_path("eval") / "conditioning.json",
+                        help="the record (default: %(default)s)")
+    args = parser.parse_args(argv)
     with open_stage("eval_conditioning", args, ["data", "evaluation"]) as stage:
         cfg, run = stage.cfg, stage.run
         ev, data, settings = cfg.evaluation, cfg.data, cfg.evaluation.conditioning
         dev = default_device()
-        cache = open_cache(LATENTS)
+        predictors = predictor_files(args, MAIN_PREDICTORS)
+        cache = open_cache(args.latents)
         first, second, keys = val_window_pairs(cache, data, settings)
         latents, templates = latent_statistics(cache, data, settings, ev.seed)
 
@@ -44,7 +50,7 @@ def main(argv: list[str] | None = None) -> None:
                                   "bootstrap_reps": settings.bootstrap_reps, "variants": [], "baselines": [],
                                   "latents": latents}
         for name in MAIN_PREDICTORS:
-            predictor = load_predictor(predictor_file(name), dev)
+            predictor = load_predictor(predictors[name], dev)
             per_seed = [evaluate_predictor(name, predictor, first, second, keys, templates, data, settings, seed, dev)
                         for seed in ev.seeds]
             variants, baselines = predictor_rows(name, per_seed, keys, settings.threshold, settings.bootstrap_reps,
@@ -53,8 +59,8 @@ def main(argv: list[str] | None = None) -> None:
             record["baselines"] += baselines
             del predictor
 
-        write_json(OUT, record)
-        run.log_artifact(OUT)
+        write_json(args.out, record)
+        run.log_artifact(args.out)
         run.log_metrics({f"{r['model']}_{r['metric']}_{r['variant']}_effect": r["effect"]
                          for r in record["variants"] if r["verdict"] != "reference"})
         run.log_metrics({f"{r['model']}_{r['baseline']}_{r['horizon_s']:g}s_effect": r["effect"]

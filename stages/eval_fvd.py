@@ -22,30 +22,46 @@ from orbis2.assets import ensure_asset
 from orbis2.eval.rollout_fvd import split_fvd
 from orbis2.eval.systems import SYSTEMS, inference_settings, load_system
 from orbis2.io import atomic_dir, write_json
-from orbis2.latents import LATENT_SETS, open_cache
+from orbis2.latents import open_cache
 from orbis2.models.i3d import load_i3d
 from orbis2.registry import layout_path
-from orbis2.stage import add_name_argument, open_stage, stage_parser
-
-SHARDS = layout_path("shards")
-EVAL = layout_path("eval")
-# Real-data I3D statistics, keyed by the shards' hashes; outside every stage's outputs so they survive re-runs.
-STATS_CACHE = layout_path("eval_cache")
+from orbis2.stage import (
+    add_latent_arguments,
+    add_name_argument,
+    add_predictor_argument,
+    latent_paths,
+    open_stage,
+    predictor_files,
+    stage_parser,
+)
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = stage_parser("eval_fvd.py", __doc__)
     add_name_argument(parser, SYSTEMS, prefix="eval_fvd_")
+    add_latent_arguments(parser)
+    add_predictor_argument(parser)
+    parser.add_argument("--shards", type=Path, default=layout_path("shards"), help="shards (default: %(default)s)")
+    parser.add_argument("--assets", type=Path, default=None, help="pretrained assets, I3D (default: assets.dir)")
+    # Real-data I3D statistics, keyed by the shards' hashes; outside every stage's outputs so they survive re-runs.
+    parser.add_argument("--stats-cache", type=Path, default=layout_path("eval_cache"),
+                        help="cache of real-data I3D statistics, not a DAG output (default: %(default)s)")
+    parser.add_argument("--fvd", type=Path, default=None, help=f"the record (default: {layout_path('fvd', '<name>')})")
+    parser.add_argument("--media", type=Path, default=None,
+                        help=f"sample videos and grid frames (default: {layout_path('media', '<name>')})")
     args = parser.parse_args(argv)
     name = args.name
+    report, media = args.fvd or layout_path("fvd", name), args.media or layout_path("media", name)
     with open_stage(f"eval_fvd_{name}", args, ["data", "assets", "evaluation"]) as stage:
         cfg, run = stage.cfg, stage.run
         ev, dev = cfg.evaluation, default_device()
 
-        system = load_system(name, dev, inference=inference_settings(ev))
-        cache = open_cache(LATENT_SETS[system.system.latents].root)
-        i3d_file = ensure_asset("i3d_kinetics400", Path(cfg.assets.dir), cfg.assets.local.get("i3d_kinetics400"),
-                                download=False)
+        latents = latent_paths(args, SYSTEMS[name].latents)
+        system = load_system(name, predictor_files(args, SYSTEMS[name].stages), latents.tokenizers, dev,
+                             inference=inference_settings(ev))
+        cache = open_cache(latents.root)
+        assets = args.assets or Path(cfg.assets.dir)
+        i3d_file = ensure_asset("i3d_kinetics400", assets, cfg.assets.local.get("i3d_kinetics400"), download=False)
         i3d = load_i3d(i3d_file).to(dev).eval()
 
         record: dict[str, Any] = {"model": name, "label": SYSTEMS[name].label, "parameters": system.parameters,
@@ -54,10 +70,9 @@ def main(argv: list[str] | None = None) -> None:
                                   "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe},
                                   "starts_per_clip": ev.starts_per_clip, "fvd_material": ev.fvd_material, "fvd": {},
                                   "references": {}}
-        media = EVAL / "media" / name
         with atomic_dir(media) as tmp:
             for split in ev.fvd_splits:
-                result = split_fvd(split, system, cache, i3d, tmp, cfg.data, ev, dev, SHARDS, STATS_CACHE)
+                result = split_fvd(split, system, cache, i3d, tmp, cfg.data, ev, dev, args.shards, args.stats_cache)
                 record["fvd"][split] = result["fvd"]
                 record["references"][split] = result["references"]
                 if "chunked" in result:
@@ -65,7 +80,6 @@ def main(argv: list[str] | None = None) -> None:
 
         for video in sorted(media.glob("*.mp4")):
             run.log_artifact(video, "videos")
-        report = EVAL / f"fvd_{name}.json"
         write_json(report, record)
         run.log_artifact(report)
         run.log_metrics({f"fvd_{split}": v["fvd"] for split, v in record["fvd"].items()})

@@ -21,19 +21,22 @@ from orbis2.eval.probe import (
     teacher_features,
     tokenizer_features,
 )
-from orbis2.eval.systems import predictor_file
 from orbis2.io import write_json
-from orbis2.latents import LATENT_SETS
 from orbis2.models.stdit import load_predictor
 from orbis2.models.teachers import build_teacher
 from orbis2.models.tokenizer import load_tokenizer
 from orbis2.registry import layout_path, registry
-from orbis2.stage import add_name_argument, open_stage, stage_parser
-from orbis2.tasks.predictors import STAGES
+from orbis2.stage import (
+    add_name_argument,
+    add_predictor_argument,
+    add_tokenizer_arguments,
+    latent_paths,
+    open_stage,
+    predictor_files,
+    stage_parser,
+)
 from orbis2.tasks.tokenizers import TEACHER_ASSETS, asset_path
 
-SHARDS = layout_path("shards")
-EVAL = layout_path("eval")
 # The main model's predictors are probed at ``block_main`` (the paper's 4th from the end), ablations at
 # ``block_ablation``. Per-block curves (paper Fig. 5: diffusion forcing vs teacher forcing at every block)
 # for the DF-only and TF-only predictors; both are ablation targets, so the main report does not wait for them.
@@ -42,32 +45,44 @@ PER_BLOCK = ("abstract_df", "abstract_tf_only")
 
 
 def main(argv: list[str] | None = None) -> None:
+    reg = registry()
     parser = stage_parser("eval_probe.py", __doc__)
-    add_name_argument(parser, registry().probe_targets, prefix="eval_probe_")
+    add_name_argument(parser, reg.probe_targets, prefix="eval_probe_")
+    parser.add_argument("--shards", type=Path, default=layout_path("shards"),
+                        help="shards, the probe split (default: %(default)s)")
+    add_tokenizer_arguments(parser)
+    parser.add_argument("--assets", type=Path, default=None, help="pretrained assets, the teacher (default: "
+                                                                  "assets.dir)")
+    add_predictor_argument(parser)
+    parser.add_argument("--out", type=Path, default=None,
+                        help=f"the record (default: {layout_path('probe', '<target>')})")
     args = parser.parse_args(argv)
     target = args.name
+    out = args.out or layout_path("probe", target)
     with open_stage(f"eval_probe_{target}", args, ["data", "evaluation"]) as stage:
         cfg, run = stage.cfg, stage.run
         ps, dev = cfg.evaluation.probe, default_device()
         probe_cfg = probe_config(ps, str(dev))
-        sets = probe_sets(ps, (cfg.data.width, cfg.data.height), SHARDS)
+        sets = probe_sets(ps, (cfg.data.width, cfg.data.height), args.shards)
+        tokenizers = latent_paths(args, reg.target_latents(target)).tokenizers
 
         record: dict[str, Any] = {"target": target, "block": None}
-        representation = registry().representations.get(target)
+        representation = reg.representations.get(target)
         if representation is not None and not representation.teacher:
             latents = representation.latents
             record["label"] = f"Abstract tokenizer ({latents})"
-            tokenizer = load_tokenizer(LATENT_SETS[latents].tokenizers["abstract"], dev)
+            tokenizer = load_tokenizer(tokenizers["abstract"], dev)
             result = probe_all(tokenizer_features(tokenizer), sets, probe_cfg)
         elif representation is not None:
             tc = cfg.tokenizer_abstract
-            teacher = build_teacher(tc.teacher, asset_path(Path(cfg.assets.dir), TEACHER_ASSETS[tc.teacher]),
+            assets = args.assets or Path(cfg.assets.dir)
+            teacher = build_teacher(tc.teacher, asset_path(assets, TEACHER_ASSETS[tc.teacher]),
                                     tc.teacher_layer).to(dev)
             record["label"] = f"Teacher ({tc.teacher})"
             result = probe_all(teacher_features(teacher), sets, probe_cfg)
         else:
-            predictor = load_predictor(predictor_file(target), dev)
-            tokenizer = load_tokenizer(LATENT_SETS[STAGES[target].latents].tokenizers[predictor.meta["level"]], dev)
+            predictor = load_predictor(predictor_files(args, [target])[target], dev)
+            tokenizer = load_tokenizer(tokenizers[predictor.meta["level"]], dev)
             depth = len(predictor.model.blocks)
             wanted = ps.block_main if target in MAIN_PROBES else ps.block_ablation
             block = min(wanted, depth)
@@ -82,8 +97,8 @@ def main(argv: list[str] | None = None) -> None:
                                                 "rmse": r["depth"]["rmse"]})
         record.update(segmentation=result["segmentation"], depth=result["depth"], data=result["data"])
 
-        write_json(EVAL / f"probe_{target}.json", record)
-        run.log_artifact(EVAL / f"probe_{target}.json")
+        write_json(out, record)
+        run.log_artifact(out)
         run.log_metrics({"miou": result["segmentation"]["miou"], "depth_rmse": result["depth"]["rmse"]})
         stage.summary = (f"{target}: mIoU {result['segmentation']['miou']:.3f} ({result['data']['segmentation']}), "
                          f"depth RMSE {result['depth']['rmse']:.2f} m ({result['data']['depth']})")

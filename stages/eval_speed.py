@@ -7,18 +7,34 @@ batch 1, ``speed_seconds`` of rollout from a val context with the evaluation's N
 (generation as a user sees it); bf16 / compile / KV cache per ``evaluation``.
 """
 
+from pathlib import Path
+
 import torch
 
 from orbis2.accel import default_device
 from orbis2.eval.speed import measure
-from orbis2.eval.systems import contexts_for, eval_samples, inference_settings, load_system, rollout_steps
+from orbis2.eval.systems import (
+    SPEED_SYSTEMS,
+    SYSTEMS,
+    contexts_for,
+    eval_samples,
+    inference_settings,
+    load_system,
+    rollout_steps,
+)
 from orbis2.io import write_json
-from orbis2.latents import LATENT_SETS, open_cache
+from orbis2.latents import open_cache
 from orbis2.registry import layout_path
-from orbis2.stage import open_stage, stage_parser
+from orbis2.stage import (
+    add_latent_arguments,
+    add_predictor_argument,
+    latent_paths,
+    open_stage,
+    predictor_files,
+    stage_parser,
+)
 
-LATENTS = LATENT_SETS["compressed"].root
-EVAL = layout_path("eval")
+LATENT_SET = "compressed"
 # Speed rows: name -> (system, frames per step; None = the system's own). ``v1_style`` runs the flat detail
 # network like Orbis v1, one frame per step at 10 Hz with the full NFE (same parameters, 5x the calls).
 SPEED_RUNS = {
@@ -31,18 +47,26 @@ SPEED_RUNS = {
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = stage_parser("eval_speed.py", __doc__).parse_args(argv)
+    parser = stage_parser("eval_speed.py", __doc__)
+    add_latent_arguments(parser)
+    add_predictor_argument(parser)
+    parser.add_argument("--out", type=Path, default=layout_path("eval") / "speed.json",
+                        help="the record (default: %(default)s)")
+    args = parser.parse_args(argv)
     with open_stage("eval_speed", args, ["data", "evaluation"]) as stage:
         cfg, run = stage.cfg, stage.run
         ev, data = cfg.evaluation, cfg.data
         dev = default_device()
-        cache = open_cache(LATENTS)
+        latents = latent_paths(args, LATENT_SET)
+        known = {**SYSTEMS, **SPEED_SYSTEMS}
+        predictors = predictor_files(args, [p for system, _ in SPEED_RUNS.values() for p in known[system].stages])
+        cache = open_cache(latents.root)
         steps = rollout_steps(data, ev.speed_seconds)
         settings = inference_settings(ev)
 
         models = {}
         for name, (system_name, frames_per_step) in SPEED_RUNS.items():
-            system = load_system(system_name, dev, inference=settings)
+            system = load_system(system_name, predictors, latents.tokenizers, dev, inference=settings)
             sample = eval_samples(cache, "val", data, steps, 1)[:1]
             contexts = contexts_for(system, cache, "val", data, sample, dev)
             bottom_nfe = system.bottom_nfe(ev.bottom_nfe)
@@ -66,8 +90,8 @@ def main(argv: list[str] | None = None) -> None:
                   "seconds": steps * 0.5, "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe}, "models": models,
                   "precision": settings.precision if dev.type == "cuda" else "fp32", "compile": settings.compile,
                   "kv_cache": settings.kv_cache}
-        write_json(EVAL / "speed.json", record)
-        run.log_artifact(EVAL / "speed.json")
+        write_json(args.out, record)
+        run.log_artifact(args.out)
         run.log_metrics({f"fps_{m}": v["fps"] for m, v in models.items()})
         stage.summary = ", ".join(f"{m} {v['fps']:.2f} frames/s, {v['peak_memory_mb']:.0f} MB"
                                   for m, v in models.items())

@@ -10,6 +10,7 @@ turn and path-length responses, and each instrument on the real videos as a sani
 check (:mod:`orbis2.eval.steering`).
 """
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -17,6 +18,7 @@ import numpy as np
 from orbis2.accel import default_device
 from orbis2.data.shards import split_clips
 from orbis2.errors import OrbisError
+from orbis2.eval.inverse_dynamics import WEIGHTS_FILE
 from orbis2.eval.odometry import camera_intrinsics, get_inverse_dynamics, integrate_controls
 from orbis2.eval.steering import (
     mode_record,
@@ -27,28 +29,45 @@ from orbis2.eval.steering import (
     steering_responses,
 )
 from orbis2.eval.systems import (
+    SYSTEMS,
     cache_latents,
     eval_samples,
     generate,
     generated_indices,
     inference_settings,
     load_system,
-    predictor_file,
     rollout_steps,
     sample_clusters,
 )
 from orbis2.io import write_json
-from orbis2.latents import LATENT_SETS, open_cache
+from orbis2.latents import open_cache
 from orbis2.registry import layout_path
-from orbis2.stage import open_stage, stage_parser
+from orbis2.stage import (
+    add_latent_arguments,
+    add_predictor_argument,
+    latent_paths,
+    open_stage,
+    predictor_files,
+    stage_parser,
+)
 
-LATENTS = LATENT_SETS["compressed"].root
-SHARDS = layout_path("shards")
-EVAL = layout_path("eval")
+# The hierarchy with the steered top predictor: ``action`` cascaded into ``detail``, on the compressed latents.
+SYSTEM, TOP = "hierarchical", "action"
+LATENT_SET = "compressed"
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = stage_parser("eval_steering.py", __doc__).parse_args(argv)
+    parser = stage_parser("eval_steering.py", __doc__)
+    add_latent_arguments(parser)
+    add_predictor_argument(parser)
+    parser.add_argument("--shards", type=Path, default=layout_path("shards"), help="shards (default: %(default)s)")
+    parser.add_argument("--inverse-dynamics", type=Path, default=layout_path("inverse_dynamics"), metavar="DIR",
+                        help=f"the learned instrument's folder (its {WEIGHTS_FILE}; default: %(default)s)")
+    parser.add_argument("--out", type=Path, default=layout_path("eval") / "steering.json",
+                        help="the record (default: %(default)s)")
+    parser.add_argument("--strip", type=Path, default=layout_path("eval") / "steering_strip.png",
+                        help="the figure of one rollout per mode (default: %(default)s)")
+    args = parser.parse_args(argv)
     with open_stage("eval_steering", args, ["data", "town", "evaluation"]) as stage:
         cfg, run = stage.cfg, stage.run
         ev, data = cfg.evaluation, cfg.data
@@ -56,12 +75,15 @@ def main(argv: list[str] | None = None) -> None:
             raise OrbisError(f"data.{cfg.profile}: the steering evaluation compares odometry at the video rate and "
                              f"needs fps == detail_hz (got {data.fps} and {data.detail_hz})")
         dev = default_device()
-        system = load_system("hierarchical", dev, top_override="action", inference=inference_settings(ev))
+        latents = latent_paths(args, LATENT_SET)
+        predictors = predictor_files(args, [SYSTEMS[SYSTEM].bottom, TOP])
+        system = load_system(SYSTEM, predictors, latents.tokenizers, dev, top_override=TOP,
+                             inference=inference_settings(ev))
         steer_meta = system.top.meta.get("steering")
         if steer_meta is None:
-            raise OrbisError(f"{predictor_file('action')} is not steered; re-run the `action` stage")
+            raise OrbisError(f"{predictors[TOP]} is not steered; re-run the `{TOP}` stage")
 
-        cache = open_cache(LATENTS)
+        cache = open_cache(latents.root)
         steps = rollout_steps(data, ev.steering_seconds)
         split = ev.steering_split
         samples = eval_samples(cache, split, data, steps, ev.steering_starts_per_clip)
@@ -69,7 +91,8 @@ def main(argv: list[str] | None = None) -> None:
         indices = [generated_indices(data, s.context_end, steps) for s in samples]
         odometry = cache.arrays(split)["odometry"]
         K = camera_intrinsics(data.width, data.height, cfg.town.hfov_deg)
-        instruments = {name: get_inverse_dynamics(name) for name in dict.fromkeys([ev.inverse_dynamics, "opencv"])}
+        instruments = {name: get_inverse_dynamics(name, args.inverse_dynamics / WEIGHTS_FILE)
+                       for name in dict.fromkeys([ev.inverse_dynamics, "opencv"])}
         first = cache_latents(cache, split, "detail", samples, [np.array([s.context_end]) for s in samples])
         first_frames = system.decode(first)  # [N, 1, H, W, 3]
 
@@ -87,7 +110,7 @@ def main(argv: list[str] | None = None) -> None:
             sp, yw = controls[0]
             strip[mode] = (videos[0], integrate_controls(sp[:videos.shape[1] - 1], yw[:videos.shape[1] - 1],
                                                          1.0 / data.detail_hz))
-        clips = split_clips(SHARDS, split)
+        clips = split_clips(args.shards, split)
         sanity = {name: odometry_sanity(clips, samples, indices, odometry, K, inverse, data, clusters, ev.seed)
                   for name, inverse in instruments.items()}
 
@@ -99,10 +122,10 @@ def main(argv: list[str] | None = None) -> None:
                   "material": {"turn_deg": ev.steering_turn_material_deg,
                                "path_ratio": ev.steering_path_ratio_material},
                   "odometry_sanity": sanity[ev.inverse_dynamics], "sanity": sanity}
-        write_json(EVAL / "steering.json", record)
-        run.log_artifact(EVAL / "steering.json")
-        save_strip(strip, data.detail_hz, EVAL / "steering_strip.png")
-        run.log_artifact(EVAL / "steering_strip.png")
+        write_json(args.out, record)
+        run.log_artifact(args.out)
+        save_strip(strip, data.detail_hz, args.strip)
+        run.log_artifact(args.strip)
         run.log_metrics({f"ade_{m}": v["ade"] for m, v in modes.items()})
 
         response, floor = record["responses"][ev.inverse_dynamics], sanity[ev.inverse_dynamics]

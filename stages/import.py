@@ -13,29 +13,29 @@ from orbis2.io import atomic_dir
 from orbis2.registry import layout_path
 from orbis2.stage import open_stage, stage_parser
 
-OUT = layout_path("raw", "import")
-
 
 def main(argv: list[str] | None = None) -> None:
     parser = stage_parser("import.py", __doc__)
     parser.add_argument("--videos", type=Path, default=None, help="input folder (default: import.videos)")
+    parser.add_argument("--out", type=Path, default=layout_path("raw", "import"),
+                        help="raw episodes folder (default: %(default)s)")
     parser.add_argument("--skip-bad", action="store_true", default=None,
-                        help="skip unusable videos and list them in data/raw/import/skipped.json")
+                        help="skip unusable videos and list them in <out>/skipped.json")
     args = parser.parse_args(argv)
     with open_stage("import", args, ["data", "import"]) as stage:
         cfg, run = stage.cfg, stage.run
         folder = args.videos or Path(cfg.import_.videos)
-        check_outside(folder, OUT)
+        check_outside(folder, args.out)
         skip_bad = cfg.import_.skip_bad if args.skip_bad is None else args.skip_bad
 
-        with atomic_dir(OUT) as tmp:
+        with atomic_dir(args.out) as tmp:
             index, skipped = import_videos(folder, tmp, cfg.data, cfg.import_, skip_bad)
             (tmp / "skipped.json").write_text(json.dumps([asdict(s) for s in skipped], indent=2) + "\n")
         for s in skipped:
             print(f"[import] skipped {s.path}: {s.problem}")
 
         run.log_metrics({"episodes": len(index.episodes), "skipped": len(skipped)})
-        stage.summary = f"{len(index.episodes)} videos imported, {len(skipped)} skipped -> {OUT}"
+        stage.summary = f"{len(index.episodes)} videos imported, {len(skipped)} skipped -> {args.out}"
 
 
 if __name__ == "__main__":

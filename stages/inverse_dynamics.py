@@ -6,37 +6,49 @@ tokenizer's reconstructions of them and on shuffled pairs (the control); see
 :mod:`orbis2.eval.inverse_dynamics`.
 """
 
+from pathlib import Path
+
 from orbis2.accel import default_device
-from orbis2.eval.inverse_dynamics import evaluate_instrument, load_clips, pair_index, reconstruct, train_instrument
+from orbis2.eval.inverse_dynamics import (
+    WEIGHTS_FILE,
+    evaluate_instrument,
+    load_clips,
+    pair_index,
+    reconstruct,
+    train_instrument,
+)
 from orbis2.io import atomic_dir, write_json
 from orbis2.registry import layout_path
-from orbis2.stage import open_stage, stage_parser
-
-OUT = layout_path("inverse_dynamics")
-REPORT = layout_path("report", "inverse_dynamics")
-SHARDS = layout_path("shards")
-DETAIL_TOKENIZER = layout_path("tokenizer", "detail") / "tokenizer.pt"
+from orbis2.stage import TOKENIZER_FILE, open_stage, stage_parser
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = stage_parser("inverse_dynamics.py", __doc__).parse_args(argv)
+    parser = stage_parser("inverse_dynamics.py", __doc__)
+    parser.add_argument("--shards", type=Path, default=layout_path("shards"), help="shards (default: %(default)s)")
+    parser.add_argument("--tokenizer", type=Path, default=layout_path("tokenizer", "detail"), metavar="DIR",
+                        help="the detail tokenizer's folder, for the reconstructions (default: %(default)s)")
+    parser.add_argument("--out", type=Path, default=layout_path("inverse_dynamics"),
+                        help=f"output folder (its {WEIGHTS_FILE}; default: %(default)s)")
+    parser.add_argument("--report", type=Path, default=layout_path("report", "inverse_dynamics"),
+                        help="metrics report (default: %(default)s)")
+    args = parser.parse_args(argv)
     with open_stage("inverse_dynamics", args, ["data", "inverse_dynamics"]) as stage:
         cfg, run = stage.cfg, stage.run
         ic, fps, dev = cfg.inverse_dynamics, float(cfg.data.fps), default_device()
 
-        train = load_clips(SHARDS, "train", ic.scale, ic.max_train_clips)
+        train = load_clips(args.shards, "train", ic.scale, ic.max_train_clips)
         instrument = train_instrument(train, ic, fps, dev,
                                       log=lambda step, loss: run.log_metrics({"train_loss": loss}, step=step))
-        val = load_clips(SHARDS, "val", ic.scale)
-        reconstructed = reconstruct(DETAIL_TOKENIZER, SHARDS, "val", val, ic.scale, dev)
+        val = load_clips(args.shards, "val", ic.scale)
+        reconstructed = reconstruct(args.tokenizer / TOKENIZER_FILE, args.shards, "val", val, ic.scale, dev)
         result = evaluate_instrument(instrument, val, ic.eval_pairs, ic.seed, reconstructed)
 
         record = {"train_clips": len(train.keys), "train_pairs": len(pair_index(train)), "steps": ic.steps,
                   "fps": fps, "input": list(train.frames[0].shape[1:3]), "seed": ic.seed, "val": result}
-        with atomic_dir(OUT) as tmp:
-            instrument.save(tmp / "model.pt", record)
-        write_json(REPORT, record)
-        run.log_artifact(REPORT)
+        with atomic_dir(args.out) as tmp:
+            instrument.save(tmp / WEIGHTS_FILE, record)
+        write_json(args.report, record)
+        run.log_artifact(args.report)
         run.log_metrics({f"val_{kind}_{k}": v for kind in ("real", "reconstructed", "shuffled")
                          for k, v in result[kind].items() if v is not None})
 

@@ -7,12 +7,13 @@ The uncompressed cache (compression ablation) skips the probe split, which only
 the tokenizers' probes read, from the frames.
 """
 
-from orbis2.data.shards import load_manifest
-from orbis2.latents import LATENT_SETS, build_latent_cache
-from orbis2.registry import layout_path, registry
-from orbis2.stage import add_name_argument, open_stage, stage_parser
+from pathlib import Path
 
-SHARDS = layout_path("shards")
+from orbis2.data.shards import load_manifest
+from orbis2.latents import build_latent_cache
+from orbis2.registry import layout_path, registry
+from orbis2.stage import add_name_argument, add_tokenizer_arguments, latent_paths, open_stage, stage_parser
+
 # Stage name -> latent set (registry.yaml, latent_sets).
 VARIANTS = {entry.stage: name for name, entry in registry().latent_sets.items()}
 
@@ -20,23 +21,28 @@ VARIANTS = {entry.stage: name for name, entry in registry().latent_sets.items()}
 def main(argv: list[str] | None = None) -> None:
     parser = stage_parser("latents.py", __doc__)
     add_name_argument(parser, VARIANTS, default="latents")
+    parser.add_argument("--shards", type=Path, default=layout_path("shards"), help="shards (default: %(default)s)")
+    add_tokenizer_arguments(parser)
+    parser.add_argument("--out", type=Path, default=None,
+                        help=f"the latent cache (default: {layout_path('latents', '<name>')})")
     args = parser.parse_args(argv)
     name = args.name
     with open_stage(name, args, ["data", "latents"]) as stage:
         cfg, run = stage.cfg, stage.run
-        latents = LATENT_SETS[VARIANTS[name]]
+        paths = latent_paths(args, VARIANTS[name])
+        out = args.out or paths.root
         skip = registry().latent_sets[VARIANTS[name]].skip_splits
-        splits = [s for s in load_manifest(SHARDS)["splits"] if s not in skip] if skip else None
+        splits = [s for s in load_manifest(args.shards)["splits"] if s not in skip] if skip else None
 
-        meta = build_latent_cache(SHARDS, latents.root, latents.tokenizers["detail"], latents.tokenizers["abstract"],
+        meta = build_latent_cache(args.shards, out, paths.tokenizers["detail"], paths.tokenizers["abstract"],
                                   cfg.latents.batch_size, splits)
 
         frames = {split: info["frames"] for split, info in meta["splits"].items()}
-        mb = sum(f.stat().st_size for f in latents.root.rglob("*") if f.is_file()) / 2**20
+        mb = sum(f.stat().st_size for f in out.rglob("*") if f.is_file()) / 2**20
         run.log_metrics({"frames_encoded": sum(frames.values()), "mb_written": mb,
                          **{f"{split}_frames": n for split, n in frames.items()}})
-        run.log_artifact(latents.root / "meta.json")
-        stage.summary = f"{sum(frames.values())} frames encoded {frames}, {mb:.1f} MB written -> {latents.root}"
+        run.log_artifact(out / "meta.json")
+        stage.summary = f"{sum(frames.values())} frames encoded {frames}, {mb:.1f} MB written -> {out}"
 
 
 if __name__ == "__main__":

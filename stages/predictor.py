@@ -17,32 +17,48 @@ other inputs. predictor.pt and the report are published atomically at the end.
 from pathlib import Path
 
 from orbis2.errors import OrbisError
-from orbis2.latents import LATENT_SETS, open_cache
+from orbis2.latents import open_cache
 from orbis2.registry import layout_path
-from orbis2.stage import add_name_argument, open_stage, publish_training, stage_parser, training_dir
+from orbis2.stage import (
+    PREDICTOR_FILE,
+    add_latent_arguments,
+    add_name_argument,
+    latent_paths,
+    open_stage,
+    publish_training,
+    stage_parser,
+    training_dir,
+)
 from orbis2.tasks.predictors import STAGES, tokenizer_checksums, train_predictor
-
-
-def predictor_path(name: str) -> Path:
-    return layout_path("predictor", name) / "predictor.pt"
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = stage_parser("predictor.py", __doc__)
     add_name_argument(parser, STAGES)
+    add_latent_arguments(parser)
+    parser.add_argument("--init", type=Path, default=None, metavar="DIR",
+                        help=f"the init_from predictor's folder (default: {layout_path('predictor', '<init_from>')})")
+    parser.add_argument("--out", type=Path, default=None,
+                        help=f"output folder (default: {layout_path('predictor', '<name>')})")
+    parser.add_argument("--report", type=Path, default=None,
+                        help=f"metrics report (default: {layout_path('report', '<name>')})")
     args = parser.parse_args(argv)
     name = args.name
+    out = args.out or layout_path("predictor", name)
+    report = args.report or layout_path("report", name)
     sections = ["data", name]
     with open_stage(name, args, sections) as stage:
         cfg, run = stage.cfg, stage.run
         pc = cfg.section(name)
-        latents = LATENT_SETS[STAGES[name].latents]
+        latents = latent_paths(args, STAGES[name].latents)
         cache = open_cache(latents.root,
                            *tokenizer_checksums(latents.tokenizers["detail"], latents.tokenizers["abstract"]))
         inputs = {"latents": latents.root / "meta.json"}
         init_file = None
+        if pc.init_from is None and args.init is not None:
+            raise OrbisError(f"--init {args.init}: `{name}` has no init_from in params.yaml")
         if pc.init_from is not None:
-            init_file = predictor_path(pc.init_from)
+            init_file = (args.init or layout_path("predictor", pc.init_from)) / PREDICTOR_FILE
             if not init_file.is_file():
                 raise OrbisError(f"{init_file}: not found; `{name}` starts from it (init_from), run "
                                  f"`{pc.init_from}` first")
@@ -55,13 +71,13 @@ def main(argv: list[str] | None = None) -> None:
             return
 
         run.log_metrics(metrics, step=int(metrics["steps"]))
-        out = predictor_path(name)
-        publish_training(work, out.parent, [out.name], layout_path("report", name), metrics, run)
+        publish_training(work, out, [PREDICTOR_FILE], report, metrics, run)
         few = (f"; {pc.student_nfe}-step MSE to the teacher's {pc.teacher_nfe}-step sample "
                f"{metrics['few_step_mse_student']:.4f} (teacher's own {metrics['few_step_mse_teacher']:.4f})"
                if "few_step_mse_student" in metrics else "")
         stage.summary = (f"{metrics['steps']} steps, {metrics['parameters'] / 1e6:.2f}M parameters, val loss "
-                         f"{metrics['val_loss']:.4f} (at initialisation {metrics['val_loss_init']:.4f}){few} -> {out}")
+                         f"{metrics['val_loss']:.4f} (at initialisation {metrics['val_loss_init']:.4f}){few} -> "
+                         f"{out / PREDICTOR_FILE}")
 
 
 if __name__ == "__main__":

@@ -1,19 +1,24 @@
-"""Stage `report_main` / `report_all`: the paper's tables, figures and a summary from reports/eval/.
+"""Stage `report_main` / `report_all`: the paper's tables, figures and a summary from the evaluation records.
 
     python stages/report.py main   # reports/main_table.csv, steering.csv, speed.csv, summary.md
     python stages/report.py all    # reports/all/: every table (ablations too), figures, summary.md
 
 ``all`` also draws the qualitative rollout grid (from the FVD stages' saved frames)
-and copies the steering strip.
+and copies the steering strip. The DAG passes every record the report reads
+(``--fvd NAME=FILE``, ``--probe NAME=FILE``, ...); by hand, without them, every
+record of registry.yaml's layout that exists is read.
 """
 
 import shutil
+from pathlib import Path
 
 import numpy as np
 
+from orbis2.errors import OrbisError
 from orbis2.eval.report import (
+    EVAL_KINDS,
     compression_from_evals,
-    load_eval,
+    read_evals,
     report_setup,
     save_rollout_grid,
     write_full_report,
@@ -21,31 +26,55 @@ from orbis2.eval.report import (
 )
 from orbis2.eval.systems import SYSTEMS
 from orbis2.io import atomic_dir
-from orbis2.registry import layout_path
-from orbis2.stage import add_name_argument, open_stage, stage_parser
+from orbis2.registry import layout_path, registry
+from orbis2.stage import add_name_argument, add_named_paths, open_stage, stage_parser
 
-EVAL = layout_path("eval")
+GRID = "grid.npz"  # the frames of the qualitative grid in an FVD stage's media folder
+
+
+def given_or_all(given: list[tuple[str, Path]], kind: str, names: list[str], option: str) -> dict[str, Path]:
+    """The ``NAME=PATH`` pairs given, else every name at its registry.yaml layout path."""
+    if not given:
+        return {name: layout_path(kind, name) for name in names}
+    unknown = sorted(set(dict(given)) - set(names))
+    if unknown:
+        raise OrbisError(f"{option} {', '.join(unknown)}: unknown; known: {', '.join(names)}")
+    return {name: Path(path) for name, path in given}
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = stage_parser("report.py", __doc__)
     add_name_argument(parser, ["main", "all"], prefix="report_")
+    add_named_paths(parser, "--fvd", "a system's FVD record", f"every system's {layout_path('fvd', 'NAME')}")
+    add_named_paths(parser, "--probe", "a probe target's record", f"every target's {layout_path('probe', 'NAME')}")
+    for kind in EVAL_KINDS:
+        parser.add_argument(f"--{kind}", type=Path, default=layout_path("eval") / f"{kind}.json",
+                            help=f"the {kind} record (default: %(default)s)")
+    add_named_paths(parser, "--media", "a system's media folder (all: the rollout grid)",
+                    f"every system's {layout_path('media', 'NAME')}")
+    parser.add_argument("--strip", type=Path, default=layout_path("eval") / "steering_strip.png",
+                        help="the steering strip (all; default: %(default)s)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help=f"output folder (default: main {layout_path('reports')}, all {layout_path('report_all')})")
     args = parser.parse_args(argv)
     scope = args.name
     with open_stage(f"report_{scope}", args, ["data", "evaluation"]) as stage:
         cfg, run = stage.cfg, stage.run
-        evals = load_eval(EVAL)
+        reg = registry()
+        evals = read_evals(given_or_all(args.fvd, "fvd", list(reg.systems), "--fvd"),
+                           given_or_all(args.probe, "probe", reg.probe_targets, "--probe"),
+                           **{kind: getattr(args, kind) for kind in EVAL_KINDS})
         setup, rates = report_setup(cfg), {"detail_hz": cfg.data.detail_hz, "abstract_hz": cfg.data.abstract_hz}
         if scope == "main":
-            written = write_main_report(evals, layout_path("reports"), setup, **rates)
+            written = write_main_report(evals, args.out or layout_path("reports"), setup, **rates)
         else:
             evals["compression"] = compression_from_evals(evals)
-            out = layout_path("report_all")
+            out = args.out or layout_path("report_all")
+            media = given_or_all(args.media, "media", list(SYSTEMS), "--media")
             with atomic_dir(out) as tmp:
                 write_full_report(evals, tmp, setup, **rates)
-                shutil.copy2(EVAL / "steering_strip.png", tmp / "figures" / "steering_strip.png")
-                grids = [(n, np.load(EVAL / "media" / n / "grid.npz")) for n in SYSTEMS
-                         if (EVAL / "media" / n / "grid.npz").is_file()]
+                shutil.copy2(args.strip, tmp / "figures" / "steering_strip.png")
+                grids = [(n, np.load(media[n] / GRID)) for n in SYSTEMS if n in media and (media[n] / GRID).is_file()]
                 if grids:
                     times = min((g["times"] for _, g in grids), key=len)
                     save_rollout_grid([g["frames"][:len(times)] for _, g in grids],

@@ -3,28 +3,32 @@
 One WebDataset sample per clip, per split, with a manifest of counts and hashes.
 """
 
+from pathlib import Path
+
 from orbis2.data.shards import write_shards
 from orbis2.io import atomic_dir
 from orbis2.registry import layout_path
 from orbis2.stage import open_stage, stage_parser
 
-OUT = layout_path("shards")
-
 
 def main(argv: list[str] | None = None) -> None:
-    args = stage_parser("shards.py", __doc__).parse_args(argv)
+    parser = stage_parser("shards.py", __doc__)
+    parser.add_argument("--raw", type=Path, default=None,
+                        help=f"raw episodes folder (default: {layout_path('raw', '<data.source>')})")
+    parser.add_argument("--out", type=Path, default=layout_path("shards"), help="shards folder (default: %(default)s)")
+    args = parser.parse_args(argv)
     with open_stage("shards", args, ["data", "shards"]) as stage:
         cfg, run = stage.cfg, stage.run
-        raw = layout_path("raw", cfg.data.source)
-        with atomic_dir(OUT) as tmp:
+        raw = args.raw or layout_path("raw", cfg.data.source)
+        with atomic_dir(args.out) as tmp:
             manifest = write_shards(raw, tmp, cfg.data, cfg.shards)
 
         for split, info in manifest["splits"].items():
             run.log_metrics({f"{split}_clips": info["samples"], f"{split}_shards": len(info["shards"]),
                              f"{split}_mb": sum(s["bytes"] for s in info["shards"]) / 2**20})
-        run.log_artifact(OUT / "manifest.json")
+        run.log_artifact(args.out / "manifest.json")
         counts = {split: info["samples"] for split, info in manifest["splits"].items()}
-        stage.summary = f"clips per split {counts} -> {OUT}"
+        stage.summary = f"clips per split {counts} -> {args.out}"
 
 
 if __name__ == "__main__":

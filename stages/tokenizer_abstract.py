@@ -12,37 +12,52 @@ tokenizer.pt, the samples and the report are published atomically at the end.
 from pathlib import Path
 
 from orbis2.registry import layout_path, registry
-from orbis2.stage import add_name_argument, open_stage, publish_training, stage_parser, training_dir
+from orbis2.stage import (
+    TOKENIZER_FILE,
+    add_name_argument,
+    open_stage,
+    publish_training,
+    stage_parser,
+    training_dir,
+)
 from orbis2.tasks.tokenizers import TEACHER_ASSETS, asset_path, train_abstract_tokenizer
 
-SHARDS = layout_path("shards")
-# Stage name -> output folder, for every abstract tokenizer of registry.yaml.
-VARIANTS = {f"tokenizer_{name}": layout_path("tokenizer", name)
-            for name, kind in registry().tokenizers.items() if kind == "abstract"}
+# Stage name -> registry.yaml entry, for every abstract tokenizer.
+VARIANTS = {f"tokenizer_{name}": name for name, kind in registry().tokenizers.items() if kind == "abstract"}
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = stage_parser("tokenizer_abstract.py", __doc__)
     add_name_argument(parser, VARIANTS, default="tokenizer_abstract")
+    parser.add_argument("--shards", type=Path, default=layout_path("shards"), help="shards (default: %(default)s)")
+    parser.add_argument("--assets", type=Path, default=None, help="pretrained assets, the teacher "
+                                                                  "(default: assets.dir)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help=f"output folder (default: {layout_path('tokenizer', '<entry>')})")
+    parser.add_argument("--report", type=Path, default=None,
+                        help=f"metrics report (default: {layout_path('report', '<name>')})")
     args = parser.parse_args(argv)
-    name, out = args.name, VARIANTS[args.name]
+    name = args.name
+    out = args.out or layout_path("tokenizer", VARIANTS[name])
+    report = args.report or layout_path("report", name)
     sections = ["data", name]
     with open_stage(name, args, sections) as stage:
         cfg, run = stage.cfg, stage.run
-        teacher = asset_path(Path(cfg.assets.dir), TEACHER_ASSETS[cfg.section(name).teacher])
-        inputs = {"shards": SHARDS / "manifest.json", "teacher": teacher}
+        assets = args.assets or Path(cfg.assets.dir)
+        teacher = asset_path(assets, TEACHER_ASSETS[cfg.section(name).teacher])
+        inputs = {"shards": args.shards / "manifest.json", "teacher": teacher}
         work = training_dir(name, cfg, sections, inputs)
-        metrics = train_abstract_tokenizer(cfg, SHARDS, work, Path(cfg.assets.dir), run, name)
+        metrics = train_abstract_tokenizer(cfg, args.shards, work, assets, run, name)
         if not metrics:
             stage.summary = "training rank done; rank 0 writes the outputs"
             return
 
         run.log_metrics(metrics, step=int(metrics["steps"]))
-        publish_training(work, out, ["tokenizer.pt"], layout_path("report", name), metrics, run)
+        publish_training(work, out, [TOKENIZER_FILE], report, metrics, run)
         stage.summary = (f"{metrics['steps']} steps against {cfg.section(name).teacher}, alignment "
                          f"{metrics['val_align']:.4g} (cosine {metrics['val_cosine']:.3f}), PSNR "
                          f"{metrics['val_psnr']:.2f} dB, latent scale {metrics['latent_scale']:.2f} -> "
-                         f"{out / 'tokenizer.pt'}")
+                         f"{out / TOKENIZER_FILE}")
 
 
 if __name__ == "__main__":

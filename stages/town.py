@@ -11,30 +11,33 @@ from orbis2.io import atomic_dir, write_json
 from orbis2.registry import layout_path
 from orbis2.stage import open_stage, stage_parser
 
-OUT = layout_path("raw", "town")
-SHEET = Path("reports/town_contact_sheet.png")
-PREVIEW = Path("reports/town_preview.mp4")
-
 
 def main(argv: list[str] | None = None) -> None:
-    args = stage_parser("town.py", __doc__).parse_args(argv)
+    parser = stage_parser("town.py", __doc__)
+    parser.add_argument("--out", type=Path, default=layout_path("raw", "town"),
+                        help="raw episodes folder (default: %(default)s)")
+    parser.add_argument("--sheet", type=Path, default=Path("reports/town_contact_sheet.png"),
+                        help="contact sheet (default: %(default)s)")
+    parser.add_argument("--preview", type=Path, default=Path("reports/town_preview.mp4"),
+                        help="preview video (default: %(default)s)")
+    args = parser.parse_args(argv)
     with open_stage("town", args, ["data", "town"]) as stage:
         cfg, run = stage.cfg, stage.run
-        with atomic_dir(OUT) as tmp:
+        with atomic_dir(args.out) as tmp:
             index = build_town_dataset(tmp, cfg.data, cfg.town)
             motion = split_motion_statistics(tmp, index)
             write_json(tmp / "motion.json", motion)
-        write_previews(SHEET, PREVIEW, cfg.data, cfg.town)
+        write_previews(args.sheet, args.preview, cfg.data, cfg.town)
 
         counts = {s: len(index.split(s)) for s in cfg.town.episodes}
         frames = sum(e.frames for e in index.episodes)
         run.log_metrics({"episodes": len(index.episodes), "frames": frames})
         run.log_metrics({f"motion/{split}/{k}": v for split, m in motion.items() for k, v in m.items()
                          if k in ("speed_mean", "speed_moving_mean", "stopped", "turning", "left", "right")})
-        run.log_artifact(SHEET)
-        run.log_artifact(PREVIEW)
+        run.log_artifact(args.sheet)
+        run.log_artifact(args.preview)
         train = motion["train"]
-        stage.summary = (f"{len(index.episodes)} episodes {counts}, {frames} frames -> {OUT}; train: "
+        stage.summary = (f"{len(index.episodes)} episodes {counts}, {frames} frames -> {args.out}; train: "
                          f"{train['speed_moving_mean']:.1f} m/s moving, {100 * train['turning']:.0f}% turning "
                          f"({100 * train['left']:.0f}% left, {100 * train['right']:.0f}% right)")
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from snakemake.utils import format as snakemake_format
 
 from orbis2 import dag
 from orbis2.config import PROFILES, load_params, resolve_section
@@ -58,15 +59,15 @@ def dvc_stages(root: Path = ROOT, texts: dict[str, str] | None = None) -> dict[s
 
 
 def snakemake_rules(root: Path = ROOT, videos_as_folder: bool = True) -> dict[str, dict]:
-    """Every rule with its command as the shell would run it (no log redirection) and its params' sections."""
+    """Every rule with its command as the shell would run it (no log redirection; paths, params and the
+    launcher filled in by Snakemake's own formatter) and its params' sections."""
     raw = load_params(root / "params.yaml")
     videos = resolve_section(raw, "import", raw["profile"])["videos"] if videos_as_folder else None
     rules = {}
     for rule in dag.snakemake_rules(root):
         cmd = rule.shellcmd.split(" 2>&1 | tee")[0].strip()
-        cmd = (cmd.replace("{params.script}", rule.params.script) if "script" in rule.params.keys() else cmd)
-        cmd = (cmd.replace("{params.profile}", raw["profile"])
-               .replace("{rule}", rule.name).replace("{config[train_launcher]}", raw["train_launcher"]))
+        cmd = snakemake_format(cmd, input=rule.input, output=rule.output, params=rule.params, rule=rule.name,
+                               config={"train_launcher": raw["train_launcher"]})
         sections = {s for key in rule.params.keys() if key not in dag.NOT_SECTIONS
                     for s in dag.section_chain(raw, key)}
         rules[rule.name] = {"cmd": cmd, "deps": {_as_folder(str(f), videos) for f in rule.input},
@@ -106,6 +107,19 @@ def test_snakefile_and_dvc_yaml_agree(both):
     assert {"town", "import", "shards", "assets", "tokenizer_detail", "tokenizer_abstract", "latents",
             "abstract_df", "abstract_tf", "detail", "action"} <= set(dvc)
     assert drift(dvc, snake) == []
+
+
+def test_every_path_reaches_the_stage_as_an_option(both):
+    """The commands carry the rules' paths: no placeholder is left, and a stage gets its inputs and outputs."""
+    dvc, snake = both
+    assert not any("{" in stage["cmd"] for stage in dvc.values())
+    assert "--raw data/raw/town --out data/shards" in dvc["shards"]["cmd"]
+    assert ("--init data/predictors/abstract_df --out data/predictors/abstract_tf "
+            "--report reports/abstract_tf.json") in dvc["abstract_tf"]["cmd"]
+    assert ("--predictor abstract_tf=data/predictors/abstract_tf --predictor detail=data/predictors/detail "
+            "--fvd reports/eval/fvd_hierarchical.json") in dvc["eval_fvd_hierarchical"]["cmd"]
+    raw_source = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]["shards"]["cmd"]
+    assert "--raw data/raw/${data.all.source}" in raw_source  # follows `dvc exp run -S data.all.source=...`
 
 
 def test_drift_is_detected(both):

@@ -1,16 +1,20 @@
 """Evaluated systems: sample placement, contexts from the cache, rollouts of every hierarchy variant."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 from test_predictors import SPAN, C, write_cache
 
+from orbis2.errors import OrbisError
 from orbis2.eval.systems import (
     SYSTEMS,
     LoadedSystem,
     contexts_for,
     eval_samples,
     generated_indices,
+    load_system,
     rollout_steps,
 )
 from orbis2.models.stdit import PredictorFile, build_stdit
@@ -22,6 +26,14 @@ def predictor(level: str, rate: str, condition: bool = False) -> PredictorFile:
     meta = {"level": level, "rate": rate, "frame_rate": 2.0 if rate == "slow" else 10.0,
             "window": {"window": window, "context": context}}
     return PredictorFile(model, {}, meta, "")
+
+
+def test_load_system_takes_its_predictor_files_from_the_caller():
+    """The stage passes the files the DAG gave it; a system's predictor without one is named."""
+    with pytest.raises(OrbisError, match="'hierarchical': no predictor file given for abstract_tf"):
+        load_system("hierarchical", {"detail": Path("data/predictors/detail/predictor.pt")}, {})
+    with pytest.raises(OrbisError, match="no predictor file given for action"):
+        load_system("hierarchical", {"detail": Path("d"), "abstract_tf": Path("a")}, {}, top_override="action")
 
 
 def test_rollout_steps_and_generated_frames(smoke_cfg):

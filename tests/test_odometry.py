@@ -116,6 +116,8 @@ def test_inverse_dynamics_registry():
     assert isinstance(model, OpenCVOdometry) and isinstance(model, InverseDynamics)
     with pytest.raises(OrbisError, match="vggt.*INVERSE_DYNAMICS"):
         get_inverse_dynamics("vggt")
+    with pytest.raises(OrbisError, match="needs its weights"):  # the DAG passes the instrument's model.pt
+        get_inverse_dynamics("learned")
     with pytest.raises(OrbisError):
         OpenCVOdometry(step_scale="metric")
 

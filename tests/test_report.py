@@ -197,6 +197,25 @@ def test_load_eval_rejects_a_file_under_the_wrong_name(tmp_path):
         report.load_eval(folder)
 
 
+def test_read_evals_takes_the_files_it_is_given(tmp_path):
+    """The report stage gets each record's path from the DAG: only those are read, wherever they are."""
+    folder = write_evals(tmp_path / "eval")
+    moved = tmp_path / "elsewhere" / "hier.json"
+    moved.parent.mkdir()
+    (folder / "fvd_hierarchical.json").rename(moved)
+    assert set(report.read_evals({"hierarchical": moved}, {})["fvd"]) == {"hierarchical"}
+    fvd = {m: folder / f"fvd_{m}.json" for m in FVD} | {"hierarchical": moved}
+    evals = report.read_evals(fvd, {t: folder / f"probe_{t}.json" for t in PROBES},
+                              steering=folder / "steering.json", speed=tmp_path / "absent.json",
+                              conditioning=folder / "conditioning.json")
+    assert set(evals["fvd"]) == set(FVD) and evals["fvd"]["hierarchical"]["model"] == "hierarchical"
+    assert "steering" in evals and "speed" not in evals
+    with pytest.raises(OrbisError, match=r"absent\.json \(written by stage eval_speed\)"):
+        report.write_main_report(evals, tmp_path / "out", SETUP)
+    with pytest.raises(OrbisError, match="fvd_flat_detail.json says model='flat_detail', expected 'hierarchical'"):
+        report.read_evals({"hierarchical": folder / "fvd_flat_detail.json"}, {})
+
+
 def test_main_report_tables_round_trip(evals, tmp_path):
     out = tmp_path / "reports"
     written = report.write_main_report(evals, out, SETUP)

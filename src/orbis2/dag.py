@@ -3,16 +3,19 @@
 The Snakefile (with ``rules/*.smk`` and ``registry.yaml``) is the one
 description of the DAG; ``python -m orbis2.dag`` reads its rules through the
 Snakemake API and writes ``dvc.yaml`` and ``pipelines/import/dvc.yaml`` (a test
-fails when they are stale). DVC tracks, per stage, ``<section>.all`` and
-``<section>.${profile}`` of every params section the rule reads and of the
-sections those extend, which is exactly what changes the rule's resolved
-params in Snakemake.
+fails when they are stale). Each rule passes its inputs and outputs to the stage
+as options (``--shards {input.shards}``); a DVC command carries the concrete
+paths in their place, so every path in both DAGs comes from the rules. DVC
+tracks, per stage, ``<section>.all`` and ``<section>.${profile}`` of every params
+section the rule reads and of the sections those extend, which is exactly what
+changes the rule's resolved params in Snakemake.
 """
 
 from __future__ import annotations
 
 import argparse
 import ast
+import re
 import sys
 from functools import lru_cache
 from pathlib import Path
@@ -41,15 +44,16 @@ FIGURES = ["fvd_chunked.png", "probe_per_block.png", "bubble_params_fvd_miou.png
            "steering_strip.png"]
 
 
-def plots() -> str:
+def plots(rules: list) -> str:
     """dvc.yaml's `plots`: the report's figures, the chunked-FVD table and every training stage's curves
-    (``<output>/curves/{train,eval}.csv``, written by the training loop)."""
+    (``<output>/curves/{train,eval}.csv``, written by the training loop), at the rules' output paths."""
     reg = registry()
-    trained = {f"tokenizer_{name}": layout_path("tokenizer", name) for name in reg.tokenizers}
-    trained |= {name: layout_path("predictor", name) for name in reg.predictors}
+    by_name = {rule.name: rule for rule in rules}
+    trained = {rule.name: str(rule.output.weights) for rule in rules if "weights" in rule.output.keys()}
     predictors = [name for name, spec in reg.predictors.items() if spec.objective != "reflow"]
-    entries: list = [str(layout_path("report_all") / "figures" / name) for name in FIGURES]
-    entries.append({"Chunked FVD (turns)": {"x": "end_s", "y": {str(layout_path("report_all") / "fvd_chunked.csv"):
+    report_all = Path(by_name["report_all"].output.report)
+    entries: list = [str(report_all / "figures" / name) for name in FIGURES]
+    entries.append({"Chunked FVD (turns)": {"x": "end_s", "y": {str(report_all / "fvd_chunked.csv"):
                                                                  [name for name, system in reg.systems.items()
                                                                   if system.latents == "compressed"]}}})
     entries.append({"Training loss": {"x": "step", "y": {f"{trained[name]}/curves/train.csv": "loss"
@@ -135,11 +139,34 @@ def snakemake_rules(root: Path, profile: str | None = None) -> list:
         return [rule for rule in workflow.rules if rule.name != "all"]
 
 
-def dvc_command(rule) -> str:
-    """The rule's shell command with Snakemake's placeholders turned into DVC's (no log redirection)."""
+# A rule's named input or output in its shell command.
+PLACEHOLDER = re.compile(r"\{(input|output)\.(\w+)\}")
+
+
+def _named_files(rule, kind: str, name: str) -> list[str]:
+    files = rule.input if kind == "input" else rule.output
+    if name not in files.keys():
+        raise ValueError(f"rule {rule.name}: its command names {{{kind}.{name}}}, which is not among its {kind}s")
+    value = getattr(files, name)  # one file, or a list of them (Snakemake joins those with spaces)
+    return [str(value)] if isinstance(value, str) else [str(f) for f in value]
+
+
+def dvc_command(rule, dep=lambda path: path) -> str:
+    """The rule's shell command with Snakemake's placeholders turned into DVC's (no log redirection).
+
+    ``{input.x}`` and ``{output.x}`` become the rule's paths, each input passed through ``dep`` (what
+    the stage's deps write in its place, e.g. the raw folder of the configured source).
+    """
     cmd = rule.shellcmd.split(" 2>&1 | tee")[0].strip()
     if "script" in rule.params.keys():
         cmd = cmd.replace("{params.script}", rule.params.script)
+
+    def paths(match: re.Match) -> str:
+        kind, name = match.groups()
+        files = _named_files(rule, kind, name)
+        return " ".join(dep(f) if kind == "input" else f for f in files)
+
+    cmd = PLACEHOLDER.sub(paths, cmd)
     return (cmd.replace("{params.profile}", "${profile}").replace("{rule}", rule.name)
             .replace("{config[train_launcher]}", "${train_launcher}"))
 
@@ -152,11 +179,19 @@ def _out_entry(out: str, assets: str) -> Any:
     return out
 
 
-def dvc_stage(rule, raw: dict, source: str) -> dict:
-    """One dvc.yaml stage from a Snakemake rule."""
-    deps = [str(f) for f in rule.input]
-    raw_dir = str(layout_path("raw", source))
-    deps = ["data/raw/${data.all.source}" if d == raw_dir else d for d in deps]
+def dvc_stage(rule, raw: dict, raw_dir: str, assets: str) -> dict:
+    """One dvc.yaml stage from a Snakemake rule.
+
+    ``raw_dir`` is the raw folder the shards read (the configured source's), which DVC names through
+    ``${data.all.source}`` so that `dvc exp run -S data.all.source=...` switches it; ``assets`` is the
+    assets stage's output (kept out of the cache).
+    """
+    raw_template = str(layout_path("raw", "${data.all.source}"))
+
+    def dep(path: str) -> str:
+        return raw_template if path == raw_dir else path
+
+    deps = [dep(str(f)) for f in rule.input]
     if rule.name == "import":  # the Snakefile lists every video file (input_files); DVC watches the folder
         videos = Path(raw["import"]["all"]["videos"])
         deps = list(dict.fromkeys("${import.all.videos}" if Path(d) == videos or videos in Path(d).parents else d
@@ -170,8 +205,7 @@ def dvc_stage(rule, raw: dict, source: str) -> dict:
     params = list(dict.fromkeys(params))
     if "spec" in rule.params.keys():  # a predictor's registry.yaml entry
         params.append({"registry.yaml": [f"predictors.{rule.name}"]})
-    stage: dict[str, Any] = {"cmd": dvc_command(rule), "deps": deps, "params": params}
-    assets = str(layout_path("assets"))
+    stage: dict[str, Any] = {"cmd": dvc_command(rule, dep), "deps": deps, "params": params}
     outs = [str(f) for f in rule.output]
     metrics = [o for o in outs if o.startswith("reports/") and o.endswith(".json")]
     stage["outs"] = [_out_entry(o, assets) for o in outs if o not in metrics]
@@ -194,16 +228,17 @@ def slurm_resources(rule) -> dict:
 def generate(root: Path = ROOT) -> dict[Path, str]:
     """dvc.yaml, pipelines/import/dvc.yaml and the SLURM profile for the project at ``root``: {path: text}."""
     raw = load_params(root / "params.yaml")
-    source = raw["data"]["all"]["source"]
     rules = snakemake_rules(root)
-    stages = {rule.name: dvc_stage(rule, raw, source) for rule in rules}
+    by_name = {rule.name: rule for rule in rules}
+    raw_dir, assets = str(by_name["shards"].input.raw), str(by_name["assets"].output.assets)
+    stages = {rule.name: dvc_stage(rule, raw, raw_dir, assets) for rule in rules}
     slurm = {**SLURM_BASE, "set-resources": {rule.name: slurm_resources(rule) for rule in rules}}
     imported = stages.pop("import")
     imported["wdir"] = "../.."
     imported = {"wdir": imported.pop("wdir"), **imported}
     dump = lambda obj: yaml.safe_dump(obj, sort_keys=False, width=120, default_flow_style=None)  # noqa: E731
     return {
-        root / "dvc.yaml": HEADER + dump({"stages": stages}) + plots(),
+        root / "dvc.yaml": HEADER + dump({"stages": stages}) + plots(rules),
         root / "pipelines/import/dvc.yaml": IMPORT_HEADER + dump({"vars": ["../../params.yaml"],
                                                                   "stages": {"import": imported}}),
         root / "profiles/slurm/config.yaml": SLURM_HEADER + dump(slurm),

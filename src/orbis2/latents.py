@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -51,27 +50,12 @@ from orbis2.data.shards import (
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_dir, sha256_file, write_json
 from orbis2.models.tokenizer import TokenizerFile, load_tokenizer
-from orbis2.registry import registry
 
 FORMAT = 2
 KINDS = ("detail", "abstract")
 META = "meta.json"
 INDEX = "index.json"
 NORMALIZATION = "normalization.npz"
-
-
-@dataclass(frozen=True)
-class LatentSet:
-    """Where one pair of tokenizers and the cache of their latents live (the DAG's paths)."""
-
-    root: Path
-    tokenizers: dict[str, Path]
-
-
-# "compressed": the paper's 16-d abstract latents; "full": the uncompressed teacher-dimensional ones
-# (tokenizer_abstract_full, compress: false), for the compression ablation. Entries: registry.yaml.
-LATENT_SETS = {name: LatentSet(entry.root, {level: entry.tokenizer_file(level) for level in entry.tokenizers})
-               for name, entry in registry().latent_sets.items()}
 
 
 class LatentCacheError(OrbisError):

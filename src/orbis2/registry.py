@@ -2,8 +2,10 @@
 
 One declarative file that the Snakefile, the dvc.yaml generator, the config and
 the reports read, so that an ablation is one entry there plus one params.yaml
-section. It also holds the folder layout: library code takes its default paths
-from :func:`layout_path` instead of spelling ``data/...`` itself.
+section. It also holds the folder layout (:func:`layout_path`): the rules place
+every file by it and pass the paths to the stage scripts, which, like the
+``orbis2`` command, default to it when run by hand; library code receives paths as
+arguments instead of spelling ``data/...`` itself.
 
 The file is looked up in ``$ORBIS2_REGISTRY``, else ``./registry.yaml`` (the
 project root the DAG runs in), else beside the source tree (editable installs).

@@ -2,11 +2,17 @@
 
 A stage script's ``main()`` reads top to bottom::
 
-    args = stage_parser("town.py", __doc__).parse_args(argv)
+    parser = stage_parser("town.py", __doc__)
+    parser.add_argument("--out", type=Path, default=layout_path("raw", "town"))
+    args = parser.parse_args(argv)
     with open_stage("town", args, ["data", "town"]) as stage:
         cfg, run = stage.cfg, stage.run
         ...                      # load inputs, call the library, save outputs, log to ``run``
         stage.summary = "..."    # the line printed when the stage ends
+
+The DAG (the rules in ``rules/*.smk``, and dvc.yaml generated from them) passes every
+input and output path as an option; a stage run by hand without them falls back on
+registry.yaml's ``layout`` (the helpers below), so the library only ever receives paths.
 """
 
 from __future__ import annotations
@@ -21,13 +27,13 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Iterable, Iterator, Sequence
 
 import orbis2
 from orbis2.config import BOOKKEEPING_FIELDS, PipelineConfig, as_dict, load_config
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_dir, sha256_file, write_json
-from orbis2.registry import layout_path
+from orbis2.registry import layout_path, registry
 from orbis2.tracking import StageRun, stage_run
 
 
@@ -56,6 +62,83 @@ def add_name_argument(parser: argparse.ArgumentParser, names: Sequence[str], pre
     parser.add_argument("name", type=short, choices=names, metavar="name", default=default,
                         nargs="?" if default is not None else None,
                         help=f"one of {', '.join(names)}" + (f" (default: {default})" if default else ""))
+
+
+# The file a tokenizer or predictor stage publishes in its output folder (the folder is what the DAG passes).
+TOKENIZER_FILE = "tokenizer.pt"
+PREDICTOR_FILE = "predictor.pt"
+LEVELS = ("detail", "abstract")
+
+
+def named_path(value: str) -> tuple[str, Path]:
+    """``NAME=PATH`` (an argparse type): which entry of a family a path belongs to."""
+    name, sep, path = value.partition("=")
+    if not sep or not name or not path:
+        raise argparse.ArgumentTypeError(f"{value!r}: expected NAME=PATH")
+    return name, Path(path)
+
+
+def add_named_paths(parser: argparse.ArgumentParser, option: str, what: str, default: str) -> None:
+    """A repeatable ``option NAME=PATH`` (collected in a list of pairs)."""
+    parser.add_argument(option, type=named_path, action="append", default=[], metavar="NAME=PATH",
+                        help=f"{what}, repeatable (default: {default})")
+
+
+def named_paths(given: Iterable[tuple[str, Path]], names: Iterable[str], default, option: str) -> dict[str, Path]:
+    """``{name: path}`` for every name: the one given (``NAME=PATH`` pairs), else ``default(name)``.
+
+    A given name outside ``names`` is an error, so a misspelt name does not silently fall back on the layout.
+    """
+    names, given = list(names), dict(given)
+    unknown = sorted(set(given) - set(names))
+    if unknown:
+        raise OrbisError(f"{option} {', '.join(unknown)}: not read by this stage; it reads {', '.join(names)}")
+    return {name: Path(given[name]) if name in given else Path(default(name)) for name in names}
+
+
+def add_predictor_argument(parser: argparse.ArgumentParser) -> None:
+    """``--predictor NAME=DIR``: where predictor NAME's stage output folder is."""
+    add_named_paths(parser, "--predictor", "a predictor's folder (its predictor.pt)",
+                    str(layout_path("predictor", "NAME")))
+
+
+def predictor_files(args: argparse.Namespace, names: Iterable[str]) -> dict[str, Path]:
+    """``{predictor: its predictor.pt}`` for ``names``, from ``--predictor`` or registry.yaml's layout."""
+    folders = named_paths(args.predictor, dict.fromkeys(names), lambda n: layout_path("predictor", n), "--predictor")
+    return {name: folder / PREDICTOR_FILE for name, folder in folders.items()}
+
+
+def add_tokenizer_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--detail-tokenizer DIR`` and ``--abstract-tokenizer DIR``: the tokenizer stages' output folders."""
+    for level in LEVELS:
+        parser.add_argument(f"--{level}-tokenizer", type=Path, default=None, metavar="DIR",
+                            help=f"the {level} tokenizer's folder (its {TOKENIZER_FILE}; default: the latent "
+                                 f"set's, registry.yaml)")
+
+
+def add_latent_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--latents DIR`` (a latent cache) and the two tokenizers it was encoded with."""
+    parser.add_argument("--latents", type=Path, default=None, metavar="DIR",
+                        help="the latent cache (default: the latent set's folder, registry.yaml layout)")
+    add_tokenizer_arguments(parser)
+
+
+@dataclass(frozen=True)
+class LatentPaths:
+    """A latent cache and the tokenizer file of each level, as the DAG passes them."""
+
+    root: Path
+    tokenizers: dict[str, Path]  # level -> tokenizer.pt
+
+
+def latent_paths(args: argparse.Namespace, latent_set: str) -> LatentPaths:
+    """The paths of ``args`` (:func:`add_latent_arguments`), else those of registry.yaml's ``latent_set``."""
+    entry = registry().latent_sets[latent_set]
+    given = {level: getattr(args, f"{level}_tokenizer", None) for level in LEVELS}
+    tokenizers = {level: (Path(given[level]) / TOKENIZER_FILE if given[level] is not None
+                          else entry.tokenizer_file(level)) for level in LEVELS}
+    root = getattr(args, "latents", None)
+    return LatentPaths(Path(root) if root is not None else entry.root, tokenizers)
 
 
 @dataclass
@@ -110,6 +193,7 @@ def training_dir(name: str, cfg: PipelineConfig, sections: list[str], inputs: di
     key["inputs"] = {label: sha256_file(path) for label, path in sorted(inputs.items())}
     key["code"] = code_version()
     blob = json.dumps(key, sort_keys=True).encode()
+    # Scratch space of the stage itself, not a DAG input or output: where it lives stays the layout's.
     return layout_path("runs") / f"{name}-{cfg.profile}-{hashlib.sha256(blob).hexdigest()[:12]}"
 
 

@@ -35,10 +35,10 @@ from orbis2.eval.odometry import integrate_controls
 from orbis2.latents import encode_frames
 from orbis2.models.inverse_dynamics import InverseDynamicsNet
 from orbis2.models.tokenizer import load_tokenizer
-from orbis2.registry import layout_path
 
-# Where the ``inverse_dynamics`` stage publishes the instrument (what ``evaluation.inverse_dynamics: learned`` loads).
-WEIGHTS = layout_path("inverse_dynamics") / "model.pt"
+# The file the ``inverse_dynamics`` stage publishes in its output folder (what ``evaluation.inverse_dynamics:
+# learned`` loads).
+WEIGHTS_FILE = "model.pt"
 
 
 @dataclass
@@ -123,7 +123,7 @@ class Instrument:
                     "meta": meta}, path)
 
     @classmethod
-    def load(cls, path: Path = WEIGHTS, device: str | torch.device = "cpu") -> Instrument:
+    def load(cls, path: Path, device: str | torch.device = "cpu") -> Instrument:
         if not Path(path).is_file():
             raise OrbisError(f"{path}: missing; run the `inverse_dynamics` stage first (evaluation.inverse_dynamics "
                              f"= learned needs it)")

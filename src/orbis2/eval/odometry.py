@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable, Protocol, runtime_checkable
 
 import cv2
@@ -349,14 +350,22 @@ def _step_lengths(motions: list, cfg: OpenCVOdometry) -> np.ndarray:
     return lengths
 
 
-def _learned() -> InverseDynamics:
+def _learned(weights: Path | None = None) -> InverseDynamics:
     """The CNN the ``inverse_dynamics`` stage trains on the town (imported here: it needs torch)."""
     from orbis2.eval.inverse_dynamics import Instrument
 
-    return Instrument.load()
+    if weights is None:
+        raise OrbisError("the learned inverse-dynamics instrument needs its weights: pass the `inverse_dynamics` "
+                         "stage's model.pt")
+    return Instrument.load(weights)
 
 
-INVERSE_DYNAMICS: dict[str, Callable[[], InverseDynamics]] = {"opencv": OpenCVOdometry, "learned": _learned}
+def _opencv(weights: Path | None = None) -> InverseDynamics:
+    return OpenCVOdometry()
+
+
+# name -> factory(weights): ``weights`` is the model's file where it has one (None otherwise).
+INVERSE_DYNAMICS: dict[str, Callable[[Path | None], InverseDynamics]] = {"opencv": _opencv, "learned": _learned}
 
 
 def path_length(trajectory: np.ndarray) -> float:
@@ -373,18 +382,18 @@ def endpoint_angle(trajectory: np.ndarray) -> float:
     return math.degrees(math.atan2(y, x))
 
 
-def get_inverse_dynamics(name: str) -> InverseDynamics:
+def get_inverse_dynamics(name: str, weights: Path | None = None) -> InverseDynamics:
     """The inverse-dynamics model registered under ``name``: "opencv" (visual odometry) or "learned" (the
-    ``inverse_dynamics`` stage's CNN)."""
+    ``inverse_dynamics`` stage's CNN, read from ``weights``, its model.pt)."""
     factory = INVERSE_DYNAMICS.get(name)
     if factory is None:
         raise OrbisError(
             f"unknown inverse-dynamics model {name!r}; available: {sorted(INVERSE_DYNAMICS)}. "
             "Learned models (e.g. VGGT) need their own weights: wrap the model in a callable "
             "model(frames [T,H,W,3] uint8, K 3x3) -> [T,2] planar trajectory (x forward, y left, "
-            "frame 0 at the origin, any scale), then register it with "
+            "frame 0 at the origin, any scale), then register a factory(weights) -> model with "
             "orbis2.eval.odometry.INVERSE_DYNAMICS[name] = factory, or pass it as `model` to trajectory_ade")
-    return factory()
+    return factory(weights)
 
 
 def trajectory_ade(frames: np.ndarray, speed, yaw_rate, fps: float, K: np.ndarray,

@@ -90,24 +90,40 @@ def _file_and_stage(kind: str, name: str | None) -> tuple[str, str]:
     return f"{kind}.json", f"eval_{kind}"
 
 
-def load_eval(folder: str | Path) -> dict:
-    """Every evaluation JSON present in ``folder``, keyed by kind and name; absent files are simply absent."""
-    folder = Path(folder)
-    evals: dict = {"folder": str(folder), "fvd": {}, "probe": {}}
-    for kind, names, key in (("fvd", list(registry().systems), "model"), ("probe", PROBE_TARGETS, "target")):
-        for name in names:
-            path = folder / f"{kind}_{name}.json"
+EVAL_KINDS = ("steering", "speed", "conditioning")  # one file each, beside the per-system and per-target ones
+
+
+def read_evals(fvd: Mapping[str, str | Path], probe: Mapping[str, str | Path], steering: str | Path | None = None,
+               speed: str | Path | None = None, conditioning: str | Path | None = None) -> dict:
+    """The evaluation JSON files given (``fvd``: system -> file, ``probe``: target -> file, and the steering,
+    speed and conditioning files), keyed by kind and name; a file that does not exist is simply absent."""
+    evals: dict = {"fvd": {}, "probe": {}, "files": {"fvd": {}, "probe": {}}}
+    for kind, files, key in (("fvd", fvd, "model"), ("probe", probe, "target")):
+        for name, path in files.items():
+            path = Path(path)
+            evals["files"][kind][name] = path
             if path.exists():
                 data = _read_json(path)
                 if data.get(key) != name:
                     found = data.get(key)
                     raise OrbisError(f"{path} says {key}={found!r}, expected {name!r}: re-run eval_{kind}_{name}")
                 evals[kind][name] = data
-    for kind in ("steering", "speed", "conditioning"):
-        path = folder / f"{kind}.json"
-        if path.exists():
-            evals[kind] = _read_json(path)
+    for kind, path in (("steering", steering), ("speed", speed), ("conditioning", conditioning)):
+        if path is not None:
+            evals["files"][kind] = Path(path)
+            if Path(path).exists():
+                evals[kind] = _read_json(Path(path))
     return evals
+
+
+def load_eval(folder: str | Path) -> dict:
+    """Every evaluation JSON present in ``folder`` under the names the evaluation stages give them by default
+    (``fvd_<system>.json``, ``probe_<target>.json``, ``steering.json``, ...): :func:`read_evals` of that folder."""
+    folder = Path(folder)
+    evals = read_evals({name: folder / _file_and_stage("fvd", name)[0] for name in registry().systems},
+                       {name: folder / _file_and_stage("probe", name)[0] for name in PROBE_TARGETS},
+                       **{kind: folder / f"{kind}.json" for kind in EVAL_KINDS})
+    return evals | {"folder": str(folder)}
 
 
 def _read_json(path: Path) -> dict:
@@ -122,7 +138,10 @@ def _read_json(path: Path) -> dict:
 
 def _where(evals: Mapping, kind: str, name: str | None = None) -> str:
     file, stage = _file_and_stage(kind, name)
-    return f"{Path(evals.get('folder', 'reports/eval')) / file} (written by stage {stage})"
+    given = evals.get("files", {}).get(kind)
+    given = given.get(name) if isinstance(given, Mapping) else given
+    path = given if given is not None else Path(evals.get("folder", "reports/eval")) / file
+    return f"{path} (written by stage {stage})"
 
 
 def _doc(evals: Mapping, kind: str, name: str | None = None) -> dict:
@@ -674,7 +693,7 @@ def _per_block_targets(evals: Mapping) -> list[str]:
     targets = [t for t in PROBE_TARGETS if _has(evals, "probe", t) and _doc(evals, "probe", t).get("per_block")]
     if not targets:
         raise OrbisError(
-            f"no probe file in {evals.get('folder', 'reports/eval')} has per_block results: "
+            f"no probe file {'in ' + evals['folder'] if 'folder' in evals else 'given'} has per_block results: "
             "run an eval_probe_<target> stage with per-block probing"
         )
     return targets

@@ -25,6 +25,7 @@ runs on the uncompressed abstract latents (compression ablation).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -35,10 +36,10 @@ from tqdm import tqdm
 from orbis2.accel import Inference, compile_decoder, compile_predictor, inference_autocast, set_tf32
 from orbis2.config import DataConfig, EvaluationConfig
 from orbis2.errors import OrbisError
-from orbis2.latents import LATENT_SETS, LatentCache
+from orbis2.latents import LatentCache
 from orbis2.models.stdit import PredictorFile, load_predictor
 from orbis2.models.tokenizer import TokenizerFile, load_tokenizer
-from orbis2.registry import System, layout_path, registry
+from orbis2.registry import System, registry
 from orbis2.rollout import ScheduleStep, cascaded_rollout, first_context_end, flat_rollout, rollout_schedule
 
 # The systems and the main table's rows: registry.yaml (``systems``, ``main_table``).
@@ -47,10 +48,6 @@ MAIN_SYSTEMS = tuple(registry().main_table)
 # Systems timed by the speed stage only (``speed_systems``): the hierarchy with the few-step (distilled)
 # detail predictor, sampled with the NFE its predictor file records.
 SPEED_SYSTEMS: dict[str, System] = registry().speed_systems
-
-
-def predictor_file(stage: str) -> Path:
-    return layout_path("predictor", stage) / "predictor.pt"
 
 
 @dataclass
@@ -135,32 +132,39 @@ class LoadedSystem:
         return frames.cpu().numpy().reshape(b, t, *frames.shape[1:])
 
 
-def load_system(name: str, device: torch.device | str = "cpu", top_override: str | None = None,
+def load_system(name: str, predictors: Mapping[str, Path], tokenizers: Mapping[str, Path],
+                device: torch.device | str = "cpu", top_override: str | None = None,
                 inference: Inference | None = None) -> LoadedSystem:
     """Load a system's predictors and both tokenizers; ``top_override`` swaps the top (e.g. the steered ``action``).
 
-    ``inference`` sets precision, KV cache and compilation (compiled here, once per process and network).
+    ``predictors`` maps predictor names to their ``predictor.pt`` (at least the system's own, with the
+    override), ``tokenizers`` levels to the ``tokenizer.pt`` of the system's latent set: the paths the
+    DAG passes to the stage. ``inference`` sets precision, KV cache and compilation (compiled here, once
+    per process and network).
     """
     known = {**SYSTEMS, **SPEED_SYSTEMS}
     if name not in known:
         raise OrbisError(f"unknown system {name!r}; choose from {sorted(known)}")
     system = known[name]
-    paths = LATENT_SETS[system.latents].tokenizers
-    tokenizers = {kind: load_tokenizer(path, device) for kind, path in paths.items()}
     top_stage = top_override or system.top
-    loaded = {stage: load_predictor(predictor_file(stage), device) for stage in {system.bottom, top_stage} if stage}
+    stages = [stage for stage in dict.fromkeys([system.bottom, top_stage]) if stage]
+    missing = [stage for stage in stages if stage not in predictors]
+    if missing:
+        raise OrbisError(f"system {name!r}: no predictor file given for {', '.join(missing)}")
+    loaded_tokenizers = {kind: load_tokenizer(Path(path), device) for kind, path in tokenizers.items()}
+    loaded = {stage: load_predictor(Path(predictors[stage]), device) for stage in stages}
     for stage, predictor in loaded.items():
-        for kind, tokenizer in tokenizers.items():
+        for kind, tokenizer in loaded_tokenizers.items():
             if predictor.meta["tokenizers"][kind]["checksum"] != tokenizer.checksum:
-                raise OrbisError(f"{predictor_file(stage)} was trained on latents of another {kind} tokenizer than "
-                                 f"{paths[kind]}; re-run `{stage}`")
+                raise OrbisError(f"{predictors[stage]} was trained on latents of another {kind} tokenizer than "
+                                 f"{tokenizers[kind]}; re-run `{stage}`")
     inference = inference or Inference()
     if inference.compile:
         for predictor in loaded.values():
             compile_predictor(predictor.model)
-        for tokenizer in tokenizers.values():
+        for tokenizer in loaded_tokenizers.values():
             compile_decoder(tokenizer.model)
-    return LoadedSystem(name, system, loaded[system.bottom], loaded.get(top_stage), tokenizers, inference)
+    return LoadedSystem(name, system, loaded[system.bottom], loaded.get(top_stage), loaded_tokenizers, inference)
 
 
 # --------------------------------------------------------------------------- evaluation samples
