@@ -71,11 +71,14 @@ def named_inputs(prefix, kind, names):
     return {f"{prefix}{name}": P(kind, name) for name in dict.fromkeys(names)}
 
 
-def named_args(option, prefix, names):
-    """` <option> <name>={input.<prefix><name>}` for each name: one family's paths, each with its entry's name.
+def named_args(option, kind, names):
+    """` <option> <name>=<path>` for each name: one family's layout paths (the same as named_inputs'),
+    each with its entry's name.
 
-    Built when the rule is defined (a plain string), so a rule made in a loop may use it."""
-    return "".join(f" {option} {name}={{input.{prefix}{name}}}" for name in dict.fromkeys(names))
+    Concrete paths, not {input...} placeholders: Snakemake evaluates a `shell:` expression again
+    when the job runs, when a loop's variables hold their last values, so a rule made in a loop
+    passes what depends on the loop through `params.args` (set when the rule is defined)."""
+    return "".join(f" {option} {name}={P(kind, name)}" for name in dict.fromkeys(names))
 
 
 def predictor_inputs(names):
@@ -84,7 +87,7 @@ def predictor_inputs(names):
 
 
 def predictor_args(names):
-    return named_args("--predictor", "predictor_", names)
+    return named_args("--predictor", "predictor", names)
 
 
 def log(name):

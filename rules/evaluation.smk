@@ -30,11 +30,12 @@ for system_name, system in REG.systems.items():
             data=section("data"),
             assets=section("assets"),
             evaluation=section("evaluation"),
+            args=predictor_args(system.stages),  # see named_args
         log: log(f"eval_fvd_{system_name}")
         benchmark: bench(f"eval_fvd_{system_name}")
         shell:
             ("python stages/eval_fvd.py {rule} --profile {params.profile}" + LATENT_ARGS
-             + " --shards {input.shards} --assets {input.assets}" + predictor_args(system.stages)
+             + " --shards {input.shards} --assets {input.assets}{params.args}"
              + " --fvd {output.fvd} --media {output.media}" + TEE)
 
 
@@ -59,12 +60,12 @@ for target in REG.probe_targets:
             profile=PROFILE,
             data=section("data"),
             evaluation=section("evaluation"),
+            args=(f" --assets {rules.assets.output.assets}" if teacher else "") + predictor_args(own_predictor),
         log: log(f"eval_probe_{target}")
         benchmark: bench(f"eval_probe_{target}")
         shell:
             ("python stages/eval_probe.py {rule} --profile {params.profile} --shards {input.shards}" + TOKENIZER_ARGS
-             + (" --assets {input.assets}" if teacher else "") + predictor_args(own_predictor)
-             + " --out {output.probe}" + TEE)
+             + "{params.args} --out {output.probe}" + TEE)
 
 
 rule inverse_dynamics:

@@ -21,9 +21,10 @@ for predictor, spec in REG.predictors.items():
             data=section("data"),
             **{predictor: section(predictor)},
             spec=dataclasses.asdict(spec),  # registry.yaml's entry: a changed spec re-runs the predictor
+            args=f" --init {P('predictor', init_from)}" if init_from else "",  # see named_args
         log: log(predictor)
         benchmark: bench(predictor)
         shell:
             ("{config[train_launcher]} stages/predictor.py {rule} --profile {params.profile}" + LATENT_ARGS
-             + (" --init {input.init}" if init_from else "") + " --out {output.weights} --report {output.report}"
+             + "{params.args} --out {output.weights} --report {output.report}"
              + TEE)

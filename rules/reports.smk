@@ -11,7 +11,7 @@ def report_inputs(systems, targets):
 
 
 def report_args(systems, targets):
-    return named_args("--fvd", "fvd_", systems) + named_args("--probe", "probe_", targets) + RECORD_ARGS
+    return named_args("--fvd", "fvd", systems) + named_args("--probe", "probe", targets) + RECORD_ARGS
 
 
 rule report_main:
@@ -61,4 +61,4 @@ rule report_all:
     benchmark: bench("report_all")
     shell:
         ("python stages/report.py all --profile {params.profile}" + report_args(REG.systems, REG.probe_targets)
-         + named_args("--media", "media_", REG.systems) + " --strip {input.strip} --out {output.report}" + TEE)
+         + named_args("--media", "media", REG.systems) + " --strip {input.strip} --out {output.report}" + TEE)

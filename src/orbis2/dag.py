@@ -79,7 +79,7 @@ SLURM_BASE = {"executor": "slurm", "jobs": 50,
               "retries": 1,  # a killed training job resumes from its last checkpoint
               "default-resources": {"slurm_partition": "cpu"}}
 # Rule params that are not params.yaml sections.
-NOT_SECTIONS = ("profile", "spec", "script")
+NOT_SECTIONS = ("profile", "spec", "script", "args")
 
 
 # --------------------------------------------------------------------------- code inputs
@@ -158,8 +158,9 @@ def dvc_command(rule, dep=lambda path: path) -> str:
     the stage's deps write in its place, e.g. the raw folder of the configured source).
     """
     cmd = rule.shellcmd.split(" 2>&1 | tee")[0].strip()
-    if "script" in rule.params.keys():
-        cmd = cmd.replace("{params.script}", rule.params.script)
+    for name in ("script", "args"):  # values set when the rule was defined (see the Snakefile's named_args)
+        if name in rule.params.keys():
+            cmd = cmd.replace(f"{{params.{name}}}", rule.params[name])
 
     def paths(match: re.Match) -> str:
         kind, name = match.groups()
