@@ -42,13 +42,8 @@ def module_name(file: Path, src: Path = SRC) -> str:
 
 
 def imports(file: Path) -> set[str]:
-    found = set()
-    for node in ast.walk(ast.parse(file.read_text())):
-        if isinstance(node, ast.Import):
-            found |= {a.name for a in node.names}
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            found.add(node.module)
-    return {name for name in found if name.startswith("orbis2.")}
+    """The orbis2 modules ``file`` imports."""
+    return {name for name in all_imports(file) if name.startswith("orbis2.")}
 
 
 def all_imports(file: Path) -> set[str]:
