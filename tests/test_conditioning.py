@@ -113,6 +113,7 @@ def test_ego_motion_pairs_pair_latents_a_step_apart_with_the_mean_motion_between
     assert x[1].tolist() == [1.0, 1.0, 3.0, 3.0]
     assert y[1].tolist() == [1.5, -1.5]
     assert strip_features(np.arange(8.0).reshape(1, 1, 1, 8), 4).tolist() == [[0.5, 2.5, 4.5, 6.5]]
+    assert strip_features(np.arange(8.0).reshape(1, 2, 1, 4), 0).tolist() == [list(range(8))]
 
 
 def test_energy_shares_of_constructed_latents():

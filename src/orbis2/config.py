@@ -449,11 +449,13 @@ class ConditioningSettings:
     bootstrap_reps: int = 1000
     probe_stride: int = 2
     ridge: float = 10.0
-    strips: int = 4
+    strips: int = 0  # 0: the probe reads the whole latent grid; > 0: channel means over vertical strips
 
     def validate(self, where: str) -> None:
         _positive(self, where, "draws", "anchor_stride", "max_windows", "batch_size", "bootstrap_reps",
-                  "probe_stride", "ridge", "strips")
+                  "probe_stride", "ridge")
+        if self.strips < 0:
+            raise ConfigError(f"{where}.strips must be >= 0 (0: the whole latent grid)")
         if self.threshold < 0:
             raise ConfigError(f"{where}.threshold must be >= 0 (a fraction of the reference error)")
 

@@ -24,7 +24,8 @@ windows, as the predictors see them (scaled cached latents):
   a fixed per-position template (the train mean per position and channel), how
   much of that variation is within a clip, the repeat-last MSE at 0.5 s, and a
   ridge probe of ego-motion (speed, yaw rate over 0.5 s) from two abstract latents
-  0.5 s apart pooled to vertical strips x channels (trained on train, R^2 on val).
+  0.5 s apart, on the whole latent grid (or pooled to vertical strips x channels with
+  ``strips`` > 0; trained on train, R^2 on val).
 
 Effects are relative to the true-conditioning error, with clip-bootstrap
 intervals; an input is "used" when the lower bound exceeds ``threshold``.
@@ -190,7 +191,11 @@ def energy_shares(clips: list[np.ndarray], template: np.ndarray, step: int) -> d
 
 
 def strip_features(latents: np.ndarray, strips: int) -> np.ndarray:
-    """[N, C, h, w] -> [N, C * strips]: channel means over ``strips`` vertical strips (left to right)."""
+    """[N, C, h, w] -> [N, C * strips]: channel means over ``strips`` vertical strips (left to right);
+    ``strips`` = 0 keeps the whole grid, [N, C * h * w]. A 16-channel latent loses most of the
+    turn when pooled to strips (which suit a 768-channel teacher map), so the default is 0."""
+    if strips == 0:
+        return np.asarray(latents, np.float64).reshape(len(latents), -1)
     parts = np.array_split(np.asarray(latents, np.float64), strips, axis=-1)
     return np.concatenate([p.mean(axis=(-2, -1)) for p in parts], axis=1)
 
@@ -391,7 +396,8 @@ def latent_statistics(cache: LatentCache, data: DataConfig, settings,
     out["ego_motion_probe"] = {**ego_motion_probe(pairs["train"][:2], pairs["val"][:2], pairs["val"][2],
                                                   settings.ridge, settings.bootstrap_reps, seed),
                                "features": f"abstract latents at t and t + {step / data.fps:g} s, "
-                                           f"{settings.strips} vertical strips x channels"}
+                                           + (f"{settings.strips} vertical strips x channels" if settings.strips
+                                            else "the whole latent grid")}
     return out, {level: torch.from_numpy(t) for level, t in templates.items()}
 
 
