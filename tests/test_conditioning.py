@@ -13,7 +13,7 @@ from orbis2.eval.conditioning import (
     energy_shares,
     flow_loss,
     one_step_mean,
-    strip_features,
+    probe_features,
     swapped,
     variant_errors,
 )
@@ -112,8 +112,8 @@ def test_ego_motion_pairs_pair_latents_a_step_apart_with_the_mean_motion_between
     assert x.shape == (4, 4) and list(clips) == ["a"] * 4
     assert x[1].tolist() == [1.0, 1.0, 3.0, 3.0]
     assert y[1].tolist() == [1.5, -1.5]
-    assert strip_features(np.arange(8.0).reshape(1, 1, 1, 8), 4).tolist() == [[0.5, 2.5, 4.5, 6.5]]
-    assert strip_features(np.arange(8.0).reshape(1, 2, 1, 4), 0).tolist() == [list(range(8))]
+    assert probe_features(np.arange(8.0).reshape(1, 1, 1, 8), 4).tolist() == [[0.5, 2.5, 4.5, 6.5]]
+    assert probe_features(np.arange(8.0).reshape(1, 2, 1, 4), 0).tolist() == [list(range(8))]
 
 
 def test_energy_shares_of_constructed_latents():

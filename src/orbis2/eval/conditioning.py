@@ -190,7 +190,7 @@ def energy_shares(clips: list[np.ndarray], template: np.ndarray, step: int) -> d
             "repeat_last_relative": repeat_mse / variation, "frames": int(sum(len(x) for x in clips))}
 
 
-def strip_features(latents: np.ndarray, strips: int) -> np.ndarray:
+def probe_features(latents: np.ndarray, strips: int) -> np.ndarray:
     """[N, C, h, w] -> [N, C * strips]: channel means over ``strips`` vertical strips (left to right);
     ``strips`` = 0 keeps the whole grid, [N, C * h * w]. A 16-channel latent loses most of the
     turn when pooled to strips (which suit a 768-channel teacher map), so the default is 0."""
@@ -205,7 +205,7 @@ def ego_motion_pairs(latents: list[np.ndarray], odometry: list[np.ndarray], labe
     """Features (strips of the latents at t and t + step), targets (mean speed, yaw rate over [t, t + step)), clips."""
     xs, ys, cs = [], [], []
     for lat, odo, label in zip(latents, odometry, labels):
-        feats = strip_features(lat, strips)
+        feats = probe_features(lat, strips)
         for t in range(0, len(lat) - step, stride):
             y = np.asarray(odo[t:t + step], np.float64).mean(axis=0)
             if np.isfinite(y).all():
