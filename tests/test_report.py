@@ -16,7 +16,7 @@ from orbis2.eval import report
 
 SETUP = {"profile": "smoke", "seed": 7, "fvd_videos": 12}
 
-FVD = {  # model: (parameters, fvd val, heldout, turns, fvd_16s, slope)
+FVD = {  # model: (parameters, fvd val, heldout, turns, fvd_long, slope)
     "flat_detail": (20_000_000, 170.5, 200.25, 210.0, 300.0, 101.63),
     "flat_abstract": (21_000_000, 490.04, 500.0, 510.0, 520.0, 60.38),
     "hierarchical": (41_000_000, 98.97, 98.01, 187.53, 209.15, 46.45),
@@ -67,7 +67,7 @@ def fvd_doc(model: str) -> dict:
             "videos": 43,
             "seed": 3,
             "chunks": chunks,
-            "fvd_16s": fvd16,
+            "fvd_long": fvd16,
             "fvd_slope": slope,
             "fvd_slope_low": slope - 3.0,
             "fvd_slope_high": slope + 3.0,
@@ -131,8 +131,8 @@ def speed_doc() -> dict:
 
 def compression_doc() -> dict:
     rows = [
-        {"variant": "compressed (16-d)", "latent_dim": 16, "fvd_16s": 200.0, "fvd_slope": 40.0, "miou": 58.3},
-        {"variant": "full (teacher dim)", "latent_dim": 768, "fvd_16s": 600.0, "fvd_slope": 150.0, "miou": None},
+        {"variant": "compressed (16-d)", "latent_dim": 16, "fvd_long": 200.0, "fvd_slope": 40.0, "miou": 58.3},
+        {"variant": "full (teacher dim)", "latent_dim": 768, "fvd_long": 600.0, "fvd_slope": 150.0, "miou": None},
     ]
     for row in rows:
         row["rmse"] = None
@@ -322,9 +322,9 @@ def test_full_report_ablations_and_figures(evals, tmp_path):
     assert [r["probe_target"] for r in hierarchy] == [row[4] for row in report.HIERARCHY_LAYOUT]
     exp4_bottom = hierarchy[5]
     assert float(exp4_bottom["miou"]) == PROBES["detail_on_detail"][0]
-    assert float(exp4_bottom["fvd_16s"]) == FVD["top_detail"][4] and float(exp4_bottom["fvd_slope"]) == 81.4
-    assert exp4_bottom["fvd_16s_n"] == exp4_bottom["fvd_slope_n"] == "43"
-    assert float(hierarchy[6]["fvd_16s"]) == FVD["top_abstract_10hz"][4]
+    assert float(exp4_bottom["fvd_long"]) == FVD["top_detail"][4] and float(exp4_bottom["fvd_slope"]) == 81.4
+    assert exp4_bottom["fvd_long_n"] == exp4_bottom["fvd_slope_n"] == "43"
+    assert float(hierarchy[6]["fvd_long"]) == FVD["top_abstract_10hz"][4]
 
     training = read_csv(out / "training_ablation.csv")
     assert list(training[0]) == ["model", "probe_target", "miou", "miou_n", "rmse", "rmse_n", "val_loss"]

@@ -188,8 +188,8 @@ def _rollout_cells(evals: Mapping, model: str) -> Row:
         raise OrbisError(f"{_where(evals, 'fvd', model)}: chunked FVD must be on the turns split; re-run it")
     return {
         "fvd_model": model,
-        "fvd_16s": _get(evals, "fvd", model, "chunked", "fvd_16s"),
-        "fvd_16s_n": _get(evals, "fvd", model, "chunked", "videos"),
+        "fvd_long": _get(evals, "fvd", model, "chunked", "fvd_long"),
+        "fvd_long_n": _get(evals, "fvd", model, "chunked", "videos"),
         "fvd_slope": _get(evals, "fvd", model, "chunked", "fvd_slope"),
         "fvd_slope_n": _get(evals, "fvd", model, "chunked", "videos"),
     }
@@ -337,7 +337,7 @@ def compression_table(evals: Mapping) -> list[Row]:
         row: Row = {}
         for key in ("variant", "latent_dim"):
             row[key] = _get(evals, "compression", None, "rows", i, key)
-        for metric in ("fvd_16s", "fvd_slope", "miou", "rmse"):
+        for metric in ("fvd_long", "fvd_slope", "miou", "rmse"):
             if metric not in entry:
                 raise OrbisError(f"{_where(evals, 'compression')} row {i} has no {metric} (null if not measured)")
             row[metric] = NA if entry[metric] is None else entry[metric]
@@ -349,15 +349,15 @@ def compression_table(evals: Mapping) -> list[Row]:
 def compression_from_evals(evals: Mapping) -> dict:
     """The compression ablation's rows from the flat abstract models on compressed and on full latents.
 
-    Rollout stability is their 16-s FVD and FVD-slope on the long split; representation
-    quality the probes of those predictors. Raises like every table when an input is missing.
+    Rollout stability is their FVD over the whole long rollout (``long_seconds``) and FVD-slope on the
+    long split; representation quality the probes of those predictors. Raises like every table when an input is missing.
     """
     rows = []
     for variant, model in (("compressed", "flat_abstract"), ("full (teacher dim)", "flat_abstract_full")):
         probe = _probe_cells(evals, model)
         rows.append({"variant": variant, "latent_dim": _get(evals, "fvd", model, "latent_channels"),
-                     "fvd_16s": _get(evals, "fvd", model, "chunked", "fvd_16s"),
-                     "fvd_16s_n": _get(evals, "fvd", model, "chunked", "videos"),
+                     "fvd_long": _get(evals, "fvd", model, "chunked", "fvd_long"),
+                     "fvd_long_n": _get(evals, "fvd", model, "chunked", "videos"),
                      "fvd_slope": _get(evals, "fvd", model, "chunked", "fvd_slope"),
                      "fvd_slope_n": _get(evals, "fvd", model, "chunked", "videos"),
                      "miou": probe["miou"], "miou_n": probe["miou_n"], "rmse": probe["rmse"],

@@ -133,7 +133,7 @@ def chunked_record(split: str, fake: np.ndarray, real: RealFeatures, clusters: l
             "videos": len(clusters), "clips": slope.clusters, "seed": ev.seed,
             "chunks": [{"start_s": w.start / data.detail_hz, "end_s": w.stop / data.detail_hz, "fvd": c.estimate,
                         "low": c.low, "high": c.high} for w, c in zip(windows, chunks)],
-            "fvd_16s": full["fvd"], "fvd_16s_low": full["low"], "fvd_16s_high": full["high"],
+            "fvd_long": full["fvd"], "fvd_long_low": full["low"], "fvd_long_high": full["high"],
             "fvd_slope": slope.estimate, "fvd_slope_low": slope.low, "fvd_slope_high": slope.high,
             "bootstrap_reps": ev.fvd_bootstrap_reps, "bootstrap_seed": ev.seed,
             "fvd_slope_draws": [float(d) for d in slope_draws]}
