@@ -1,9 +1,10 @@
 """Stage `eval_conditioning`: does each main predictor use its conditioning and beat trivial predictions?
 -> reports/eval/conditioning.json.
 
-Paired variant errors on val windows, one-step conditional means vs baselines, and
-latent statistics (:mod:`orbis2.eval.conditioning`): every main predictor on the
-same val windows and noise draws, over ``evaluation.seeds``.
+Paired variant errors on val windows, one-step conditional means vs baselines,
+latent statistics and the steered predictor's response inside the model
+(:mod:`orbis2.eval.conditioning`): every main predictor on the same val windows
+and noise draws, over ``evaluation.seeds``.
 """
 
 from pathlib import Path
@@ -16,7 +17,9 @@ from orbis2.eval.conditioning import (
     MAIN_PREDICTORS,
     evaluate_predictor,
     latent_statistics,
+    latent_steering_response,
     predictor_rows,
+    steering_readouts,
     val_window_pairs,
 )
 from orbis2.io import write_json
@@ -24,6 +27,7 @@ from orbis2.latents import KINDS, open_cache
 from orbis2.models.stdit import load_predictor
 from orbis2.registry import layout_path, registry
 from orbis2.stage import add_predictor_argument, open_stage, predictor_files, stage_parser
+from orbis2.tasks.predictors import STAGES
 
 LATENT_SET = "compressed"
 
@@ -43,7 +47,7 @@ def main(argv: list[str] | None = None) -> None:
         predictors = predictor_files(args, MAIN_PREDICTORS)
         cache = open_cache(args.latents)
         first, second, keys = val_window_pairs(cache, data, settings)
-        latents, templates = latent_statistics(cache, data, settings, ev.seed)
+        latents, templates, probe = latent_statistics(cache, data, settings, ev.seed)
 
         record: dict[str, Any] = {"split": "val", "windows": len(keys), "clips": len(set(keys)),
                                   "draws": settings.draws, "seeds": list(ev.seeds), "threshold": settings.threshold,
@@ -57,6 +61,12 @@ def main(argv: list[str] | None = None) -> None:
                                                  ev.seed)
             record["variants"] += variants
             record["baselines"] += baselines
+            if STAGES[name].steering:  # its response inside the model, read by the ego-motion probe
+                readouts = [steering_readouts(name, predictor, first, data, ev.steering_modes, probe, settings, seed,
+                                              dev) for seed in ev.seeds]
+                mean = {k: np.mean([r[k] for r in readouts], axis=0) for k in readouts[0]}
+                record["steering_response"] = {"model": name, **latent_steering_response(
+                    mean, ev.steering_modes, keys, settings.bootstrap_reps, ev.seed, settings.response_material)}
             del predictor
 
         write_json(args.out, record)
@@ -70,8 +80,11 @@ def main(argv: list[str] | None = None) -> None:
         probe = latents["ego_motion_probe"]
         run.log_metrics({f"ego_probe_{name}_r2": probe[name]["r2"] for name in ("speed", "yaw_rate")
                          if np.isfinite(probe[name]["r2"])})
+        responses = record.get("steering_response", {}).get("responses", {})
+        run.log_metrics({f"steering_latent_response_{name}": r["relative"] for name, r in responses.items() if r})
         used = [f"{r['model']}/{r['variant']}" for r in record["variants"]
                 if r["metric"] == "one_step_mse" and r["verdict"] == "used"]
+        used += [f"latent response to {name}" for name, r in responses.items() if r and r["verdict"] == "used"]
         stage.summary = (f"{len(keys)} val windows from {record['clips']} clips x {settings.draws} draws x "
                          f"{len(ev.seeds)} seeds; inputs used (one-step mean): {', '.join(used) or 'none shown'}; "
                          f"ego-motion probe R^2 speed {probe['speed']['r2']:.2f}, yaw rate "

@@ -1,6 +1,7 @@
 """Known answers for the conditioning diagnostics: a model that ignores its input shows no material gap,
 one that uses it does; the one-step mean of an exact velocity field is the conditional mean; the
-ego-motion probe recovers a linear signal; energy shares of constructed latents."""
+ego-motion probe recovers a linear signal; energy shares of constructed latents; the latent steering
+response is about 1 for latents that move like real ones and about 0 for latents that ignore steering."""
 
 import numpy as np
 import pytest
@@ -12,8 +13,11 @@ from orbis2.eval.conditioning import (
     ego_motion_probe,
     energy_shares,
     flow_loss,
+    latent_steering_response,
     one_step_mean,
     probe_features,
+    probe_readout,
+    ridge_fit,
     swapped,
     variant_errors,
 )
@@ -98,7 +102,7 @@ def test_ego_motion_probe_recovers_a_linear_signal_and_not_a_shuffled_one():
         return x, x @ weights + 0.05 * rng.normal(size=(n, 2))
 
     train, val = make(400), make(160)
-    result = ego_motion_probe(train, val, np.repeat(np.arange(16), 10), penalty=1.0, reps=100, seed=0)
+    result, _ = ego_motion_probe(train, val, np.repeat(np.arange(16), 10), penalty=1.0, reps=100, seed=0)
     for name in ("speed", "yaw_rate"):
         assert result[name]["r2"] > 0.95 and result[name]["low"] > 0.9
         assert result[name]["shuffled_r2"] < 0.2
@@ -128,3 +132,63 @@ def test_energy_shares_of_constructed_latents():
     assert shares["varying_share"] == pytest.approx(0.25)
     with pytest.raises(ValueError):
         energy_shares([np.zeros((3, 1, 2, 2))], template, step=1)
+
+
+MODES = {"original": [1.0, 1.0], "speed_x0.5": [0.5, 1.0], "speed_x1.5": [1.5, 1.0],
+         "yaw_rate_x0.5": [1.0, 0.5], "yaw_rate_x1.5": [1.0, 1.5]}
+
+
+def steering_windows(follows: bool, clips: int = 16, per_clip: int = 8):
+    """Readouts of a probe with gain 0.6 on speed and 0.5 on yaw rate (plus noise): from real next latents, and
+    from a model's latents under each mode that move like real ones (``follows``) or not at all."""
+    rng = np.random.default_rng(1)
+    n = clips * per_clip
+    commanded = np.stack([rng.uniform(2, 12, n), rng.choice([-1, 1], n) * rng.uniform(0.1, 0.8, n)], axis=1)
+    commanded[::7, 1] = 0.0  # straight windows: left out of the yaw response
+    commanded[3] = np.nan  # unknown steering: left out
+    gain = np.array([0.6, 0.5])
+
+    def read(motion):
+        return gain * motion + 0.02 * rng.normal(size=(n, 2))
+
+    readouts = {"commanded": commanded, "real": read(commanded)}
+    for mode, factors in MODES.items():
+        readouts[mode] = read(commanded * np.array(factors) if follows else commanded)
+    return readouts, np.repeat([f"clip{c}" for c in range(clips)], per_clip)
+
+
+@pytest.mark.parametrize("follows", [True, False])
+def test_latent_steering_response_is_one_for_real_like_latents_and_zero_for_ignored_steering(follows):
+    readouts, clips = steering_windows(follows)
+    result = latent_steering_response(readouts, MODES, clips, reps=200, seed=0, material=0.25)
+    assert result["probe_gain"]["speed"] == pytest.approx(0.6, abs=0.02)
+    assert result["probe_gain"]["yaw_rate"] == pytest.approx(0.5, abs=0.05)
+    yaw = result["responses"]["yaw_rate"]
+    assert yaw["windows"] == sum(1 for v in readouts["commanded"][:, 1] if np.isfinite(v) and abs(v) > 0.05)
+    for name in ("speed", "yaw_rate"):
+        response = result["responses"][name]
+        assert response["low"] <= response["relative"] <= response["high"]
+        if follows:
+            assert response["relative"] == pytest.approx(1.0, abs=0.1) and response["verdict"] == "used"
+        else:
+            assert abs(response["relative"]) < 0.1 and response["verdict"] == "not shown"
+    # The drive's own turn direction counts positive: a real drive reads as a positive yaw rate.
+    assert result["modes"]["real"]["yaw_rate"] > 0 and result["modes"]["commanded"]["yaw_rate"] > 0
+
+
+def test_latent_steering_response_without_turning_windows_is_none():
+    readouts, clips = steering_windows(True)
+    readouts = {k: v.copy() for k, v in readouts.items()}
+    readouts["commanded"][:, 1] = 0.0
+    result = latent_steering_response(readouts, MODES, clips, reps=50, seed=0, material=0.25)
+    assert result["responses"]["yaw_rate"] is None and result["responses"]["speed"] is not None
+
+
+def test_probe_readout_applies_the_probe_to_a_latent_pair():
+    rng = np.random.default_rng(2)
+    before, after = rng.normal(size=(64, 2, 3, 4)), rng.normal(size=(64, 2, 3, 4))
+    features = np.concatenate([before.reshape(64, -1), after.reshape(64, -1)], axis=1)
+    targets = features @ rng.normal(size=(48, 2))
+    probe = ridge_fit(features, targets, penalty=1e-6)
+    read = probe_readout(probe, torch.from_numpy(before), torch.from_numpy(after), strips=0)
+    np.testing.assert_allclose(read, targets, atol=1e-3)

@@ -438,7 +438,9 @@ class ConditioningSettings:
     "used" when the clip-bootstrap lower bound of the error increase without it
     exceeds ``threshold`` (a fraction of the error with it). The ego-motion probe
     fits ridge regression (penalty ``ridge`` on standardised features) on train
-    frames every ``probe_stride`` frames.
+    frames every ``probe_stride`` frames. The steered predictor's latents "answer" a
+    steering input when the lower bound of their response (relative to real latents'
+    response to the same motion difference) clears ``response_material``.
     """
 
     draws: int = 3
@@ -450,10 +452,11 @@ class ConditioningSettings:
     probe_stride: int = 2
     ridge: float = 10.0
     strips: int = 0  # 0: the probe reads the whole latent grid; > 0: channel means over vertical strips
+    response_material: float = 0.25
 
     def validate(self, where: str) -> None:
         _positive(self, where, "draws", "anchor_stride", "max_windows", "batch_size", "bootstrap_reps",
-                  "probe_stride", "ridge")
+                  "probe_stride", "ridge", "response_material")
         if self.strips < 0:
             raise ConfigError(f"{where}.strips must be >= 0 (0: the whole latent grid)")
         if self.threshold < 0:

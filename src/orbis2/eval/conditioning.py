@@ -26,6 +26,16 @@ windows, as the predictors see them (scaled cached latents):
   ridge probe of ego-motion (speed, yaw rate over 0.5 s) from two abstract latents
   0.5 s apart, on the whole latent grid (or pooled to vertical strips x channels with
   ``strips`` > 0; trained on train, R^2 on val).
+- **Steering inside the model.** The steered predictor's one-step mean under each
+  of ``evaluation.steering_modes`` (speed or yaw rate scaled), read by that
+  ego-motion probe: which motion do its predicted abstract latents show, against
+  what the probe reads from the real next latents of the same drives? The probe is
+  linear, so its reading of the conditional mean is the mean reading over the
+  model's predictions. Paired per window: the yaw rate read under yaw x1.5 minus
+  x0.5 (turning windows, the drive's turn direction positive) and the speed read
+  under speed x1.5 minus x0.5, each relative to the difference the probe reads
+  from real drives with that motion (its gain on real pairs times the commanded
+  difference): 1 means the predicted latents move like real ones.
 
 Effects are relative to the true-conditioning error, with clip-bootstrap
 intervals; an input is "used" when the lower bound exceeds ``threshold``.
@@ -62,6 +72,8 @@ ModelFn = Callable[..., torch.Tensor]
 # The predictors of the main systems (and the steered top predictor), as ``eval_conditioning`` reads them.
 MAIN_PREDICTORS = ("abstract_tf", "detail", "action", "flat_detail", "flat_abstract")
 METRICS = ("loss", "one_step_mse")
+TURNING_YAW_RATE = 0.05  # rad/s: a window "turns" above this mean yaw rate (the town's motion statistics)
+MOVING_SPEED = 0.5  # m/s: a window "moves" above this mean speed
 
 
 # --------------------------------------------------------------------------- per-window errors
@@ -237,8 +249,10 @@ def weighted_r2(y: np.ndarray, pred: np.ndarray, weights: np.ndarray) -> float:
 
 
 def ego_motion_probe(train: tuple[np.ndarray, np.ndarray], val: tuple[np.ndarray, np.ndarray], val_clips,
-                     penalty: float, reps: int, seed: int, names=("speed", "yaw_rate")) -> dict[str, Any]:
-    """Val R^2 (clip-bootstrap interval) of a ridge probe per target, and of the same probe on shuffled targets.
+                     penalty: float, reps: int, seed: int,
+                     names=("speed", "yaw_rate")) -> tuple[dict[str, Any], tuple[np.ndarray, ...]]:
+    """Val R^2 (clip-bootstrap interval) of a ridge probe per target, and of the same probe on shuffled targets;
+    also the fitted probe.
 
     The shuffled control trains on train targets permuted across pairs: what R^2 a probe
     reaches without any real relation (about zero or below).
@@ -253,7 +267,7 @@ def ego_motion_probe(train: tuple[np.ndarray, np.ndarray], val: tuple[np.ndarray
         iv = bootstrap_statistic(val_clips, lambda w, k=k, y=y: weighted_r2(y, pred[:, k], w), reps, seed=seed)
         out[name] = {"r2": iv.estimate, "low": iv.low, "high": iv.high,
                      "shuffled_r2": weighted_r2(y, control[:, k], np.ones(len(y)))}
-    return out
+    return out, model
 
 
 # --------------------------------------------------------------------------- swaps
@@ -305,19 +319,29 @@ def condition_variants(stage: str, meta: dict, window: dict, keys, data: DataCon
                 "subgoal_other_clip": {**base, "cond_frames": other_frames, "cond_mask": mask},
                 "none": {**base, "cond_frames": torch.zeros_like(frames), "cond_mask": torch.zeros_like(mask)}}
     if spec.steering:
-        speed_norm, yaw_norm = meta["steering"]["scale"]
-        raw = window["odometry"][:, steering_interval(data)]
-        unknown = ~window["has_odometry"].bool() | torch.isnan(raw).flatten(1).any(dim=1)
+        raw, unknown = raw_steering(window, data)
 
         def steer(values: torch.Tensor, drop: torch.Tensor | None = None) -> dict[str, Any]:
-            scaled = torch.nan_to_num(values / values.new_tensor([speed_norm, yaw_norm]))
-            return {**base, "steering": scaled, "steering_drop": unknown if drop is None else drop}
+            return steering_condition(meta, values, unknown if drop is None else drop, frame_rate)
 
         return {"true": steer(raw), "null": steer(torch.zeros_like(raw), torch.ones_like(unknown)),
                 "steering_other_clip": steer(swapped(raw, keys, seed)),
                 "yaw_rate_negated": steer(raw * raw.new_tensor([1.0, -1.0])),
                 "speed_halved": steer(raw * raw.new_tensor([0.5, 1.0]))}
     return {"true": base}
+
+
+def raw_steering(window: dict, data: DataConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """Speed and yaw rate [B, S, 2] (m/s, rad/s) over each window's predicted interval, and ``unknown`` [B]."""
+    raw = window["odometry"][:, steering_interval(data)]
+    return raw, ~window["has_odometry"].bool() | torch.isnan(raw).flatten(1).any(dim=1)
+
+
+def steering_condition(meta: dict, values: torch.Tensor, drop: torch.Tensor, frame_rate: float) -> dict[str, Any]:
+    """A steered predictor's keyword inputs for raw steering ``values`` (scaled as its file records)."""
+    speed_norm, yaw_norm = meta["steering"]["scale"]
+    scaled = torch.nan_to_num(values / values.new_tensor([speed_norm, yaw_norm]))
+    return {"frame_rate": frame_rate, "steering": scaled, "steering_drop": drop}
 
 
 def _batch(cond: dict[str, Any], rows: slice, dev: torch.device) -> dict[str, Any]:
@@ -360,6 +384,82 @@ def evaluate_predictor(stage: str, predictor, first: dict, second: dict, keys, t
     return concat_errors(parts), {name: np.concatenate(v) for name, v in ahead.items()}
 
 
+def probe_readout(probe: tuple[np.ndarray, ...], before: torch.Tensor, after: torch.Tensor, strips: int) -> np.ndarray:
+    """The (speed, yaw rate) the ego-motion probe reads from latent pairs [B, C, h, w] -> [B, 2]."""
+    features = [probe_features(t.float().cpu().numpy(), strips) for t in (before, after)]
+    return ridge_predict(probe, np.concatenate(features, axis=1))
+
+
+@torch.no_grad()
+def steering_readouts(stage: str, predictor, window: dict, data: DataConfig, modes: dict[str, list[float]],
+                      probe: tuple[np.ndarray, ...], settings, seed: int, dev: torch.device) -> dict[str, np.ndarray]:
+    """Per window [N, 2]: the commanded motion (mean speed and yaw rate over the predicted interval; NaN if
+    unknown), the probe's reading of the real next latent ("real"), and its reading of the steered predictor's
+    one-step mean under each mode's scaled steering (the same noise draws for every mode)."""
+    spec = STAGES[stage]
+    key, (rate, _, n_context) = window_key(spec.level, spec.rate), rate_geometry(data, spec.rate)
+    raw, unknown = raw_steering(window, data)
+    model = predictor.model.eval()
+    generator = torch.Generator(dev).manual_seed(seed)
+    parts: dict[str, list[np.ndarray]] = {"real": [], **{mode: [] for mode in modes}}
+    for start in range(0, len(raw), settings.batch_size):
+        rows = slice(start, start + settings.batch_size)
+        frames = window[key][rows].to(dev)
+        context, target = frames[:, :n_context], frames[:, n_context:]
+        eps = torch.randn((settings.draws, *target.shape), generator=generator, device=dev)
+        parts["real"].append(probe_readout(probe, context[:, -1], target[:, -1], settings.strips))
+        for mode, factors in modes.items():
+            values = raw[rows].to(dev) * torch.tensor(factors, dtype=raw.dtype, device=dev)
+            cond = steering_condition(predictor.meta, values, unknown[rows].to(dev), float(rate))
+            mean = torch.stack([one_step_mean(model, context, e, **cond) for e in eps]).mean(0)
+            parts[mode].append(probe_readout(probe, context[:, -1], mean[:, -1], settings.strips))
+    return {"commanded": raw.double().mean(dim=1).numpy(), **{k: np.concatenate(v) for k, v in parts.items()}}
+
+
+def latent_steering_response(readouts: dict[str, np.ndarray], modes: dict[str, list[float]], clusters, reps: int,
+                             seed: int, material: float) -> dict[str, Any]:
+    """How the steered predictor's latents answer scaled steering, relative to how real latents move.
+
+    For yaw rate (turning windows, each drive's turn direction positive) and speed (moving
+    windows): the probe's reading under x1.5 minus under x0.5, paired per window, over what
+    the probe reads from real drives with that motion difference (its least-squares gain from
+    commanded to read motion on the real next latents, times the commanded difference). 1: the
+    predicted latents move like real ones; 0: steering is ignored. "used" when the interval's
+    lower bound clears ``material``. A response is None where no window qualifies, the modes
+    are missing, or the probe reads nothing from real latents (gain <= 0).
+    """
+    commanded, real = readouts["commanded"], readouts["real"]
+    clusters = np.asarray(clusters)
+    known = np.isfinite(commanded).all(axis=1)
+    out: dict[str, Any] = {"windows": int(known.sum()), "material": material, "probe_gain": {}, "modes": {},
+                           "responses": {}}
+    selections = {"yaw_rate": known & (np.abs(np.nan_to_num(commanded[:, 1])) > TURNING_YAW_RATE),
+                  "speed": known & (np.nan_to_num(commanded[:, 0]) > MOVING_SPEED)}
+    for k, name in enumerate(("speed", "yaw_rate")):
+        x, y = commanded[known, k], real[known, k]
+        variance = float(((x - x.mean()) ** 2).sum())
+        gain = float(((x - x.mean()) * (y - y.mean())).sum() / variance) if variance > 0 else 0.0
+        out["probe_gain"][name] = gain
+        sel = selections[name]
+        sign = np.sign(commanded[sel, 1]) if name == "yaw_rate" else np.ones(int(sel.sum()))
+        for mode, values in {**{m: readouts[m] for m in ("real", *modes)}, "commanded": commanded}.items():
+            out["modes"].setdefault(mode, {})[name] = float((sign * values[sel, k]).mean()) if sel.any() else None
+        low_mode, high_mode = f"{name}_x0.5", f"{name}_x1.5"
+        if not sel.any() or gain <= 0 or low_mode not in modes or high_mode not in modes:
+            out["responses"][name] = None
+            continue
+        factor = modes[high_mode][k] - modes[low_mode][k]
+        difference = sign * (readouts[high_mode][sel, k] - readouts[low_mode][sel, k])
+        expected = gain * factor * sign * commanded[sel, k]
+        iv = bootstrap_statistic(clusters[sel], lambda w, d=difference, e=expected: float(w @ d / (w @ e)), reps,
+                                 seed=seed)
+        out["responses"][name] = {"relative": iv.estimate, "low": iv.low, "high": iv.high,
+                                  "readout_difference": float(difference.mean()),
+                                  "real_difference": float(expected.mean()), "windows": int(sel.sum()),
+                                  "clips": iv.clusters, "verdict": decide(iv, material)}
+    return out
+
+
 def clip_latents(cache: LatentCache, split: str, level: str) -> tuple[list[np.ndarray], list[np.ndarray], list[str]]:
     """Per clip of a split: normalised latents [T, ...] of ``level`` (as the predictors see them), odometry, key."""
     index, arrays = cache.index(split), cache.arrays(split)
@@ -379,9 +479,9 @@ def latent_template(cache: LatentCache, level: str, chunk: int = 4096) -> np.nda
 
 
 def latent_statistics(cache: LatentCache, data: DataConfig, settings,
-                      seed: int) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+                      seed: int) -> tuple[dict[str, Any], dict[str, torch.Tensor], tuple[np.ndarray, ...]]:
     """Energy shares per latent set on val and the ego-motion probe from abstract latents 0.5 s apart;
-    also the per-level templates (train means) for the dataset-mean baseline."""
+    also the per-level templates (train means) for the dataset-mean baseline, and the fitted probe."""
     step = (data.detail_window - data.detail_context) * data.detail_stride
     out: dict[str, Any] = {"step_frames": step, "step_s": step / data.fps}
     templates = {}
@@ -393,12 +493,13 @@ def latent_statistics(cache: LatentCache, data: DataConfig, settings,
     for split in ("train", "val"):
         latents, odometry, keys = clip_latents(cache, split, "abstract")
         pairs[split] = ego_motion_pairs(latents, odometry, keys, step, settings.probe_stride, settings.strips)
-    out["ego_motion_probe"] = {**ego_motion_probe(pairs["train"][:2], pairs["val"][:2], pairs["val"][2],
-                                                  settings.ridge, settings.bootstrap_reps, seed),
+    record, probe = ego_motion_probe(pairs["train"][:2], pairs["val"][:2], pairs["val"][2], settings.ridge,
+                                     settings.bootstrap_reps, seed)
+    out["ego_motion_probe"] = {**record,
                                "features": f"abstract latents at t and t + {step / data.fps:g} s, "
                                            + (f"{settings.strips} vertical strips x channels" if settings.strips
                                             else "the whole latent grid")}
-    return out, {level: torch.from_numpy(t) for level, t in templates.items()}
+    return out, {level: torch.from_numpy(t) for level, t in templates.items()}, probe
 
 
 def predictor_rows(stage: str, per_seed: list[tuple[dict, dict]], keys, threshold: float, reps: int,
@@ -430,7 +531,9 @@ def claim_verdict(row: dict, threshold: float) -> str:
 
 def conditioning_rows(doc: dict) -> list[dict]:
     """One table of the stage's record: per model and check, the error with the true input (or of the model),
-    the alternative's error, effect = (alternative - error) / error with its interval, and the verdict."""
+    the alternative's error, effect = (alternative - error) / error with its interval, and the verdict. The
+    steering-response rows hold instead the probe-read difference of real drives ("error") and of the model's
+    latents ("alternative_error"), and their ratio as the effect."""
     rows = []
     for r in doc["variants"]:
         if r["verdict"] == "reference":
@@ -445,4 +548,12 @@ def conditioning_rows(doc: dict) -> list[dict]:
                      "metric": "one_step_mse", "error": r["model_mse"], "alternative_error": r["baseline_mse"],
                      "effect": r["effect"], "low": r["low"], "high": r["high"], "verdict": r["verdict"],
                      "windows": r["windows"], "clips": r["clips"]})
+    response = doc.get("steering_response", {})
+    for name, r in response.get("responses", {}).items():
+        if r is None:
+            continue
+        rows.append({"model": response["model"], "check": f"latents answer {name} x1.5 vs x0.5 (probe-read)",
+                     "metric": f"{name}_readout", "error": r["real_difference"],
+                     "alternative_error": r["readout_difference"], "effect": r["relative"], "low": r["low"],
+                     "high": r["high"], "verdict": r["verdict"], "windows": r["windows"], "clips": r["clips"]})
     return rows
