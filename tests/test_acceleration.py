@@ -28,9 +28,10 @@ def _detail() -> torch.nn.Module:
     return model.eval()
 
 
+@pytest.mark.parametrize("steering_shift", [False, True])
 @pytest.mark.parametrize("n_target", [1, 3])
-def test_cached_forward_equals_full_window_forward(n_target):
-    model = _abstract(steering=True)
+def test_cached_forward_equals_full_window_forward(n_target, steering_shift):
+    model = _abstract(steering=True, steering_shift=steering_shift)
     context, target = torch.randn(2, 5, 4, 3, 5), torch.randn(2, n_target, 4, 3, 5)
     tau = torch.rand(2, n_target)
     steering = torch.randn(2, 5, 2)

@@ -16,6 +16,7 @@ from orbis2.tasks.predictors import (
     detail_condition,
     detail_condition_slots,
     steering_features,
+    turn_repeats,
     window_batches,
 )
 from orbis2.train import DataSpec, load_weights, spawn_cpu_processes, train
@@ -161,6 +162,35 @@ def test_batch_stream_resumes(tmp_path, smoke_cfg):
         assert all(torch.equal(got[k], expected[k]) for k in expected)
     epoch = torch.cat([b["odometry"][:, 0, 0] for b in head[:3]])  # every window once per epoch
     assert sorted(epoch.tolist()) == sorted(float(dataset.clips[c]["offset"] + a - 20) for c, a in dataset.items)
+
+
+def test_turning_windows_are_oversampled_in_the_steering_fine_tune(tmp_path, smoke_cfg):
+    # Clip 0 drives straight; clip 1 turns from its native frame 30 on (yaw rate 0.4 rad/s).
+    lengths = [SPAN + 6, SPAN + 12]
+    odometry = np.zeros((sum(lengths), 2), np.float32)
+    odometry[:, 0] = 5.0
+    odometry[lengths[0] + 30:, 1] = 0.4
+    cache = write_cache(tmp_path, {"train": lengths, "val": [SPAN]}, odometry)
+    dataset = LatentWindowDataset(cache, "train", smoke_cfg.data)
+    cfg = dataclasses.replace(smoke_cfg.action, turn_repeat=3)
+    repeats = turn_repeats(dataset, smoke_cfg.data, cfg)
+    # The steering interval of anchor a is native rows a..a+4, the interval before it a-5..a-1:
+    # a window turns when either mean |yaw rate| exceeds 0.05, i.e. when a + 4 >= 30 on clip 1.
+    turning = [c == 1 and a + 4 >= 30 for c, a in dataset.items]
+    assert any(turning) and not all(turning)
+    assert repeats.tolist() == [3 if t else 1 for t in turning]
+    assert turn_repeats(dataset, smoke_cfg.data, dataclasses.replace(cfg, turn_repeat=1)).tolist() == [1] * len(dataset)
+
+    per_epoch = int(repeats.sum()) // 2
+    batches = window_batches(dataset, DataSpec(0, 1, 2, seed=5, start=0, num_workers=0), repeats)
+    drawn = torch.cat([next(batches)["odometry"][:, 0, 1] for _ in range(per_epoch)])  # yaw rate at the first row
+    first_rows = {(c, a): float(odometry[dataset.clips[c]["offset"] + a - 20, 1]) for c, a in dataset.items}
+    assert len(drawn) == repeats.sum()  # one epoch lists window i repeats[i] times
+    assert sorted(drawn.tolist()) == sorted(v for v, r in zip(first_rows.values(), repeats) for _ in range(r))
+
+    plain = window_batches(dataset, DataSpec(0, 1, 2, seed=5, start=0, num_workers=0))
+    same = window_batches(dataset, DataSpec(0, 1, 2, seed=5, start=0, num_workers=0), np.ones(len(dataset), int))
+    assert all(torch.equal(next(plain)["odometry"], next(same)["odometry"]) for _ in range(3))
 
 
 def test_variants_read_their_own_latents_and_window(tiny_cache, smoke_cfg):

@@ -12,12 +12,14 @@ from orbis2.models.stdit import (
     STDIT_PRESETS,
     STDiTConfig,
     SteeringEmbedder,
+    SteeringShift,
     build_stdit,
     build_stdit_from,
     load_predictor,
     patchify,
     save_predictor,
     stdit_config,
+    translate_columns,
     unpatchify,
 )
 
@@ -157,6 +159,52 @@ def test_steered_model_uses_the_null_path_without_steering():
     assert (steered - unsteered).abs().max() > 1e-4
     with pytest.raises(ValueError, match="without steering"):
         build_stdit("smoke", C, causal=True)(x, tau, steering=steering)
+
+
+def test_translate_columns_moves_content_sideways():
+    x = torch.arange(2 * 3 * 4, dtype=torch.float32).reshape(2, 1, 3, 4) + 1
+    moved = translate_columns(x, torch.tensor([1.0, -0.5]))
+    assert torch.equal(moved[0, :, :, 1:], x[0, :, :, :-1])  # content at column j lands on j + 1
+    assert (moved[0, :, :, 0] == 0).all()  # zero (the dataset mean) enters from the border
+    torch.testing.assert_close(moved[1, :, :, :-1], (x[1, :, :, :-1] + x[1, :, :, 1:]) / 2)
+    torch.testing.assert_close(translate_columns(x, torch.zeros(2)), x)
+
+
+def test_steering_shift_starts_silent_follows_the_yaw_rate_and_learns_to_predict_the_turn():
+    torch.manual_seed(0)
+    shift = SteeringShift(C, 16, patch_size=1)
+    previous, steering = torch.randn(3, C, H, W), torch.randn(3, 5, 2)
+    assert torch.count_nonzero(shift(previous, steering)) == 0  # the steered model starts as the pre-trained one
+    negated = steering * torch.tensor([1.0, -1.0])
+    torch.testing.assert_close(shift.columns(negated, W), -shift.columns(steering, W))
+    torch.testing.assert_close(shift.columns(steering, 2 * W), 2 * shift.columns(steering, W))  # grid widths
+    with torch.no_grad():
+        shift.embed.weight.normal_()
+    drop = torch.tensor([False, True, False])
+    assert (shift(previous, steering, drop)[1] == 0).all() and shift(previous, steering, drop)[0].abs().sum() > 0
+
+    # Known answer: the next frame is the previous one moved sideways in proportion to the yaw rate.
+    # From a silent start, the embedding learns to predict it, and then depends on the yaw rate's sign.
+    shift.reset_parameters()
+    readout = torch.nn.Linear(16, C)
+    optimizer = torch.optim.Adam([*shift.parameters(), *readout.parameters()], lr=0.02)
+    smooth = torch.sin(torch.linspace(0, 3, W) + torch.randn(64, C, H, 1))  # varies across columns
+    yaw = (torch.rand(64) * 2 - 1) * 4
+    target = translate_columns(smooth, yaw * W / 16)
+    steer = torch.stack([torch.zeros(64), yaw], 1)[:, None].expand(64, 5, 2)
+
+    def error(steering: torch.Tensor) -> torch.Tensor:
+        prediction = readout(shift(smooth, steering)).transpose(1, 2).reshape(64, C, H, W)
+        return (prediction - target)[..., 1:-1].pow(2).mean()
+
+    for _ in range(300):
+        optimizer.zero_grad()
+        loss = error(steer)
+        loss.backward()
+        optimizer.step()
+    baseline = (smooth - target)[..., 1:-1].pow(2).mean()  # repeat the previous frame
+    assert error(steer) < 0.05 * baseline
+    assert error(steer * torch.tensor([1.0, -1.0])) > 0.5 * baseline
 
 
 def test_abstract_conditioning_resizes_grids_and_checks_slots():

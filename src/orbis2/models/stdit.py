@@ -8,7 +8,9 @@ Appendix "Model details"):
 
 * the abstract predictor F_H: causal temporal attention, optionally steered by
   an ego-motion sequence (the embedding is added to the noise-level embedding
-  that feeds adaLN, paper "Action-conditioning");
+  that feeds adaLN, paper "Action-conditioning"), and with ``steering_shift``
+  also through the frame before the prediction moved sideways by the commanded
+  turn (:class:`SteeringShift`, a deviation from the paper);
 * the detail predictor F_L: bidirectional temporal attention, conditioned on
   abstract latents placed at frame slots, through a per-token gated adaLN path
   and a gated spatial cross-attention layer in every block.
@@ -241,6 +243,69 @@ class SteeringEmbedder(nn.Module):
         return embedding
 
 
+def translate_columns(x: torch.Tensor, columns: torch.Tensor) -> torch.Tensor:
+    """Latent grids [B, C, h, w] moved sideways by ``columns`` [B] (content at column j lands on j + columns).
+
+    Linear interpolation, differentiable in ``columns``; zero (the dataset's per-position
+    mean, in the latent cache's normalisation) enters from the border.
+    """
+    b, _, h, w = x.shape
+    theta = torch.zeros(b, 2, 3, device=x.device, dtype=x.dtype)
+    theta[:, 0, 0] = 1.0
+    theta[:, 1, 1] = 1.0
+    theta[:, 0, 2] = -2.0 * columns.to(x.dtype) / max(w - 1, 1)
+    grid = F.affine_grid(theta, [b, 1, h, w], align_corners=True)
+    return F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+
+
+class SteeringShift(nn.Module):
+    """The commanded turn as an input of the predicted frame: the frame before it, moved sideways.
+
+    A deviation from the paper, whose steering enters only through adaLN. A turn
+    moves the whole abstract latent grid sideways (on the default profile's town
+    the best sideways shift between latents 0.5 s apart correlates 0.96 with the
+    yaw rate), and a per-channel modulation cannot express a translation: the
+    small predictors never learned the yaw rate through adaLN alone. Here the
+    frame before the predicted one is moved sideways by each of ``RATES`` x the
+    mean (unit-scale) yaw-rate feature x the grid width, the copies are
+    patch-embedded together and added to the predicted frame's tokens. Fixed
+    rates and a learned embedding (zero at the start, so the steered model
+    starts as the pre-trained one) keep the gradient useful from the first
+    step; a single learned rate started at zero drifted the wrong way.
+    """
+
+    RATES = (1 / 64, 1 / 32, 1 / 16, 1 / 8)  # grid widths per unit of the yaw-rate feature
+
+    def __init__(self, latent_channels: int, hidden_size: int, patch_size: int, yaw_feature: int = 1):
+        super().__init__()
+        self.patch_size, self.yaw_feature = patch_size, yaw_feature
+        self.embed = nn.Linear(len(self.RATES) * patch_size * patch_size * latent_channels, hidden_size)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        nn.init.zeros_(self.embed.weight)
+        nn.init.zeros_(self.embed.bias)
+
+    def columns(self, steering: torch.Tensor, width: int) -> torch.Tensor:
+        """Steering [B, S, K] -> sideways shifts [len(RATES), B] in latent columns (a missing yaw rate counts as 0)."""
+        yaw = torch.nan_to_num(steering[..., self.yaw_feature].float(), nan=0.0).mean(dim=1)
+        return yaw.new_tensor(self.RATES)[:, None] * width * yaw
+
+    def forward(self, previous: torch.Tensor, steering: torch.Tensor,
+                drop: torch.Tensor | None = None) -> torch.Tensor:
+        """Previous frame [B, C, h, w] and steering [B, S, K] -> tokens [B, N, D] to add to the predicted frame.
+
+        Zero where ``drop`` (steering dropout, or no steering known): the unconditional path has no shift input.
+        """
+        previous = previous.to(self.embed.weight.dtype)
+        moved = torch.cat([translate_columns(previous, shift)
+                           for shift in self.columns(steering, previous.shape[-1])], dim=1)
+        tokens = self.embed(patchify(moved[:, None], self.patch_size))[:, 0]
+        if drop is not None:
+            tokens = torch.where(drop.reshape(-1, 1, 1), torch.zeros_like(tokens), tokens)
+        return tokens
+
+
 class AbstractConditioner(nn.Module):
     """Abstract latents at their frame slots -> conditioning tokens [B, F, N, cond_dim].
 
@@ -380,6 +445,7 @@ class STDiT(nn.Module):
         steering: bool = False,
         steering_features: int = 2,
         steering_len: int = 16,
+        steering_shift: bool = False,
     ):
         super().__init__()
         self.latent_channels = latent_channels
@@ -399,6 +465,8 @@ class STDiT(nn.Module):
         self.tau_embedder = NoiseLevelEmbedder(hidden_size)
         self.frame_embed = nn.Parameter(torch.zeros(max_frames, hidden_size))
         self.steering = SteeringEmbedder(hidden_size, steering_features, steering_len) if steering else None
+        self.steering_shift = (SteeringShift(latent_channels, hidden_size, patch_size)
+                               if steering and steering_shift else None)
         self.blocks = nn.ModuleList(
             STDiTBlock(hidden_size, num_heads, mlp_ratio, block_cond_dim) for _ in range(depth)
         )
@@ -434,6 +502,8 @@ class STDiT(nn.Module):
         nn.init.zeros_(self.final_layer.linear.bias)
         if self.steering is not None:
             self.steering.reset_parameters()
+        if self.steering_shift is not None:
+            self.steering_shift.reset_parameters()
 
     def conditioning(
         self,
@@ -529,6 +599,8 @@ class STDiT(nn.Module):
             raise ValueError(f"features_from_block = {features_from_block} must be in 1..{depth}")
         c = self.conditioning(tau, steering, steering_drop)
         tokens = self.embed(x, frame_rate)
+        if f >= 2:
+            tokens = self._shift_input(tokens, x[:, -2], steering, steering_drop)
         cond_tokens, cond_context = self._abstract_inputs(cond_frames, cond_mask, (h, w), f)
         for index, block in enumerate(self.blocks):
             if index < self.checkpoint_blocks and self.training and torch.is_grad_enabled():
@@ -540,6 +612,14 @@ class STDiT(nn.Module):
                 return tokens.transpose(2, 3).reshape(b, f, self.hidden_size, h // p, w // p)
         out = self.final_layer(tokens, c)
         return unpatchify(out, self.patch_size, self.latent_channels, h, w).to(x.dtype)
+
+    def _shift_input(self, tokens: torch.Tensor, previous: torch.Tensor, steering: torch.Tensor | None,
+                     steering_drop: torch.Tensor | None = None) -> torch.Tensor:
+        """``tokens`` [B, F, N, D] with the :class:`SteeringShift` input added to the last frame's."""
+        if self.steering_shift is None or steering is None:
+            return tokens
+        shift = self.steering_shift(previous, steering, steering_drop).to(tokens.dtype)
+        return torch.cat([tokens[:, :-1], tokens[:, -1:] + shift[:, None]], dim=1)
 
     # ------------------------------------------------------------- KV cache (causal predictor, clean context)
 
@@ -570,7 +650,7 @@ class STDiT(nn.Module):
         keys: list[tuple[torch.Tensor, torch.Tensor]] = []
         for block in self.blocks:
             tokens = block(tokens, c, True, time_keep=keys)
-        return TemporalKVCache(keys, f_c, n_target)
+        return TemporalKVCache(keys, f_c, n_target, context[:, -1])
 
     def forward_cached(
         self,
@@ -591,6 +671,7 @@ class STDiT(nn.Module):
                              f"and tau {tuple(tau.shape)}")
         c = self.conditioning(tau, steering)
         tokens = self.embed(x, frame_rate, total_frames=cache.n_context + f, first=cache.n_context)
+        tokens = self._shift_input(tokens, x[:, -2] if f >= 2 else cache.last_context, steering)
         for block, past in zip(self.blocks, cache.keys_values):
             tokens = block(tokens, c, True, time_past=past)
         out = self.final_layer(tokens, c)
@@ -599,11 +680,13 @@ class STDiT(nn.Module):
 
 @dataclass
 class TemporalKVCache:
-    """Per block, the temporal attention's keys and values [B*N, H, F_c, d] of a clean context window."""
+    """Per block, the temporal attention's keys and values [B*N, H, F_c, d] of a clean context window,
+    and its last frame [B, C, h, w] (the :class:`SteeringShift` input of a first target frame)."""
 
     keys_values: list[tuple[torch.Tensor, torch.Tensor]]
     n_context: int
     n_target: int
+    last_context: torch.Tensor
 
 
 # --------------------------------------------------------------------------- sizes
@@ -624,6 +707,7 @@ class STDiTConfig(ModelConfig):
     max_frames: int = 16
     steering_features: int = 2
     steering_len: int = 16
+    steering_shift: bool = False  # steered predictor only: SteeringShift (a deviation from the paper)
 
     def check(self) -> None:
         self.positive("hidden_size", "depth", "num_heads", "cond_dim", "mlp_ratio", "patch_size", "max_frames",

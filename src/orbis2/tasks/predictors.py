@@ -157,21 +157,45 @@ def collate(items: list[dict[str, Any]]) -> dict[str, torch.Tensor]:
             "has_odometry": torch.tensor([i["has_odometry"] for i in items])}
 
 
-def window_batches(dataset: LatentWindowDataset, spec: DataSpec) -> Iterator[dict[str, torch.Tensor]]:
+def turn_repeats(dataset: LatentWindowDataset, data: DataConfig, cfg: ActionConfig) -> np.ndarray:
+    """How often each train window enters an epoch of the steering fine-tune: ``turn_repeat`` times
+    where the ego turns (mean |yaw rate| above ``turn_yaw_rate``) over the steering interval or the
+    interval before it, so turn onsets, turns and turn ends all count; once elsewhere.
+
+    Only windows that turn tell the model what the yaw rate does: in the rest the yaw
+    rate is zero and the ongoing motion is already in the context.
+    """
+    steer = steering_interval(data)
+    before = slice(steer.start - (steer.stop - steer.start), steer.start)
+    detail, abstract = window_indices(data, 0)
+    offsets = window_span(detail, abstract)
+    odometry = dataset.cache.arrays(dataset.split)["odometry"]
+    repeats = np.ones(len(dataset), np.int64)
+    for i, (c, anchor) in enumerate(dataset.items):
+        yaw = odometry[dataset.clips[c]["offset"] + anchor + offsets, 1]
+        turning = max(abs(np.nanmean(yaw[steer])), abs(np.nanmean(yaw[before]))) > cfg.turn_yaw_rate
+        repeats[i] = cfg.turn_repeat if turning else 1
+    return repeats
+
+
+def window_batches(dataset: LatentWindowDataset, spec: DataSpec,
+                   repeats: np.ndarray | None = None) -> Iterator[dict[str, torch.Tensor]]:
     """Endless train batches of this rank from batch ``spec.start`` on; a pure function of the spec.
 
-    Each epoch is a permutation drawn from ``(seed, epoch)``, shared by all ranks,
-    of which each rank keeps every ``world_size``-th window; skipping to ``start``
+    Each epoch is a permutation drawn from ``(seed, epoch)``, shared by all ranks, of
+    the windows with window i listed ``repeats[i]`` times (once without ``repeats``),
+    of which each rank keeps every ``world_size``-th entry; skipping to ``start``
     reads no windows.
     """
-    n = len(dataset)
+    pool = np.arange(len(dataset)) if repeats is None else np.repeat(np.arange(len(dataset)), repeats)
+    n = len(pool)
     per_epoch = (n // spec.world_size) // spec.batch_size
     if per_epoch == 0:
         raise OrbisError(f"the {dataset.split} split gives {n} windows, fewer than one batch of {spec.batch_size} "
                          f"per process; lower the batch size or anchor_stride, or add data")
     first_epoch, offset = divmod(spec.start, per_epoch)
     for epoch in itertools.count(first_epoch):
-        order = np.random.default_rng([spec.seed, epoch]).permutation(n)[spec.rank::spec.world_size]
+        order = pool[np.random.default_rng([spec.seed, epoch]).permutation(n)][spec.rank::spec.world_size]
         for b in range(offset, per_epoch):
             yield collate([dataset[int(i)] for i in order[b * spec.batch_size:(b + 1) * spec.batch_size]])
         offset = 0
@@ -221,7 +245,7 @@ class PredictorTask:
         """A pure function of the config: seeded from ``train.seed``, then ``init_state`` loaded if given.
 
         A steered model loads an unsteered state with only the steering embedder
-        left at its initialisation, whose output starts at zero: the fine-tune
+        (and shift) left at their initialisation, whose outputs start at zero: the fine-tune
         starts from exactly the pre-trained predictor.
         """
         with torch.random.fork_rng(devices=[]):
@@ -229,7 +253,7 @@ class PredictorTask:
             model = build_stdit_from(self.build)
         if self.init_state is not None:
             missing, unexpected = model.load_state_dict(self.init_state, strict=False)
-            stray = [k for k in missing if not (self.spec.steering and k.startswith("steering."))]
+            stray = [k for k in missing if not (self.spec.steering and k.startswith(("steering.", "steering_shift.")))]
             if stray or unexpected:
                 raise OrbisError(f"{self.stage}: the {self.cfg.init_from} weights do not fit this predictor "
                                  f"(missing {stray[:5]}, unexpected {unexpected[:5]}); re-run {self.cfg.init_from} "
@@ -237,7 +261,11 @@ class PredictorTask:
         return model
 
     def batches(self, spec: DataSpec) -> Iterator[dict[str, torch.Tensor]]:
-        return window_batches(self.train_set, spec)
+        repeats = None
+        if self.spec.steering:
+            assert isinstance(self.cfg, ActionConfig)
+            repeats = turn_repeats(self.train_set, self.data, self.cfg)
+        return window_batches(self.train_set, spec, repeats)
 
     def teacher(self, device: torch.device) -> nn.Module:
         """The frozen ``init_from`` network a ``reflow`` stage distills (built once per process)."""
