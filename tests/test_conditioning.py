@@ -18,9 +18,11 @@ from orbis2.eval.conditioning import (
     probe_features,
     probe_readout,
     ridge_fit,
+    sideways_shift,
     swapped,
     variant_errors,
 )
+from orbis2.models.stdit import translate_columns
 
 CLIPS, PER_CLIP, N_CONTEXT, N_TARGET, SHAPE = 8, 4, 2, 3, (2, 3, 4)
 
@@ -146,10 +148,10 @@ def steering_windows(follows: bool, clips: int = 16, per_clip: int = 8):
     commanded = np.stack([rng.uniform(2, 12, n), rng.choice([-1, 1], n) * rng.uniform(0.1, 0.8, n)], axis=1)
     commanded[::7, 1] = 0.0  # straight windows: left out of the yaw response
     commanded[3] = np.nan  # unknown steering: left out
-    gain = np.array([0.6, 0.5])
+    gain = np.array([0.6, 0.5, 3.0])  # speed and yaw rate (probe), sideways columns per rad/s
 
     def read(motion):
-        return gain * motion + 0.02 * rng.normal(size=(n, 2))
+        return gain * motion[:, [0, 1, 1]] + 0.02 * rng.normal(size=(n, 3))
 
     readouts = {"commanded": commanded, "real": read(commanded)}
     for mode, factors in MODES.items():
@@ -161,11 +163,12 @@ def steering_windows(follows: bool, clips: int = 16, per_clip: int = 8):
 def test_latent_steering_response_is_one_for_real_like_latents_and_zero_for_ignored_steering(follows):
     readouts, clips = steering_windows(follows)
     result = latent_steering_response(readouts, MODES, clips, reps=200, seed=0, material=0.25)
-    assert result["probe_gain"]["speed"] == pytest.approx(0.6, abs=0.02)
-    assert result["probe_gain"]["yaw_rate"] == pytest.approx(0.5, abs=0.05)
+    assert result["gain"]["speed"] == pytest.approx(0.6, abs=0.02)
+    assert result["gain"]["yaw_rate"] == pytest.approx(0.5, abs=0.05)
+    assert result["gain"]["sideways_shift"] == pytest.approx(3.0, abs=0.2)
     yaw = result["responses"]["yaw_rate"]
     assert yaw["windows"] == sum(1 for v in readouts["commanded"][:, 1] if np.isfinite(v) and abs(v) > 0.05)
-    for name in ("speed", "yaw_rate"):
+    for name in ("speed", "yaw_rate", "sideways_shift"):
         response = result["responses"][name]
         assert response["low"] <= response["relative"] <= response["high"]
         if follows:
@@ -181,7 +184,16 @@ def test_latent_steering_response_without_turning_windows_is_none():
     readouts = {k: v.copy() for k, v in readouts.items()}
     readouts["commanded"][:, 1] = 0.0
     result = latent_steering_response(readouts, MODES, clips, reps=50, seed=0, material=0.25)
-    assert result["responses"]["yaw_rate"] is None and result["responses"]["speed"] is not None
+    assert result["responses"]["yaw_rate"] is None and result["responses"]["sideways_shift"] is None
+    assert result["responses"]["speed"] is not None
+
+
+def test_sideways_shift_reads_a_known_translation():
+    rng = torch.Generator().manual_seed(0)
+    before = torch.sin(torch.linspace(0, 6, 16) + torch.randn(3, 4, 5, 1, generator=rng))  # varies across columns
+    moved = torch.tensor([2.0, -1.25, 0.0])
+    after = translate_columns(before, moved)
+    np.testing.assert_allclose(sideways_shift(before, after), moved.numpy())
 
 
 def test_probe_readout_applies_the_probe_to_a_latent_pair():

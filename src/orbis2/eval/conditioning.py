@@ -35,7 +35,11 @@ windows, as the predictors see them (scaled cached latents):
   x0.5 (turning windows, the drive's turn direction positive) and the speed read
   under speed x1.5 minus x0.5, each relative to the difference the probe reads
   from real drives with that motion (its gain on real pairs times the commanded
-  difference): 1 means the predicted latents move like real ones.
+  difference): 1 means the predicted latents move like real ones. A second reading
+  of the turn needs no probe: the sideways shift (in grid columns) that best maps
+  the last context latent onto the predicted one, against the shift of the real
+  next latent. The probe, fitted on real pairs, can misread blurred conditional
+  means; the shift reads the translation a turn causes directly.
 
 Effects are relative to the true-conditioning error, with clip-bootstrap
 intervals; an input is "used" when the lower bound exceeds ``threshold``.
@@ -43,6 +47,7 @@ intervals; an input is "used" when the lower bound exceeds ``threshold``.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -59,6 +64,7 @@ from orbis2.eval.stats import (
 )
 from orbis2.flow import interpolate
 from orbis2.latents import KINDS, LatentCache, LatentWindowDataset
+from orbis2.models.stdit import translate_columns
 from orbis2.tasks.predictors import (
     STAGES,
     collate,
@@ -390,12 +396,38 @@ def probe_readout(probe: tuple[np.ndarray, ...], before: torch.Tensor, after: to
     return ridge_predict(probe, np.concatenate(features, axis=1))
 
 
+SHIFT_SEARCH = (4.0, 0.25)  # sideways shifts searched: up to 4 latent columns either way, in quarter columns
+
+
+def sideways_shift(before: torch.Tensor, after: torch.Tensor) -> np.ndarray:
+    """How far latents [B, C, h, w] moved sideways from ``before`` to ``after``, in grid columns [B].
+
+    The shift of ``before`` (``translate_columns``; content moves right for positive values)
+    that best matches ``after`` over the interior columns. A turn moves the whole
+    abstract grid sideways (the default town: correlation 0.96 with the yaw rate),
+    so this reads the turn directly, without a probe fitted on real latents.
+    """
+    reach, step = SHIFT_SEARCH
+    margin = math.ceil(reach)
+    before, after = before.float().cpu(), after.float().cpu()
+    shifts = torch.arange(-reach, reach + step / 2, step)
+    errors = torch.stack([((translate_columns(before, shift.expand(len(before))) - after)[..., margin:-margin] ** 2)
+                          .flatten(1).mean(dim=1) for shift in shifts], dim=1)
+    return shifts[errors.argmin(dim=1)].double().numpy()
+
+
+def motion_readout(probe: tuple[np.ndarray, ...], before: torch.Tensor, after: torch.Tensor,
+                   strips: int) -> np.ndarray:
+    """Per latent pair [B, 3]: the probe's speed and yaw rate, and the sideways shift in columns."""
+    return np.concatenate([probe_readout(probe, before, after, strips), sideways_shift(before, after)[:, None]], 1)
+
+
 @torch.no_grad()
 def steering_readouts(stage: str, predictor, window: dict, data: DataConfig, modes: dict[str, list[float]],
                       probe: tuple[np.ndarray, ...], settings, seed: int, dev: torch.device) -> dict[str, np.ndarray]:
-    """Per window [N, 2]: the commanded motion (mean speed and yaw rate over the predicted interval; NaN if
-    unknown), the probe's reading of the real next latent ("real"), and its reading of the steered predictor's
-    one-step mean under each mode's scaled steering (the same noise draws for every mode)."""
+    """The commanded motion per window [N, 2] (mean speed and yaw rate over the predicted interval; NaN if
+    unknown), and per window [N, 3] the :func:`motion_readout` of the real next latent ("real") and of the
+    steered predictor's one-step mean under each mode's scaled steering (the same noise draws for every mode)."""
     spec = STAGES[stage]
     key, (rate, _, n_context) = window_key(spec.level, spec.rate), rate_geometry(data, spec.rate)
     raw, unknown = raw_steering(window, data)
@@ -407,50 +439,61 @@ def steering_readouts(stage: str, predictor, window: dict, data: DataConfig, mod
         frames = window[key][rows].to(dev)
         context, target = frames[:, :n_context], frames[:, n_context:]
         eps = torch.randn((settings.draws, *target.shape), generator=generator, device=dev)
-        parts["real"].append(probe_readout(probe, context[:, -1], target[:, -1], settings.strips))
+        parts["real"].append(motion_readout(probe, context[:, -1], target[:, -1], settings.strips))
         for mode, factors in modes.items():
             values = raw[rows].to(dev) * torch.tensor(factors, dtype=raw.dtype, device=dev)
             cond = steering_condition(predictor.meta, values, unknown[rows].to(dev), float(rate))
             mean = torch.stack([one_step_mean(model, context, e, **cond) for e in eps]).mean(0)
-            parts[mode].append(probe_readout(probe, context[:, -1], mean[:, -1], settings.strips))
+            parts[mode].append(motion_readout(probe, context[:, -1], mean[:, -1], settings.strips))
     return {"commanded": raw.double().mean(dim=1).numpy(), **{k: np.concatenate(v) for k, v in parts.items()}}
+
+
+RESPONSES = {  # response name -> (column of the readout, column of the commanded motion)
+    "speed": (0, 0),
+    "yaw_rate": (1, 1),
+    "sideways_shift": (2, 1),  # read directly from the latent grid, commanded by the yaw rate
+}
 
 
 def latent_steering_response(readouts: dict[str, np.ndarray], modes: dict[str, list[float]], clusters, reps: int,
                              seed: int, material: float) -> dict[str, Any]:
     """How the steered predictor's latents answer scaled steering, relative to how real latents move.
 
-    For yaw rate (turning windows, each drive's turn direction positive) and speed (moving
-    windows): the probe's reading under x1.5 minus under x0.5, paired per window, over what
-    the probe reads from real drives with that motion difference (its least-squares gain from
-    commanded to read motion on the real next latents, times the commanded difference). 1: the
-    predicted latents move like real ones; 0: steering is ignored. "used" when the interval's
-    lower bound clears ``material``. A response is None where no window qualifies, the modes
-    are missing, or the probe reads nothing from real latents (gain <= 0).
+    For each of ``RESPONSES`` (speed on moving windows; yaw rate and sideways shift on
+    turning windows, each drive's turn direction positive): the reading under x1.5 minus
+    under x0.5, paired per window, over what real drives with that motion difference show
+    (the least-squares gain from commanded motion to the reading of the real next latents,
+    times the commanded difference). 1: the predicted latents move like real ones; 0:
+    steering is ignored. "used" when the interval's lower bound clears ``material``. A
+    response is None where no window qualifies, the modes are missing, or the reading of
+    real latents does not grow with the motion (gain <= 0).
     """
     commanded, real = readouts["commanded"], readouts["real"]
     clusters = np.asarray(clusters)
     known = np.isfinite(commanded).all(axis=1)
-    out: dict[str, Any] = {"windows": int(known.sum()), "material": material, "probe_gain": {}, "modes": {},
+    out: dict[str, Any] = {"windows": int(known.sum()), "material": material, "gain": {}, "modes": {},
                            "responses": {}}
-    selections = {"yaw_rate": known & (np.abs(np.nan_to_num(commanded[:, 1])) > TURNING_YAW_RATE),
-                  "speed": known & (np.nan_to_num(commanded[:, 0]) > MOVING_SPEED)}
-    for k, name in enumerate(("speed", "yaw_rate")):
-        x, y = commanded[known, k], real[known, k]
+    selections = {0: known & (np.nan_to_num(commanded[:, 0]) > MOVING_SPEED),
+                  1: known & (np.abs(np.nan_to_num(commanded[:, 1])) > TURNING_YAW_RATE)}
+    for name, (read, command) in RESPONSES.items():
+        x, y = commanded[known, command], real[known, read]
         variance = float(((x - x.mean()) ** 2).sum())
         gain = float(((x - x.mean()) * (y - y.mean())).sum() / variance) if variance > 0 else 0.0
-        out["probe_gain"][name] = gain
-        sel = selections[name]
-        sign = np.sign(commanded[sel, 1]) if name == "yaw_rate" else np.ones(int(sel.sum()))
-        for mode, values in {**{m: readouts[m] for m in ("real", *modes)}, "commanded": commanded}.items():
-            out["modes"].setdefault(mode, {})[name] = float((sign * values[sel, k]).mean()) if sel.any() else None
-        low_mode, high_mode = f"{name}_x0.5", f"{name}_x1.5"
+        out["gain"][name] = gain
+        sel = selections[command]
+        sign = np.sign(commanded[sel, 1]) if command == 1 else np.ones(int(sel.sum()))
+        means = {mode: sign * readouts[mode][sel, read] for mode in ("real", *modes)}
+        means["commanded"] = sign * commanded[sel, command]
+        for mode, values in means.items():
+            out["modes"].setdefault(mode, {})[name] = float(values.mean()) if sel.any() else None
+        motion = ("speed", "yaw_rate")[command]
+        low_mode, high_mode = f"{motion}_x0.5", f"{motion}_x1.5"
         if not sel.any() or gain <= 0 or low_mode not in modes or high_mode not in modes:
             out["responses"][name] = None
             continue
-        factor = modes[high_mode][k] - modes[low_mode][k]
-        difference = sign * (readouts[high_mode][sel, k] - readouts[low_mode][sel, k])
-        expected = gain * factor * sign * commanded[sel, k]
+        factor = modes[high_mode][command] - modes[low_mode][command]
+        difference = sign * (readouts[high_mode][sel, read] - readouts[low_mode][sel, read])
+        expected = gain * factor * sign * commanded[sel, command]
         iv = bootstrap_statistic(clusters[sel], lambda w, d=difference, e=expected: float(w @ d / (w @ e)), reps,
                                  seed=seed)
         out["responses"][name] = {"relative": iv.estimate, "low": iv.low, "high": iv.high,
@@ -552,7 +595,8 @@ def conditioning_rows(doc: dict) -> list[dict]:
     for name, r in response.get("responses", {}).items():
         if r is None:
             continue
-        rows.append({"model": response["model"], "check": f"latents answer {name} x1.5 vs x0.5 (probe-read)",
+        how = "read from the grid" if name == "sideways_shift" else "probe-read"
+        rows.append({"model": response["model"], "check": f"latents answer {name} x1.5 vs x0.5 ({how})",
                      "metric": f"{name}_readout", "error": r["real_difference"],
                      "alternative_error": r["readout_difference"], "effect": r["relative"], "low": r["low"],
                      "high": r["high"], "verdict": r["verdict"], "windows": r["windows"], "clips": r["clips"]})
