@@ -21,6 +21,8 @@ from orbis2.errors import OrbisError
 from orbis2.eval.inverse_dynamics import WEIGHTS_FILE
 from orbis2.eval.odometry import camera_intrinsics, get_inverse_dynamics, integrate_controls
 from orbis2.eval.steering import (
+    latent_turn_record,
+    latent_turns,
     mode_record,
     odometry_sanity,
     save_strip,
@@ -97,6 +99,11 @@ def main(argv: list[str] | None = None) -> None:
         first_frames = system.decode(first)  # [N, 1, H, W, 3]
 
         modes: dict[str, Any] = {}
+        step = data.detail_window - data.detail_context  # detail frames per rollout step (0.5 s)
+        latent_turn: dict[str, dict[str, np.ndarray]] = {}
+        real = cache_latents(cache, split, "detail", samples, indices)
+        real_controls, _ = steering_inputs(samples, odometry, data, steps, 1.0, 1.0, steer_meta["scale"])
+        latent_turn["real"] = latent_turns(first, real, real_controls, step, data.detail_hz, cfg.town.hfov_deg)
         per_sample: dict[str, dict[str, dict[str, np.ndarray]]] = {}
         strip = {}
         for mode, (speed_scale, yaw_scale) in ev.steering_modes.items():
@@ -106,6 +113,7 @@ def main(argv: list[str] | None = None) -> None:
             videos = np.concatenate([first_frames, system.decode(latents)], axis=1)
             per_sample[mode] = {name: score_videos(videos, controls, inverse, K, data.detail_hz)
                                 for name, inverse in instruments.items()}
+            latent_turn[mode] = latent_turns(first, latents, controls, step, data.detail_hz, cfg.town.hfov_deg)
             modes[mode] = mode_record(per_sample[mode], clusters, speed_scale, yaw_scale, ev.seed)
             sp, yw = controls[0]
             strip[mode] = (videos[0], integrate_controls(sp[:videos.shape[1] - 1], yw[:videos.shape[1] - 1],
@@ -121,12 +129,14 @@ def main(argv: list[str] | None = None) -> None:
                   "responses": {name: steering_responses(per_sample, name, clusters, ev.seed) for name in instruments},
                   "material": {"turn_deg": ev.steering_turn_material_deg,
                                "path_ratio": ev.steering_path_ratio_material},
-                  "odometry_sanity": sanity[ev.inverse_dynamics], "sanity": sanity}
+                  "odometry_sanity": sanity[ev.inverse_dynamics], "sanity": sanity,
+                  "latent_turn": latent_turn_record(latent_turn, clusters, ev.seed)}
         write_json(args.out, record)
         run.log_artifact(args.out)
         save_strip(strip, data.detail_hz, args.strip)
         run.log_artifact(args.strip)
         run.log_metrics({f"ade_{m}": v["ade"] for m, v in modes.items()})
+        run.log_metrics({f"latent_turn_deg_{m}": v["turn_deg"] for m, v in record["latent_turn"]["modes"].items()})
 
         response, floor = record["responses"][ev.inverse_dynamics], sanity[ev.inverse_dynamics]
         stage.summary = ("ADE (turn) " + ", ".join(f"{m} {v['ade']:.2f} m ({v['turn_deg']:.0f} deg)"
@@ -134,7 +144,9 @@ def main(argv: list[str] | None = None) -> None:
                          + f" (n={len(samples)}, {ev.inverse_dynamics}); turn response "
                            f"{response['turn_response_deg']['estimate']:.1f} deg, path ratio x1.5/x0.5 "
                            f"{response['path_ratio']['estimate']:.2f}; real video ADE {floor['real_ade']:.2f} m, "
-                           f"shuffled {floor['shuffled_ade']:.2f} m")
+                           f"shuffled {floor['shuffled_ade']:.2f} m; turn read from the latents "
+                           + ", ".join(f"{m} {v['turn_deg']:.0f}" for m, v in record["latent_turn"]["modes"].items())
+                           + " deg")
 
 
 if __name__ == "__main__":

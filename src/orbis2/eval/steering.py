@@ -23,6 +23,7 @@ import torch
 
 from orbis2.config import DataConfig
 from orbis2.data.shards import Clip
+from orbis2.eval.conditioning import sideways_shift
 from orbis2.eval.odometry import endpoint_angle, path_length, trajectory_ade
 from orbis2.eval.report import save_steering_strip
 from orbis2.eval.stats import mean_interval, paired_difference
@@ -57,6 +58,43 @@ def score_videos(videos: np.ndarray, controls: list, inverse, K: np.ndarray, fps
             "turn_deg": sign * np.array([endpoint_angle(r["estimated"]) for r in scored]),
             "commanded_turn_deg": sign * np.array([endpoint_angle(r["reference"]) for r in scored]),
             "path_length": np.array([path_length(r["estimated"]) for r in scored])}
+
+
+def latent_turns(first: torch.Tensor, latents: torch.Tensor, controls: list, step: int, fps: float,
+                 hfov_deg: float) -> dict[str, np.ndarray]:
+    """Per video, the heading change read from the detail latents themselves, with no decoding (degrees,
+    the clip's own commanded direction positive), and the commanded one.
+
+    A turn moves the latent grid sideways: ``sideways_shift`` between the frames ``step`` apart
+    (from the last context latent ``first`` [N, 1, ...] on; ``controls`` per video (speed, yaw rate) at
+    ``fps`` from that frame), each converted to an angle through
+    the camera's horizontal field of view (a pinhole: a shift of the half width is hfov / 2),
+    summed. Blind to speed; a check on the decoded-video instruments, which can miss a turn the
+    latents make when the decoded frames are too blurred for their flow.
+    """
+    sequence = torch.cat([first, latents[:, step - 1::step]], dim=1)
+    half_width, tangent = sequence.shape[-1] / 2, np.tan(np.radians(hfov_deg) / 2)
+    shifts = np.stack([sideways_shift(sequence[:, i], sequence[:, i + 1]) for i in range(sequence.shape[1] - 1)], 1)
+    turn = np.degrees(np.arctan(shifts / half_width * tangent)).sum(axis=1)
+    span = (sequence.shape[1] - 1) * step
+    commanded = np.degrees([np.sum(yaw[:span]) / fps for _, yaw in controls])
+    sign = np.where(commanded < 0, -1.0, 1.0)
+    return {"turn_deg": sign * turn, "commanded_turn_deg": sign * commanded}
+
+
+def latent_turn_record(turns: dict[str, dict[str, np.ndarray]], clusters: list[str], seed: int) -> dict[str, Any]:
+    """Per mode (and "real", the real continuation) the mean latent-read turn with a clip-bootstrap interval,
+    and the paired response turn(yaw rate x1.5) - turn(x0.5) against the commanded one."""
+    out: dict[str, Any] = {"modes": {}}
+    for mode, t in turns.items():
+        iv = mean_interval(t["turn_deg"], clusters, seed=seed)
+        out["modes"][mode] = {"turn_deg": iv.estimate, "low": iv.low, "high": iv.high,
+                              "commanded_turn_deg": float(t["commanded_turn_deg"].mean())}
+    if "yaw_rate_x0.5" in turns and "yaw_rate_x1.5" in turns:
+        lo, hi = turns["yaw_rate_x0.5"], turns["yaw_rate_x1.5"]
+        out["turn_response_deg"] = paired_difference(hi["turn_deg"], lo["turn_deg"], clusters, seed=seed).to_dict()
+        out["commanded_turn_response_deg"] = float((hi["commanded_turn_deg"] - lo["commanded_turn_deg"]).mean())
+    return out
 
 
 def mode_record(scores: dict[str, dict[str, np.ndarray]], clusters: list[str], speed_scale: float, yaw_scale: float,
