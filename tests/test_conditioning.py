@@ -186,6 +186,9 @@ def test_latent_steering_response_without_turning_windows_is_none():
     result = latent_steering_response(readouts, MODES, clips, reps=50, seed=0, material=0.25)
     assert result["responses"]["yaw_rate"] is None and result["responses"]["sideways_shift"] is None
     assert result["responses"]["speed"] is not None
+    readouts["commanded"][:4, 1] = 0.5  # turning windows of one clip only: no interval over clips
+    result = latent_steering_response(readouts, MODES, clips, reps=50, seed=0, material=0.25)
+    assert result["responses"]["sideways_shift"] is None and result["responses"]["speed"] is not None
 
 
 def test_sideways_shift_reads_a_known_translation():

@@ -465,8 +465,9 @@ def latent_steering_response(readouts: dict[str, np.ndarray], modes: dict[str, l
     (the least-squares gain from commanded motion to the reading of the real next latents,
     times the commanded difference). 1: the predicted latents move like real ones; 0:
     steering is ignored. "used" when the interval's lower bound clears ``material``. A
-    response is None where no window qualifies, the modes are missing, or the reading of
-    real latents does not grow with the motion (gain <= 0).
+    response is None where the qualifying windows come from fewer than two clips (no interval
+    over clips), the modes are missing, or the reading of real latents does not grow with the
+    motion (gain <= 0).
     """
     commanded, real = readouts["commanded"], readouts["real"]
     clusters = np.asarray(clusters)
@@ -488,7 +489,7 @@ def latent_steering_response(readouts: dict[str, np.ndarray], modes: dict[str, l
             out["modes"].setdefault(mode, {})[name] = float(values.mean()) if sel.any() else None
         motion = ("speed", "yaw_rate")[command]
         low_mode, high_mode = f"{motion}_x0.5", f"{motion}_x1.5"
-        if not sel.any() or gain <= 0 or low_mode not in modes or high_mode not in modes:
+        if len(set(clusters[sel])) < 2 or gain <= 0 or low_mode not in modes or high_mode not in modes:
             out["responses"][name] = None
             continue
         factor = modes[high_mode][command] - modes[low_mode][command]
