@@ -348,7 +348,7 @@ class ActionConfig(TeacherForcingConfig):
     Steering features are speed and yaw rate divided by ``speed_scale`` (m/s) and
     ``yaw_rate_scale`` (rad/s), so the embedder sees roughly unit-scale values;
     ``steering_dropout`` of the samples train the unconditional path. Windows
-    where the ego turns (mean |yaw rate| above ``turn_yaw_rate`` rad/s) enter each
+    where the ego turns (mean |yaw rate| above the town statistics' turning threshold) enter each
     epoch ``turn_repeat`` times (a deviation from the paper's uniform sampling).
     """
 
@@ -356,7 +356,6 @@ class ActionConfig(TeacherForcingConfig):
     speed_scale: float = 10.0
     yaw_rate_scale: float = 0.5
     turn_repeat: int = 1
-    turn_yaw_rate: float = 0.05
 
     INIT_SOURCES: typing.ClassVar[tuple[str, ...]] = ("abstract_tf", "abstract_df")
 
@@ -364,7 +363,7 @@ class ActionConfig(TeacherForcingConfig):
         super().validate(where)
         if not 0 <= self.steering_dropout < 1:
             raise ConfigError(f"{where}.steering_dropout must lie in [0, 1)")
-        _positive(self, where, "speed_scale", "yaw_rate_scale", "turn_repeat", "turn_yaw_rate")
+        _positive(self, where, "speed_scale", "yaw_rate_scale", "turn_repeat")
 
 
 @dataclass(frozen=True)

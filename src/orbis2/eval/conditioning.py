@@ -55,6 +55,7 @@ import numpy as np
 import torch
 
 from orbis2.config import DataConfig
+from orbis2.data.motion import TURN_THRESHOLD
 from orbis2.errors import OrbisError
 from orbis2.eval.stats import (
     bootstrap_statistic,
@@ -78,7 +79,6 @@ ModelFn = Callable[..., torch.Tensor]
 # The predictors of the main systems (and the steered top predictor), as ``eval_conditioning`` reads them.
 MAIN_PREDICTORS = ("abstract_tf", "detail", "action", "flat_detail", "flat_abstract")
 METRICS = ("loss", "one_step_mse")
-TURNING_YAW_RATE = 0.05  # rad/s: a window "turns" above this mean yaw rate (the town's motion statistics)
 MOVING_SPEED = 0.5  # m/s: a window "moves" above this mean speed
 
 
@@ -475,7 +475,7 @@ def latent_steering_response(readouts: dict[str, np.ndarray], modes: dict[str, l
     out: dict[str, Any] = {"windows": int(known.sum()), "material": material, "gain": {}, "modes": {},
                            "responses": {}}
     selections = {0: known & (np.nan_to_num(commanded[:, 0]) > MOVING_SPEED),
-                  1: known & (np.abs(np.nan_to_num(commanded[:, 1])) > TURNING_YAW_RATE)}
+                  1: known & (np.abs(np.nan_to_num(commanded[:, 1])) > TURN_THRESHOLD)}
     for name, (read, command) in RESPONSES.items():
         x, y = commanded[known, command], real[known, read]
         variance = float(((x - x.mean()) ** 2).sum())

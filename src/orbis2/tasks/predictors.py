@@ -58,6 +58,7 @@ from orbis2.config import (
     PredictorConfig,
     TeacherForcingConfig,
 )
+from orbis2.data.motion import TURN_THRESHOLD
 from orbis2.errors import OrbisError
 from orbis2.flow import diffusion_forcing_loss, euler_sample, reflow_loss, teacher_forcing_loss
 from orbis2.io import sha256_file
@@ -159,7 +160,7 @@ def collate(items: list[dict[str, Any]]) -> dict[str, torch.Tensor]:
 
 def turn_repeats(dataset: LatentWindowDataset, data: DataConfig, cfg: ActionConfig) -> np.ndarray:
     """How often each train window enters an epoch of the steering fine-tune: ``turn_repeat`` times
-    where the ego turns (mean |yaw rate| above ``turn_yaw_rate``) over the steering interval or the
+    where the ego turns (mean |yaw rate| above ``TURN_THRESHOLD``) over the steering interval or the
     interval before it, so turn onsets, turns and turn ends all count; once elsewhere.
 
     Only windows that turn tell the model what the yaw rate does: in the rest the yaw
@@ -173,7 +174,7 @@ def turn_repeats(dataset: LatentWindowDataset, data: DataConfig, cfg: ActionConf
     repeats = np.ones(len(dataset), np.int64)
     for i, (c, anchor) in enumerate(dataset.items):
         yaw = odometry[dataset.clips[c]["offset"] + anchor + offsets, 1]
-        turning = max(abs(np.nanmean(yaw[steer])), abs(np.nanmean(yaw[before]))) > cfg.turn_yaw_rate
+        turning = max(abs(np.nanmean(yaw[steer])), abs(np.nanmean(yaw[before]))) > TURN_THRESHOLD
         repeats[i] = cfg.turn_repeat if turning else 1
     return repeats
 
