@@ -21,6 +21,7 @@ from orbis2.eval.fvd import (
     clip_stats,
     even_frame_indices,
     frechet_distance,
+    frechet_distance_of_rows,
     fvd,
     fvd_slope,
     i3d_features,
@@ -99,6 +100,19 @@ def test_frechet_distance_is_zero_for_identical_statistics_and_checks_its_input(
         frechet_distance(mu, sigma + np.triu(np.ones((8, 8)), 1), mu, sigma)
     with pytest.raises(ValueError, match="shape"):
         frechet_distance(mu, sigma[:4, :4], mu, sigma)
+
+
+@pytest.mark.parametrize("rows, dim", [(12, 400), (30, 20), (7, 7)])
+def test_frechet_distance_of_rows_equals_the_covariance_form(rows, dim):
+    """sigma = R.T @ R: the nuclear-norm form gives the same distance, with fewer rows than dimensions or more."""
+    rng = np.random.default_rng(rows)
+    r1, r2 = rng.normal(size=(rows, dim)), rng.normal(scale=2.0, size=(rows + 3, dim))
+    mu1, mu2 = rng.normal(size=dim), rng.normal(size=dim)
+    expected = frechet_distance(mu1, r1.T @ r1, mu2, r2.T @ r2)
+    assert frechet_distance_of_rows(mu1, r1, mu2, r2) == pytest.approx(expected, rel=1e-9)
+    assert frechet_distance_of_rows(mu1, r1, mu1, r1) == pytest.approx(0.0, abs=1e-8 * expected)
+    with pytest.raises(ValueError, match="dimension"):
+        frechet_distance_of_rows(mu1, r1[:, :-1], mu2, r2)
 
 
 def test_fvd_of_a_set_with_itself_is_zero_even_with_fewer_samples_than_dimensions():

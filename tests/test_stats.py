@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from orbis2.eval.fvd import frechet_distance
 from orbis2.eval.stats import (
     Interval,
     check_cross_clip,
@@ -10,6 +11,7 @@ from orbis2.eval.stats import (
     decide,
     fvd_interval,
     fvd_slope_interval,
+    fvd_statistic,
     mean_interval,
     other_clip_donors,
     paired_difference,
@@ -118,6 +120,21 @@ def test_fvd_interval_is_zero_for_identical_sets_and_grows_with_a_shift():
     shifted = fvd_interval(real, real + 2.0, clips, reps=50, seed=1)
     # Mean shift of 2 in 6 dimensions: FVD = 6 * 4 = 24 exactly on every resample.
     assert shifted.estimate == pytest.approx(24.0, rel=1e-6) and shifted.low == pytest.approx(24.0, rel=1e-6)
+
+
+@pytest.mark.parametrize("videos, dim", [(24, 50), (60, 8)])
+def test_fvd_statistic_is_the_frechet_distance_of_the_weighted_moments(videos, dim):
+    """A resample's FVD: weighted means and unbiased weighted covariances (fewer videos than features or more)."""
+    rng = np.random.default_rng(videos)
+    real, fake = rng.normal(size=(videos, dim)), rng.normal(loc=0.5, size=(videos, dim))
+    weights = rng.integers(0, 3, videos).astype(float)
+
+    def moments(x):
+        mean = weights @ x / weights.sum()
+        return mean, ((x - mean) * weights[:, None]).T @ (x - mean) / (weights.sum() - 1.0)
+
+    expected = frechet_distance(*moments(real), *moments(fake))
+    assert fvd_statistic(real, fake)(weights) == pytest.approx(expected, rel=1e-9)
 
 
 def test_fvd_slope_interval_recovers_a_growing_gap():

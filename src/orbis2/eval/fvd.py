@@ -95,6 +95,32 @@ def frechet_distance(mu1, sigma1, mu2, sigma2) -> float:
     return float(diff @ diff + np.trace(sigma1) + np.trace(sigma2) - 2.0 * trace_sqrt)
 
 
+def frechet_distance_of_rows(mu1, rows1, mu2, rows2) -> float:
+    """The Frechet distance with each covariance given by rows: sigma = rows.T @ rows.
+
+    The same number as :func:`frechet_distance` (float64), in O(n^2 d) instead of
+    O(d^3) when each set has n < d rows: the non-zero eigenvalues of
+    sigma1 sigma2 = R1^T R1 R2^T R2 are those of M M^T with M = R1 R2^T [n1, n2],
+    so tr((sigma1^(1/2) sigma2 sigma1^(1/2))^(1/2)) is the sum of M's singular
+    values (its nuclear norm), and tr(sigma) = |rows|^2. At 64 videos and 400
+    I3D features that is a 64 x 64 SVD instead of two 400 x 400 eigendecompositions,
+    which makes a clip bootstrap of a few hundred resamples cheap.
+    """
+    mu1 = np.asarray(mu1, dtype=np.float64).reshape(-1)
+    mu2 = np.asarray(mu2, dtype=np.float64).reshape(-1)
+    rows1, rows2 = np.atleast_2d(np.asarray(rows1, np.float64)), np.atleast_2d(np.asarray(rows2, np.float64))
+    dim = mu1.shape[0]
+    if mu2.shape != (dim,) or rows1.shape[1] != dim or rows2.shape[1] != dim:
+        raise ValueError(f"means and rows differ in dimension: {mu1.shape}, {mu2.shape}, {rows1.shape}, "
+                         f"{rows2.shape}")
+    if not all(np.all(np.isfinite(x)) for x in (mu1, mu2, rows1, rows2)):
+        raise ValueError("the means or covariance rows have non-finite entries")
+    with threadpool_limits(limits=1, user_api="blas"):
+        trace_sqrt = np.linalg.svd(rows1 @ rows2.T, compute_uv=False).sum()
+    diff = mu1 - mu2
+    return float(diff @ diff + np.sum(rows1 * rows1) + np.sum(rows2 * rows2) - 2.0 * trace_sqrt)
+
+
 @contextmanager
 def _full_fp32() -> Iterator[None]:
     """Keep cuDNN convolutions in IEEE float32 (PyTorch allows TF32 by default) so GPU features match CPU ones."""

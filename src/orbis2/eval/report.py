@@ -263,6 +263,7 @@ def steering_table(evals: Mapping) -> list[Row]:
             "commanded_turn_deg": cells["commanded_turn_deg"],
             "ade_opencv": opencv["ade"],
             "turn_deg_opencv": opencv["turn_deg"],
+            **_latent_turn_cells(evals, mode),
         })
     videos = _get(evals, "steering", None, "odometry_sanity", "videos")
     for mode, key in (("real_videos", "real"), ("shuffled_videos", "shuffled")):
@@ -278,8 +279,18 @@ def steering_table(evals: Mapping) -> list[Row]:
             "commanded_turn_deg": NA,
             "ade_opencv": _get(evals, "steering", None, "sanity", "opencv", f"{key}_ade"),
             "turn_deg_opencv": NA,
+            **(_latent_turn_cells(evals, "real") if key == "real" else
+               {"turn_deg_latent": NA, "turn_deg_latent_low": NA, "turn_deg_latent_high": NA}),
         })
     return rows
+
+
+def _latent_turn_cells(evals: Mapping, mode: str) -> Row:
+    """The turn read from the detail latents without decoding (``eval_steering``'s ``latent_turn``; "real": the
+    real continuation's latents, the reading's calibration), with its clip-bootstrap interval."""
+    cell = _get(evals, "steering", None, "latent_turn", "modes", mode)
+    return {"turn_deg_latent": cell["turn_deg"], "turn_deg_latent_low": cell["low"],
+            "turn_deg_latent_high": cell["high"]}
 
 
 def speed_table(evals: Mapping) -> list[Row]:

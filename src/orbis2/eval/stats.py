@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from orbis2.eval.fvd import frechet_distance
+from orbis2.eval.fvd import frechet_distance, frechet_distance_of_rows
 
 DEFAULT_REPS = 1000
 DEFAULT_LEVEL = 0.95
@@ -156,11 +156,11 @@ def relative_difference(a: Sequence[float], b: Sequence[float], clusters: Sequen
 
 
 def _weighted_moments(features: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted mean and covariance rows R (covariance = R.T @ R, the unbiased weighted covariance)."""
     total = weights.sum()
     mean = weights @ features / total
-    centred = features - mean
-    cov = (centred * weights[:, None]).T @ centred / max(total - 1.0, 1.0)
-    return mean, cov
+    rows = (features - mean) * np.sqrt(weights / max(total - 1.0, 1.0))[:, None]
+    return mean, rows
 
 
 def fvd_statistic(real: np.ndarray, fake: np.ndarray) -> Callable[[np.ndarray], float]:
@@ -169,16 +169,21 @@ def fvd_statistic(real: np.ndarray, fake: np.ndarray) -> Callable[[np.ndarray], 
     A resample takes the same clips on both sides and recomputes both means and
     covariances, so an interval reflects which clips were evaluated, the dominant
     source of variation at tens of videos. FVD is biased upwards at small sample
-    sizes, so intervals of different sample sizes are not comparable.
+    sizes, so intervals of different sample sizes are not comparable. With fewer
+    videos than features the covariances are passed as rows (exact, and much
+    cheaper: :func:`~orbis2.eval.fvd.frechet_distance_of_rows`).
     """
     real, fake = np.asarray(real, np.float64), np.asarray(fake, np.float64)
     if real.shape != fake.shape:
         raise ValueError(f"FVD rows must be paired: real {real.shape}, generated {fake.shape}")
+    factored = real.shape[0] < real.shape[1]
 
     def statistic(w: np.ndarray) -> float:
-        mu_r, cov_r = _weighted_moments(real, w)
-        mu_f, cov_f = _weighted_moments(fake, w)
-        return frechet_distance(mu_r, cov_r, mu_f, cov_f)
+        mu_r, rows_r = _weighted_moments(real, w)
+        mu_f, rows_f = _weighted_moments(fake, w)
+        if factored:
+            return frechet_distance_of_rows(mu_r, rows_r, mu_f, rows_f)
+        return frechet_distance(mu_r, rows_r.T @ rows_r, mu_f, rows_f.T @ rows_f)
 
     return statistic
 
