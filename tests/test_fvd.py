@@ -27,6 +27,7 @@ from orbis2.eval.fvd import (
     i3d_features,
     video_fvd,
 )
+from orbis2.eval.rollout_fvd import PickedFrames, i3d_picks
 from orbis2.models.i3d import load_i3d
 
 from conftest import ROOT, moving_pattern
@@ -262,3 +263,25 @@ def test_fvd_slope_formula():
     assert fvd_slope([50.0, 20.0]) == pytest.approx(-30.0)
     with pytest.raises(ValueError):
         fvd_slope([42.0])
+
+
+def test_picked_frames_decode_only_what_i3d_reads_and_equal_decoding_everything():
+    """The FVD stage decodes the 16 frames per window I3D sees; the clips equal those picked from a full decoding."""
+    class FrameByFrame:  # a tokenizer decodes each frame on its own
+        decoded = 0
+
+        def decode(self, latents):
+            FrameByFrame.decoded += latents.shape[0] * latents.shape[1]
+            return (latents[..., None].expand(*latents.shape, 3) * 3 % 251).to(torch.uint8).numpy()
+
+    latents = torch.arange(2 * 80 * 2 * 2).reshape(2, 80, 2, 2)
+    system = FrameByFrame()
+    full = system.decode(latents)
+    windows = [slice(0, 60), slice(0, 20), slice(20, 40), slice(40, 60), slice(60, 80), slice(0, 80)]
+    FrameByFrame.decoded = 0
+    picked = PickedFrames(system, latents, windows)
+    for w in windows:
+        expected = full[:, w][:, even_frame_indices(w.stop - w.start)]
+        assert np.array_equal(picked.clip(w), expected)
+    union = np.unique(np.concatenate([i3d_picks(w) for w in windows]))
+    assert FrameByFrame.decoded == 2 * len(union) < 2 * 80
