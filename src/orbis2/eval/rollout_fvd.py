@@ -14,8 +14,9 @@ description of the videos, so that systems evaluated on the same clips share the
 
 I3D sees 16 evenly spaced frames of each window (``even_frame_indices``), and the
 tokenizers decode frame by frame, so only those frames are decoded (and read from
-the shards): the same features as decoding every frame, at a fraction of the
-decoding that dominates this stage on a CPU.
+the shards): the frames of decoding every frame (up to float round-off, at most a
+grey level), at a fraction of the decoding that dominates this stage on a CPU
+(``benchmarks/bench_fvd.py``).
 """
 
 from __future__ import annotations

@@ -155,7 +155,7 @@ def relative_difference(a: Sequence[float], b: Sequence[float], clusters: Sequen
 # --------------------------------------------------------------------------- FVD
 
 
-def _weighted_moments(features: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def weighted_moments(features: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Weighted mean and covariance rows R (covariance = R.T @ R, the unbiased weighted covariance)."""
     total = weights.sum()
     mean = weights @ features / total
@@ -179,8 +179,8 @@ def fvd_statistic(real: np.ndarray, fake: np.ndarray) -> Callable[[np.ndarray], 
     factored = real.shape[0] < real.shape[1]
 
     def statistic(w: np.ndarray) -> float:
-        mu_r, rows_r = _weighted_moments(real, w)
-        mu_f, rows_f = _weighted_moments(fake, w)
+        mu_r, rows_r = weighted_moments(real, w)
+        mu_f, rows_f = weighted_moments(fake, w)
         if factored:
             return frechet_distance_of_rows(mu_r, rows_r, mu_f, rows_f)
         return frechet_distance(mu_r, rows_r.T @ rows_r, mu_f, rows_f.T @ rows_f)
