@@ -19,7 +19,7 @@ from orbis2.accel import default_device
 from orbis2.data.shards import split_clips
 from orbis2.errors import OrbisError
 from orbis2.eval.inverse_dynamics import WEIGHTS_FILE
-from orbis2.eval.odometry import camera_intrinsics, get_inverse_dynamics, integrate_controls
+from orbis2.eval.odometry import camera_intrinsics, get_inverse_dynamics
 from orbis2.eval.steering import (
     latent_turn_record,
     latent_turns,
@@ -42,6 +42,7 @@ from orbis2.eval.systems import (
     sample_clusters,
 )
 from orbis2.io import write_json
+from orbis2.kinematics import integrate_controls
 from orbis2.latents import open_cache
 from orbis2.registry import layout_path
 from orbis2.stage import (

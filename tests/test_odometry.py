@@ -16,11 +16,10 @@ from orbis2.eval.odometry import (
     camera_intrinsics,
     endpoint_angle,
     get_inverse_dynamics,
-    integrate_controls,
     trajectory_ade,
     visual_odometry,
 )
-from orbis2.kinematics import integrate_odometry
+from orbis2.kinematics import integrate_controls, integrate_odometry
 from orbis2.sim import Camera, Town, render_episode, simulate_ego
 
 FPS = 10

@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from orbis2.config import InverseDynamicsConfig
 from orbis2.data.shards import Clip, iter_samples, shard_paths
 from orbis2.errors import OrbisError
-from orbis2.eval.odometry import integrate_controls
+from orbis2.kinematics import integrate_controls
 from orbis2.latents import encode_frames
 from orbis2.models.inverse_dynamics import InverseDynamicsNet
 from orbis2.models.tokenizer import load_tokenizer

@@ -28,28 +28,9 @@ import cv2
 import numpy as np
 
 from orbis2.errors import OrbisError
-from orbis2.kinematics import integrate_odometry
+from orbis2.kinematics import integrate_controls
 
 # ----------------------------------------------------------------------------- controls and geometry
-
-
-def integrate_controls(speed, yaw_rate, dt: float) -> np.ndarray:
-    """Planar positions [T+1, 2] reached by driving the controls from the origin, heading +x.
-
-    Each step drives ``speed[k] * dt`` metres along a circular arc that turns by
-    ``yaw_rate[k] * dt`` radians, the same exact integration the town uses to place its camera, so
-    the reference trajectory of a rendered episode has no integration error. Point k is the
-    position at t_k = k * dt; a video of T frames is compared with the first T points.
-    """
-    v = np.asarray(speed, np.float64).reshape(-1)
-    w = np.asarray(yaw_rate, np.float64).reshape(-1)
-    if v.shape != w.shape:
-        raise OrbisError(f"speed and yaw_rate differ in length ({len(v)} vs {len(w)})")
-    if not dt > 0:
-        raise OrbisError(f"time step must be positive, got {dt}")
-    # Pose k + 1 needs control k only: a trailing dummy control gives all T + 1 poses.
-    x, y, _ = integrate_odometry(np.append(v, 0.0), np.append(w, 0.0), 1.0 / dt)
-    return np.stack([x, y], 1)
 
 
 def camera_intrinsics(width: int, height: int, hfov_deg: float = 90.0) -> np.ndarray:
