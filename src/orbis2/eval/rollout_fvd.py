@@ -118,7 +118,7 @@ def split_fvd(split: str, system: LoadedSystem, cache: LatentCache, i3d, media: 
                                    ev, cached)
     first = system.decode(latents[:1])[0]  # the sample video, every frame
     if long:
-        out["chunked"] = chunked_record(split, chunks, real, fake, clusters, data, ev)
+        out["chunked"] = chunked_record(split, chunks, whole, real, fake, clusters, data, ev)
         save_grid_frames(media / "grid.npz", first, data.detail_hz)
     write_video(media / f"{split}.mp4", first, data.detail_hz)
     return out
@@ -150,13 +150,12 @@ def references(split: str, system: LoadedSystem, cache: LatentCache, samples: li
     return reference_rows(real, recon, still, clusters, ev.fvd_bootstrap_reps, ev.seed, ev.floor_splits)
 
 
-def chunked_record(split: str, windows: list[slice], real: Features, fake: Features, clusters: list[str],
-                   data: DataConfig, ev: EvaluationConfig) -> dict[str, Any]:
-    """Chunked FVD over consecutive ``chunk_seconds`` windows, FVD over the whole span, and the FVD-slope,
+def chunked_record(split: str, windows: list[slice], whole: slice, real: Features, fake: Features,
+                   clusters: list[str], data: DataConfig, ev: EvaluationConfig) -> dict[str, Any]:
+    """Chunked FVD over consecutive ``chunk_seconds`` windows, FVD over ``whole`` (their span), and the FVD-slope,
     each with a clip-bootstrap interval (all chunks on the same resamples)."""
     reals, fakes = [real(w) for w in windows], [fake(w) for w in windows]
     chunks, slope, slope_draws = fvd_slope_interval(reals, fakes, clusters, ev.fvd_bootstrap_reps, seed=ev.seed)
-    whole = slice(0, windows[-1].stop)
     full = fvd_with_interval(real(whole), fake(whole), clusters, ev.fvd_bootstrap_reps, ev.seed)
     return {"split": split, "seconds": len(windows) * ev.chunk_seconds, "chunk_seconds": ev.chunk_seconds,
             "videos": len(clusters), "clips": slope.clusters, "seed": ev.seed,
