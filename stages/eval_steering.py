@@ -7,7 +7,9 @@ rate. Each video's trajectory is recovered by ``evaluation.inverse_dynamics`` (t
 learned instrument by default) and by OpenCV visual odometry (second column); ADE in
 metres after least-squares scale alignment to the commanded trajectory, scale-free
 turn and path-length responses, and each instrument on the real videos as a sanity
-check (:mod:`orbis2.eval.steering`).
+check (:mod:`orbis2.eval.steering`). Two readings of the turn alone, each with the real
+continuation as its calibration: the rollout's detail latents (their sideways shift, no
+decoding) and the decoded frames' sideways motion (phase correlation, no learning).
 """
 
 from pathlib import Path
@@ -21,14 +23,16 @@ from orbis2.errors import OrbisError
 from orbis2.eval.inverse_dynamics import WEIGHTS_FILE
 from orbis2.eval.odometry import camera_intrinsics, get_inverse_dynamics
 from orbis2.eval.steering import (
-    latent_turn_record,
+    image_turns,
     latent_turns,
     mode_record,
     odometry_sanity,
+    real_videos,
     save_strip,
     score_videos,
     steering_inputs,
     steering_responses,
+    turn_record,
 )
 from orbis2.eval.systems import (
     SYSTEMS,
@@ -102,9 +106,12 @@ def main(argv: list[str] | None = None) -> None:
         modes: dict[str, Any] = {}
         step = data.detail_window - data.detail_context  # detail frames per rollout step (0.5 s)
         latent_turn: dict[str, dict[str, np.ndarray]] = {}
+        image_turn: dict[str, dict[str, np.ndarray]] = {}
         real = cache_latents(cache, split, "detail", samples, indices)
         real_controls, _ = steering_inputs(samples, odometry, data, steps, 1.0, 1.0, steer_meta["scale"])
         latent_turn["real"] = latent_turns(first, real, real_controls, step, data.detail_hz, cfg.town.hfov_deg)
+        real_frames = real_videos(split_clips(args.shards, split), samples, indices)
+        image_turn["real"] = image_turns(real_frames, real_controls, data.detail_hz, cfg.town.hfov_deg)
         per_sample: dict[str, dict[str, dict[str, np.ndarray]]] = {}
         strip = {}
         for mode, (speed_scale, yaw_scale) in ev.steering_modes.items():
@@ -115,12 +122,12 @@ def main(argv: list[str] | None = None) -> None:
             per_sample[mode] = {name: score_videos(videos, controls, inverse, K, data.detail_hz)
                                 for name, inverse in instruments.items()}
             latent_turn[mode] = latent_turns(first, latents, controls, step, data.detail_hz, cfg.town.hfov_deg)
+            image_turn[mode] = image_turns(videos, controls, data.detail_hz, cfg.town.hfov_deg)
             modes[mode] = mode_record(per_sample[mode], clusters, speed_scale, yaw_scale, ev.seed)
             sp, yw = controls[0]
             strip[mode] = (videos[0], integrate_controls(sp[:videos.shape[1] - 1], yw[:videos.shape[1] - 1],
                                                          1.0 / data.detail_hz))
-        clips = split_clips(args.shards, split)
-        sanity = {name: odometry_sanity(clips, samples, indices, odometry, K, inverse, data, clusters, ev.seed)
+        sanity = {name: odometry_sanity(real_frames, samples, indices, odometry, K, inverse, data, clusters, ev.seed)
                   for name, inverse in instruments.items()}
 
         record = {"split": split, "seconds": ev.steering_seconds, "samples": len(samples),
@@ -131,13 +138,15 @@ def main(argv: list[str] | None = None) -> None:
                   "material": {"turn_deg": ev.steering_turn_material_deg,
                                "path_ratio": ev.steering_path_ratio_material},
                   "odometry_sanity": sanity[ev.inverse_dynamics], "sanity": sanity,
-                  "latent_turn": latent_turn_record(latent_turn, clusters, ev.seed)}
+                  "latent_turn": turn_record(latent_turn, clusters, ev.seed),
+                  "image_turn": turn_record(image_turn, clusters, ev.seed)}
         write_json(args.out, record)
         run.log_artifact(args.out)
         save_strip(strip, data.detail_hz, args.strip)
         run.log_artifact(args.strip)
         run.log_metrics({f"ade_{m}": v["ade"] for m, v in modes.items()})
-        run.log_metrics({f"latent_turn_deg_{m}": v["turn_deg"] for m, v in record["latent_turn"]["modes"].items()})
+        run.log_metrics({f"{reading}_deg_{m}": v["turn_deg"] for reading in ("latent_turn", "image_turn")
+                         for m, v in record[reading]["modes"].items()})
 
         response, floor = record["responses"][ev.inverse_dynamics], sanity[ev.inverse_dynamics]
         stage.summary = ("ADE (turn) " + ", ".join(f"{m} {v['ade']:.2f} m ({v['turn_deg']:.0f} deg)"
@@ -147,6 +156,8 @@ def main(argv: list[str] | None = None) -> None:
                            f"{response['path_ratio']['estimate']:.2f}; real video ADE {floor['real_ade']:.2f} m, "
                            f"shuffled {floor['shuffled_ade']:.2f} m; turn read from the latents "
                            + ", ".join(f"{m} {v['turn_deg']:.0f}" for m, v in record["latent_turn"]["modes"].items())
+                           + " deg; from the image motion "
+                           + ", ".join(f"{m} {v['turn_deg']:.0f}" for m, v in record["image_turn"]["modes"].items())
                            + " deg")
 
 

@@ -1,10 +1,11 @@
 """Scale-free steering responses: paired per start, intervals over clips, known answers."""
 
+import cv2
 import numpy as np
 import pytest
 import torch
 
-from orbis2.eval.steering import latent_turn_record, latent_turns, mode_record, steering_responses
+from orbis2.eval.steering import image_turns, latent_turns, mode_record, steering_responses, turn_record
 from orbis2.models.stdit import translate_columns
 
 
@@ -61,7 +62,24 @@ def test_latent_turns_read_a_known_sideways_drift():
     per_step = np.degrees(np.arctan(1 / 8))
     np.testing.assert_allclose(out["turn_deg"], [4 * per_step, -4 * per_step], atol=1e-4)
     np.testing.assert_allclose(out["commanded_turn_deg"], np.degrees([0.8, 0.8]))
-    record = latent_turn_record({"real": out, "yaw_rate_x0.5": out,
-                                 "yaw_rate_x1.5": {k: 2 * v for k, v in out.items()}}, ["a", "b"], seed=0)
+    record = turn_record({"real": out, "yaw_rate_x0.5": out,
+                          "yaw_rate_x1.5": {k: 2 * v for k, v in out.items()}}, ["a", "b"], seed=0)
     assert record["modes"]["real"]["commanded_turn_deg"] == pytest.approx(np.degrees(0.8))
     assert record["commanded_turn_response_deg"] == pytest.approx(np.degrees(0.8))
+
+
+def test_image_turns_read_a_known_pan():
+    # A camera panning left across a textured panorama: content moves 2 pixels right per frame on a 112-pixel
+    # wide, 90-degree image (1.14 columns of the 64 it is read at), so each frame turns atan(2 / 56) left. The second video is commanded to turn
+    # right: its own direction counts positive, so the same pan reads negative.
+    rng = np.random.default_rng(0)
+    panorama = cv2.GaussianBlur(rng.uniform(0, 255, (64, 240)).astype(np.float32), (0, 0), 2.0)
+    frames = np.stack([panorama[:, 60 - 2 * t: 172 - 2 * t] for t in range(11)])
+    video = np.repeat(np.clip(frames, 0, 255).astype(np.uint8)[..., None], 3, axis=-1)
+    yaw = np.full(10, 0.4)
+    out = image_turns([video, video], [(np.ones(10), yaw), (np.ones(10), -yaw)], fps=10.0, hfov_deg=90.0)
+    expected = 10 * np.degrees(np.arctan(2 / 56))
+    np.testing.assert_allclose(out["turn_deg"], [expected, -expected], rtol=0.03)
+    np.testing.assert_allclose(out["commanded_turn_deg"], np.degrees([0.4, 0.4]))
+    still = image_turns([np.repeat(video[:1], 11, axis=0)], [(np.ones(10), yaw)], fps=10.0, hfov_deg=90.0)
+    assert abs(still["turn_deg"][0]) < 1e-6

@@ -399,15 +399,16 @@ def probe_readout(probe: tuple[np.ndarray, ...], before: torch.Tensor, after: to
 SHIFT_SEARCH = (4.0, 0.25)  # sideways shifts searched: up to 4 latent columns either way, in quarter columns
 
 
-def sideways_shift(before: torch.Tensor, after: torch.Tensor) -> np.ndarray:
+def sideways_shift(before: torch.Tensor, after: torch.Tensor,
+                   search: tuple[float, float] = SHIFT_SEARCH) -> np.ndarray:
     """How far latents [B, C, h, w] moved sideways from ``before`` to ``after``, in grid columns [B].
 
     The shift of ``before`` (``translate_columns``; content moves right for positive values)
-    that best matches ``after`` over the interior columns. A turn moves the whole
-    abstract grid sideways (the default town: correlation 0.96 with the yaw rate),
-    so this reads the turn directly, without a probe fitted on real latents.
+    that best matches ``after`` over the interior columns, among the ``search`` grid (reach, step).
+    A turn moves the whole abstract grid sideways (the default town: correlation 0.96 with
+    the yaw rate), so this reads the turn directly, without a probe fitted on real latents.
     """
-    reach, step = SHIFT_SEARCH
+    reach, step = search
     margin = math.ceil(reach)
     before, after = before.float().cpu(), after.float().cpu()
     shifts = torch.arange(-reach, reach + step / 2, step)

@@ -263,7 +263,8 @@ def steering_table(evals: Mapping) -> list[Row]:
             "commanded_turn_deg": cells["commanded_turn_deg"],
             "ade_opencv": opencv["ade"],
             "turn_deg_opencv": opencv["turn_deg"],
-            **_latent_turn_cells(evals, mode),
+            **_turn_cells(evals, "latent", mode),
+            **_turn_cells(evals, "image", mode),
         })
     videos = _get(evals, "steering", None, "odometry_sanity", "videos")
     for mode, key in (("real_videos", "real"), ("shuffled_videos", "shuffled")):
@@ -279,18 +280,19 @@ def steering_table(evals: Mapping) -> list[Row]:
             "commanded_turn_deg": NA,
             "ade_opencv": _get(evals, "steering", None, "sanity", "opencv", f"{key}_ade"),
             "turn_deg_opencv": NA,
-            **(_latent_turn_cells(evals, "real") if key == "real" else
-               {"turn_deg_latent": NA, "turn_deg_latent_low": NA, "turn_deg_latent_high": NA}),
+            **{k: v if key == "real" else NA for reading in ("latent", "image")
+               for k, v in _turn_cells(evals, reading, "real").items()},
         })
     return rows
 
 
-def _latent_turn_cells(evals: Mapping, mode: str) -> Row:
-    """The turn read from the detail latents without decoding (``eval_steering``'s ``latent_turn``; "real": the
-    real continuation's latents, the reading's calibration), with its clip-bootstrap interval."""
-    cell = _get(evals, "steering", None, "latent_turn", "modes", mode)
-    return {"turn_deg_latent": cell["turn_deg"], "turn_deg_latent_low": cell["low"],
-            "turn_deg_latent_high": cell["high"]}
+def _turn_cells(evals: Mapping, reading: str, mode: str) -> Row:
+    """The turn of one of ``eval_steering``'s readings (``latent``: the detail latents without decoding;
+    ``image``: the decoded frames' sideways motion; "real": the real continuation, the reading's
+    calibration), with its clip-bootstrap interval."""
+    cell = _get(evals, "steering", None, f"{reading}_turn", "modes", mode)
+    return {f"turn_deg_{reading}": cell["turn_deg"], f"turn_deg_{reading}_low": cell["low"],
+            f"turn_deg_{reading}_high": cell["high"]}
 
 
 def speed_table(evals: Mapping) -> list[Row]:

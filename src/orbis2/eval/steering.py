@@ -20,6 +20,7 @@ from typing import Any, Sequence
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from orbis2.config import DataConfig
 from orbis2.data.shards import Clip
@@ -82,9 +83,40 @@ def latent_turns(first: torch.Tensor, latents: torch.Tensor, controls: list, ste
     return {"turn_deg": sign * turn, "commanded_turn_deg": sign * commanded}
 
 
-def latent_turn_record(turns: dict[str, dict[str, np.ndarray]], clusters: list[str], seed: int) -> dict[str, Any]:
-    """Per mode (and "real", the real continuation) the mean latent-read turn with a clip-bootstrap interval,
-    and the paired response turn(yaw rate x1.5) - turn(x0.5) against the commanded one."""
+# The image reading: grey frames shrunk to this many columns, shifts searched up to 4 columns either way
+# in steps of 1/16 column (a quarter pixel at 256 pixels wide).
+IMAGE_COLUMNS, IMAGE_SEARCH = 64, (4.0, 1 / 16)
+
+
+def image_turns(videos: np.ndarray | list[np.ndarray], controls: list, fps: float,
+                hfov_deg: float) -> dict[str, np.ndarray]:
+    """Per video [T, H, W, 3] uint8, the heading change read from the frames' sideways motion (degrees, the
+    clip's own commanded direction positive), and the commanded one over the same T - 1 steps.
+
+    A camera that turns moves the whole image sideways (content moves right in a left turn):
+    ``sideways_shift`` between consecutive grey frames (shrunk to ``IMAGE_COLUMNS``), turned
+    into an angle through the horizontal field of view as in :func:`latent_turns`, summed.
+    Model-free and blind to speed; on rollouts it tells whether a turn the latents make
+    survives decoding as image motion, where the learned instrument's flow sees none.
+    """
+    turns, commanded = [], []
+    tangent = np.tan(np.radians(hfov_deg) / 2)
+    for video, (_, yaw) in zip(videos, controls):
+        grey = torch.from_numpy(np.asarray(video)).float().mean(dim=-1)[:, None]  # [T, 1, H, W]
+        height, width = grey.shape[-2:]
+        small = F.interpolate(grey, size=(max(1, round(height * IMAGE_COLUMNS / width)), IMAGE_COLUMNS),
+                              mode="area")
+        shifts = sideways_shift(small[:-1], small[1:], IMAGE_SEARCH)
+        turns.append(np.degrees(np.arctan(shifts / (IMAGE_COLUMNS / 2) * tangent)).sum())
+        commanded.append(np.degrees(np.sum(yaw[:len(video) - 1]) / fps))
+    sign = np.where(np.array(commanded) < 0, -1.0, 1.0)
+    return {"turn_deg": sign * np.array(turns), "commanded_turn_deg": sign * np.array(commanded)}
+
+
+def turn_record(turns: dict[str, dict[str, np.ndarray]], clusters: list[str], seed: int) -> dict[str, Any]:
+    """Per mode (and "real", the real continuation) the mean turn of one reading (:func:`latent_turns`,
+    :func:`image_turns`) with a clip-bootstrap interval, and the paired response turn(yaw rate x1.5) -
+    turn(x0.5) against the commanded one."""
     out: dict[str, Any] = {"modes": {}}
     for mode, t in turns.items():
         iv = mean_interval(t["turn_deg"], clusters, seed=seed)
@@ -135,15 +167,20 @@ def steering_responses(per_sample: dict, name: str, clusters: list[str], seed: i
     return out
 
 
-def odometry_sanity(clips: dict[str, Clip], samples: list[Sample], indices: list[np.ndarray], odometry: np.ndarray,
-                    K, inverse, data: DataConfig, clusters: list[str], seed: int) -> dict[str, Any]:
-    """An instrument on the real videos of the evaluated spans, in order and with a fixed frame shuffle."""
+def real_videos(clips: dict[str, Clip], samples: list[Sample], indices: list[np.ndarray]) -> list[np.ndarray]:
+    """The real frames of each evaluated span: the last context frame, then the generated frames' indices."""
+    return [clips[s.key].frames(np.concatenate([[s.context_end], idx])) for s, idx in zip(samples, indices)]
+
+
+def odometry_sanity(videos: list[np.ndarray], samples: list[Sample], indices: list[np.ndarray],
+                    odometry: np.ndarray, K, inverse, data: DataConfig, clusters: list[str],
+                    seed: int) -> dict[str, Any]:
+    """An instrument on the real videos of the evaluated spans (:func:`real_videos`), in order and with a
+    fixed frame shuffle."""
     rng = np.random.default_rng(0)
     real, shuffled = [], []
-    for s, idx in zip(samples, indices):
-        span = np.concatenate([[s.context_end], idx])
-        video = clips[s.key].frames(span)
-        rows = odometry[s.offset + s.context_end: s.offset + span[-1]].astype(np.float64)
+    for s, idx, video in zip(samples, indices, videos):
+        rows = odometry[s.offset + s.context_end: s.offset + idx[-1]].astype(np.float64)
         real.append(trajectory_ade(video, rows[:, 0], rows[:, 1], data.detail_hz, K, inverse)["ade"])
         order = rng.permutation(len(video))
         shuffled.append(trajectory_ade(video[order], rows[:, 0], rows[:, 1], data.detail_hz, K, inverse)["ade"])
