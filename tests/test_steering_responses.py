@@ -70,8 +70,8 @@ def test_latent_turns_read_a_known_sideways_drift():
 
 def test_image_turns_read_a_known_pan():
     # A camera panning left across a textured panorama: content moves 2 pixels right per frame on a 112-pixel
-    # wide, 90-degree image (1.14 columns of the 64 it is read at), so each frame turns atan(2 / 56) left. The second video is commanded to turn
-    # right: its own direction counts positive, so the same pan reads negative.
+    # wide, 90-degree image (1.14 columns of the 64 it is read at), so each frame turns atan(2 / 56) left.
+    # The second video is commanded to turn right: its own direction counts positive, so the pan reads negative.
     rng = np.random.default_rng(0)
     panorama = cv2.GaussianBlur(rng.uniform(0, 255, (64, 240)).astype(np.float32), (0, 0), 2.0)
     frames = np.stack([panorama[:, 60 - 2 * t: 172 - 2 * t] for t in range(11)])
