@@ -245,3 +245,8 @@ def test_motion_statistics_known_answer():
     assert m["stopped"] == 0.25 and m["speed_moving_mean"] == pytest.approx(25 / 3)
     assert sum(v for k, v in m.items() if k.startswith("speed_hist")) == pytest.approx(1.0)
     assert sum(v for k, v in m.items() if k.startswith("yaw_hist")) == pytest.approx(1.0)
+    assert m["turning_yaw_rate_median"] == pytest.approx(0.1) and m["turning_yaw_rate_p99"] == pytest.approx(0.1)
+    graded = motion_statistics(np.full(5, 5.0), np.array([0.0, 0.2, -0.4, 0.6, 0.01]))
+    assert graded["turning_yaw_rate_median"] == pytest.approx(0.4)
+    assert graded["turning_yaw_rate_p99"] == pytest.approx(0.2 + 0.99 * 0.4)
+    assert motion_statistics(np.ones(3), np.zeros(3))["turning_yaw_rate_median"] == 0.0

@@ -20,6 +20,8 @@ def motion_statistics(speed: np.ndarray, yaw_rate: np.ndarray) -> dict[str, floa
     ``turning`` = share of frames with |yaw rate| > TURN_THRESHOLD, split into ``left`` (counter-
     clockwise) and ``right``; ``left_right_ratio`` is left / right (1 = balanced). Histograms
     are shares per bin (speed bins of 2 m/s; yaw-rate bins edged at +-0.05, 0.2, 0.5 rad/s).
+    ``turning_yaw_rate_median`` and ``_p99``: |yaw rate| over the turning frames (0 without any),
+    how graded the turns are, i.e. which steering counterfactuals stay inside the data.
     """
     v = np.asarray(speed, np.float64)
     w = np.asarray(yaw_rate, np.float64)
@@ -38,6 +40,9 @@ def motion_statistics(speed: np.ndarray, yaw_rate: np.ndarray) -> dict[str, floa
         "left_right_ratio": left / right if right > 0 else float("inf"),
         "abs_yaw_rate_mean": float(np.abs(w).mean()),
     }
+    turning = np.abs(w[np.abs(w) > TURN_THRESHOLD])
+    out["turning_yaw_rate_median"] = float(np.median(turning)) if turning.size else 0.0
+    out["turning_yaw_rate_p99"] = float(np.percentile(turning, 99)) if turning.size else 0.0
     speed_hist = np.histogram(np.minimum(v, SPEED_BINS[-1] + 1.0), np.append(SPEED_BINS, np.inf))[0] / v.size
     yaw_hist = np.histogram(w, YAW_BINS)[0] / w.size
     out.update({f"speed_hist_{lo:g}": float(h) for lo, h in zip(SPEED_BINS, speed_hist)})
