@@ -9,7 +9,7 @@ metres after least-squares scale alignment to the commanded trajectory, scale-fr
 turn and path-length responses, and each instrument on the real videos as a sanity
 check (:mod:`orbis2.eval.steering`). Two readings of the turn alone, each with the real
 continuation as its calibration: the rollout's detail latents (their sideways shift, no
-decoding) and the decoded frames' sideways motion (phase correlation, no learning).
+decoding) and the decoded frames' sideways motion (no learning).
 """
 
 from pathlib import Path

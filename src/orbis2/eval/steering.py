@@ -61,6 +61,18 @@ def score_videos(videos: np.ndarray, controls: list, inverse, K: np.ndarray, fps
             "path_length": np.array([path_length(r["estimated"]) for r in scored])}
 
 
+def shift_degrees(shifts: np.ndarray, columns: int, hfov_deg: float) -> np.ndarray:
+    """Sideways shifts of a grid ``columns`` wide -> heading changes in degrees, through the camera's
+    horizontal field of view (a pinhole: a shift of the half width is hfov / 2)."""
+    return np.degrees(np.arctan(np.asarray(shifts) / (columns / 2) * np.tan(np.radians(hfov_deg) / 2)))
+
+
+def own_direction(turn: np.ndarray, commanded: np.ndarray) -> dict[str, np.ndarray]:
+    """A reading and the commanded heading change per video, signed so the commanded direction is positive."""
+    sign = np.where(np.asarray(commanded) < 0, -1.0, 1.0)
+    return {"turn_deg": sign * np.asarray(turn), "commanded_turn_deg": sign * np.asarray(commanded)}
+
+
 def latent_turns(first: torch.Tensor, latents: torch.Tensor, controls: list, step: int, fps: float,
                  hfov_deg: float) -> dict[str, np.ndarray]:
     """Per video, the heading change read from the detail latents themselves, with no decoding (degrees,
@@ -68,19 +80,15 @@ def latent_turns(first: torch.Tensor, latents: torch.Tensor, controls: list, ste
 
     A turn moves the latent grid sideways: ``sideways_shift`` between the frames ``step`` apart
     (from the last context latent ``first`` [N, 1, ...] on; ``controls`` per video (speed, yaw rate) at
-    ``fps`` from that frame), each converted to an angle through
-    the camera's horizontal field of view (a pinhole: a shift of the half width is hfov / 2),
-    summed. Blind to speed; a check on the decoded-video instruments, which can miss a turn the
-    latents make when the decoded frames are too blurred for their flow.
+    ``fps`` from that frame), each converted to an angle (:func:`shift_degrees`), summed. Blind to
+    speed; a check on the decoded-video instruments, which can miss a turn the latents make when
+    the decoded frames are too blurred for their flow.
     """
     sequence = torch.cat([first, latents[:, step - 1::step]], dim=1)
-    half_width, tangent = sequence.shape[-1] / 2, np.tan(np.radians(hfov_deg) / 2)
     shifts = np.stack([sideways_shift(sequence[:, i], sequence[:, i + 1]) for i in range(sequence.shape[1] - 1)], 1)
-    turn = np.degrees(np.arctan(shifts / half_width * tangent)).sum(axis=1)
     span = (sequence.shape[1] - 1) * step
     commanded = np.degrees([np.sum(yaw[:span]) / fps for _, yaw in controls])
-    sign = np.where(commanded < 0, -1.0, 1.0)
-    return {"turn_deg": sign * turn, "commanded_turn_deg": sign * commanded}
+    return own_direction(shift_degrees(shifts, sequence.shape[-1], hfov_deg).sum(axis=1), commanded)
 
 
 # The image reading: grey frames shrunk to this many columns, shifts searched up to 4 columns either way
@@ -95,22 +103,20 @@ def image_turns(videos: np.ndarray | list[np.ndarray], controls: list, fps: floa
 
     A camera that turns moves the whole image sideways (content moves right in a left turn):
     ``sideways_shift`` between consecutive grey frames (shrunk to ``IMAGE_COLUMNS``), turned
-    into an angle through the horizontal field of view as in :func:`latent_turns`, summed.
+    into an angle (:func:`shift_degrees`), summed.
     Model-free and blind to speed; on rollouts it tells whether a turn the latents make
     survives decoding as image motion, where the learned instrument's flow sees none.
     """
     turns, commanded = [], []
-    tangent = np.tan(np.radians(hfov_deg) / 2)
     for video, (_, yaw) in zip(videos, controls):
         grey = torch.from_numpy(np.asarray(video)).float().mean(dim=-1)[:, None]  # [T, 1, H, W]
         height, width = grey.shape[-2:]
         small = F.interpolate(grey, size=(max(1, round(height * IMAGE_COLUMNS / width)), IMAGE_COLUMNS),
                               mode="area")
-        shifts = sideways_shift(small[:-1], small[1:], IMAGE_SEARCH)
-        turns.append(np.degrees(np.arctan(shifts / (IMAGE_COLUMNS / 2) * tangent)).sum())
+        turns.append(shift_degrees(sideways_shift(small[:-1], small[1:], IMAGE_SEARCH), IMAGE_COLUMNS,
+                                   hfov_deg).sum())
         commanded.append(np.degrees(np.sum(yaw[:len(video) - 1]) / fps))
-    sign = np.where(np.array(commanded) < 0, -1.0, 1.0)
-    return {"turn_deg": sign * np.array(turns), "commanded_turn_deg": sign * np.array(commanded)}
+    return own_direction(np.array(turns), np.array(commanded))
 
 
 def turn_record(turns: dict[str, dict[str, np.ndarray]], clusters: list[str], seed: int) -> dict[str, Any]:
