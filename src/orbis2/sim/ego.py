@@ -47,7 +47,7 @@ class EgoTrack:
 _A_ACCEL, _A_BRAKE, _A_PLAN = 2.5, 4.5, 2.5  # m/s^2: accelerate, strongest braking, planned braking
 _EGO_HALF_LEN = 2.3
 _ROUTE_DS = 0.2  # m between route polyline points
-_V_TURN_LEFT, _V_TURN_RIGHT = 4.5, 3.2  # m/s on the turn arcs (radius 1.5 and 1 lane widths)
+_V_TURN_LEFT, _V_TURN_RIGHT = 4.5, 3.2  # nominal m/s on the turn arcs (radius 1.5 and 1 lane widths)
 
 
 @dataclass
@@ -140,7 +140,8 @@ def _plan_route(town: Town, rng: np.random.Generator, length: float, ds: float =
         heads.append(ang + sign * np.pi / 2)
         kaps.append(np.full(n, sign / radius))
         lanes.append(np.full((n, 3), -1.0))
-        turns.append((count, count + n, _V_TURN_LEFT if sign > 0 else _V_TURN_RIGHT))
+        v_turn = (_V_TURN_LEFT if sign > 0 else _V_TURN_RIGHT) * rng.uniform(*st.turn_speed_scale)
+        turns.append((count, count + n, v_turn))
         count += n
         total += radius * np.pi / 2
         new_axis = 1 - axis
@@ -178,10 +179,11 @@ def _junction_busy(town: Town, ij, own_lane, t0: float, t1: float) -> bool:
 def simulate_ego(town: Town, seed: int, duration_s: float, fps: int) -> EgoTrack:
     """Drive the ego through the town for duration_s seconds; deterministic per (town, seed).
 
-    The ego follows the right lane of a random route, cruises at 6-12 m/s per leg, slows for turn
-    arcs, follows slower cars in its lane, and stops at the stop line of some junctions (always
-    when crossing traffic would be in the junction on arrival), waiting 1-3 s and then until the
-    junction is clear (at most 6 s). Planned stops are skipped when a car behind would run into
+    The ego follows the right lane of a random route, cruises at the style's `cruise_ms` per leg,
+    slows for turn arcs (to the arc's nominal speed times a factor drawn per turn), follows slower
+    cars in its lane, and stops at the stop line of some junctions (always when crossing traffic
+    would be in the junction on arrival), waiting 1-3 s and then until the junction is clear (at
+    most 6 s). Planned stops are skipped when a car behind would run into
     the waiting ego.
     Steering is a curvature feed-forward plus heading/lateral-error feedback; poses are the exact
     integration of the per-step controls (`integrate_odometry`).

@@ -17,7 +17,7 @@ class TownStyle:
     """
 
     blocks_per_axis: tuple[int, int] = (5, 7)
-    block_size_m: tuple[float, float] = (30.0, 60.0)
+    block_size_m: tuple[float, float] = (22.0, 45.0)
     lane_width_m: float = 3.5
     sidewalk_m: float = 3.0
     kerb_height_m: float = 0.15
@@ -70,10 +70,13 @@ class TownStyle:
     # Ego driving: cruise speed per leg, how often it goes straight at a junction (left and right
     # share the rest equally) and how often it stops at a junction without being forced to.
     # Tuned for a world that turns often, both ways (left arcs are wider and take longer, so
-    # right turns are drawn a little more often to balance the turning frames).
+    # right turns are drawn a little more often to balance the turning frames). Each turn arc is
+    # driven at its nominal speed times a factor drawn from `turn_speed_scale`, so the yaw rate
+    # of a turn (speed / arc radius) is graded rather than one value.
     cruise_ms: tuple[float, float] = (8.0, 14.0)
-    straight_weight: float = 0.15
-    right_share: float = 0.56
+    turn_speed_scale: tuple[float, float] = (0.5, 1.4)
+    straight_weight: float = 0.05
+    right_share: float = 0.6
     stop_prob: float = 0.05
     stop_wait_s: tuple[float, float] = (0.3, 1.5)
     sky_zenith_rgb: tuple[float, float, float] = (0.28, 0.47, 0.80)
