@@ -224,7 +224,7 @@ def test_unknown_style_is_rejected():
 
 def test_world_turns_often_both_ways_at_graded_rates():
     """The ego turns in a large share of frames, left and right alike, at graded yaw rates."""
-    from orbis2.data.motion import motion_statistics
+    from orbis2.data.motion import TURN_THRESHOLD, motion_statistics
 
     town = Town.generate("default", 3)
     tracks = [simulate_ego(town, seed, 20.0, FPS) for seed in range(32)]
@@ -235,7 +235,7 @@ def test_world_turns_often_both_ways_at_graded_rates():
     # Cruising 8-14 m/s between junctions a few seconds apart, 1.6-6.3 m/s on the turn arcs.
     assert 4.5 <= m["speed_moving_mean"] <= 14.0
     assert m["stopped"] <= 0.2
-    turning = np.abs(yaw_rate[np.abs(yaw_rate) > 0.05])
+    turning = np.abs(yaw_rate[np.abs(yaw_rate) > TURN_THRESHOLD])
     assert np.mean(turning < 0.6) >= 0.15  # slow arcs: half a typical turn rate is in the data
     assert np.mean(turning > 1.1) >= 0.1  # and fast ones: one and a half times it
 

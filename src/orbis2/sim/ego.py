@@ -183,8 +183,7 @@ def simulate_ego(town: Town, seed: int, duration_s: float, fps: int) -> EgoTrack
     slows for turn arcs (to the arc's nominal speed times a factor drawn per turn), follows slower
     cars in its lane, and stops at the stop line of some junctions (always when crossing traffic
     would be in the junction on arrival), waiting 1-3 s and then until the junction is clear (at
-    most 6 s). Planned stops are skipped when a car behind would run into
-    the waiting ego.
+    most 6 s). Planned stops are skipped when a car behind would run into the waiting ego.
     Steering is a curvature feed-forward plus heading/lateral-error feedback; poses are the exact
     integration of the per-step controls (`integrate_odometry`).
     """
