@@ -1,14 +1,18 @@
 # Evaluation: FVD of every system, linear probes of every probe target, the inverse-dynamics
 # instrument, steering, speed, conditioning diagnostics.
 
-from orbis2.eval.conditioning import MAIN_PREDICTORS as CONDITIONING_PREDICTORS
+from orbis2.eval.conditioning import scope_predictors
 
-MAIN_SYSTEMS = list(REG.main_table)
 # The hierarchy's bottom predictor under the steered top one.
 STEERING_PREDICTORS = ["detail", "action"]
-# Every predictor of the systems eval_speed times.
-SPEED_PREDICTORS = sorted({s for system in [*(REG.systems[n] for n in MAIN_SYSTEMS), *REG.speed_systems.values()]
-                           for s in system.stages})
+# Per report scope (main, all): the suffix of the eval_speed and eval_conditioning rules and records.
+SCOPE_SUFFIX = {"main": "", "all": "_all"}
+
+
+def speed_predictors(scope):
+    """Every predictor of the systems eval_speed{,_all} times: the scope's Table 1 systems and the speed systems."""
+    systems = [*(REG.systems[n] for n in REG.table(scope)), *REG.speed_systems.values()]
+    return sorted({p for system in systems for p in system.stages})
 
 for system_name, system in REG.systems.items():
 
@@ -114,41 +118,44 @@ rule eval_steering:
          " --out {output.steering} --strip {output.strip}" + TEE)
 
 
-rule eval_speed:
-    threads: GPU["threads"]  # timings need the machine to themselves
-    resources: **resources_of(GPU)
-    input:
-        code_inputs("stages/eval_speed.py"),
-        **latent_inputs("compressed"),
-        **predictor_inputs(SPEED_PREDICTORS),
-    output:
-        speed=P("eval") + "/speed.json",
-    params:
-        profile=PROFILE,
-        data=section("data"),
-        evaluation=section("evaluation"),
-    log: log("eval_speed")
-    benchmark: bench("eval_speed")
-    shell:
-        ("python stages/eval_speed.py --profile {params.profile}" + LATENT_ARGS + predictor_args(SPEED_PREDICTORS)
-         + " --out {output.speed}" + TEE)
+for scope, suffix in SCOPE_SUFFIX.items():
 
+    rule:
+        name: f"eval_speed{suffix}"
+        threads: GPU["threads"]  # timings need the machine to themselves
+        resources: **resources_of(GPU)
+        input:
+            code_inputs("stages/eval_speed.py"),
+            **latent_inputs("compressed"),
+            **predictor_inputs(speed_predictors(scope)),
+        output:
+            speed=P("eval") + f"/speed{suffix}.json",
+        params:
+            profile=PROFILE,
+            data=section("data"),
+            evaluation=section("evaluation"),
+        log: log(f"eval_speed{suffix}")
+        benchmark: bench(f"eval_speed{suffix}")
+        shell:
+            (f"python stages/eval_speed.py {scope} --profile {{params.profile}}" + LATENT_ARGS
+             + predictor_args(speed_predictors(scope)) + " --out {output.speed}" + TEE)
 
-rule eval_conditioning:
-    threads: GPU["threads"]  # batched forward passes of every main predictor
-    resources: **resources_of(GPU)
-    input:
-        code_inputs("stages/eval_conditioning.py"),
-        **latent_inputs("compressed"),  # the cache's tokenizers: a retrained one re-runs the stage
-        **predictor_inputs(CONDITIONING_PREDICTORS),
-    output:
-        conditioning=P("eval") + "/conditioning.json",
-    params:
-        profile=PROFILE,
-        data=section("data"),
-        evaluation=section("evaluation"),
-    log: log("eval_conditioning")
-    benchmark: bench("eval_conditioning")
-    shell:
-        ("python stages/eval_conditioning.py --profile {params.profile} --latents {input.latents}"
-         + predictor_args(CONDITIONING_PREDICTORS) + " --out {output.conditioning}" + TEE)
+    rule:
+        name: f"eval_conditioning{suffix}"
+        threads: GPU["threads"]  # batched forward passes of every predictor of the scope
+        resources: **resources_of(GPU)
+        input:
+            code_inputs("stages/eval_conditioning.py"),
+            **latent_inputs("compressed"),  # the cache's tokenizers: a retrained one re-runs the stage
+            **predictor_inputs(scope_predictors(scope)),
+        output:
+            conditioning=P("eval") + f"/conditioning{suffix}.json",
+        params:
+            profile=PROFILE,
+            data=section("data"),
+            evaluation=section("evaluation"),
+        log: log(f"eval_conditioning{suffix}")
+        benchmark: bench(f"eval_conditioning{suffix}")
+        shell:
+            (f"python stages/eval_conditioning.py {scope} --profile {{params.profile}} --latents {{input.latents}}"
+             + predictor_args(scope_predictors(scope)) + " --out {output.conditioning}" + TEE)

@@ -19,7 +19,7 @@ rule report_main:
     resources: **resources_of(LIGHT)
     input:
         code_inputs("stages/report.py"),
-        **report_inputs(REG.main_table, REG.main_table.values()),
+        **report_inputs(REG.table("main"), REG.table("main").values()),
         steering=rules.eval_steering.output.steering,
         speed=rules.eval_speed.output.speed,
         conditioning=rules.eval_conditioning.output.conditioning,
@@ -37,7 +37,7 @@ rule report_main:
     benchmark: bench("report_main")
     shell:
         ("python stages/report.py main --profile {params.profile}"
-         + report_args(REG.main_table, REG.main_table.values()) + f" --out {REPORTS}" + TEE)
+         + report_args(REG.table("main"), REG.table("main").values()) + f" --out {REPORTS}" + TEE)
 
 
 rule report_all:
@@ -49,8 +49,8 @@ rule report_all:
         **named_inputs("media_", "media", REG.systems),
         steering=rules.eval_steering.output.steering,
         strip=rules.eval_steering.output.strip,
-        speed=rules.eval_speed.output.speed,
-        conditioning=rules.eval_conditioning.output.conditioning,
+        speed=rules.eval_speed_all.output.speed,
+        conditioning=rules.eval_conditioning_all.output.conditioning,
     output:
         report=directory(P("report_all")),
     params:

@@ -1,10 +1,13 @@
-"""Stage `eval_conditioning`: does each main predictor use its conditioning and beat trivial predictions?
--> reports/eval/conditioning.json.
+"""Stage `eval_conditioning` / `eval_conditioning_all`: does each predictor use its conditioning and beat
+trivial predictions? -> reports/eval/conditioning.json / conditioning_all.json.
+
+    python stages/eval_conditioning.py main   # the main table's predictors and the steered one
+    python stages/eval_conditioning.py all    # and the flat baselines' (registry.yaml `baselines`)
 
 Paired variant errors on val windows, one-step conditional means vs baselines,
 latent statistics and the steered predictor's response inside the model
-(:mod:`orbis2.eval.conditioning`): every main predictor on the same val windows
-and noise draws, over ``evaluation.seeds``.
+(:mod:`orbis2.eval.conditioning`): every predictor of the scope on the same val
+windows and noise draws, over ``evaluation.seeds``.
 """
 
 from pathlib import Path
@@ -14,19 +17,19 @@ import numpy as np
 
 from orbis2.accel import default_device
 from orbis2.eval.conditioning import (
-    MAIN_PREDICTORS,
     evaluate_predictor,
     latent_statistics,
     latent_steering_response,
     predictor_rows,
+    scope_predictors,
     steering_readouts,
     val_window_pairs,
 )
 from orbis2.io import write_json
 from orbis2.latents import KINDS, open_cache
 from orbis2.models.stdit import load_predictor
-from orbis2.registry import layout_path, registry
-from orbis2.stage import add_predictor_argument, open_stage, predictor_files, stage_parser
+from orbis2.registry import SCOPES, layout_path, registry
+from orbis2.stage import add_name_argument, add_predictor_argument, open_stage, predictor_files, stage_parser
 from orbis2.tasks.predictors import STAGES
 
 LATENT_SET = "compressed"
@@ -34,17 +37,22 @@ LATENT_SET = "compressed"
 
 def main(argv: list[str] | None = None) -> None:
     parser = stage_parser("eval_conditioning.py", __doc__)
+    add_name_argument(parser, SCOPES, default="main")
     parser.add_argument("--latents", type=Path, default=registry().latent_sets[LATENT_SET].root, metavar="DIR",
                         help="the latent cache (default: %(default)s)")
     add_predictor_argument(parser)
-    parser.add_argument("--out", type=Path, default=layout_path("eval") / "conditioning.json",
-                        help="the record (default: %(default)s)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help=f"the record (default: main {layout_path('eval') / 'conditioning.json'}, "
+                             f"all {layout_path('eval') / 'conditioning_all.json'})")
     args = parser.parse_args(argv)
-    with open_stage("eval_conditioning", args, ["data", "evaluation"]) as stage:
+    stage_name = "eval_conditioning" + ("_all" if args.name == "all" else "")
+    out = args.out or layout_path("eval") / f"{stage_name.removeprefix('eval_')}.json"
+    with open_stage(stage_name, args, ["data", "evaluation"]) as stage:
         cfg, run = stage.cfg, stage.run
         ev, data, settings = cfg.evaluation, cfg.data, cfg.evaluation.conditioning
         dev = default_device()
-        predictors = predictor_files(args, MAIN_PREDICTORS)
+        names = scope_predictors(args.name)
+        predictors = predictor_files(args, names)
         cache = open_cache(args.latents)
         first, second, keys = val_window_pairs(cache, data, settings)
         latents, templates, probe = latent_statistics(cache, data, settings, ev.seed)
@@ -53,7 +61,7 @@ def main(argv: list[str] | None = None) -> None:
                                   "draws": settings.draws, "seeds": list(ev.seeds), "threshold": settings.threshold,
                                   "bootstrap_reps": settings.bootstrap_reps, "variants": [], "baselines": [],
                                   "latents": latents}
-        for name in MAIN_PREDICTORS:
+        for name in names:
             predictor = load_predictor(predictors[name], dev)
             per_seed = [evaluate_predictor(name, predictor, first, second, keys, templates, data, settings, seed, dev)
                         for seed in ev.seeds]
@@ -69,8 +77,8 @@ def main(argv: list[str] | None = None) -> None:
                     mean, ev.steering_modes, keys, settings.bootstrap_reps, ev.seed, settings.response_material)}
             del predictor
 
-        write_json(args.out, record)
-        run.log_artifact(args.out)
+        write_json(out, record)
+        run.log_artifact(out)
         run.log_metrics({f"{r['model']}_{r['metric']}_{r['variant']}_effect": r["effect"]
                          for r in record["variants"] if r["verdict"] != "reference"})
         run.log_metrics({f"{r['model']}_{r['baseline']}_{r['horizon_s']:g}s_effect": r["effect"]
@@ -84,7 +92,8 @@ def main(argv: list[str] | None = None) -> None:
         run.log_metrics({f"steering_latent_response_{name}": r["relative"] for name, r in responses.items() if r})
         used = [f"{r['model']}/{r['variant']}" for r in record["variants"]
                 if r["metric"] == "one_step_mse" and r["verdict"] == "used"]
-        used += [f"latent response to {name}" for name, r in responses.items() if r and r["verdict"] == "used"]
+        used += [f"latent response to {name}" + (" (ordered x0.5 < original < x1.5)" if r.get("ordered") else "")
+                 for name, r in responses.items() if r and r["verdict"] == "used"]
         stage.summary = (f"{len(keys)} val windows from {record['clips']} clips x {settings.draws} draws x "
                          f"{len(ev.seeds)} seeds; inputs used (one-step mean): {', '.join(used) or 'none shown'}; "
                          f"ego-motion probe R^2 speed {probe['speed']['r2']:.2f}, yaw rate "

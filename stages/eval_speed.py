@@ -1,7 +1,10 @@
-"""Stage `eval_speed`: generated frames per second and peak memory of the main systems
--> reports/eval/speed.json.
+"""Stage `eval_speed` / `eval_speed_all`: generated frames per second and peak memory
+-> reports/eval/speed.json / speed_all.json.
 
-The systems of ``SPEED_RUNS`` one after another in one process (paper Table 5):
+    python stages/eval_speed.py main   # the main table's systems and registry.yaml's speed_systems
+    python stages/eval_speed.py all    # and the flat baselines, with Orbis v1's way of sampling
+
+The scope's runs of ``SPEED_RUNS`` one after another in one process (paper Table 5):
 batch 1, ``speed_seconds`` of rollout from a val context with the evaluation's NFE
 (the distilled detail predictor with its own), the last-decoded frames included
 (generation as a user sees it); bf16 / compile / KV cache per ``evaluation``.
@@ -24,9 +27,10 @@ from orbis2.eval.systems import (
 )
 from orbis2.io import write_json
 from orbis2.latents import open_cache
-from orbis2.registry import layout_path
+from orbis2.registry import SCOPES, layout_path, registry
 from orbis2.stage import (
     add_latent_arguments,
+    add_name_argument,
     add_predictor_argument,
     latent_paths,
     open_stage,
@@ -46,26 +50,39 @@ SPEED_RUNS = {
 }
 
 
+def scope_runs(scope: str) -> list[str]:
+    """The runs of a scope: those of its Table 1 systems (registry.yaml) and of every speed system."""
+    reg = registry()
+    systems = {*reg.table(scope), *reg.speed_systems}
+    return [name for name, (system, _) in SPEED_RUNS.items() if system in systems]
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = stage_parser("eval_speed.py", __doc__)
+    add_name_argument(parser, SCOPES, default="main")
     add_latent_arguments(parser)
     add_predictor_argument(parser)
-    parser.add_argument("--out", type=Path, default=layout_path("eval") / "speed.json",
-                        help="the record (default: %(default)s)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help=f"the record (default: main {layout_path('eval') / 'speed.json'}, "
+                             f"all {layout_path('eval') / 'speed_all.json'})")
     args = parser.parse_args(argv)
-    with open_stage("eval_speed", args, ["data", "evaluation"]) as stage:
+    stage_name = "eval_speed" + ("_all" if args.name == "all" else "")
+    out = args.out or layout_path("eval") / f"{stage_name.removeprefix('eval_')}.json"
+    runs = scope_runs(args.name)
+    with open_stage(stage_name, args, ["data", "evaluation"]) as stage:
         cfg, run = stage.cfg, stage.run
         ev, data = cfg.evaluation, cfg.data
         dev = default_device()
         latents = latent_paths(args, LATENT_SET)
         known = {**SYSTEMS, **SPEED_SYSTEMS}
-        predictors = predictor_files(args, [p for system, _ in SPEED_RUNS.values() for p in known[system].stages])
+        predictors = predictor_files(args, [p for name in runs for p in known[SPEED_RUNS[name][0]].stages])
         cache = open_cache(latents.root)
         steps = rollout_steps(data, ev.speed_seconds)
         settings = inference_settings(ev)
 
         models = {}
-        for name, (system_name, frames_per_step) in SPEED_RUNS.items():
+        for name in runs:
+            system_name, frames_per_step = SPEED_RUNS[name]
             system = load_system(system_name, predictors, latents.tokenizers, dev, inference=settings)
             sample = eval_samples(cache, "val", data, steps, 1)[:1]
             contexts = contexts_for(system, cache, "val", data, sample, dev)
@@ -90,8 +107,8 @@ def main(argv: list[str] | None = None) -> None:
                   "seconds": steps * 0.5, "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe}, "models": models,
                   "precision": settings.precision if dev.type == "cuda" else "fp32", "compile": settings.compile,
                   "kv_cache": settings.kv_cache}
-        write_json(args.out, record)
-        run.log_artifact(args.out)
+        write_json(out, record)
+        run.log_artifact(out)
         run.log_metrics({f"fps_{m}": v["fps"] for m, v in models.items()})
         stage.summary = ", ".join(f"{m} {v['fps']:.2f} frames/s, {v['peak_memory_mb']:.0f} MB"
                                   for m, v in models.items())

@@ -18,6 +18,7 @@ from orbis2.eval.conditioning import (
     probe_features,
     probe_readout,
     ridge_fit,
+    select_penalty,
     sideways_shift,
     swapped,
     variant_errors,
@@ -177,6 +178,20 @@ def test_latent_steering_response_is_one_for_real_like_latents_and_zero_for_igno
             assert abs(response["relative"]) < 0.1 and response["verdict"] == "not shown"
     # The drive's own turn direction counts positive: a real drive reads as a positive yaw rate.
     assert result["modes"]["real"]["yaw_rate"] > 0 and result["modes"]["commanded"]["yaw_rate"] > 0
+    for response in result["responses"].values():  # each half step on the real-difference scale
+        assert response["ordered"] is follows
+        for step in response["steps"].values():
+            assert step["relative"] == pytest.approx(1.0 if follows else 0.0, abs=0.15)
+
+
+def test_a_response_that_saturates_at_the_original_is_not_ordered():
+    """x0.5 < original = x1.5: the whole response is half the real one, its upper step is nothing."""
+    readouts, clips = steering_windows(True)
+    readouts["yaw_rate_x1.5"] = readouts["original"]
+    yaw = latent_steering_response(readouts, MODES, clips, reps=200, seed=0, material=0.25)["responses"]["yaw_rate"]
+    assert yaw["relative"] == pytest.approx(0.5, abs=0.1) and yaw["verdict"] == "used" and not yaw["ordered"]
+    assert yaw["steps"]["yaw_rate_x1.5 - original"]["verdict"] == "not shown"
+    assert yaw["steps"]["original - yaw_rate_x0.5"]["relative"] == pytest.approx(1.0, abs=0.15)
 
 
 def test_latent_steering_response_without_turning_windows_is_none():
@@ -189,6 +204,20 @@ def test_latent_steering_response_without_turning_windows_is_none():
     readouts["commanded"][:4, 1] = 0.5  # turning windows of one clip only: no interval over clips
     result = latent_steering_response(readouts, MODES, clips, reps=50, seed=0, material=0.25)
     assert result["responses"]["sideways_shift"] is None and result["responses"]["speed"] is not None
+
+
+def test_the_probe_penalty_is_chosen_on_held_out_train_clips():
+    """400 pairs, 300 features, one carrying the signal: no penalty overfits, a huge one predicts the mean."""
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(400, 300))
+    y = np.stack([x[:, 0], -x[:, 0]], axis=1) + 0.3 * rng.normal(size=(400, 2))
+    clips = np.repeat(np.arange(40), 10)
+    penalty, scores = select_penalty(x, y, clips, [1e-3, 10.0, 300.0, 1e7], folds=4, seed=0)
+    assert list(scores) == [1e-3, 10.0, 300.0, 1e7]
+    assert penalty == 10.0 and scores[penalty] > 0.6  # the signal explains ~90% of each target's variance
+    assert scores[1e-3] < 0 and abs(scores[1e7]) < 0.05 and scores[300.0] < scores[10.0]
+    with pytest.raises(ValueError, match="needs >= 4 train clips"):
+        select_penalty(x, y, np.repeat(np.arange(3), 134)[:400], [1.0], folds=4, seed=0)
 
 
 def test_sideways_shift_reads_a_known_translation():

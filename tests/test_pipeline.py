@@ -114,9 +114,14 @@ def check_outputs(root: Path, full: bool = True) -> None:
 
 def check_reports(root: Path, full: bool) -> None:
     """The report stages read every evaluation and wrote the paper's tables with finite figures."""
-    with open(root / "reports/main_table.csv") as handle:
-        rows = [r for r in csv.DictReader(handle) if r["kind"] == "model"]
-    assert [r["model"] for r in rows] == ["flat_detail", "flat_abstract", "hierarchical"]
+    tables = {"reports/main_table.csv": ["hierarchical"]}
+    if full:  # reports/all's Table 1 puts the flat baselines before the main table's row
+        tables["reports/all/main_table.csv"] = ["flat_detail", "flat_abstract", "hierarchical"]
+    rows = []
+    for table, models in tables.items():
+        with open(root / table) as handle:
+            rows += [r for r in csv.DictReader(handle) if r["kind"] == "model"]
+        assert [r["model"] for r in rows[-len(models):]] == models, table
     for row in rows:
         for column in ("fvd_val", "fvd_heldout", "fvd_turns", "fvd_slope_turns", "miou", "rmse"):
             assert math.isfinite(float(row[column])) and int(row[f"{column}_n"]) >= 2, (row["model"], column)
@@ -133,7 +138,14 @@ def check_reports(root: Path, full: bool) -> None:
                                                                                            "repeat_last"}
     conditioning = json.loads((root / "reports/eval/conditioning.json").read_text())
     assert conditioning["seeds"] == [0, 1] and {r["model"] for r in conditioning["baselines"]} == {
-        "abstract_tf", "detail", "action", "flat_detail", "flat_abstract"}
+        "abstract_tf", "detail", "action"}
+    if full:
+        conditioning = json.loads((root / "reports/eval/conditioning_all.json").read_text())
+        assert {r["model"] for r in conditioning["baselines"]} == {
+            "abstract_tf", "detail", "action", "flat_detail", "flat_abstract"}
+        speed = json.loads((root / "reports/eval/speed_all.json").read_text())
+        assert list(speed["models"]) == ["hierarchical", "hierarchical_distilled", "flat_detail", "flat_abstract",
+                                         "v1_style"]
     assert (root / "reports/conditioning.csv").stat().st_size > 100
     steering = json.loads((root / "reports/eval/steering.json").read_text())
     assert set(steering["modes"]) == {"original", "speed_x0.5", "speed_x1.5", "yaw_rate_x0.5", "yaw_rate_x1.5"}

@@ -16,8 +16,11 @@ def raw() -> dict:
 
 def test_the_project_registry_describes_the_paper_dag():
     reg = registry()
-    assert list(reg.main_table) == ["flat_detail", "flat_abstract", "hierarchical"]
+    assert list(reg.table("main")) == ["hierarchical"]
+    assert list(reg.table("all")) == ["flat_detail", "flat_abstract", "hierarchical"]  # the baselines first
     assert reg.main_table["hierarchical"] == "abstract_tf"  # the hierarchy is probed at its top predictor
+    assert reg.table_predictors("main") == ["abstract_tf", "detail"]
+    assert reg.table_predictors("all") == ["abstract_tf", "detail", "flat_detail", "flat_abstract"]
     assert reg.systems["hierarchical"].stages == ["abstract_tf", "detail"]
     assert "action" not in reg.probe_targets and "teacher" in reg.probe_targets
     assert reg.predictors["action"].steering and reg.predictors["abstract_df"].causal
@@ -33,6 +36,8 @@ def test_the_project_registry_describes_the_paper_dag():
      "systems.hierarchical: predictor 'abstract_tff'"),
     (lambda r: r["latent_sets"]["full"]["tokenizers"].update(abstract="nope"), "latent_sets.full.tokenizers.abstract"),
     (lambda r: r["main_table"].update(hierarchical="action"), "main_table.hierarchical"),
+    (lambda r: r["baselines"].update(flat_video="flat_detail"), "baselines.flat_video"),
+    (lambda r: r["baselines"].update(hierarchical="abstract_tf"), "baselines.hierarchical: already a main_table row"),
 ])
 def test_a_bad_entry_is_named(edit, message):
     data = raw()

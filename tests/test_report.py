@@ -229,10 +229,9 @@ def test_main_report_tables_round_trip(evals, tmp_path):
     assert [(r["model"], r["check"], r["verdict"]) for r in conditioning][:2] == [
         ("detail", "input: subgoal_other_clip", "used"), ("detail", "beats repeat_last at 0.5 s", "holds")]
 
-    main = read_csv(out / "main_table.csv")
-    assert [r["model"] for r in main] == ["flat_detail", "flat_abstract", "hierarchical",
-                                          *(name for name, *_ in report.FVD_REFERENCES)]
-    assert [r["kind"] for r in main] == ["model"] * 3 + ["reference"] * 5
+    main = read_csv(out / "main_table.csv")  # the main table's row and the references of its (detail) decoder
+    assert [r["model"] for r in main] == ["hierarchical", "real_floor", "reconstruction_detail", "repeat_last_detail"]
+    assert [r["kind"] for r in main] == ["model"] + ["reference"] * 3
     assert list(main[0]) == [
         "model", "kind", "label", "parameters",
         "fvd_val", "fvd_val_low", "fvd_val_high", "fvd_val_n", "fvd_heldout", "fvd_heldout_low",
@@ -240,18 +239,17 @@ def test_main_report_tables_round_trip(evals, tmp_path):
         "fvd_slope_turns", "fvd_slope_turns_low", "fvd_slope_turns_high", "fvd_slope_turns_n",
         "probe_target", "miou", "miou_n", "rmse", "rmse_n",
     ]  # fmt: skip
-    floor = main[3]
+    floor = main[1]
     assert float(floor["fvd_val"]) == 30.0 and floor["fvd_slope_turns"] == "NA" and floor["miou"] == "NA"
 
-    ours = main[2]
+    ours = main[0]
     assert int(ours["parameters"]) == FVD["hierarchical"][0]
     assert [float(ours[f"fvd_{s}"]) for s in ("val", "heldout", "turns")] == list(FVD["hierarchical"][1:4])
     assert [int(ours[f"fvd_{s}_n"]) for s in ("val", "heldout", "turns")] == [40, 41, 42]
     assert float(ours["fvd_slope_turns"]) == FVD["hierarchical"][5] and ours["fvd_slope_turns_n"] == "43"
-    # the hierarchy is probed at its abstract predictor, flat models at themselves
+    # the hierarchy is probed at its abstract predictor
     assert ours["probe_target"] == "abstract_tf" and float(ours["miou"]) == PROBES["abstract_tf"][0]
     assert float(ours["rmse"]) == PROBES["abstract_tf"][2] and ours["rmse_n"] == "51"
-    assert float(main[1]["miou"]) == PROBES["flat_abstract"][0]
 
     steering = read_csv(out / "steering.csv")
     assert list(steering[0]) == ["mode", "kind", "instrument", "ade", "ade_low", "ade_high", "ade_n", "turn_deg",
@@ -301,6 +299,14 @@ def test_main_report_marks_absent_ablations_not_measured(tmp_path):
     assert "## Training strategy" not in (tmp_path / "out" / "summary.md").read_text()
 
 
+def test_main_scope_speed_record_leaves_the_flat_comparison_to_the_full_report(evals, tmp_path):
+    for name in ("flat_detail", "flat_abstract", "v1_style"):  # eval_speed (main) times only the hierarchies
+        del evals["speed"]["models"][name]
+    report.write_main_report(evals, tmp_path, SETUP)
+    assert [r["model"] for r in read_csv(tmp_path / "speed.csv")] == ["hierarchical", "hierarchical_distilled"]
+    assert verdicts(evals)[4] == "not measured" and "eval_speed_all" in report.claim_speed(evals)[1]
+
+
 def test_full_report_ablations_and_figures(evals, tmp_path):
     out = tmp_path / "reports"
     written = report.write_full_report(evals, out, SETUP, detail_hz=10, abstract_hz=2)
@@ -311,6 +317,12 @@ def test_full_report_ablations_and_figures(evals, tmp_path):
         "fvd_chunked.csv",
         "figures/fvd_chunked.png", "figures/probe_per_block.png", "figures/bubble_params_fvd_miou.png",
     }  # fmt: skip
+    # Table 1 with the flat baselines first (probed at themselves) and every decoder's reference rows.
+    main = read_csv(out / "main_table.csv")
+    assert [r["model"] for r in main] == ["flat_detail", "flat_abstract", "hierarchical",
+                                          *(name for name, *_ in report.FVD_REFERENCES)]
+    assert [r["kind"] for r in main] == ["model"] * 3 + ["reference"] * 5
+    assert float(main[1]["miou"]) == PROBES["flat_abstract"][0] and main[1]["probe_target"] == "flat_abstract"
     # Fig. 4's numbers, one FVD column per system, one row per window end.
     chunked = read_csv(out / "fvd_chunked.csv")
     for model in report.FVD_MODELS:
@@ -490,5 +502,5 @@ def test_write_csv_known_bytes_and_exact_float_round_trip(tmp_path):
 
 def test_a_floor_on_too_few_clips_reads_na(evals):
     evals["fvd"]["hierarchical"]["references"]["val"]["real_floor"] = {"fvd": None, "clips": 2, "reason": "few"}
-    floor = report.main_table(evals)[3]
+    floor = report.main_table(evals)[1]
     assert floor["fvd_val"] == floor["fvd_val_n"] == "NA" and floor["fvd_heldout"] == 30.0

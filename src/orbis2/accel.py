@@ -7,6 +7,12 @@
   under ``torch.autocast(bfloat16)`` on CUDA only; on the CPU everything stays
   fp32 so the laptop numbers and the tests are unchanged. The FVD network (I3D)
   and the Frechet distance are never wrapped: they run after decoding, in fp32.
+* **Channels-last convolutions** (:func:`conv_layout`): every convolutional
+  network (tokenizers, discriminator, teacher, I3D, the inverse-dynamics CNN)
+  keeps its weights, and so its activations, in channels-last memory, the fast
+  layout of oneDNN on the CPU and of cuDNN: the same math up to float round-off,
+  2.4x faster decoding and 1.8x faster tokenizer training steps on a 2-core CPU
+  (``benchmarks/bench_layout.py``).
 * **torch.compile** (:func:`compile_predictor`, :func:`compile_decoder`):
   ``dynamic=False``, because a rollout calls each network with one shape per
   rollout (fixed batch, window and grid), so each compiles once and re-uses
@@ -56,6 +62,13 @@ def inference_autocast(device: torch.device | str, precision: str = "bf16") -> c
     if torch.device(device).type == "cuda" and precision == "bf16":
         return torch.autocast("cuda", dtype=torch.bfloat16)
     return contextlib.nullcontext()
+
+
+def conv_layout(module: nn.Module) -> nn.Module:
+    """``module`` (in place) with its convolution weights in channels-last memory (3-D for a network of
+    3-D convolutions); inputs in either layout work, outputs follow the weights."""
+    three_d = any(isinstance(m, nn.Conv3d) for m in module.modules())
+    return module.to(memory_format=torch.channels_last_3d if three_d else torch.channels_last)
 
 
 def compile_predictor(model: nn.Module) -> nn.Module:

@@ -440,8 +440,9 @@ class ConditioningSettings:
     spread), ``draws`` noise draws per window shared by every variant. An input is
     "used" when the clip-bootstrap lower bound of the error increase without it
     exceeds ``threshold`` (a fraction of the error with it). The ego-motion probe
-    fits ridge regression (penalty ``ridge`` on standardised features) on train
-    frames every ``probe_stride`` frames. The steered predictor's latents "answer" a
+    fits ridge regression on standardised features of train frames every
+    ``probe_stride`` frames, with the penalty of ``ridge`` that predicts best across
+    ``probe_folds`` folds of the train clips (val never chooses it). The steered predictor's latents "answer" a
     steering input when the lower bound of their response (relative to real latents'
     response to the same motion difference) clears ``response_material``.
     """
@@ -453,13 +454,18 @@ class ConditioningSettings:
     threshold: float = 0.03
     bootstrap_reps: int = 1000
     probe_stride: int = 2
-    ridge: float = 10.0
+    ridge: list[float] = field(default_factory=lambda: [1.0, 10.0, 100.0, 1000.0, 10000.0, 100000.0])
+    probe_folds: int = 4
     strips: int = 0  # 0: the probe reads the whole latent grid; > 0: channel means over vertical strips
     response_material: float = 0.25
 
     def validate(self, where: str) -> None:
         _positive(self, where, "draws", "anchor_stride", "max_windows", "batch_size", "bootstrap_reps",
-                  "probe_stride", "ridge", "response_material")
+                  "probe_stride", "probe_folds", "response_material")
+        if not self.ridge or min(self.ridge) <= 0:
+            raise ConfigError(f"{where}.ridge must be a non-empty list of positive penalties")
+        if self.probe_folds < 2:
+            raise ConfigError(f"{where}.probe_folds must be >= 2 (the penalty is chosen across train folds)")
         if self.strips < 0:
             raise ConfigError(f"{where}.strips must be >= 0 (0: the whole latent grid)")
         if self.threshold < 0:

@@ -27,6 +27,7 @@ LEVELS = ("abstract", "detail")
 RATES = ("slow", "fast")
 OBJECTIVES = ("diffusion_forcing", "teacher_forcing", "reflow")
 TOKENIZER_KINDS = ("detail", "abstract")
+SCOPES = ("main", "all")  # the report targets: reports/main_table.csv and reports/all
 
 
 class RegistryError(OrbisError):
@@ -98,6 +99,18 @@ class Registry:
     speed_systems: dict[str, System]  # timed by eval_speed only
     representations: dict[str, Representation]
     main_table: dict[str, str] = field(default_factory=dict)  # system -> probed predictor, row order
+    baselines: dict[str, str] = field(default_factory=dict)  # the same, for reports/all's extra rows
+
+    def table(self, scope: str) -> dict[str, str]:
+        """Table 1's systems (-> probed predictor) of a report scope: ``main``, or ``all`` (baselines first)."""
+        if scope not in SCOPES:
+            raise ValueError(f"scope {scope!r}: one of {SCOPES}")
+        return {**self.baselines, **self.main_table} if scope == "all" else dict(self.main_table)
+
+    def table_predictors(self, scope: str) -> list[str]:
+        """Every predictor of the scope's Table 1 systems, main systems first (top before bottom)."""
+        systems = [*self.main_table, *(self.baselines if scope == "all" else {})]
+        return list(dict.fromkeys(p for name in systems for p in self.systems[name].stages))
 
     @property
     def probe_targets(self) -> list[str]:
@@ -141,7 +154,8 @@ def parse_registry(raw: dict, where: Path = Path("registry.yaml")) -> Registry:
                    systems=_entries(raw, "systems", System, where),
                    speed_systems=_entries(raw, "speed_systems", System, where),
                    representations=_entries(raw, "representations", Representation, where),
-                   main_table=dict(raw.get("main_table") or {}))
+                   main_table=dict(raw.get("main_table") or {}),
+                   baselines=dict(raw.get("baselines") or {}))
     problems = [f"tokenizers.{n}.kind = {k!r} must be one of {TOKENIZER_KINDS}"
                 for n, k in reg.tokenizers.items() if k not in TOKENIZER_KINDS]
     for name, s in reg.latent_sets.items():
@@ -161,9 +175,11 @@ def parse_registry(raw: dict, where: Path = Path("registry.yaml")) -> Registry:
             problems.append(f"systems.{name}.latents = {s.latents!r} is not under `latent_sets`")
     problems += [f"representations.{n}.latents = {r.latents!r} is not under `latent_sets`"
                  for n, r in reg.representations.items() if r.latents not in reg.latent_sets]
-    for system, target in reg.main_table.items():
-        if system not in reg.systems or target not in reg.probe_targets:
-            problems.append(f"main_table.{system}: {target!r} must name a system and a probe target")
+    for key in ("main_table", "baselines"):
+        for system, target in getattr(reg, key).items():
+            if system not in reg.systems or target not in reg.probe_targets:
+                problems.append(f"{key}.{system}: {target!r} must name a system and a probe target")
+    problems += [f"baselines.{s}: already a main_table row" for s in reg.baselines if s in reg.main_table]
     if problems:
         raise RegistryError(f"{where}: " + "; ".join(problems))
     return reg

@@ -25,7 +25,8 @@ windows, as the predictors see them (scaled cached latents):
   much of that variation is within a clip, the repeat-last MSE at 0.5 s, and a
   ridge probe of ego-motion (speed, yaw rate over 0.5 s) from two abstract latents
   0.5 s apart, on the whole latent grid (or pooled to vertical strips x channels with
-  ``strips`` > 0; trained on train, R^2 on val).
+  ``strips`` > 0; trained on train with the penalty that predicts held-out train
+  clips best, R^2 on val).
 - **Steering inside the model.** The steered predictor's one-step mean under each
   of ``evaluation.steering_modes`` (speed or yaw rate scaled), read by that
   ego-motion probe: which motion do its predicted abstract latents show, against
@@ -66,6 +67,7 @@ from orbis2.eval.stats import (
 from orbis2.flow import interpolate
 from orbis2.latents import KINDS, LatentCache, LatentWindowDataset
 from orbis2.models.stdit import translate_columns
+from orbis2.registry import registry
 from orbis2.tasks.predictors import (
     STAGES,
     collate,
@@ -76,9 +78,15 @@ from orbis2.tasks.predictors import (
 )
 
 ModelFn = Callable[..., torch.Tensor]
-# The predictors of the main systems (and the steered top predictor), as ``eval_conditioning`` reads them.
-MAIN_PREDICTORS = ("abstract_tf", "detail", "action", "flat_detail", "flat_abstract")
+STEERED = "action"  # the steered top predictor (stage eval_steering's)
 METRICS = ("loss", "one_step_mse")
+
+
+def scope_predictors(scope: str) -> list[str]:
+    """What ``eval_conditioning`` (scope ``main``) or ``eval_conditioning_all`` reads: the predictors of the
+    scope's Table 1 systems (registry.yaml) and the steered top one, main ones first."""
+    reg = registry()
+    return list(dict.fromkeys([*reg.table_predictors("main"), STEERED, *reg.table_predictors(scope)]))
 MOVING_SPEED = 0.5  # m/s: a window "moves" above this mean speed
 
 
@@ -235,13 +243,18 @@ def ego_motion_pairs(latents: list[np.ndarray], odometry: list[np.ndarray], labe
     return np.stack(xs), np.stack(ys), np.asarray(cs)
 
 
-def ridge_fit(x: np.ndarray, y: np.ndarray, penalty: float) -> tuple[np.ndarray, ...]:
-    """Ridge regression on standardised features (intercept unpenalised): (mean, scale, weights, bias)."""
+def ridge_path(x: np.ndarray, y: np.ndarray, penalties) -> list[tuple[np.ndarray, ...]]:
+    """Ridge regression on standardised features (intercept unpenalised), one (mean, scale, weights, bias)
+    per penalty, sharing the Gram matrix."""
     mean, scale = x.mean(axis=0), x.std(axis=0) + 1e-8
     z = (x - mean) / scale
     bias = y.mean(axis=0)
-    weights = np.linalg.solve(z.T @ z + penalty * np.eye(z.shape[1]), z.T @ (y - bias))
-    return mean, scale, weights, bias
+    gram, moment, eye = z.T @ z, z.T @ (y - bias), np.eye(z.shape[1])
+    return [(mean, scale, np.linalg.solve(gram + penalty * eye, moment), bias) for penalty in penalties]
+
+
+def ridge_fit(x: np.ndarray, y: np.ndarray, penalty: float) -> tuple[np.ndarray, ...]:
+    return ridge_path(x, y, [penalty])[0]
 
 
 def ridge_predict(model: tuple[np.ndarray, ...], x: np.ndarray) -> np.ndarray:
@@ -252,6 +265,27 @@ def ridge_predict(model: tuple[np.ndarray, ...], x: np.ndarray) -> np.ndarray:
 def weighted_r2(y: np.ndarray, pred: np.ndarray, weights: np.ndarray) -> float:
     centre = weights @ y / weights.sum()
     return float(1.0 - weights @ (y - pred) ** 2 / (weights @ (y - centre) ** 2))
+
+
+def select_penalty(x: np.ndarray, y: np.ndarray, clips, penalties, folds: int, seed: int) -> tuple[float, dict]:
+    """The ridge penalty whose probe predicts held-out train clips best (mean R^2 over the targets, ``folds``
+    folds of whole clips), and each candidate's score. Thousands of features on a few thousand pairs: a
+    penalty too weak overfits the clips it saw, so it is chosen on train, never on val."""
+    labels = np.asarray([str(c) for c in clips])
+    unique = np.random.default_rng(seed).permutation(np.unique(labels))
+    if len(unique) < folds:
+        raise ValueError(f"choosing the probe's penalty over {folds} folds needs >= {folds} train clips, "
+                         f"got {len(unique)}")
+    fold = dict(zip(unique, np.arange(len(unique)) % folds))
+    assigned = np.array([fold[c] for c in labels])
+    r2: dict[float, list[float]] = {float(p): [] for p in penalties}
+    for k in range(folds):
+        held = assigned == k
+        for penalty, model in zip(r2, ridge_path(x[~held], y[~held], r2)):
+            pred = ridge_predict(model, x[held])
+            r2[penalty] += [weighted_r2(y[held, j], pred[:, j], np.ones(int(held.sum()))) for j in range(y.shape[1])]
+    scores = {penalty: float(np.mean(values)) for penalty, values in r2.items()}
+    return max(scores, key=scores.get), scores
 
 
 def ego_motion_probe(train: tuple[np.ndarray, np.ndarray], val: tuple[np.ndarray, np.ndarray], val_clips,
@@ -465,10 +499,12 @@ def latent_steering_response(readouts: dict[str, np.ndarray], modes: dict[str, l
     under x0.5, paired per window, over what real drives with that motion difference show
     (the least-squares gain from commanded motion to the reading of the real next latents,
     times the commanded difference). 1: the predicted latents move like real ones; 0:
-    steering is ignored. "used" when the interval's lower bound clears ``material``. A
-    response is None where the qualifying windows come from fewer than two clips (no interval
-    over clips), the modes are missing, or the reading of real latents does not grow with the
-    motion (gain <= 0).
+    steering is ignored. "used" when the interval's lower bound clears ``material``. Each
+    response also splits into its two steps, x1.5 minus the original and the original minus
+    x0.5 (``steps``, on the same scale: each over the real difference for half the commanded
+    motion); "ordered" when both steps' lower bounds clear ``material``. A response is None
+    where the qualifying windows come from fewer than two clips (no interval over clips), the
+    modes are missing, or the reading of real latents does not grow with the motion (gain <= 0).
     """
     commanded, real = readouts["commanded"], readouts["real"]
     clusters = np.asarray(clusters)
@@ -502,6 +538,18 @@ def latent_steering_response(readouts: dict[str, np.ndarray], modes: dict[str, l
                                   "readout_difference": float(difference.mean()),
                                   "real_difference": float(expected.mean()), "windows": int(sel.sum()),
                                   "clips": iv.clusters, "verdict": decide(iv, material)}
+        if "original" in modes:
+            steps = {}
+            for label, upper, lower in ((f"{high_mode} - original", high_mode, "original"),
+                                        (f"original - {low_mode}", "original", low_mode)):
+                step = sign * (readouts[upper][sel, read] - readouts[lower][sel, read])
+                part = gain * (modes[upper][command] - modes[lower][command]) * sign * commanded[sel, command]
+                step_iv = bootstrap_statistic(clusters[sel], lambda w, d=step, e=part: float(w @ d / (w @ e)), reps,
+                                              seed=seed)
+                steps[label] = {"relative": step_iv.estimate, "low": step_iv.low, "high": step_iv.high,
+                                "verdict": decide(step_iv, material)}
+            out["responses"][name]["steps"] = steps
+            out["responses"][name]["ordered"] = all(v["verdict"] == "used" for v in steps.values())
     return out
 
 
@@ -538,9 +586,10 @@ def latent_statistics(cache: LatentCache, data: DataConfig, settings,
     for split in ("train", "val"):
         latents, odometry, keys = clip_latents(cache, split, "abstract")
         pairs[split] = ego_motion_pairs(latents, odometry, keys, step, settings.probe_stride, settings.strips)
-    record, probe = ego_motion_probe(pairs["train"][:2], pairs["val"][:2], pairs["val"][2], settings.ridge,
+    penalty, cv_r2 = select_penalty(*pairs["train"], settings.ridge, settings.probe_folds, seed)
+    record, probe = ego_motion_probe(pairs["train"][:2], pairs["val"][:2], pairs["val"][2], penalty,
                                      settings.bootstrap_reps, seed)
-    out["ego_motion_probe"] = {**record,
+    out["ego_motion_probe"] = {**record, "penalty": penalty, "train_cv_r2": cv_r2,
                                "features": f"abstract latents at t and t + {step / data.fps:g} s, "
                                            + (f"{settings.strips} vertical strips x channels" if settings.strips
                                             else "the whole latent grid")}

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from orbis2.accel import conv_layout
 from orbis2.config import InverseDynamicsConfig
 from orbis2.data.shards import Clip, iter_samples, shard_paths
 from orbis2.errors import OrbisError
@@ -128,7 +129,7 @@ class Instrument:
             raise OrbisError(f"{path}: missing; run the `inverse_dynamics` stage first (evaluation.inverse_dynamics "
                              f"= learned needs it)")
         state = torch.load(path, map_location=device, weights_only=True)
-        net = InverseDynamicsNet(state["width"]).to(device)
+        net = conv_layout(InverseDynamicsNet(state["width"])).to(device)
         net.load_state_dict(state["state"])
         return cls(net, np.array(state["mean"]), np.array(state["std"]), state["fps"], state["scale"])
 
@@ -147,7 +148,7 @@ def train_instrument(data: ClipFrames, cfg: InverseDynamicsConfig, fps: float, d
                       np.stack([data.frames[c][t + 1] for c, t in index]))
     mirrored = np.ascontiguousarray(flows[..., ::-1] * np.array([-1.0, 1.0], np.float32)[:, None, None])
     torch.manual_seed(cfg.seed)
-    net = InverseDynamicsNet(cfg.width).to(device)
+    net = conv_layout(InverseDynamicsNet(cfg.width)).to(device)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, cfg.steps)
     rng = np.random.default_rng(cfg.seed)

@@ -148,6 +148,8 @@ class OpenCVOdometry:
         if self.stride < 1:
             raise OrbisError(f"stride must be >= 1, got {self.stride}")
 
+    releases_gil = True  # OpenCV's calls do: videos can be read on one thread per core (no field: a class fact)
+
     def __call__(self, frames: np.ndarray, K: np.ndarray) -> np.ndarray:
         return visual_odometry(frames, K, self)
 

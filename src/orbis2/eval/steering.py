@@ -15,6 +15,7 @@ order and with shuffled frames.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -51,9 +52,17 @@ def steering_inputs(samples: list[Sample], odometry: np.ndarray, data: DataConfi
     return controls, torch.stack(steering)
 
 
+def trajectories(videos, controls: list, inverse, K: np.ndarray, fps: float) -> list[dict]:
+    """:func:`trajectory_ade` of each video under its (speed, yaw rate) controls, in order; an instrument that
+    releases the GIL (OpenCV's odometry) reads the videos on one thread per torch thread."""
+    workers = torch.get_num_threads() if getattr(inverse, "releases_gil", False) else 1
+    with ThreadPoolExecutor(workers) as pool:
+        return list(pool.map(lambda vc: trajectory_ade(vc[0], *vc[1], fps, K, inverse), zip(videos, controls)))
+
+
 def score_videos(videos: np.ndarray, controls: list, inverse, K: np.ndarray, fps: float) -> dict[str, np.ndarray]:
     """Per video: aligned ADE, signed turn (clip's own direction positive, degrees) and unaligned path length."""
-    scored = [trajectory_ade(v, sp, yw, fps, K, inverse) for v, (sp, yw) in zip(videos, controls)]
+    scored = trajectories(videos, controls, inverse, K, fps)
     sign = np.array([np.sign(endpoint_angle(r["reference"])) or 1.0 for r in scored])
     return {"ade": np.array([r["ade"] for r in scored]),
             "turn_deg": sign * np.array([endpoint_angle(r["estimated"]) for r in scored]),
@@ -184,12 +193,13 @@ def odometry_sanity(videos: list[np.ndarray], samples: list[Sample], indices: li
     """An instrument on the real videos of the evaluated spans (:func:`real_videos`), in order and with a
     fixed frame shuffle."""
     rng = np.random.default_rng(0)
-    real, shuffled = [], []
-    for s, idx, video in zip(samples, indices, videos):
+    controls = []
+    for s, idx in zip(samples, indices):
         rows = odometry[s.offset + s.context_end: s.offset + idx[-1]].astype(np.float64)
-        real.append(trajectory_ade(video, rows[:, 0], rows[:, 1], data.detail_hz, K, inverse)["ade"])
-        order = rng.permutation(len(video))
-        shuffled.append(trajectory_ade(video[order], rows[:, 0], rows[:, 1], data.detail_hz, K, inverse)["ade"])
+        controls.append((rows[:, 0], rows[:, 1]))
+    shuffled_videos = [video[rng.permutation(len(video))] for video in videos]
+    real = [r["ade"] for r in trajectories(videos, controls, inverse, K, data.detail_hz)]
+    shuffled = [r["ade"] for r in trajectories(shuffled_videos, controls, inverse, K, data.detail_hz)]
     real_iv, shuffled_iv = mean_interval(real, clusters, seed=seed), mean_interval(shuffled, clusters, seed=seed)
     return {"real_ade": real_iv.estimate, "real_low": real_iv.low, "real_high": real_iv.high,
             "shuffled_ade": shuffled_iv.estimate, "shuffled_low": shuffled_iv.low,

@@ -19,6 +19,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from orbis2.accel import conv_layout
+
 BN_EPS = 1e-3
 NUM_CLASSES = 400
 
@@ -205,4 +207,4 @@ def load_i3d(path: str | Path) -> InceptionI3d:
     """Load a converted I3D state dict strictly; returns a frozen model in eval mode."""
     model = InceptionI3d()
     model.load_state_dict(torch.load(path, map_location="cpu", weights_only=True), strict=True)
-    return model.eval().requires_grad_(False)
+    return conv_layout(model).eval().requires_grad_(False)

@@ -15,6 +15,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from orbis2.accel import conv_layout
+
 # TF-slim Inception expects x/128 - 1 for x in 0..255, i.e. [0, 1] maps to [-1, 255/128 - 1].
 _INCEPTION_RANGE = (-1.0, 0.9921875)
 INCEPTION_LAYERS = ("mixed_3", "mixed_4", "mixed_5", "mixed_6", "mixed_7")  # the 768-channel 17x17 (7x14 here) maps
@@ -215,7 +217,7 @@ def build_teacher(name: str, path: Path, layer: str | None = None) -> nn.Module:
     """Teacher by config name: "inception" (default, from the registry; ``layer`` picks its cut) or
     "dinov2" (the paper's; its last layer)."""
     if name == "inception":
-        return InceptionTeacher(path, layer or "mixed_7")
+        return conv_layout(InceptionTeacher(path, layer or "mixed_7"))
     if name == "dinov2":
         return DinoV2Teacher(path)
     raise ValueError(f"unknown teacher {name!r}; choose one of ['dinov2', 'inception']")

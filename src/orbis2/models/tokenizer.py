@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from orbis2.accel import conv_layout
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file, sha256_file
 from orbis2.models import ModelConfig, preset_config, split_build
@@ -673,7 +674,7 @@ def build_detail_tokenizer(config: TokenizerConfig | str = "default") -> DetailT
         entropy_temperature=cfg.entropy_temperature,
     )
     decoder = ConvDecoder(cfg.latent_dim, cfg.decoder_channels, cfg.decoder_mult, cfg.decoder_res_blocks)
-    return DetailTokenizer(_encoder(cfg), quantizer, decoder)
+    return conv_layout(DetailTokenizer(_encoder(cfg), quantizer, decoder))
 
 
 def build_abstract_tokenizer(
@@ -685,12 +686,12 @@ def build_abstract_tokenizer(
     decoder = ConvDecoder(
         latent_dim, cfg.abstract_decoder_channels, cfg.abstract_decoder_mult, cfg.abstract_decoder_res_blocks
     )
-    return AbstractTokenizer(_encoder(cfg), decoder, teacher_dim, cfg.latent_dim, compress)
+    return conv_layout(AbstractTokenizer(_encoder(cfg), decoder, teacher_dim, cfg.latent_dim, compress))
 
 
 def build_discriminator(config: TokenizerConfig | str = "default") -> PatchGANDiscriminator:
     cfg = _config(config)
-    return PatchGANDiscriminator(3, cfg.disc_channels, cfg.disc_layers, cfg.disc_norm)
+    return conv_layout(PatchGANDiscriminator(3, cfg.disc_channels, cfg.disc_layers, cfg.disc_norm))
 
 
 # --------------------------------------------------------------------------- files
