@@ -134,11 +134,12 @@ for scope, suffix in SCOPE_SUFFIX.items():
             profile=PROFILE,
             data=section("data"),
             evaluation=section("evaluation"),
+            args=scope + predictor_args(speed_predictors(scope)),  # set now: the shell runs after the loop
         log: log(f"eval_speed{suffix}")
         benchmark: bench(f"eval_speed{suffix}")
         shell:
-            (f"python stages/eval_speed.py {scope} --profile {{params.profile}}" + LATENT_ARGS
-             + predictor_args(speed_predictors(scope)) + " --out {output.speed}" + TEE)
+            ("python stages/eval_speed.py {params.args} --profile {params.profile}" + LATENT_ARGS
+             + " --out {output.speed}" + TEE)
 
     rule:
         name: f"eval_conditioning{suffix}"
@@ -154,8 +155,9 @@ for scope, suffix in SCOPE_SUFFIX.items():
             profile=PROFILE,
             data=section("data"),
             evaluation=section("evaluation"),
+            args=scope + predictor_args(scope_predictors(scope)),  # set now: the shell runs after the loop
         log: log(f"eval_conditioning{suffix}")
         benchmark: bench(f"eval_conditioning{suffix}")
         shell:
-            (f"python stages/eval_conditioning.py {scope} --profile {{params.profile}} --latents {{input.latents}}"
-             + predictor_args(scope_predictors(scope)) + " --out {output.conditioning}" + TEE)
+            ("python stages/eval_conditioning.py {params.args} --profile {params.profile} --latents {input.latents}"
+             + " --out {output.conditioning}" + TEE)
