@@ -10,9 +10,9 @@
 * **Channels-last convolutions** (:func:`conv_layout`): every convolutional
   network (tokenizers, discriminator, teacher, I3D, the inverse-dynamics CNN)
   keeps its weights, and so its activations, in channels-last memory, the fast
-  layout of oneDNN on the CPU and of cuDNN: the same math up to float round-off,
-  2.4x faster decoding and 1.8x faster tokenizer training steps on a 2-core CPU
-  (``benchmarks/bench_layout.py``).
+  layout of oneDNN on the CPU and of cuDNN: the same math up to float round-off;
+  on a 2-core CPU decoding runs 2.4x and I3D 1.6x faster, tokenizer training
+  steps 1.0-1.1x (``benchmarks/bench_layout.py``).
 * **torch.compile** (:func:`compile_predictor`, :func:`compile_decoder`):
   ``dynamic=False``, because a rollout calls each network with one shape per
   rollout (fixed batch, window and grid), so each compiles once and re-uses
