@@ -23,12 +23,11 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import statistics
-import time
 from pathlib import Path
 from typing import Callable
 
 import torch
+from bench_fvd import median_seconds  # the same timing rule (run as a script: benchmarks/ is on the path)
 from torch import nn
 
 from orbis2.models.i3d import InceptionI3d
@@ -41,16 +40,6 @@ from orbis2.models.tokenizer import (
 )
 
 FRAME = {"smoke": (72, 128), "default": (160, 256)}  # the profiles' frame sizes (height, width)
-
-
-def median_seconds(fn: Callable[[], object], runs: int = 3) -> float:
-    fn()
-    times = []
-    for _ in range(runs):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def both_layouts(module: nn.Module) -> dict[str, nn.Module]:
