@@ -144,8 +144,8 @@ def check_reports(root: Path, full: bool) -> None:
         assert {r["model"] for r in conditioning["baselines"]} == {
             "abstract_tf", "detail", "action", "flat_detail", "flat_abstract"}
         speed = json.loads((root / "reports/eval/speed_all.json").read_text())
-        assert list(speed["models"]) == ["hierarchical", "hierarchical_distilled", "flat_detail", "flat_abstract",
-                                         "v1_style"]
+        assert set(speed["models"]) == {"hierarchical", "hierarchical_distilled", "flat_detail", "flat_abstract",
+                                        "v1_style"}
     assert (root / "reports/conditioning.csv").stat().st_size > 100
     steering = json.loads((root / "reports/eval/steering.json").read_text())
     assert set(steering["modes"]) == {"original", "speed_x0.5", "speed_x1.5", "yaw_rate_x0.5", "yaw_rate_x1.5"}
