@@ -10,8 +10,8 @@ SCOPE_SUFFIX = {"main": "", "all": "_all"}
 
 
 def speed_predictors(scope):
-    """Every predictor of the systems eval_speed{,_all} times: the scope's Table 1 systems and the speed systems."""
-    systems = [*(REG.systems[n] for n in REG.table(scope)), *REG.speed_systems.values()]
+    """Every predictor of the systems eval_speed{,_all} times (Registry.timed_systems)."""
+    systems = REG.timed_systems(scope).values()
     return sorted({p for system in systems for p in system.stages})
 
 for system_name, system in REG.systems.items():
@@ -50,7 +50,10 @@ for target in REG.probe_targets:
 
     rule:
         name: f"eval_probe_{target}"
-        threads: LIGHT["threads"]  # a frozen network's features and a 1x1 conv; several run side by side
+        # A frozen network's features and small heads: little memory, but every core. The main target's
+        # single probe would otherwise run last and alone on one thread (1.8x slower on 2 cores);
+        # reports/all's probes queue instead of sharing, at the same throughput.
+        threads: CPU["threads"]
         resources: **resources_of(LIGHT)
         input:
             code_inputs("stages/eval_probe.py"),

@@ -1,8 +1,8 @@
 """Stage `eval_speed` / `eval_speed_all`: generated frames per second and peak memory
 -> reports/eval/speed.json / speed_all.json.
 
-    python stages/eval_speed.py main   # the main table's systems and registry.yaml's speed_systems
-    python stages/eval_speed.py all    # and the flat baselines, with Orbis v1's way of sampling
+    python stages/eval_speed.py main   # the main table's systems
+    python stages/eval_speed.py all    # and the flat baselines, registry.yaml's speed_systems, Orbis v1's sampling
 
 The scope's runs of ``SPEED_RUNS`` one after another in one process (paper Table 5):
 batch 1, ``speed_seconds`` of rollout from a val context with the evaluation's NFE
@@ -51,9 +51,8 @@ SPEED_RUNS = {
 
 
 def scope_runs(scope: str) -> list[str]:
-    """The runs of a scope: those of its Table 1 systems (registry.yaml) and of every speed system."""
-    reg = registry()
-    systems = {*reg.table(scope), *reg.speed_systems}
+    """The runs of a scope: those of the systems it times (registry.yaml)."""
+    systems = registry().timed_systems(scope)
     return [name for name, (system, _) in SPEED_RUNS.items() if system in systems]
 
 

@@ -71,7 +71,7 @@ def test_one_step_mean_of_an_exact_field_is_the_conditional_mean(windows):
 def run_variants(model, windows):
     labels, subgoal, context, target, eps, tau = windows
     variants = {"true": {"subgoal": subgoal}, "subgoal_other_clip": {"subgoal": swapped(subgoal, labels, 3)}}
-    errors = variant_errors(model, context, target, variants, eps, tau)
+    errors, _ = variant_errors(model, context, target, variants, eps, tau)
     return {(r["metric"], r["variant"]): r for r in effect_rows("m", errors, "true", labels, 0.03, 300, 0)}
 
 

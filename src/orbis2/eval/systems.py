@@ -45,8 +45,8 @@ from orbis2.rollout import ScheduleStep, cascaded_rollout, first_context_end, fl
 # The systems and the main table's rows: registry.yaml (``systems``, ``main_table``).
 SYSTEMS: dict[str, System] = registry().systems
 MAIN_SYSTEMS = tuple(registry().main_table)
-# Systems timed by the speed stage only (``speed_systems``): the hierarchy with the few-step (distilled)
-# detail predictor, sampled with the NFE its predictor file records.
+# Systems timed by the eval_speed_all stage only (``speed_systems``): the hierarchy with the few-step
+# (distilled) detail predictor, sampled with the NFE its predictor file records.
 SPEED_SYSTEMS: dict[str, System] = registry().speed_systems
 
 
