@@ -4,7 +4,8 @@
 Rollouts of the hierarchical model with the steered top predictor (``action``) on
 ``steering_split`` starts, under each mode's scaling of the clip's own speed and yaw
 rate. Each video's trajectory is recovered by ``evaluation.inverse_dynamics`` (the
-learned instrument by default) and by OpenCV visual odometry (second column); ADE in
+learned instrument by default) and, with ``evaluation.opencv_rollouts``, by OpenCV
+visual odometry (second column; always on the real videos); ADE in
 metres after least-squares scale alignment to the commanded trajectory, scale-free
 turn and path-length responses, and each instrument on the real videos as a sanity
 check (:mod:`orbis2.eval.steering`). Two readings of the turn alone, each with the real
@@ -100,6 +101,7 @@ def main(argv: list[str] | None = None) -> None:
         K = camera_intrinsics(data.width, data.height, cfg.town.hfov_deg)
         instruments = {name: get_inverse_dynamics(name, args.inverse_dynamics / WEIGHTS_FILE)
                        for name in dict.fromkeys([ev.inverse_dynamics, "opencv"])}
+        on_rollouts = instruments if ev.opencv_rollouts else {ev.inverse_dynamics: instruments[ev.inverse_dynamics]}
         first = cache_latents(cache, split, "detail", samples, [np.array([s.context_end]) for s in samples])
         first_frames = system.decode(first)  # [N, 1, H, W, 3]
 
@@ -120,7 +122,7 @@ def main(argv: list[str] | None = None) -> None:
             latents = generate(system, cache, split, samples, steps, data, ev, dev, steering, desc=mode)
             videos = np.concatenate([first_frames, system.decode(latents)], axis=1)
             per_sample[mode] = {name: score_videos(videos, controls, inverse, K, data.detail_hz)
-                                for name, inverse in instruments.items()}
+                                for name, inverse in on_rollouts.items()}
             latent_turn[mode] = latent_turns(first, latents, controls, step, data.detail_hz, cfg.town.hfov_deg)
             image_turn[mode] = image_turns(videos, controls, data.detail_hz, cfg.town.hfov_deg)
             modes[mode] = mode_record(per_sample[mode], clusters, speed_scale, yaw_scale, ev.seed)
@@ -132,9 +134,9 @@ def main(argv: list[str] | None = None) -> None:
 
         record = {"split": split, "seconds": ev.steering_seconds, "samples": len(samples),
                   "clips": len(set(clusters)), "seed": ev.seed, "inverse_dynamics": ev.inverse_dynamics,
-                  "instruments": list(instruments), "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe},
+                  "instruments": list(on_rollouts), "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe},
                   "modes": modes,
-                  "responses": {name: steering_responses(per_sample, name, clusters, ev.seed) for name in instruments},
+                  "responses": {name: steering_responses(per_sample, name, clusters, ev.seed) for name in on_rollouts},
                   "material": {"turn_deg": ev.steering_turn_material_deg,
                                "path_ratio": ev.steering_path_ratio_material},
                   "odometry_sanity": sanity[ev.inverse_dynamics], "sanity": sanity,

@@ -105,6 +105,7 @@ def steering_doc() -> dict:
         "samples": 20,
         "seed": 5,
         "inverse_dynamics": "learned",
+        "instruments": ["learned", "opencv"],
         "modes": modes,
         "responses": {"learned": {"turn_response_deg": {"estimate": 9.0, "low": 5.0, "high": 13.0},
                                   "commanded_turn_response_deg": 12.0,
@@ -297,6 +298,16 @@ def test_main_report_marks_absent_ablations_not_measured(tmp_path):
         "holds",
     ]
     assert "## Training strategy" not in (tmp_path / "out" / "summary.md").read_text()
+
+
+def test_steering_table_without_opencv_on_the_rollouts_keeps_its_real_video_check():
+    doc = steering_doc()
+    doc["instruments"] = ["learned"]  # evaluation.opencv_rollouts: false
+    for cells in doc["modes"].values():
+        del cells["instruments"]["opencv"]
+    rows = report.steering_table({"steering": doc})
+    assert all(r["ade_opencv"] == report.NA and r["turn_deg_opencv"] == report.NA for r in rows[:-2])
+    assert rows[-2]["ade_opencv"] == 0.6 and rows[0]["ade"] == 1.2
 
 
 def test_main_scope_speed_record_leaves_the_flat_comparison_to_the_full_report(evals, tmp_path):

@@ -508,6 +508,9 @@ class EvaluationConfig:
         "original": [1.0, 1.0], "speed_x0.5": [0.5, 1.0], "speed_x1.5": [1.5, 1.0],
         "yaw_rate_x0.5": [1.0, 0.5], "yaw_rate_x1.5": [1.0, 1.5]})
     inverse_dynamics: str = "opencv"
+    # OpenCV odometry as a second column on the generated videos too (always on the real ones: the check of
+    # both instruments); it is a third of eval_steering's time on a CPU.
+    opencv_rollouts: bool = True
     speed_seconds: float = 2.0
     speed_repeats: int = 2
     precision: str = "bf16"

@@ -246,12 +246,15 @@ def main_table(evals: Mapping, scope: str = "main") -> list[Row]:
 
 def steering_table(evals: Mapping) -> list[Row]:
     """Table 2: ADE per steering mode (clip-bootstrap interval) by the main instrument, with OpenCV odometry as a
-    second column; then each instrument on real and on shuffled videos as floor and chance."""
+    second column (NA where ``evaluation.opencv_rollouts`` left it off the generated videos); then each
+    instrument on real and on shuffled videos as floor and chance."""
     main = _get(evals, "steering", None, "inverse_dynamics")
+    measured = "opencv" in _get(evals, "steering", None, "instruments")
     rows: list[Row] = []
     for mode in STEERING_MODES:
         cells = _get(evals, "steering", None, "modes", mode)
-        opencv = _get(evals, "steering", None, "modes", mode, "instruments", "opencv")
+        opencv = (_get(evals, "steering", None, "modes", mode, "instruments", "opencv") if measured
+                  else {"ade": NA, "turn_deg": NA})
         rows.append({
             "mode": mode,
             "kind": "generated",
