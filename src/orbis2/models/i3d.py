@@ -85,8 +85,8 @@ class Unit3D(nn.Module):
         self.bn = BiasBatchNorm(out_channels)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """The batch norm folded into the convolution (one pass over the output), the conv's own zero
-        padding where SAME is symmetric (every layer but the stem): the same logits, 1.2x faster on CPU."""
+        """The batch norm folded into the convolution and the conv's own zero padding where SAME is
+        symmetric (every layer but the stem): the same logits with two fewer passes over the activations."""
         scale = torch.rsqrt(self.bn.running_var + BN_EPS)
         weight = self.conv.weight * scale[:, None, None, None, None]
         bias = self.bn.bias - self.bn.running_mean * scale
