@@ -1,7 +1,7 @@
-"""The FVD stage's two costs on a CPU, old way against new way, side by side in one run.
+"""The FVD stage's three costs on a CPU, old way against new way, side by side in one run.
 
     python benchmarks/bench_fvd.py [--preset default] [--videos 64] [--reps 200] [--decode-videos 4]
-        [--seconds 6] [--json out.json]
+        [--seconds 6] [--i3d-clips 8] [--json out.json]
 
 * Clip bootstrap of one FVD: ``--reps`` resamples of ``--videos`` paired I3D feature
   rows (400-d). Covariances as 400 x 400 matrices through ``frechet_distance`` (two
@@ -13,6 +13,10 @@
   16 (``PickedFrames``), with the detail tokenizer of ``--preset`` (random weights:
   the time depends on the size only). The clips must agree to one grey level (other
   batches of frames round differently in the last bits of float32).
+* I3D on ``--i3d-clips`` 16-frame clips at 224 x 224 (random weights, channels-last as
+  ``i3d_features`` runs it): its units as first ported (a zero-padded copy, the
+  convolution, then the batch norm; every max pool on a -inf-padded copy) against
+  the batch norm folded into the convolution and SAME padding left to the operators.
 
 Times are medians of 3 runs after a warm-up, with the torch threads the process has.
 """
@@ -25,13 +29,16 @@ import statistics
 import time
 from pathlib import Path
 from typing import Callable
+from unittest import mock
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from orbis2.eval.fvd import even_frame_indices, frechet_distance
 from orbis2.eval.rollout_fvd import PickedFrames
 from orbis2.eval.stats import cluster_weights, fvd_statistic, weighted_moments
+from orbis2.models import i3d
 from orbis2.models.tokenizer import build_detail_tokenizer
 
 FEATURES, FPS = 400, 10
@@ -100,6 +107,38 @@ def decoding(preset: str, videos: int, seconds: float) -> dict:
             "picked_frames_s": t_new, "speedup": t_old / t_new, "max_difference_levels": difference}
 
 
+def padded_unit(unit: i3d.Unit3D, x: torch.Tensor) -> torch.Tensor:
+    """The unit as first ported: SAME zero padding as a copy, the convolution, then the batch norm."""
+    x = unit.conv(i3d._same_pad(x, unit.kernel, unit.stride, 0.0))
+    bn = unit.bn
+    return F.relu(F.batch_norm(x, bn.running_mean, bn.running_var, None, bn.bias, False, 0.0, i3d.BN_EPS))
+
+
+def padded_pool(x: torch.Tensor, kernel: tuple[int, int, int], stride: tuple[int, int, int]) -> torch.Tensor:
+    return F.max_pool3d(i3d._same_pad(x, kernel, stride, float("-inf")), kernel, stride)
+
+
+def i3d_units(clips: int) -> dict:
+    model = i3d.InceptionI3d().eval().to(memory_format=torch.channels_last_3d)
+    video = torch.rand(clips, 3, 16, 224, 224) * 2 - 1
+    video = video.contiguous(memory_format=torch.channels_last_3d)
+
+    @torch.inference_mode()
+    def folded() -> torch.Tensor:
+        return model(video)
+
+    @torch.inference_mode()
+    def padded() -> torch.Tensor:
+        with mock.patch.object(i3d.Unit3D, "forward", padded_unit), mock.patch.object(i3d, "_max_pool_same",
+                                                                                      padded_pool):
+            return model(video)
+
+    difference = float((folded() - padded()).abs().max())
+    t_old, t_new = median_seconds(padded), median_seconds(folded)
+    return {"clips": clips, "padded_s": t_old, "folded_s": t_new, "speedup": t_old / t_new,
+            "max_logit_difference": difference}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--preset", default="default", help="detail tokenizer preset (default: %(default)s)")
@@ -107,17 +146,21 @@ def main() -> None:
     parser.add_argument("--reps", type=int, default=200, help="bootstrap resamples (default: %(default)s)")
     parser.add_argument("--decode-videos", type=int, default=4, help="videos decoded (default: %(default)s)")
     parser.add_argument("--seconds", type=float, default=6.0, help="video length (default: %(default)s)")
+    parser.add_argument("--i3d-clips", type=int, default=8, help="clips through I3D (default: %(default)s)")
     parser.add_argument("--json", type=Path, default=None, help="also write the figures here")
     args = parser.parse_args()
     result = {"threads": torch.get_num_threads(), "bootstrap": bootstrap(args.videos, args.reps),
-              "decoding": decoding(args.preset, args.decode_videos, args.seconds)}
-    b, d = result["bootstrap"], result["decoding"]
+              "decoding": decoding(args.preset, args.decode_videos, args.seconds),
+              "i3d": i3d_units(args.i3d_clips)}
+    b, d, u = result["bootstrap"], result["decoding"], result["i3d"]
     print(f"bootstrap, {b['videos']} videos x {b['resamples']} resamples: covariances {b['covariance_s']:.2f} s, "
           f"rows {b['rows_s']:.3f} s ({b['speedup']:.0f}x; largest relative difference "
           f"{b['max_relative_difference']:.1e})")
     print(f"decoding {d['videos']} videos of {d['frames_per_video']} frames ({d['preset']}): every frame "
           f"{d['every_frame_s']:.2f} s, the 16 I3D reads {d['picked_frames_s']:.2f} s ({d['speedup']:.1f}x; largest "
           f"difference {d['max_difference_levels']} grey level)")
+    print(f"I3D on {u['clips']} clips: padded copies and a separate batch norm {u['padded_s']:.2f} s, folded "
+          f"{u['folded_s']:.2f} s ({u['speedup']:.2f}x; largest logit difference {u['max_logit_difference']:.1e})")
     if args.json:
         args.json.write_text(json.dumps(result, indent=2))
 
