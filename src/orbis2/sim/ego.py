@@ -44,10 +44,14 @@ class EgoTrack:
         return float(np.sum(np.abs(self.yaw_rate)) / self.fps)
 
 
-_A_ACCEL, _A_BRAKE, _A_PLAN = 2.5, 4.5, 2.5  # m/s^2: accelerate, strongest braking, planned braking
+_A_ACCEL, _A_BRAKE, _A_PLAN = 3.5, 4.5, 3.5  # m/s^2: accelerate, strongest braking, planned braking
 _EGO_HALF_LEN = 2.3
 _ROUTE_DS = 0.2  # m between route polyline points
-_V_TURN_LEFT, _V_TURN_RIGHT = 4.5, 3.2  # nominal m/s on the turn arcs (radius 1.5 and 1 lane widths)
+# Turn arcs: radii in lane widths (the widest that keep a right turn off the kerb corner; a left
+# turn starts bending a few metres before the junction) and nominal speeds (m/s), both about
+# 0.9 rad/s of yaw rate.
+_R_TURN_LEFT, _R_TURN_RIGHT = 2.5, 1.5
+_V_TURN_LEFT, _V_TURN_RIGHT = 7.5, 4.8
 
 
 @dataclass
@@ -67,7 +71,7 @@ def _plan_route(town: Town, rng: np.random.Generator, length: float, ds: float =
     """Random lane-following route over the road grid: straight, left or right at each junction.
 
     Lanes are the right-hand lane centres (lane width = road half width ``hw``). Turns are quarter
-    circles tangent to both lane centres: radius hw for right turns, 1.5 hw for left turns.
+    circles tangent to both lane centres: radius 1.5 hw for right turns, 2.5 hw for left turns.
     """
     hw, st = town.half_width, town.style
     roads = (town.road_y, town.road_x)  # axis-0 roads run along x and sit at y = road_y[j]
@@ -126,7 +130,7 @@ def _plan_route(town: Town, rng: np.random.Generator, length: float, ds: float =
         sign = float(choice)
         left = np.array([-h[1], h[0]])
         new_h = left * sign
-        radius = hw * (1.5 if sign > 0 else 1.0)
+        radius = hw * (_R_TURN_LEFT if sign > 0 else _R_TURN_RIGHT)
         # Where the incoming and outgoing lane centres cross; the arc is tangent to both.
         corner = lane_point(axis, road, d, node_s) + np.array([new_h[1], -new_h[0]]) * hw / 2
         start = corner - h * radius

@@ -74,9 +74,9 @@ class TownStyle:
     # driven at its nominal speed times a factor drawn from `turn_speed_scale`, so the yaw rate
     # of a turn (speed / arc radius) is graded rather than one value.
     cruise_ms: tuple[float, float] = (8.0, 14.0)
-    turn_speed_scale: tuple[float, float] = (0.5, 1.4)
+    turn_speed_scale: tuple[float, float] = (0.4, 1.8)
     straight_weight: float = 0.05
-    right_share: float = 0.6
+    right_share: float = 0.55
     stop_prob: float = 0.05
     stop_wait_s: tuple[float, float] = (0.3, 1.5)
     sky_zenith_rgb: tuple[float, float, float] = (0.28, 0.47, 0.80)
