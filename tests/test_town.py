@@ -232,8 +232,9 @@ def test_world_turns_often_both_ways_at_graded_rates():
     m = motion_statistics(np.concatenate([t.speed for t in tracks]), yaw_rate)
     assert m["turning"] >= 0.2
     assert 0.6 <= m["left_right_ratio"] <= 1.6
-    # Cruising 8-14 m/s between junctions a few seconds apart, 1.6-6.3 m/s on the turn arcs.
-    assert 4.5 <= m["speed_moving_mean"] <= 14.0
+    # Cruising 8-14 m/s between junctions a few seconds apart, 1.9-13.5 m/s on the turn arcs: an urban
+    # drive's 6-14 m/s when moving.
+    assert 6.0 <= m["speed_moving_mean"] <= 14.0
     assert m["stopped"] <= 0.2
     turning = np.abs(yaw_rate[np.abs(yaw_rate) > TURN_THRESHOLD])
     assert np.mean(turning < 0.6) >= 0.15  # slow arcs: half a typical turn rate is in the data
