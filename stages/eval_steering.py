@@ -106,12 +106,11 @@ def main(argv: list[str] | None = None) -> None:
         first_frames = system.decode(first)  # [N, 1, H, W, 3]
 
         modes: dict[str, Any] = {}
-        step = data.detail_window - data.detail_context  # detail frames per rollout step (0.5 s)
         latent_turn: dict[str, dict[str, np.ndarray]] = {}
         image_turn: dict[str, dict[str, np.ndarray]] = {}
         real = cache_latents(cache, split, "detail", samples, indices)
         real_controls, _ = steering_inputs(samples, odometry, data, steps, 1.0, 1.0, steer_meta["scale"])
-        latent_turn["real"] = latent_turns(first, real, real_controls, step, data.detail_hz, cfg.town.hfov_deg)
+        latent_turn["real"] = latent_turns(first, real, real_controls, data.detail_hz, cfg.town.hfov_deg)
         real_frames = real_videos(split_clips(args.shards, split), samples, indices)
         image_turn["real"] = image_turns(real_frames, real_controls, data.detail_hz, cfg.town.hfov_deg)
         per_sample: dict[str, dict[str, dict[str, np.ndarray]]] = {}
@@ -123,7 +122,7 @@ def main(argv: list[str] | None = None) -> None:
             videos = np.concatenate([first_frames, system.decode(latents)], axis=1)
             per_sample[mode] = {name: score_videos(videos, controls, inverse, K, data.detail_hz)
                                 for name, inverse in on_rollouts.items()}
-            latent_turn[mode] = latent_turns(first, latents, controls, step, data.detail_hz, cfg.town.hfov_deg)
+            latent_turn[mode] = latent_turns(first, latents, controls, data.detail_hz, cfg.town.hfov_deg)
             image_turn[mode] = image_turns(videos, controls, data.detail_hz, cfg.town.hfov_deg)
             modes[mode] = mode_record(per_sample[mode], clusters, speed_scale, yaw_scale, ev.seed)
             sp, yw = controls[0]

@@ -52,15 +52,15 @@ def test_mode_record_puts_the_main_instrument_first_with_intervals():
 
 
 def test_latent_turns_read_a_known_sideways_drift():
-    # Detail latents that drift 1 column right per 5-frame step on a 16-column grid, 90 degree camera: each
-    # step turns atan(1 / 8) left. The second video is commanded to turn right: its own direction counts positive.
-    base = torch.sin(torch.linspace(0, 6, 16) + torch.randn(2, 3, 4, 1, generator=torch.Generator().manual_seed(0)))
-    frames = torch.stack([translate_columns(base, torch.full((2,), t / 5)) for t in range(21)], dim=1)
+    # Detail latents that drift 1 column right per frame on a 64-column grid, 90 degree camera: each
+    # frame turns atan(1 / 32) left. The second video is commanded to turn right: its own direction counts positive.
+    base = torch.sin(torch.linspace(0, 24, 64) + torch.randn(2, 3, 4, 1, generator=torch.Generator().manual_seed(0)))
+    frames = torch.stack([translate_columns(base, torch.full((2,), float(t))) for t in range(21)], dim=1)
     yaw = np.full(20, 0.4)
-    out = latent_turns(frames[:, :1], frames[:, 1:], [(np.ones(20), yaw), (np.ones(20), -yaw)], step=5, fps=10.0,
+    out = latent_turns(frames[:, :1], frames[:, 1:], [(np.ones(20), yaw), (np.ones(20), -yaw)], fps=10.0,
                        hfov_deg=90.0)
-    per_step = np.degrees(np.arctan(1 / 8))
-    np.testing.assert_allclose(out["turn_deg"], [4 * per_step, -4 * per_step], atol=1e-4)
+    per_frame = np.degrees(np.arctan(1 / 32))
+    np.testing.assert_allclose(out["turn_deg"], [20 * per_frame, -20 * per_frame], atol=1e-4)
     np.testing.assert_allclose(out["commanded_turn_deg"], np.degrees([0.8, 0.8]))
     record = turn_record({"real": out, "yaw_rate_x0.5": out,
                           "yaw_rate_x1.5": {k: 2 * v for k, v in out.items()}}, ["a", "b"], seed=0)

@@ -82,21 +82,28 @@ def own_direction(turn: np.ndarray, commanded: np.ndarray) -> dict[str, np.ndarr
     return {"turn_deg": sign * np.asarray(turn), "commanded_turn_deg": sign * np.asarray(commanded)}
 
 
-def latent_turns(first: torch.Tensor, latents: torch.Tensor, controls: list, step: int, fps: float,
+# The latent reading: shifts between consecutive detail latents searched up to 3 columns either way in
+# steps of 1/16 column. Over one frame at 10 Hz the ego's steering limit (1.8 rad/s) times the largest
+# counterfactual factor (1.5) turns 15.5 degrees, 2.2 columns of a 16-column grid: the reach covers every
+# real and commanded step, which a 0.5-s step (47 degrees at the world's fastest turns) could not.
+LATENT_SEARCH = (3.0, 1 / 16)
+
+
+def latent_turns(first: torch.Tensor, latents: torch.Tensor, controls: list, fps: float,
                  hfov_deg: float) -> dict[str, np.ndarray]:
     """Per video, the heading change read from the detail latents themselves, with no decoding (degrees,
     the clip's own commanded direction positive), and the commanded one.
 
-    A turn moves the latent grid sideways: ``sideways_shift`` between the frames ``step`` apart
-    (from the last context latent ``first`` [N, 1, ...] on; ``controls`` per video (speed, yaw rate) at
-    ``fps`` from that frame), each converted to an angle (:func:`shift_degrees`), summed. Blind to
-    speed; a check on the decoded-video instruments, which can miss a turn the latents make when
-    the decoded frames are too blurred for their flow.
+    A turn moves the latent grid sideways: ``sideways_shift`` between consecutive latents (from the
+    last context latent ``first`` [N, 1, ...] on; ``controls`` per video (speed, yaw rate) at ``fps``
+    from that frame), searched over ``LATENT_SEARCH``, each converted to an angle
+    (:func:`shift_degrees`), summed. Blind to speed; a check on the decoded-video instruments, which
+    can miss a turn the latents make when the decoded frames are too blurred for their flow.
     """
-    sequence = torch.cat([first, latents[:, step - 1::step]], dim=1)
-    shifts = np.stack([sideways_shift(sequence[:, i], sequence[:, i + 1]) for i in range(sequence.shape[1] - 1)], 1)
-    span = (sequence.shape[1] - 1) * step
-    commanded = np.degrees([np.sum(yaw[:span]) / fps for _, yaw in controls])
+    sequence = torch.cat([first, latents], dim=1)
+    shifts = np.stack([sideways_shift(sequence[:, i], sequence[:, i + 1], LATENT_SEARCH)
+                       for i in range(sequence.shape[1] - 1)], 1)
+    commanded = np.degrees([np.sum(yaw[:shifts.shape[1]]) / fps for _, yaw in controls])
     return own_direction(shift_degrees(shifts, sequence.shape[-1], hfov_deg).sum(axis=1), commanded)
 
 
