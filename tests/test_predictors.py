@@ -164,7 +164,8 @@ def test_batch_stream_resumes(tmp_path, smoke_cfg):
     assert sorted(epoch.tolist()) == sorted(float(dataset.clips[c]["offset"] + a - 20) for c, a in dataset.items)
 
 
-def test_turning_windows_are_oversampled_in_the_steering_fine_tune(tmp_path, smoke_cfg):
+@pytest.mark.parametrize("stage", ["action", "detail"])
+def test_turning_windows_are_oversampled(tmp_path, smoke_cfg, stage):
     # Clip 0 drives straight; clip 1 turns from its native frame 30 on (yaw rate 0.4 rad/s).
     lengths = [SPAN + 6, SPAN + 12]
     odometry = np.zeros((sum(lengths), 2), np.float32)
@@ -172,7 +173,7 @@ def test_turning_windows_are_oversampled_in_the_steering_fine_tune(tmp_path, smo
     odometry[lengths[0] + 30:, 1] = 0.4
     cache = write_cache(tmp_path, {"train": lengths, "val": [SPAN]}, odometry)
     dataset = LatentWindowDataset(cache, "train", smoke_cfg.data)
-    cfg = dataclasses.replace(smoke_cfg.action, turn_repeat=3)
+    cfg = dataclasses.replace(smoke_cfg.section(stage), turn_repeat=3)
     repeats = turn_repeats(dataset, smoke_cfg.data, cfg)
     # The steering interval of anchor a is native rows a..a+4, the interval before it a-5..a-1:
     # a window turns when either mean |yaw rate| exceeds 0.05, i.e. when a + 4 >= 30 on clip 1.

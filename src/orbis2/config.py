@@ -263,7 +263,10 @@ class PredictorConfig:
     stage whose weights start this one, or null for a fresh network: the
     training-strategy ablation (TF only, DF only, DF+TF; paper Table "df_tf") is
     this parameter, not another script. ``val_batches`` batches of the val split,
-    with fixed noise, give the validation loss. EMA is ``train.ema_decay``.
+    with fixed noise, give the validation loss. EMA is ``train.ema_decay``. Train
+    windows where the ego turns (mean |yaw rate| above the town statistics' turning
+    threshold) enter each epoch ``turn_repeat`` times (above 1, a deviation from the
+    paper's uniform sampling).
     """
 
     preset: str
@@ -272,6 +275,7 @@ class PredictorConfig:
     init_from: str | None = None
     anchor_stride: int = 1
     val_batches: int = 4
+    turn_repeat: int = 1
 
     INIT_SOURCES: typing.ClassVar[tuple[str, ...]] = ()
 
@@ -282,7 +286,7 @@ class PredictorConfig:
         if self.init_from is not None and self.init_from not in self.INIT_SOURCES:
             allowed = [*self.INIT_SOURCES, None]
             raise ConfigError(f"{where}.init_from = {self.init_from!r} must be one of {allowed}")
-        _positive(self, where, "anchor_stride", "val_batches")
+        _positive(self, where, "anchor_stride", "val_batches", "turn_repeat")
 
 
 @dataclass(frozen=True)
@@ -347,15 +351,12 @@ class ActionConfig(TeacherForcingConfig):
 
     Steering features are speed and yaw rate divided by ``speed_scale`` (m/s) and
     ``yaw_rate_scale`` (rad/s), so the embedder sees roughly unit-scale values;
-    ``steering_dropout`` of the samples train the unconditional path. Windows
-    where the ego turns (mean |yaw rate| above the town statistics' turning threshold) enter each
-    epoch ``turn_repeat`` times (a deviation from the paper's uniform sampling).
+    ``steering_dropout`` of the samples train the unconditional path.
     """
 
     steering_dropout: float = 0.1
     speed_scale: float = 10.0
     yaw_rate_scale: float = 0.5
-    turn_repeat: int = 1
 
     INIT_SOURCES: typing.ClassVar[tuple[str, ...]] = ("abstract_tf", "abstract_df")
 
@@ -363,7 +364,7 @@ class ActionConfig(TeacherForcingConfig):
         super().validate(where)
         if not 0 <= self.steering_dropout < 1:
             raise ConfigError(f"{where}.steering_dropout must lie in [0, 1)")
-        _positive(self, where, "speed_scale", "yaw_rate_scale", "turn_repeat")
+        _positive(self, where, "speed_scale", "yaw_rate_scale")
 
 
 @dataclass(frozen=True)

@@ -158,13 +158,14 @@ def collate(items: list[dict[str, Any]]) -> dict[str, torch.Tensor]:
             "has_odometry": torch.tensor([i["has_odometry"] for i in items])}
 
 
-def turn_repeats(dataset: LatentWindowDataset, data: DataConfig, cfg: ActionConfig) -> np.ndarray:
-    """How often each train window enters an epoch of the steering fine-tune: ``turn_repeat`` times
-    where the ego turns (mean |yaw rate| above ``TURN_THRESHOLD``) over the steering interval or the
-    interval before it, so turn onsets, turns and turn ends all count; once elsewhere.
+def turn_repeats(dataset: LatentWindowDataset, data: DataConfig, cfg: PredictorConfig) -> np.ndarray:
+    """How often each train window enters an epoch: ``turn_repeat`` times where the ego turns (mean
+    |yaw rate| above ``TURN_THRESHOLD``) over the steering interval or the interval before it, so
+    turn onsets, turns and turn ends all count; once elsewhere.
 
-    Only windows that turn tell the model what the yaw rate does: in the rest the yaw
-    rate is zero and the ongoing motion is already in the context.
+    Only windows that turn show what a turn does to the scene (and, for the steering
+    fine-tune, what the yaw rate does): in the rest the ongoing motion is already in the
+    context, and a short run sees too few turns to learn to carry one.
     """
     steer = steering_interval(data)
     before = slice(steer.start - (steer.stop - steer.start), steer.start)
@@ -262,10 +263,7 @@ class PredictorTask:
         return model
 
     def batches(self, spec: DataSpec) -> Iterator[dict[str, torch.Tensor]]:
-        repeats = None
-        if self.spec.steering:
-            assert isinstance(self.cfg, ActionConfig)
-            repeats = turn_repeats(self.train_set, self.data, self.cfg)
+        repeats = turn_repeats(self.train_set, self.data, self.cfg) if self.cfg.turn_repeat > 1 else None
         return window_batches(self.train_set, spec, repeats)
 
     def teacher(self, device: torch.device) -> nn.Module:
