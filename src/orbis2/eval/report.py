@@ -393,6 +393,11 @@ def _fmt(value: Any) -> str:
     return str(value)
 
 
+def combined_verdict(verdicts: Sequence[str]) -> str:
+    """A claim made of several parts: it fails if one part fails, holds if every part holds, else is unresolved."""
+    return FAILS if FAILS in verdicts else HOLDS if all(v == HOLDS for v in verdicts) else UNRESOLVED
+
+
 def claim_training(evals: Mapping) -> tuple[str, str]:
     """(1) DF+TF probes better than TF only and DF only on both segmentation and depth."""
     needed = ("abstract_tf", "abstract_tf_only", "abstract_df")
@@ -427,7 +432,7 @@ def claim_hierarchy_slope(evals: Mapping) -> tuple[str, str]:
         verdicts.append(claim_verdict({"low": low, "high": high}, material))
         parts.append(f"{model} - hierarchical {_fmt(slopes[model] - slopes['hierarchical'])} "
                      f"[{_fmt(low)}, {_fmt(high)}]")
-    verdict = FAILS if FAILS in verdicts else HOLDS if all(v == HOLDS for v in verdicts) else UNRESOLVED
+    verdict = combined_verdict(verdicts)
     text = "FVD-slope on turns: " + ", ".join(f"{m} {_fmt(v)}" for m, v in slopes.items())
     return verdict, f"{text}; paired differences {'; '.join(parts)} (material: > {_fmt(material)})"
 
@@ -462,7 +467,7 @@ def claim_steering(evals: Mapping) -> tuple[str, str]:
     ratio = _get(evals, "steering", None, "responses", main, "path_ratio")
     material = _get(evals, "steering", None, "material")
     verdicts = [claim_verdict(turn, material["turn_deg"]), claim_verdict(ratio, material["path_ratio"])]
-    verdict = FAILS if FAILS in verdicts else HOLDS if all(v == HOLDS for v in verdicts) else UNRESOLVED
+    verdict = combined_verdict(verdicts)
     floor = _get(evals, "steering", None, "odometry_sanity")
     text = (f"{main} instrument: turn under yaw rate x1.5 minus x0.5 {_fmt(turn['estimate'])} deg "
             f"[{_fmt(turn['low'])}, {_fmt(turn['high'])}] (material > {_fmt(material['turn_deg'])}; commanded "
@@ -512,7 +517,7 @@ def claim_beats_repeat(evals: Mapping) -> tuple[str, str]:
     rows = [r for r in _get(evals, "conditioning", None, "baselines")
             if r["baseline"] == "repeat_last" and r["horizon_s"] == 0.5]
     verdicts = [claim_verdict(r, threshold) for r in rows]
-    verdict = FAILS if FAILS in verdicts else HOLDS if all(v == HOLDS for v in verdicts) else UNRESOLVED
+    verdict = combined_verdict(verdicts)
     return verdict, "repeat-last error over model error - 1: " + ", ".join(
         f"{r['model']} {_fmt(100 * r['effect'])} % [{_fmt(100 * r['low'])}, {_fmt(100 * r['high'])}]" for r in rows)
 
@@ -531,7 +536,7 @@ def claim_fvd_below_repeat(evals: Mapping) -> tuple[str, str]:
         low, high = paired_draws_interval(still["draws"], ours["draws"])
         verdicts.append(claim_verdict({"low": low, "high": high}, material))
         parts.append(f"{split} {_fmt(still['fvd'] - ours['fvd'])} [{_fmt(low)}, {_fmt(high)}]")
-    verdict = FAILS if FAILS in verdicts else HOLDS if all(v == HOLDS for v in verdicts) else UNRESOLVED
+    verdict = combined_verdict(verdicts)
     return verdict, (f"repeat-last FVD minus the hierarchy's, paired over the same clip resamples: {'; '.join(parts)}"
                      f" (material: > {_fmt(material)})")
 
