@@ -13,6 +13,7 @@ from orbis2.models.stdit import (
     STDiTConfig,
     SteeringEmbedder,
     SteeringShift,
+    SubgoalShift,
     build_stdit,
     build_stdit_from,
     load_predictor,
@@ -205,6 +206,50 @@ def test_steering_shift_starts_silent_follows_the_yaw_rate_and_learns_to_predict
     baseline = (smooth - target)[..., 1:-1].pow(2).mean()  # repeat the previous frame
     assert error(steer) < 0.05 * baseline
     assert error(steer * torch.tensor([1.0, -1.0])) > 0.5 * baseline
+
+
+def test_subgoal_shift_moves_the_last_context_frame_by_the_subgoals_motion():
+    torch.manual_seed(0)
+    shift = SubgoalShift(C, 16, patch_size=1)
+    b, f, w_a = 3, 6, 16  # slots: 3 context frames (the last conditioned), 3 predicted (the last conditioned)
+    x = torch.sin(torch.linspace(0, 6, 2 * W) + torch.randn(b, f, C, H, 1))  # a grid twice the width of W
+    base = torch.sin(torch.linspace(0, 6, w_a) + torch.randn(b, 2, H, 1))
+    moved = torch.tensor([2.0, -1.5, 0.0])  # abstract columns
+    cond = torch.zeros(b, f, 2, H, w_a)
+    cond[:, 2], cond[:, 5] = base, translate_columns(base, moved)
+    mask = torch.zeros(b, f, dtype=torch.bool)
+    mask[:, [2, 5]] = True
+    first, tokens = shift(x, cond, mask)
+    assert first == 2 and tokens.shape == (b, 3, H * 2 * W, 16)
+    assert torch.count_nonzero(tokens) == 0  # zero-initialised: the predictor starts as the plain one
+
+    # Known answer: with an identity embedding, predicted frame k of 3 sees the last context frame moved
+    # by k/3 of the subgoal's shift, scaled from the 16-column abstract grid to the 10-column one.
+    identity = SubgoalShift(C, C, patch_size=1)
+    with torch.no_grad():
+        identity.embed.weight.copy_(torch.eye(C))
+    _, tokens = identity(x, cond, mask)
+    for k in range(1, 4):
+        expected = translate_columns(x[:, 2], moved * (2 * W / w_a) * k / 3)
+        torch.testing.assert_close(tokens[:, k - 1], patchify(expected[:, None], 1)[:, 0])
+    assert identity(x, cond, mask.logical_and(torch.arange(f) < 5)) is None  # one conditioned slot: no input
+
+
+def test_subgoal_shift_needs_abstract_conditioning_and_starts_as_the_plain_predictor():
+    with pytest.raises(ValueError, match="needs abstract conditioning"):
+        build_stdit(STDiTConfig(**{**STDIT_PRESETS["smoke"].__dict__, "subgoal_shift": True}), C, causal=False)
+    torch.manual_seed(0)
+    plain = randomized(build_stdit("smoke", C, causal=False, abstract_channels=3))
+    torch.manual_seed(0)
+    shifted = build_stdit(stdit_config("smoke", subgoal_shift=True), C, causal=False, abstract_channels=3)
+    shifted.load_state_dict({**plain.state_dict(), **{k: v for k, v in shifted.state_dict().items()
+                                                      if k.startswith("subgoal_shift.")}})
+    x, tau = latents(2, 6, 1), torch.rand(2, 6)
+    with torch.no_grad():
+        out = plain(x, tau, **detail_inputs(2, 6, 2))
+        torch.testing.assert_close(shifted(x, tau, **detail_inputs(2, 6, 2)), out)
+        shifted.subgoal_shift.embed.weight.normal_()
+        assert not torch.allclose(shifted(x, tau, **detail_inputs(2, 6, 2))[:, 3:], out[:, 3:])
 
 
 def test_abstract_conditioning_resizes_grids_and_checks_slots():

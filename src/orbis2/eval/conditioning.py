@@ -48,7 +48,6 @@ intervals; an input is "used" when the lower bound exceeds ``threshold``.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from typing import Any
 
@@ -66,7 +65,7 @@ from orbis2.eval.stats import (
 )
 from orbis2.flow import interpolate
 from orbis2.latents import KINDS, LatentCache, LatentWindowDataset
-from orbis2.models.stdit import translate_columns
+from orbis2.models.stdit import best_sideways_shift
 from orbis2.registry import registry
 from orbis2.tasks.predictors import (
     STAGES,
@@ -441,18 +440,11 @@ def sideways_shift(before: torch.Tensor, after: torch.Tensor,
                    search: tuple[float, float] = SHIFT_SEARCH) -> np.ndarray:
     """How far latents [B, C, h, w] moved sideways from ``before`` to ``after``, in grid columns [B].
 
-    The shift of ``before`` (``translate_columns``; content moves right for positive values)
-    that best matches ``after`` over the interior columns, among the ``search`` grid (reach, step).
-    A turn moves the whole abstract grid sideways (the default town: correlation 0.96 with
+    :func:`best_sideways_shift` over the ``search`` grid (reach, step); content moves right for positive
+    values. A turn moves the whole abstract grid sideways (the default town: correlation 0.96 with
     the yaw rate), so this reads the turn directly, without a probe fitted on real latents.
     """
-    reach, step = search
-    margin = math.ceil(reach)
-    before, after = before.float().cpu(), after.float().cpu()
-    shifts = torch.arange(-reach, reach + step / 2, step)
-    errors = torch.stack([((translate_columns(before, shift.expand(len(before))) - after)[..., margin:-margin] ** 2)
-                          .flatten(1).mean(dim=1) for shift in shifts], dim=1)
-    return shifts[errors.argmin(dim=1)].double().numpy()
+    return best_sideways_shift(before.float().cpu(), after.float().cpu(), *search).double().numpy()
 
 
 def motion_readout(probe: tuple[np.ndarray, ...], before: torch.Tensor, after: torch.Tensor,
