@@ -10,7 +10,10 @@ metres after least-squares scale alignment to the commanded trajectory, scale-fr
 turn and path-length responses, and each instrument on the real videos as a sanity
 check (:mod:`orbis2.eval.steering`). Two readings of the turn alone, each with the real
 continuation as its calibration: the rollout's detail latents (their sideways shift, no
-decoding) and the decoded frames' sideways motion (no learning).
+decoding) and the decoded frames' sideways motion (no learning). Both readings also
+score a reference rollout: the bottom predictor alone, given the real subgoals (the real
+abstract latents) with no steering, which tells the turn lost by the bottom level from
+the turn the top's predictions lose.
 """
 
 from pathlib import Path
@@ -43,6 +46,7 @@ from orbis2.eval.systems import (
     generated_indices,
     inference_settings,
     load_system,
+    real_subgoals,
     rollout_steps,
     sample_clusters,
 )
@@ -113,6 +117,12 @@ def main(argv: list[str] | None = None) -> None:
         latent_turn["real"] = latent_turns(first, real, real_controls, data.detail_hz, cfg.town.hfov_deg)
         real_frames = real_videos(split_clips(args.shards, split), samples, indices)
         image_turn["real"] = image_turns(real_frames, real_controls, data.detail_hz, cfg.town.hfov_deg)
+        # Reference: the bottom level alone, given the real subgoals (no steering): the turn it can carry.
+        given = generate(system, cache, split, samples, steps, data, ev, dev, desc="real subgoals",
+                         subgoals=real_subgoals(system, cache, split, data, samples, steps))
+        latent_turn["real_subgoals"] = latent_turns(first, given, real_controls, data.detail_hz, cfg.town.hfov_deg)
+        image_turn["real_subgoals"] = image_turns(np.concatenate([first_frames, system.decode(given)], axis=1),
+                                                  real_controls, data.detail_hz, cfg.town.hfov_deg)
         per_sample: dict[str, dict[str, dict[str, np.ndarray]]] = {}
         strip = {}
         for mode, (speed_scale, yaw_scale) in ev.steering_modes.items():

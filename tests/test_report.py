@@ -115,9 +115,9 @@ def steering_doc() -> dict:
         "odometry_sanity": sanity,
         "sanity": {"learned": sanity, "opencv": {**sanity, "real_ade": 0.6}},
         "latent_turn": {"modes": {m: {"turn_deg": 5.0 * i, "low": 5.0 * i - 1, "high": 5.0 * i + 1}
-                                  for i, m in enumerate(["real", *ades])}},
+                                  for i, m in enumerate(["real", *ades, "real_subgoals"])}},
         "image_turn": {"modes": {m: {"turn_deg": 2.0 * i, "low": 2.0 * i - 0.5, "high": 2.0 * i + 0.5}
-                                 for i, m in enumerate(["real", *ades])}},
+                                 for i, m in enumerate(["real", *ades, "real_subgoals"])}},
     }
 
 
@@ -258,12 +258,14 @@ def test_main_report_tables_round_trip(evals, tmp_path):
                                  "commanded_turn_deg", "ade_opencv", "turn_deg_opencv", "turn_deg_latent",
                                  "turn_deg_latent_low", "turn_deg_latent_high", "turn_deg_image",
                                  "turn_deg_image_low", "turn_deg_image_high"]
-    assert [float(r["turn_deg_latent"]) for r in steering[:-1]] == [5.0, 10.0, 15.0, 20.0, 25.0, 0.0]
+    assert [float(r["turn_deg_latent"]) for r in steering[:-1]] == [5.0, 10.0, 15.0, 20.0, 25.0, 30.0, 0.0]
     assert steering[-1]["turn_deg_latent"] == "NA" and float(steering[-2]["turn_deg_latent_high"]) == 1.0
-    assert [float(r["turn_deg_image"]) for r in steering[:-1]] == [2.0, 4.0, 6.0, 8.0, 10.0, 0.0]
+    assert [float(r["turn_deg_image"]) for r in steering[:-1]] == [2.0, 4.0, 6.0, 8.0, 10.0, 12.0, 0.0]
+    assert steering[5]["kind"] == "reference" and steering[5]["ade"] == "NA" and steering[5]["ade_n"] == "20"
     assert steering[-1]["turn_deg_image_low"] == "NA" and float(steering[-2]["turn_deg_image_high"]) == 0.5
     assert float(steering[0]["ade_opencv"]) == 4.2 and float(steering[-2]["ade_opencv"]) == 0.6
-    assert [r["mode"] for r in steering] == [*report.STEERING_MODES, "real_videos", "shuffled_videos"]
+    assert [r["mode"] for r in steering] == [*report.STEERING_MODES, "real_subgoals", "real_videos",
+                                             "shuffled_videos"]
     assert float(steering[1]["ade"]) == 2.18 and steering[1]["ade_n"] == "21"
     assert float(steering[-1]["ade"]) == 4.0 and steering[-1]["ade_n"] == "30"
 

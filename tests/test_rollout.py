@@ -134,6 +134,21 @@ def test_cascaded_rollout_pushes_subgoals_and_places_conditioning():
     torch.testing.assert_close(detail.calls[nfe]["context"], details[:, :5])
 
 
+def test_cascaded_rollout_with_given_subgoals_skips_the_top_and_conditions_on_them():
+    abstract, detail = AbstractStub(), DetailStub()
+    given = torch.tensor([40.0, 50.0, 60.0])[None, :, None, None, None].expand(1, 3, 2, 3, 4)
+    details, tops = cascaded_rollout(abstract, detail, _ramp(5) + 100, _ramp(5), 3, torch.Generator(),
+                                     abstract_nfe=2, detail_nfe=2, subgoals=given)
+    assert abstract.calls == []  # the top predictor never runs
+    torch.testing.assert_close(tops, given)
+    for k in range(3):
+        cond = detail.calls[2 * k]["cond"][0, :, 0, 0, 0]
+        assert (cond[4], cond[9]) == ((4.0, 40.0, 50.0)[k], (40.0, 50.0, 60.0)[k])  # given subgoals become context
+        torch.testing.assert_close(details[0, 5 * k: 5 * k + 5, 0, 0, 0], given[0, k, 0, 0, 0] + torch.arange(5.0))
+    with pytest.raises(ValueError, match="subgoals must hold 3 frames"):
+        cascaded_rollout(abstract, detail, _ramp(5), _ramp(5), 3, torch.Generator(), subgoals=given[:, :2])
+
+
 def test_flat_rollout_slides_the_same_window():
     def model(x, tau, frame_rate=None):
         n_ctx = n_ctx_of(tau)

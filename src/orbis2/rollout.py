@@ -163,6 +163,7 @@ def cascaded_rollout(
     on_step: StepCallback | None = None,
     top_frames_per_step: int = 1,
     kv_cache: bool = True,
+    subgoals: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Hierarchical rollout; returns detail latents [B, frames_per_step * steps, ...] and the top
     predictor's frames [B, top_frames_per_step * steps, ...].
@@ -177,13 +178,20 @@ def cascaded_rollout(
     at 2 Hz (Exp. 4), or abstract latents at 10 Hz (Exp. 5, ``top_frames_per_step``
     = 5, ``abstract_hz`` = 10); the subgoal is always the top's last new frame.
     ``kv_cache``: cache a causal top predictor's context keys/values (:func:`sample_frames`).
+    ``subgoals`` [B, top_frames_per_step * steps, ...]: the top's frames given, not sampled (the real
+    future abstract latents: the bottom level's reference rollout).
     """
     b = detail_context.shape[0]
     n_context = detail_context.shape[1]
-    details, subgoals = [], []
+    if subgoals is not None and subgoals.shape[1] != top_frames_per_step * steps:
+        raise ValueError(f"subgoals must hold {top_frames_per_step * steps} frames, got {subgoals.shape[1]}")
+    details, tops = [], []
     for k in range(steps):
-        top = sample_frames(abstract_model, abstract_context, top_frames_per_step, abstract_nfe, generator,
-                            kv_cache, frame_rate=abstract_hz, **_step_steering(steering, k, b, steps))
+        if subgoals is None:
+            top = sample_frames(abstract_model, abstract_context, top_frames_per_step, abstract_nfe, generator,
+                                kv_cache, frame_rate=abstract_hz, **_step_steering(steering, k, b, steps))
+        else:
+            top = subgoals[:, k * top_frames_per_step:(k + 1) * top_frames_per_step]
         cond_frames, cond_mask = detail_conditioning(abstract_context[:, -1], top[:, -1], n_context,
                                                      frames_per_step)
         new = euler_sample(detail_model, detail_context, frames_per_step, detail_nfe, generator,
@@ -191,10 +199,10 @@ def cascaded_rollout(
         detail_context = _slide(detail_context, new)
         abstract_context = _slide(abstract_context, top)
         details.append(new)
-        subgoals.append(top)
+        tops.append(top)
         if on_step is not None:
             on_step(k)
-    return torch.cat(details, dim=1), torch.cat(subgoals, dim=1)
+    return torch.cat(details, dim=1), torch.cat(tops, dim=1)
 
 
 @torch.no_grad()

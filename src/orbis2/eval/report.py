@@ -246,8 +246,9 @@ def main_table(evals: Mapping, scope: str = "main") -> list[Row]:
 
 def steering_table(evals: Mapping) -> list[Row]:
     """Table 2: ADE per steering mode (clip-bootstrap interval) by the main instrument, with OpenCV odometry as a
-    second column (NA where ``evaluation.opencv_rollouts`` left it off the generated videos); then each
-    instrument on real and on shuffled videos as floor and chance."""
+    second column (NA where ``evaluation.opencv_rollouts`` left it off the generated videos); then the bottom
+    level alone given the real subgoals (its turn readings only: a reference for what the top's predictions
+    cost), and each instrument on real and on shuffled videos as floor and chance."""
     main = _get(evals, "steering", None, "inverse_dynamics")
     measured = "opencv" in _get(evals, "steering", None, "instruments")
     rows: list[Row] = []
@@ -272,6 +273,9 @@ def steering_table(evals: Mapping) -> list[Row]:
             **_turn_cells(evals, "latent", mode),
             **_turn_cells(evals, "image", mode),
         })
+    rows.append({**{key: NA for key in rows[0]}, "mode": "real_subgoals", "kind": "reference",
+                 "instrument": main, "ade_n": _get(evals, "steering", None, "samples"),
+                 **_turn_cells(evals, "latent", "real_subgoals"), **_turn_cells(evals, "image", "real_subgoals")})
     videos = _get(evals, "steering", None, "odometry_sanity", "videos")
     for mode, key in (("real_videos", "real"), ("shuffled_videos", "shuffled")):
         rows.append({

@@ -90,11 +90,12 @@ class LoadedSystem:
     @torch.no_grad()
     def rollout(self, contexts: dict[str, torch.Tensor], steps: int, generator: torch.Generator, top_nfe: int,
                 bottom_nfe: int, steering: torch.Tensor | None = None,
-                frames_per_step: int | None = None) -> torch.Tensor:
+                frames_per_step: int | None = None, subgoals: torch.Tensor | None = None) -> torch.Tensor:
         """Latents [B, 5 * steps, C, h, w] of ``output_level`` from the contexts (keys ``bottom`` and ``top``).
 
         ``frames_per_step`` (flat systems) runs the same network with another step length, e.g. 1 for an
         Orbis v1-style rollout (one frame per step); the rollout still covers ``steps`` * 0.5 s.
+        ``subgoals`` (hierarchies): the top's frames given instead of sampled (:func:`cascaded_rollout`).
         """
         bottom_rate = float(self.bottom.meta["frame_rate"])
         if frames_per_step is not None:
@@ -107,8 +108,8 @@ class LoadedSystem:
                 return flat_rollout(self.bottom.model, contexts["bottom"], steps * native // frames_per_step,
                                     frames_per_step, bottom_nfe, bottom_rate, generator,
                                     kv_cache=self.inference.kv_cache)
-        if self.top is None and steering is not None:
-            raise OrbisError(f"{self.name}: flat systems are not steered")
+        if self.top is None and (steering is not None or subgoals is not None):
+            raise OrbisError(f"{self.name}: flat systems are neither steered nor given subgoals")
         with inference_autocast(self.device, self.inference.precision):
             if self.top is None:
                 return flat_rollout(self.bottom.model, contexts["bottom"], steps, self._frames_per_step(self.bottom),
@@ -117,7 +118,8 @@ class LoadedSystem:
                 self.top.model, self.bottom.model, contexts["bottom"], contexts["top"], steps, generator,
                 abstract_nfe=top_nfe, detail_nfe=bottom_nfe, frames_per_step=self._frames_per_step(self.bottom),
                 abstract_hz=float(self.top.meta["frame_rate"]), detail_hz=bottom_rate, steering=steering,
-                top_frames_per_step=self._frames_per_step(self.top), kv_cache=self.inference.kv_cache)
+                top_frames_per_step=self._frames_per_step(self.top), kv_cache=self.inference.kv_cache,
+                subgoals=subgoals)
         return details
 
     @torch.no_grad()
@@ -242,9 +244,9 @@ def inference_settings(ev: EvaluationConfig) -> Inference:
 
 def generate(system: LoadedSystem, cache: LatentCache, split: str, samples: list[Sample], steps: int,
              data: DataConfig, ev: EvaluationConfig, device: torch.device, steering: torch.Tensor | None = None,
-             desc: str = "") -> torch.Tensor:
+             desc: str = "", subgoals: torch.Tensor | None = None) -> torch.Tensor:
     """Rollout latents [N, 5 * steps, ...] of ``samples``, in batches of ``evaluation.batch_size``, with noise
-    from one generator seeded by ``evaluation.seed``."""
+    from one generator seeded by ``evaluation.seed``; ``subgoals`` [N, ...] as in :meth:`LoadedSystem.rollout`."""
     gen = torch.Generator(device).manual_seed(ev.seed)
     out = []
     batches = range(0, len(samples), ev.batch_size)
@@ -252,8 +254,20 @@ def generate(system: LoadedSystem, cache: LatentCache, split: str, samples: list
         part = samples[start:start + ev.batch_size]
         contexts = contexts_for(system, cache, split, data, part, device)
         steer = None if steering is None else steering[start:start + ev.batch_size].to(device)
-        out.append(system.rollout(contexts, steps, gen, ev.top_nfe, ev.bottom_nfe, steer).cpu())
+        given = None if subgoals is None else subgoals[start:start + ev.batch_size].to(device)
+        out.append(system.rollout(contexts, steps, gen, ev.top_nfe, ev.bottom_nfe, steer, subgoals=given).cpu())
     return torch.cat(out)
+
+
+def real_subgoals(system: LoadedSystem, cache: LatentCache, split: str, data: DataConfig, samples: list[Sample],
+                  steps: int) -> torch.Tensor:
+    """The real latents [N, steps, ...] at each rollout step's subgoal frame, in the top predictor's level: given
+    to :func:`generate`, the hierarchy's bottom level alone (a reference for what the top's predictions cost)."""
+    if system.top is None or system._frames_per_step(system.top) != 1:
+        raise OrbisError(f"{system.name}: real subgoals need a top predictor of one frame per step")
+    indices = [np.array([step.abstract_target for step in rollout_schedule(data, s.context_end, steps)])
+               for s in samples]
+    return cache_latents(cache, split, system.top.meta["level"], samples, indices)
 
 
 def sample_clusters(cache: LatentCache, split: str, samples: list[Sample]) -> list[str]:
