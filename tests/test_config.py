@@ -6,6 +6,7 @@ import pytest
 import yaml
 
 from orbis2.config import ASSETS_DIR, PROFILES, ConfigError, load_config, load_params
+from orbis2.registry import registry
 
 from conftest import ROOT
 
@@ -23,6 +24,22 @@ def test_every_profile_resolves(profile):
     cfg = load_config(ROOT / "params.yaml", profile)
     assert cfg.profile == profile
     assert cfg.data.fps % cfg.data.detail_hz == 0 and cfg.data.fps % cfg.data.abstract_hz == 0
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+def test_a_predictor_started_from_another_has_its_architecture(profile):
+    """``init_from`` loads weights strictly (only a steered fine-tune adds its steering modules), so the
+    preset and ``model`` overrides must repeat the source's."""
+    cfg = load_config(ROOT / "params.yaml", profile)
+    steering_only = {"steering_shift"}
+    for name in registry().predictors:
+        section = cfg.section(name)
+        if getattr(section, "init_from", None) is None:
+            continue
+        source = cfg.section(section.init_from)
+        assert section.preset == source.preset, name
+        assert ({k: v for k, v in section.model.items() if k not in steering_only}
+                == {k: v for k, v in source.model.items() if k not in steering_only}), name
 
 
 def test_profile_key_selects_values(tmp_path):
