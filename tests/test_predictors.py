@@ -9,17 +9,23 @@ import pytest
 import torch
 
 from orbis2.config import TrainConfig
+from orbis2.errors import OrbisError
 from orbis2.latents import FORMAT, NORMALIZATION, LatentWindowDataset, open_cache
+from orbis2.models.stdit import best_sideways_shift, translate_columns
 from orbis2.tasks.predictors import (
     STAGES,
     PredictorTask,
     detail_condition,
     detail_condition_slots,
+    offset_yaw,
+    rate_geometry,
     steering_features,
+    turn_columns_per_yaw_rate,
     turn_repeats,
     window_batches,
 )
 from orbis2.train import DataSpec, load_weights, spawn_cpu_processes, train
+from orbis2.windows import window_indices, window_span
 
 C, H, W = 4, 3, 4
 SPAN = 26  # native frames of one training window (smoke data section)
@@ -61,7 +67,10 @@ def tiny_cache(tmp_path_factory):
 
 
 def tiny_cfg(smoke_cfg, stage, **changes):
+    """The stage's smoke section on the tiny cache; its 4-column grids are too narrow for counterfactual turns."""
     cfg = smoke_cfg.section(stage)
+    if hasattr(cfg, "yaw_offset_prob"):
+        changes = {"yaw_offset_prob": 0.0, **changes}
     train_cfg = TrainConfig(steps=80, batch_size=4, lr=0.003, warmup_steps=5, log_every=1, eval_every=80,
                             checkpoint_every=1000, seed=3)
     return dataclasses.replace(cfg, **{"train": train_cfg, "init_from": None, "val_batches": 1, **changes})
@@ -257,3 +266,56 @@ def test_predictor_trains_under_ddp_on_two_processes(tmp_path, smoke_cfg):
     final = dict(rank0[-1][1])  # validation runs on rank 0 only
     assert final["val_loss"] < final["val_loss_init"]
     assert (tmp_path / "ddp" / "model.pt").is_file()
+
+
+def smooth_grids(n: int, width: int = 16, seed: int = 0) -> torch.Tensor:
+    """[n, C, H, width] grids of smooth random content (a sideways move of them is well defined)."""
+    columns = torch.linspace(0, 2 * math.pi, width)
+    phases = torch.rand(n, C, H, 1, generator=torch.Generator().manual_seed(seed)) * 2 * math.pi
+    return torch.sin(columns + phases) + 0.5 * torch.cos(2 * columns + 2 * phases)
+
+
+def test_counterfactual_turns_move_the_target_as_far_as_the_offset(smoke_cfg):
+    targets = smooth_grids(64)[:, None]
+    steering = torch.zeros(64, 5, 2)
+    active = torch.arange(64) % 4 != 0
+    moved, offset = offset_yaw(targets, steering, active, torch.Generator().manual_seed(0), prob=0.5,
+                               max_offset=0.5, columns_per_yaw_rate=4.0, yaw_rate_scale=0.2)
+    delta = offset[:, :, 1] * 0.2
+    assert torch.allclose(delta, delta[:, :1].expand_as(delta)) and float(delta.abs().max()) <= 0.5
+    assert torch.equal(offset[..., 0], steering[..., 0])
+    changed = delta[:, 0] != 0
+    assert not changed[~active].any() and 0.25 < changed[active].float().mean() < 0.75  # prob 0.5 of the active
+    assert torch.equal(moved[~changed], targets[~changed])
+    expected = translate_columns(targets[changed, 0], 4.0 * delta[changed, 0])
+    assert torch.allclose(moved[changed, 0], expected, atol=1e-4)
+    found = best_sideways_shift(targets[changed, 0], moved[changed, 0], 3.0, 1 / 16)
+    assert torch.allclose(found, 4.0 * delta[changed, 0], atol=1 / 16)
+    assert torch.equal(offset_yaw(targets, steering, active, torch.Generator(), 0.0, 0.5, 4.0, 0.2)[0], targets)
+
+
+class TurningWindows:
+    """Windows whose abstract target is the last context latent moved 3 columns per rad/s of yaw rate."""
+
+    def __init__(self, data, yaw_rates):
+        self.cache, self.split = type("Cache", (), {"root": "synthetic"})(), "train"
+        _, self.n_frames, self.n_context = rate_geometry(data, "slow")
+        self.span = len(window_span(*window_indices(data, 0)))
+        self.yaw_rates, self.grids = yaw_rates, smooth_grids(len(yaw_rates))
+
+    def __len__(self):
+        return len(self.yaw_rates)
+
+    def __getitem__(self, i):
+        frames = self.grids[i:i + 1].repeat(self.n_frames, 1, 1, 1)
+        frames[-1] = translate_columns(self.grids[i:i + 1], torch.tensor([3.0 * self.yaw_rates[i]]))[0]
+        odometry = torch.tensor([[8.0, self.yaw_rates[i]]]).repeat(self.span, 1)
+        return {"detail": frames, "abstract": frames, "detail_slow": frames, "abstract_fast": frames,
+                "odometry": odometry, "has_odometry": True}
+
+
+def test_the_turn_slope_is_measured_from_the_windows(smoke_cfg):
+    windows = TurningWindows(smoke_cfg.data, [-1.0, -0.5, 0.0, 0.5, 1.0, 0.25])
+    assert turn_columns_per_yaw_rate(windows, smoke_cfg.data) == pytest.approx(3.0, abs=0.05)
+    with pytest.raises(OrbisError, match="yaw_offset_prob: 0"):
+        turn_columns_per_yaw_rate(TurningWindows(smoke_cfg.data, [0.0, 0.0]), smoke_cfg.data)

@@ -351,12 +351,18 @@ class ActionConfig(TeacherForcingConfig):
 
     Steering features are speed and yaw rate divided by ``speed_scale`` (m/s) and
     ``yaw_rate_scale`` (rad/s), so the embedder sees roughly unit-scale values;
-    ``steering_dropout`` of the samples train the unconditional path.
+    ``steering_dropout`` of the samples train the unconditional path. With
+    ``yaw_offset_prob`` a steered sample gets a counterfactual yaw-rate offset up
+    to ``yaw_offset_max`` rad/s and its target moves sideways as far as the data's
+    turns move the grid (``orbis2.tasks.predictors.offset_yaw``; above 0, a
+    deviation from the paper).
     """
 
     steering_dropout: float = 0.1
     speed_scale: float = 10.0
     yaw_rate_scale: float = 0.5
+    yaw_offset_prob: float = 0.0
+    yaw_offset_max: float = 0.5
 
     INIT_SOURCES: typing.ClassVar[tuple[str, ...]] = ("abstract_tf", "abstract_df")
 
@@ -364,7 +370,9 @@ class ActionConfig(TeacherForcingConfig):
         super().validate(where)
         if not 0 <= self.steering_dropout < 1:
             raise ConfigError(f"{where}.steering_dropout must lie in [0, 1)")
-        _positive(self, where, "speed_scale", "yaw_rate_scale")
+        _positive(self, where, "speed_scale", "yaw_rate_scale", "yaw_offset_max")
+        if not 0 <= self.yaw_offset_prob <= 1:
+            raise ConfigError(f"{where}.yaw_offset_prob must lie in [0, 1]")
 
 
 @dataclass(frozen=True)

@@ -63,7 +63,13 @@ from orbis2.errors import OrbisError
 from orbis2.flow import diffusion_forcing_loss, euler_sample, reflow_loss, teacher_forcing_loss
 from orbis2.io import sha256_file
 from orbis2.latents import LatentCache, LatentWindowDataset
-from orbis2.models.stdit import build_stdit_from, load_predictor, save_predictor
+from orbis2.models.stdit import (
+    best_sideways_shift,
+    build_stdit_from,
+    load_predictor,
+    save_predictor,
+    translate_columns,
+)
 from orbis2.registry import PredictorSpec, registry
 from orbis2.train import DataSpec, load_weights, train
 from orbis2.windows import window_indices, window_span
@@ -145,6 +151,60 @@ def steering_features(odometry: torch.Tensor, has_odometry: torch.Tensor, data: 
     values = values / values.new_tensor([cfg.speed_scale, cfg.yaw_rate_scale])
     unknown = ~has_odometry.bool() | torch.isnan(values).flatten(1).any(dim=1)
     return torch.where(unknown[:, None, None], torch.zeros_like(values), values), unknown
+
+
+def turn_columns_per_yaw_rate(dataset: LatentWindowDataset, data: DataConfig, windows: int = 2048) -> float:
+    """How far a turn moves the abstract grid over the steering interval: columns per rad/s of mean yaw rate.
+
+    The least-squares slope through the origin of the best sideways shift
+    (:func:`best_sideways_shift`) between the last context latent and the target
+    against the mean yaw rate, over up to ``windows`` train windows spread evenly
+    over the split (those with odometry). The search reaches 6 columns, less on
+    grids narrower than 16 so that half the columns are still compared.
+    """
+    key, n_context = window_key("abstract", "slow"), rate_geometry(data, "slow")[2]
+    picks = np.unique(np.linspace(0, len(dataset) - 1, min(windows, len(dataset))).round().astype(int))
+    shifts, yaws, known = [], [], []
+    for start in range(0, len(picks), 256):
+        batch = collate([dataset[int(i)] for i in picks[start:start + 256]])
+        frames = batch[key].float()
+        reach = min(6.0, (frames.shape[-1] - 4) // 2)
+        if reach < 1:
+            raise OrbisError(f"{dataset.cache.root}: abstract grids {frames.shape[-1]} columns wide are too narrow "
+                             f"to measure a turn; set yaw_offset_prob: 0 for the steered predictor")
+        shifts.append(best_sideways_shift(frames[:, n_context - 1], frames[:, -1], reach, 0.25))
+        yaws.append(batch["odometry"][:, steering_interval(data), 1].float().mean(dim=1))
+        known.append(batch["has_odometry"].bool())
+    shift, yaw = torch.cat(shifts).double(), torch.cat(yaws).double()
+    known = torch.cat(known) & torch.isfinite(yaw)
+    if not known.any() or float((yaw[known] ** 2).sum()) == 0.0:
+        raise OrbisError(f"{dataset.cache.root}: the {dataset.split} split has no turning windows with odometry; "
+                         f"set yaw_offset_prob: 0 for the steered predictor, or add turning data")
+    return float((shift[known] * yaw[known]).sum() / (yaw[known] ** 2).sum())
+
+
+def offset_yaw(targets: torch.Tensor, steering: torch.Tensor, active: torch.Tensor, generator: torch.Generator,
+               prob: float, max_offset: float, columns_per_yaw_rate: float,
+               yaw_rate_scale: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Counterfactual turns for the steered fine-tune: targets [B, T, C, h, w] and unit-scale steering [B, S, 2].
+
+    With probability ``prob`` an ``active`` sample gets a yaw-rate offset
+    delta ~ U(-max_offset, max_offset) rad/s over its steering interval, and its
+    target frame j moves sideways by delta x ``columns_per_yaw_rate`` x (j + 1) / T
+    columns (:func:`translate_columns`): the frames a slightly sharper or gentler
+    turn would have shown, approximated as a pure sideways move of the grid. The
+    world turns at a few rates only; these samples show the predictor how the
+    scene moves with the yaw rate in between and beyond them.
+    """
+    b, n_target = targets.shape[:2]
+    draws = torch.rand(2, b, generator=generator, device=generator.device).to(targets.device)
+    delta = torch.where(active & (draws[0] < prob), (2 * draws[1] - 1) * max_offset, torch.zeros_like(draws[1]))
+    moved = torch.stack([translate_columns(targets[:, j], delta * columns_per_yaw_rate * (j + 1) / n_target)
+                         for j in range(n_target)], dim=1)
+    moved = torch.where((delta != 0).reshape(-1, 1, 1, 1, 1), moved, targets)
+    steering = steering.clone()
+    steering[..., 1] += (delta / yaw_rate_scale)[:, None]
+    return moved, steering
 
 
 # --------------------------------------------------------------------------- data
@@ -229,6 +289,7 @@ class PredictorTask:
         self._val: list[dict[str, torch.Tensor]] | None = None
         self._val_init: float | None = None
         self._teacher: nn.Module | None = None
+        self._turn_columns: float | None = None
 
     @property
     def rank(self) -> int:
@@ -262,6 +323,12 @@ class PredictorTask:
                                  f"with the same preset and model overrides")
         return model
 
+    def turn_columns(self) -> float:
+        """:func:`turn_columns_per_yaw_rate` of the train split, measured once per process."""
+        if self._turn_columns is None:
+            self._turn_columns = turn_columns_per_yaw_rate(self.train_set, self.data)
+        return self._turn_columns
+
     def batches(self, spec: DataSpec) -> Iterator[dict[str, torch.Tensor]]:
         repeats = turn_repeats(self.train_set, self.data, self.cfg) if self.cfg.turn_repeat > 1 else None
         return window_batches(self.train_set, spec, repeats)
@@ -294,6 +361,7 @@ class PredictorTask:
         cfg = self.cfg
         assert isinstance(cfg, TeacherForcingConfig)
         metrics: dict[str, float] = {}
+        targets = frames[:, n_context:]
         if self.spec.steering:
             assert isinstance(cfg, ActionConfig)
             cond["steering"], unknown = steering_features(batch["odometry"], batch["has_odometry"], self.data, cfg)
@@ -301,8 +369,13 @@ class PredictorTask:
             cond["steering_drop"] = unknown | (dropped < (cfg.steering_dropout if augment else 0.0))
             metrics = {"steering_unknown": unknown.float().mean().item(),
                        "steering_dropped": cond["steering_drop"].float().mean().item()}
+            if augment and cfg.yaw_offset_prob > 0:
+                targets, cond["steering"] = offset_yaw(
+                    targets, cond["steering"], ~cond["steering_drop"], generator, cfg.yaw_offset_prob,
+                    cfg.yaw_offset_max, self.turn_columns(), cfg.yaw_rate_scale)
+                metrics["turn_columns_per_yaw_rate"] = self.turn_columns()
         loss, tf_metrics = teacher_forcing_loss(
-            model, frames[:, :n_context], frames[:, n_context:], generator,
+            model, frames[:, :n_context], targets, generator,
             context_noise_prob=cfg.context_noise_prob if augment else 0.0, context_noise_std=cfg.context_noise_std,
             context_drop_prob=cfg.context_drop_prob if augment else 0.0, **cond)
         return loss, {**tf_metrics, **metrics}
