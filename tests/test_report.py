@@ -110,6 +110,9 @@ def steering_doc() -> dict:
         "modes": modes,
         "responses": {"learned": {"turn_response_deg": {"estimate": 9.0, "low": 5.0, "high": 13.0},
                                   "commanded_turn_response_deg": 12.0,
+                                  "turn_steps_deg": {
+                                      "original - yaw_rate_x0.5": {"estimate": 4.0, "low": 2.0, "high": 6.0},
+                                      "yaw_rate_x1.5 - original": {"estimate": 5.0, "low": 3.0, "high": 7.0}},
                                   "path_ratio": {"estimate": 2.5, "low": 2.0, "high": 3.0}}},
         "material": {"turn_deg": 2.0, "path_ratio": 1.1},
         "odometry_sanity": sanity,
@@ -405,6 +408,8 @@ def _set(evals: dict, path: tuple, value) -> None:
         (2, ("compression", "rows", 0, "fvd_slope"), 200.0),  # compressed less stable than full
         (3, ("steering", "responses", "learned", "turn_response_deg", "high"), 1.0),  # turns do not follow yaw
         (3, ("steering", "responses", "learned", "path_ratio", "high"), 1.05),  # paths do not follow speed
+        (3, ("steering", "responses", "learned", "turn_steps_deg", "yaw_rate_x1.5 - original", "high"),
+         0.5),  # x1.5 turns no more than the original
         (4, ("speed", "models", "flat_detail", "fps"), 5.0),  # flat detail faster
         (5, ("conditioning", "variants", 1, "high"), 0.02),  # another clip's subgoal: no material change
         (6, ("conditioning", "baselines", 0, "high"), 0.01),  # repeating the last frame is as good

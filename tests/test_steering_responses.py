@@ -5,7 +5,14 @@ import numpy as np
 import pytest
 import torch
 
-from orbis2.eval.steering import image_turns, latent_turns, mode_record, steering_responses, turn_record
+from orbis2.eval.steering import (
+    image_turns,
+    latent_turns,
+    mode_record,
+    ordering_steps,
+    steering_responses,
+    turn_record,
+)
 from orbis2.models.stdit import translate_columns
 
 
@@ -41,6 +48,26 @@ def test_a_model_that_ignores_the_commands_shows_none():
                                         np.full(16, 20.0)), "learned", clips, 0)
     assert out["turn_response_deg"]["low"] < 0 < out["turn_response_deg"]["high"]
     assert out["path_ratio"]["estimate"] == pytest.approx(1.0)
+
+
+def test_the_ordering_steps_are_paired_per_start():
+    rng = np.random.default_rng(2)
+    clips = list(np.repeat([f"c{i}" for i in range(8)], 2))
+    turn = 10.0 + rng.normal(0, 3, 16)  # per-start spread shared by every mode
+
+    def modes(lower, upper):
+        return {"yaw_rate_x0.5": scores(turn - lower, np.ones(16)), "original": scores(turn, np.ones(16)),
+                "yaw_rate_x1.5": scores(turn + upper, np.ones(16))}
+
+    follows = ordering_steps(modes(4.0, 6.0), clips, 0)
+    assert list(follows) == ["original - yaw_rate_x0.5", "yaw_rate_x1.5 - original"]
+    assert follows["original - yaw_rate_x0.5"]["low"] == pytest.approx(4.0)
+    assert follows["yaw_rate_x1.5 - original"]["estimate"] == pytest.approx(6.0)
+    saturates = ordering_steps(modes(4.0, 0.0), clips, 0)["yaw_rate_x1.5 - original"]
+    assert saturates["low"] == pytest.approx(0.0) and saturates["high"] == pytest.approx(0.0)
+    assert ordering_steps({"original": scores(turn, np.ones(16))}, clips, 0) == {}
+    responses = steering_responses({m: {"learned": v} for m, v in modes(4.0, 6.0).items()}, "learned", clips, 0)
+    assert responses["turn_steps_deg"] == follows
 
 
 def test_mode_record_puts_the_main_instrument_first_with_intervals():

@@ -462,20 +462,26 @@ def claim_compression(evals: Mapping) -> tuple[str, str]:
 def claim_steering(evals: Mapping) -> tuple[str, str]:
     """(4) Steering follows counterfactual commands, read scale-free by the main instrument: the recovered turn
     under yaw rate x1.5 exceeds that under x0.5, and the path under speed x1.5 is longer than under x0.5, each
-    by a material margin (interval lower bounds; paired per start). ADE is reported, not decided on: it mixes
-    the instrument's own error with the model's."""
+    by a material margin (interval lower bounds; paired per start); and the turns are ordered x0.5 < original
+    < x1.5, each step by half the material turn (it commands half the change). ADE is reported, not decided
+    on: it mixes the instrument's own error with the model's."""
     if not _has(evals, "steering"):
         return UNMEASURED, "needs eval_steering"
     main = _get(evals, "steering", None, "inverse_dynamics")
     turn = _get(evals, "steering", None, "responses", main, "turn_response_deg")
     ratio = _get(evals, "steering", None, "responses", main, "path_ratio")
     material = _get(evals, "steering", None, "material")
-    verdicts = [claim_verdict(turn, material["turn_deg"]), claim_verdict(ratio, material["path_ratio"])]
+    steps = _get(evals, "steering", None, "responses", main, "turn_steps_deg")
+    verdicts = [claim_verdict(turn, material["turn_deg"]), claim_verdict(ratio, material["path_ratio"]),
+                *(claim_verdict(step, material["turn_deg"] / 2) for step in steps.values())]
     verdict = combined_verdict(verdicts)
     floor = _get(evals, "steering", None, "odometry_sanity")
     text = (f"{main} instrument: turn under yaw rate x1.5 minus x0.5 {_fmt(turn['estimate'])} deg "
             f"[{_fmt(turn['low'])}, {_fmt(turn['high'])}] (material > {_fmt(material['turn_deg'])}; commanded "
-            f"{_fmt(_get(evals, 'steering', None, 'responses', main, 'commanded_turn_response_deg'))}); path length "
+            f"{_fmt(_get(evals, 'steering', None, 'responses', main, 'commanded_turn_response_deg'))}); steps "
+            + ", ".join(f"{name} {_fmt(step['estimate'])} [{_fmt(step['low'])}, {_fmt(step['high'])}]"
+                        for name, step in steps.items())
+            + f" (material > {_fmt(material['turn_deg'] / 2)}); path length "
             f"speed x1.5 / x0.5 {_fmt(ratio['estimate'])} [{_fmt(ratio['low'])}, {_fmt(ratio['high'])}] "
             f"(material > {_fmt(material['path_ratio'])}; commanded 3); instrument ADE on real videos "
             f"{_fmt(floor['real_ade'])} m, shuffled {_fmt(floor['shuffled_ade'])} m")

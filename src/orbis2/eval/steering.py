@@ -135,10 +135,28 @@ def image_turns(videos: np.ndarray | list[np.ndarray], controls: list, fps: floa
     return own_direction(np.array(turns), np.array(commanded))
 
 
+YAW_ORDER = ("yaw_rate_x0.5", "original", "yaw_rate_x1.5")  # the turn each should show, least to most
+
+
+def ordering_steps(by_mode: dict[str, dict[str, np.ndarray]], clusters: list[str], seed: int) -> dict[str, Any]:
+    """The turn ordering yaw rate x0.5 < original < x1.5, paired per start: each step's turn difference
+    (degrees, the clip's own direction positive) with a clip-bootstrap interval and its commanded difference;
+    empty without the three modes."""
+    if not all(m in by_mode for m in YAW_ORDER):
+        return {}
+    steps = {}
+    for lower, upper in zip(YAW_ORDER, YAW_ORDER[1:]):
+        lo, hi = by_mode[lower], by_mode[upper]
+        steps[f"{upper} - {lower}"] = {
+            **paired_difference(hi["turn_deg"], lo["turn_deg"], clusters, seed=seed).to_dict(),
+            "commanded": float((hi["commanded_turn_deg"] - lo["commanded_turn_deg"]).mean())}
+    return steps
+
+
 def turn_record(turns: dict[str, dict[str, np.ndarray]], clusters: list[str], seed: int) -> dict[str, Any]:
     """Per mode (and "real", the real continuation) the mean turn of one reading (:func:`latent_turns`,
-    :func:`image_turns`) with a clip-bootstrap interval, and the paired response turn(yaw rate x1.5) -
-    turn(x0.5) against the commanded one."""
+    :func:`image_turns`) with a clip-bootstrap interval, the paired response turn(yaw rate x1.5) -
+    turn(x0.5) against the commanded one, and the ordering's two steps (:func:`ordering_steps`)."""
     out: dict[str, Any] = {"modes": {}}
     for mode, t in turns.items():
         iv = mean_interval(t["turn_deg"], clusters, seed=seed)
@@ -148,6 +166,7 @@ def turn_record(turns: dict[str, dict[str, np.ndarray]], clusters: list[str], se
         lo, hi = turns["yaw_rate_x0.5"], turns["yaw_rate_x1.5"]
         out["turn_response_deg"] = paired_difference(hi["turn_deg"], lo["turn_deg"], clusters, seed=seed).to_dict()
         out["commanded_turn_response_deg"] = float((hi["commanded_turn_deg"] - lo["commanded_turn_deg"]).mean())
+    out["turn_steps_deg"] = ordering_steps(turns, clusters, seed)
     return out
 
 
@@ -167,7 +186,8 @@ def mode_record(scores: dict[str, dict[str, np.ndarray]], clusters: list[str], s
 
 
 def steering_responses(per_sample: dict, name: str, clusters: list[str], seed: int) -> dict[str, Any]:
-    """Scale-free, paired per start: turn(x1.5) - turn(x0.5) in degrees, and path length(x1.5) / (x0.5)."""
+    """Scale-free, paired per start: turn(x1.5) - turn(x0.5) in degrees with the ordering's two steps
+    (:func:`ordering_steps`), and path length(x1.5) / (x0.5)."""
     out: dict[str, Any] = {}
     yaw = ("yaw_rate_x0.5", "yaw_rate_x1.5")
     if all(m in per_sample for m in yaw):
@@ -177,7 +197,9 @@ def steering_responses(per_sample: dict, name: str, clusters: list[str], seed: i
         cmd = float((hi["commanded_turn_deg"] - lo["commanded_turn_deg"]).mean())
         out["commanded_turn_response_deg"] = cmd
         out["turn_by_mode_deg"] = {m: float(per_sample[m][name]["turn_deg"].mean())
-                                   for m in ("yaw_rate_x0.5", "original", "yaw_rate_x1.5") if m in per_sample}
+                                   for m in YAW_ORDER if m in per_sample}
+        out["turn_steps_deg"] = ordering_steps({m: per_sample[m][name] for m in YAW_ORDER if m in per_sample},
+                                               clusters, seed)
     speed = ("speed_x0.5", "speed_x1.5")
     if all(m in per_sample for m in speed):
         lo, hi = (per_sample[m][name]["path_length"] for m in speed)

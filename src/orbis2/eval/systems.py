@@ -75,7 +75,8 @@ class LoadedSystem:
         nets = [self.bottom.model] + ([self.top.model] if self.top is not None else [])
         return sum(p.numel() for net in nets for p in net.parameters())
 
-    def _frames_per_step(self, predictor: PredictorFile) -> int:
+    def step_frames(self, predictor: PredictorFile) -> int:
+        """How many frames one of ``predictor``'s rollout steps adds (its window less its context)."""
         window = predictor.meta["window"]
         return window["window"] - window["context"]
 
@@ -101,7 +102,7 @@ class LoadedSystem:
         if frames_per_step is not None:
             if self.top is not None:
                 raise OrbisError(f"{self.name}: frames_per_step applies to flat systems only")
-            native = self._frames_per_step(self.bottom)
+            native = self.step_frames(self.bottom)
             if native % frames_per_step:
                 raise OrbisError(f"{self.name}: frames_per_step = {frames_per_step} must divide {native}")
             with inference_autocast(self.device, self.inference.precision):
@@ -112,13 +113,13 @@ class LoadedSystem:
             raise OrbisError(f"{self.name}: flat systems are neither steered nor given subgoals")
         with inference_autocast(self.device, self.inference.precision):
             if self.top is None:
-                return flat_rollout(self.bottom.model, contexts["bottom"], steps, self._frames_per_step(self.bottom),
+                return flat_rollout(self.bottom.model, contexts["bottom"], steps, self.step_frames(self.bottom),
                                     bottom_nfe, bottom_rate, generator, kv_cache=self.inference.kv_cache)
             details, _ = cascaded_rollout(
                 self.top.model, self.bottom.model, contexts["bottom"], contexts["top"], steps, generator,
-                abstract_nfe=top_nfe, detail_nfe=bottom_nfe, frames_per_step=self._frames_per_step(self.bottom),
+                abstract_nfe=top_nfe, detail_nfe=bottom_nfe, frames_per_step=self.step_frames(self.bottom),
                 abstract_hz=float(self.top.meta["frame_rate"]), detail_hz=bottom_rate, steering=steering,
-                top_frames_per_step=self._frames_per_step(self.top), kv_cache=self.inference.kv_cache,
+                top_frames_per_step=self.step_frames(self.top), kv_cache=self.inference.kv_cache,
                 subgoals=subgoals)
         return details
 
@@ -263,7 +264,7 @@ def real_subgoals(system: LoadedSystem, cache: LatentCache, split: str, data: Da
                   steps: int) -> torch.Tensor:
     """The real latents [N, steps, ...] at each rollout step's subgoal frame, in the top predictor's level: given
     to :func:`generate`, the hierarchy's bottom level alone (a reference for what the top's predictions cost)."""
-    if system.top is None or system._frames_per_step(system.top) != 1:
+    if system.top is None or system.step_frames(system.top) != 1:
         raise OrbisError(f"{system.name}: real subgoals need a top predictor of one frame per step")
     indices = [np.array([step.abstract_target for step in rollout_schedule(data, s.context_end, steps)])
                for s in samples]
