@@ -15,12 +15,12 @@ from pathlib import Path
 import numpy as np
 
 from orbis2.errors import OrbisError
+from orbis2.eval.figures import save_rollout_grid
 from orbis2.eval.report import (
     EVAL_KINDS,
     compression_from_evals,
     read_evals,
     report_setup,
-    save_rollout_grid,
     write_full_report,
     write_main_report,
 )

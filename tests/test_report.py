@@ -12,7 +12,7 @@ import pytest
 from PIL import Image
 
 from orbis2.errors import OrbisError
-from orbis2.eval import report
+from orbis2.eval import figures, report
 
 SETUP = {"profile": "smoke", "seed": 7, "fvd_videos": 12}
 
@@ -477,18 +477,18 @@ def test_rollout_grid_and_steering_strip_are_pngs(tmp_path):
     rng = np.random.default_rng(0)
     times = [0.5, 4.0, 8.0]
     frames = [rng.integers(0, 255, (3, 36, 64, 3), dtype=np.uint8) for _ in range(2)]
-    report.save_rollout_grid(frames, ["Exp. 1", "Exp. 3 (ours)"], times, tmp_path / "grid.png")
+    figures.save_rollout_grid(frames, ["Exp. 1", "Exp. 3 (ours)"], times, tmp_path / "grid.png")
     t = np.linspace(0, 6, 13)[:, None]
     plans = [np.hstack([5 * t, 0.1 * k * t**2]) for k in range(len(report.STEERING_MODES))]
     modes_frames = [rng.integers(0, 255, (3, 36, 64, 3), dtype=np.uint8) for _ in report.STEERING_MODES]
-    report.save_steering_strip(
+    figures.save_steering_strip(
         modes_frames, report.STEERING_MODES, times, plans, tmp_path / "strip.png", estimated=[p * 0.9 for p in plans]
     )
     for name in ("grid.png", "strip.png"):
         with Image.open(tmp_path / name) as image:
             assert image.format == "PNG"
     with pytest.raises(ValueError, match="uint8"):
-        report.save_rollout_grid([f.astype(np.float32) for f in frames], ["a", "b"], times, tmp_path / "bad.png")
+        figures.save_rollout_grid([f.astype(np.float32) for f in frames], ["a", "b"], times, tmp_path / "bad.png")
 
 
 def test_compression_rows_come_from_the_flat_abstract_models(evals):

@@ -37,6 +37,7 @@ import torch
 
 from orbis2.config import load_config
 from orbis2.eval.conditioning import flow_loss, one_step_mean, per_window_mse
+from orbis2.eval.figures import pyplot, save_figure
 from orbis2.latents import open_cache
 from orbis2.registry import registry
 from orbis2.tasks.predictors import (
@@ -122,11 +123,7 @@ def _per_clip(values: np.ndarray, clips: list[str]) -> dict[str, float]:
 
 def plot(paths: list[Path], out: Path) -> None:
     """One panel per curve file: every measured MSE against training samples."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     runs = [json.loads(p.read_text()) | {"name": p.stem} for p in paths]
     fig, axes = plt.subplots(1, len(runs), figsize=(4.2 * len(runs), 3.4), squeeze=False)
     for ax, run in zip(axes[0], runs):
@@ -142,7 +139,7 @@ def plot(paths: list[Path], out: Path) -> None:
     axes[0][0].set_ylabel("one-step latent MSE (val)")
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
+    save_figure(fig, out)
 
 
 def main(argv: list[str] | None = None) -> None:

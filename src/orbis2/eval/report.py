@@ -1,7 +1,8 @@
 """The paper's tables, figures and a summary built from the evaluation JSON files.
 
-Over 600 lines on purpose: every table, claim and figure of the paper is here, each a short
-pure function, so that the report reads as one document.
+Over 600 lines on purpose: every table, claim and figure of the paper's results is here, each
+a short pure function, so that the report reads as one document (figures of frames, which
+evaluation stages draw too, are in :mod:`orbis2.eval.figures`).
 
 Every table is a list of ordered rows built by a pure function from the dict
 ``load_eval`` returns; the writers only serialise them. A metric cell always
@@ -19,12 +20,12 @@ import math
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
-import numpy as np
 import pandas as pd
 
 from orbis2.config import PipelineConfig
 from orbis2.errors import OrbisError
 from orbis2.eval.conditioning import claim_verdict, conditioning_rows
+from orbis2.eval.figures import pyplot, save_figure
 from orbis2.eval.stats import paired_draws_interval
 from orbis2.io import atomic_file
 from orbis2.registry import SCOPES, registry
@@ -702,27 +703,9 @@ def write_full_report(
 # ---------------------------------------------------------------- figures
 
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(fig, path: str | Path) -> None:
-    plt = _pyplot()
-    try:
-        with atomic_file(Path(path)) as tmp:
-            fig.savefig(tmp, format="png", dpi=120, bbox_inches="tight")
-    finally:
-        plt.close(fig)
-
-
 def plot_chunked_fvd(evals: Mapping, path: str | Path, models: Sequence[str] = FVD_MODELS) -> None:
     """Fig. 4: FVD of each consecutive window of the long turns rollouts, one line per model."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(5.5, 3.8))
     for model in models:
         chunks = _get(evals, "fvd", model, "chunked", "chunks")
@@ -734,7 +717,7 @@ def plot_chunked_fvd(evals: Mapping, path: str | Path, models: Sequence[str] = F
     ax.set_title("FVD over consecutive windows (turns)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def write_chunked_fvd(evals: Mapping, path: str | Path, models: Sequence[str] = FVD_MODELS) -> None:
@@ -759,7 +742,7 @@ def _per_block_targets(evals: Mapping) -> list[str]:
 def plot_probe_blocks(evals: Mapping, path: str | Path) -> None:
     """Fig. 5: segmentation mIoU and depth RMSE of a probe on every block, one line per probed model."""
     targets = _per_block_targets(evals)
-    plt = _pyplot()
+    plt = pyplot()
     fig, (ax_miou, ax_rmse) = plt.subplots(1, 2, figsize=(9, 3.6))
     for target in targets:
         blocks = _get(evals, "probe", target, "per_block")
@@ -776,7 +759,7 @@ def plot_probe_blocks(evals: Mapping, path: str | Path) -> None:
         ax.set_title(name)
         ax.grid(alpha=0.3)
     ax_miou.legend(fontsize=8)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_bubble(evals: Mapping, path: str | Path, x_metric: str = "fvd_slope") -> None:
@@ -788,7 +771,7 @@ def plot_bubble(evals: Mapping, path: str | Path, x_metric: str = "fvd_slope") -
     key = "fvd_slope_turns" if x_metric == "fvd_slope" else x_metric
     if key not in rows[0] or not key.startswith("fvd"):
         raise ValueError(f"x_metric must be fvd_slope, fvd_val, fvd_heldout or fvd_turns, got {x_metric!r}")
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(5.5, 4.2))
     largest = max(r["parameters"] for r in rows)
     for row in rows:
@@ -799,92 +782,4 @@ def plot_bubble(evals: Mapping, path: str | Path, x_metric: str = "fvd_slope") -
     ax.set_title("bubble area: parameters")
     ax.grid(alpha=0.3)
     ax.margins(0.25)
-    _save(fig, path)
-
-
-def _check_frames(frames: np.ndarray, what: str) -> np.ndarray:
-    frames = np.asarray(frames)
-    if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[-1] != 3:
-        raise ValueError(f"{what} must be uint8 [T, H, W, 3], got {frames.dtype} {frames.shape}")
-    return frames
-
-
-def _frame_rows(frames: Sequence[np.ndarray], labels: Sequence[str], times: Sequence[float]) -> list[np.ndarray]:
-    """Checked uint8 frame rows, one frame per time column."""
-    rows = [_check_frames(f, f"frames of {label}") for f, label in zip(frames, labels)]
-    for f, label in zip(rows, labels):
-        if len(f) != len(times):
-            raise ValueError(f"{label} has {len(f)} frames for {len(times)} time columns")
-    return rows
-
-
-def _draw_frame_rows(axes, rows: list[np.ndarray], labels: Sequence[str], times: Sequence[float]) -> None:
-    """Frames into the first ``len(times)`` columns, times as column titles, labels as row titles."""
-    for r, (f, label) in enumerate(zip(rows, labels)):
-        for c, t in enumerate(times):
-            ax = axes[r][c]
-            ax.imshow(f[c])
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if r == 0:
-                ax.set_title(f"{t:g} s", fontsize=8)
-            if c == 0:
-                ax.set_ylabel(label, fontsize=8)
-
-
-def save_rollout_grid(
-    frames: Sequence[np.ndarray], labels: Sequence[str], times: Sequence[float], path: str | Path
-) -> None:
-    """Appendix grid: one row of frames per model, one column per time (frames[i] is uint8 [T, H, W, 3])."""
-    if len(frames) != len(labels) or not frames:
-        raise ValueError(f"need one label per model row, got {len(frames)} rows and {len(labels)} labels")
-    rows = _frame_rows(frames, labels, times)
-    plt = _pyplot()
-    h, w = rows[0].shape[1:3]
-    fig, axes = plt.subplots(len(rows), len(times), figsize=(1.8 * len(times) * w / h, 1.8 * len(rows)), squeeze=False)
-    _draw_frame_rows(axes, rows, labels, times)
-    _save(fig, path)
-
-
-def save_steering_strip(
-    frames: Sequence[np.ndarray],
-    modes: Sequence[str],
-    times: Sequence[float],
-    commanded: Sequence[np.ndarray],
-    path: str | Path,
-    estimated: Sequence[np.ndarray] | None = None,
-) -> None:
-    """Counterfactual steering figure: per mode a row of frames and a top-down plot of its trajectory.
-
-    ``commanded[i]`` (and ``estimated[i]``, the odometry of the generated video)
-    are [K, 2] positions in metres, x forward and y to the left.
-    """
-    if not (len(frames) == len(modes) == len(commanded)) or not frames:
-        raise ValueError("need one frame row, mode name and commanded trajectory per mode")
-    if estimated is not None and len(estimated) != len(modes):
-        raise ValueError("need one estimated trajectory per mode")
-    rows = _frame_rows(frames, modes, times)
-    plt = _pyplot()
-    h, w = rows[0].shape[1:3]
-    fig, axes = plt.subplots(
-        len(rows),
-        len(times) + 1,
-        figsize=(1.8 * (len(times) * w / h + 1), 1.8 * len(rows)),
-        squeeze=False,
-        gridspec_kw={"width_ratios": [w / h] * len(times) + [1]},
-    )
-    _draw_frame_rows(axes, rows, modes, times)
-    for r in range(len(rows)):
-        ax = axes[r][-1]
-        plan = np.asarray(commanded[r], dtype=float)
-        # top-down view: forward is up, left is left
-        ax.plot(-plan[:, 1], plan[:, 0], color="tab:blue", label="commanded")
-        if estimated is not None:
-            est = np.asarray(estimated[r], dtype=float)
-            ax.plot(-est[:, 1], est[:, 0], color="tab:orange", linestyle="--", label="estimated")
-        ax.set_aspect("equal", adjustable="datalim")
-        ax.tick_params(labelsize=6)
-        if r == 0:
-            ax.set_title("trajectory (m)", fontsize=8)
-            ax.legend(fontsize=6)
-    _save(fig, path)
+    save_figure(fig, path)

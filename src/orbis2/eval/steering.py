@@ -26,8 +26,8 @@ import torch.nn.functional as F
 from orbis2.config import DataConfig
 from orbis2.data.shards import Clip
 from orbis2.eval.conditioning import sideways_shift
+from orbis2.eval.figures import save_steering_strip
 from orbis2.eval.odometry import endpoint_angle, path_length, trajectory_ade
-from orbis2.eval.report import save_steering_strip
 from orbis2.eval.stats import mean_interval, paired_difference
 from orbis2.eval.systems import Sample
 from orbis2.rollout import rollout_schedule, steering_sequences

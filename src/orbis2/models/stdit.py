@@ -260,6 +260,11 @@ def translate_columns(x: torch.Tensor, columns: torch.Tensor) -> torch.Tensor:
     return F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
 
 
+# (reach, step) in columns of the searched grid of a turn's sideways motion between latents 0.5 s apart:
+# covers the default town's fastest turns.
+TURN_SEARCH = (6.0, 0.25)
+
+
 def best_sideways_shift(before: torch.Tensor, after: torch.Tensor, reach: float, step: float) -> torch.Tensor:
     """How far grids [B, C, h, w] moved sideways from ``before`` to ``after``, in columns [B].
 
@@ -339,8 +344,6 @@ class SubgoalShift(nn.Module):
     and added to its tokens.
     """
 
-    REACH, STEP = 6.0, 0.25  # columns of the conditioning grid; covers the default town's fastest turns over 0.5 s
-
     def __init__(self, latent_channels: int, hidden_size: int, patch_size: int):
         super().__init__()
         self.patch_size = patch_size
@@ -364,7 +367,7 @@ class SubgoalShift(nn.Module):
         width = x.shape[-1]
         with torch.no_grad():
             columns = best_sideways_shift(cond_frames[:, first].float(), cond_frames[:, last].float(),
-                                          self.REACH, self.STEP) * (width / cond_frames.shape[-1])
+                                          *TURN_SEARCH) * (width / cond_frames.shape[-1])
         previous = x[:, first].to(self.embed.weight.dtype)
         moved = torch.stack([translate_columns(previous, columns * (j - first) / (last - first))
                              for j in range(first + 1, x.shape[1])], dim=1)

@@ -64,6 +64,7 @@ from orbis2.flow import diffusion_forcing_loss, euler_sample, reflow_loss, teach
 from orbis2.io import sha256_file
 from orbis2.latents import LatentCache, LatentWindowDataset
 from orbis2.models.stdit import (
+    TURN_SEARCH,
     best_sideways_shift,
     build_stdit_from,
     load_predictor,
@@ -159,20 +160,21 @@ def turn_columns_per_yaw_rate(dataset: LatentWindowDataset, data: DataConfig, wi
     The least-squares slope through the origin of the best sideways shift
     (:func:`best_sideways_shift`) between the last context latent and the target
     against the mean yaw rate, over up to ``windows`` train windows spread evenly
-    over the split (those with odometry). The search reaches 6 columns, less on
-    grids narrower than 16 so that half the columns are still compared.
+    over the split (those with odometry). The search is the models' (``TURN_SEARCH``),
+    reaching less far on grids narrower than 16 so that half the columns are still compared.
     """
     key, n_context = window_key("abstract", "slow"), rate_geometry(data, "slow")[2]
+    width = dataset[0][key].shape[-1]
+    reach, step = min(TURN_SEARCH[0], (width - 4) // 2), TURN_SEARCH[1]
+    if reach < 1:
+        raise OrbisError(f"{dataset.cache.root}: abstract grids {width} columns wide are too narrow "
+                         f"to measure a turn; set yaw_offset_prob: 0 for the steered predictor")
     picks = np.unique(np.linspace(0, len(dataset) - 1, min(windows, len(dataset))).round().astype(int))
     shifts, yaws, known = [], [], []
     for start in range(0, len(picks), 256):
         batch = collate([dataset[int(i)] for i in picks[start:start + 256]])
         frames = batch[key].float()
-        reach = min(6.0, (frames.shape[-1] - 4) // 2)
-        if reach < 1:
-            raise OrbisError(f"{dataset.cache.root}: abstract grids {frames.shape[-1]} columns wide are too narrow "
-                             f"to measure a turn; set yaw_offset_prob: 0 for the steered predictor")
-        shifts.append(best_sideways_shift(frames[:, n_context - 1], frames[:, -1], reach, 0.25))
+        shifts.append(best_sideways_shift(frames[:, n_context - 1], frames[:, -1], reach, step))
         yaws.append(batch["odometry"][:, steering_interval(data), 1].float().mean(dim=1))
         known.append(batch["has_odometry"].bool())
     shift, yaw = torch.cat(shifts).double(), torch.cat(yaws).double()
@@ -373,7 +375,6 @@ class PredictorTask:
                 targets, cond["steering"] = offset_yaw(
                     targets, cond["steering"], ~cond["steering_drop"], generator, cfg.yaw_offset_prob,
                     cfg.yaw_offset_max, self.turn_columns(), cfg.yaw_rate_scale)
-                metrics["turn_columns_per_yaw_rate"] = self.turn_columns()
         loss, tf_metrics = teacher_forcing_loss(
             model, frames[:, :n_context], targets, generator,
             context_noise_prob=cfg.context_noise_prob if augment else 0.0, context_noise_std=cfg.context_noise_std,
@@ -491,6 +492,8 @@ def train_predictor(stage: str, cfg: PipelineConfig, cache: LatentCache, out_dir
                "parameters": sum(p.numel() for p in model.parameters())}
     if task.spec.objective == "reflow":
         metrics.update(task.few_step_errors(model))
+    if isinstance(pc, ActionConfig) and pc.yaw_offset_prob > 0:
+        metrics["turn_columns_per_yaw_rate"] = task.turn_columns()
     save_predictor(Path(out_dir) / "predictor.pt", model, task.build, predictor_meta(stage, cfg, cache, metrics))
     return metrics
 
