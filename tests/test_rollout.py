@@ -181,6 +181,49 @@ def test_cascaded_rollout_smoke_models_shapes_and_determinism():
                          steering=steering)
 
 
+class SteeredStub:
+    """Predicts last context latent + 1, plus the mean steering value when steered."""
+
+    def __call__(self, x, tau, frame_rate=None, steering=None):
+        n_ctx = n_ctx_of(tau)
+        shift = 0.0 if steering is None else float(steering.mean())
+        return _exact_velocity(x, tau, x[:, n_ctx - 1: n_ctx] + 1 + shift)[0]
+
+
+@pytest.mark.parametrize("guidance", [0.0, 1.0, 3.0])
+def test_steering_guidance_extrapolates_the_steered_prediction(guidance):
+    """Known answer: the unsteered subgoal is last + 1, the steered one last + 1.5; guidance w lands on
+    last + 1 + 0.5 w (the velocities are exact, so Euler reaches the guided target)."""
+    steering = torch.full((1, 2, 5, 2), 0.5)
+    _, tops = cascaded_rollout(SteeredStub(), DetailStub(), _ramp(5) + 100, _ramp(5), 2, torch.Generator(),
+                               abstract_nfe=3, detail_nfe=2, steering=steering, steering_guidance=guidance)
+    step = 1 + 0.5 * guidance
+    torch.testing.assert_close(tops[0, :, 0, 0, 0], torch.tensor([4 + step, 4 + 2 * step]))
+
+
+def test_steering_guidance_on_a_steered_predictor_one_is_plain_and_zero_is_unsteered():
+    torch.manual_seed(0)
+    abstract = build_stdit_from({"preset": "smoke", "steering_shift": True, "latent_channels": 4, "causal": True,
+                                 "steering": True}).eval()
+    detail = build_stdit("smoke", latent_channels=6, causal=False, abstract_channels=4).eval()
+    for module in (abstract.final_layer.linear, abstract.steering.out, abstract.steering_shift.embed,
+                   detail.final_layer.linear):  # zero at init: perturb so that samples depend on the steering
+        torch.nn.init.normal_(module.weight, std=0.1)
+    d_ctx, a_ctx = torch.randn(2, 5, 6, 4, 5), torch.randn(2, 5, 4, 2, 3)
+    steering = torch.randn(2, 2, 5, 2)
+
+    def run(guidance, steer=steering, kv_cache=True):
+        return cascaded_rollout(abstract, detail, d_ctx, a_ctx, 2, torch.Generator().manual_seed(0), abstract_nfe=2,
+                                detail_nfe=2, steering=steer, steering_guidance=guidance, kv_cache=kv_cache)[1]
+
+    plain, free = run(1.0), run(1.0, steer=None)
+    assert torch.equal(run(1.0), plain) and not torch.allclose(plain, free)
+    torch.testing.assert_close(run(0.0), free, rtol=0, atol=1e-6)
+    guided = run(2.0)
+    torch.testing.assert_close(guided, run(2.0, kv_cache=False), rtol=1e-4, atol=1e-5)
+    assert (guided - free).norm() > (plain - free).norm()  # extrapolated beyond the steered rollout
+
+
 # --------------------------------------------------------------------------- CLI
 
 

@@ -32,12 +32,14 @@ PRECISIONS = ("bf16", "fp32")
 
 @dataclass(frozen=True)
 class Inference:
-    """How rollouts run: ``precision`` (bf16 autocast on CUDA, else fp32), ``compile``, ``kv_cache``."""
+    """How rollouts run: ``precision`` (bf16 autocast on CUDA, else fp32), ``compile``, ``kv_cache``, and
+    ``steering_guidance`` (classifier-free guidance on a steered top predictor's steering; 1 = none)."""
 
     precision: str = "bf16"
     compile: bool = False
     kv_cache: bool = True
     tf32: bool = True
+    steering_guidance: float = 1.0
 
     def __post_init__(self) -> None:
         if self.precision not in PRECISIONS:

@@ -243,7 +243,8 @@ def rollout_command(args: argparse.Namespace) -> str:
             steps, generator, abstract_nfe=args.abstract_nfe,
             detail_nfe=args.detail_nfe or int(detail_pred.meta.get("sampling", {}).get("nfe", 30)),
             abstract_hz=data.abstract_hz, detail_hz=data.detail_hz, steering=steering,
-            on_step=lambda _: bar.update(1), kv_cache=not args.no_kv_cache)
+            on_step=lambda _: bar.update(1), kv_cache=not args.no_kv_cache,
+            steering_guidance=args.steering_guidance)
 
     generated = []
     with torch.inference_mode(), inference_autocast(device, args.precision):
@@ -283,6 +284,8 @@ def add_rollout_parser(sub: argparse._SubParsersAction) -> None:
                    help="CSV with columns timestamp, speed, yaw_rate (default: <video>.csv if present)")
     p.add_argument("--hold-last", action="store_true",
                    help="a trajectory shorter than the rollout keeps its last speed and yaw rate (default: error)")
+    p.add_argument("--steering-guidance", type=float, default=1.0,
+                   help="classifier-free guidance on the steering (1: none, the paper's sampler)")
     p.add_argument("--speed-scale", type=float, default=1.0, help="multiply the speeds (counterfactuals)")
     p.add_argument("--yaw-rate-scale", type=float, default=1.0, help="multiply the yaw rates (counterfactuals)")
     p.add_argument("--seconds", type=float, default=16.0, help="rollout length in seconds")

@@ -525,6 +525,9 @@ class EvaluationConfig:
     precision: str = "bf16"
     compile: bool = False
     kv_cache: bool = True
+    # Classifier-free guidance on the steered top predictor's steering in rollouts (1 = none, the paper's
+    # sampler): the steered velocity extrapolated away from the unsteered one (steering dropout's).
+    steering_guidance: float = 1.0
     conditioning: ConditioningSettings = field(default_factory=ConditioningSettings)
     # FVD intervals: clip-bootstrap resamples, random clip half-splits for the real-vs-real floor, and the
     # smallest FVD(-slope) difference a claim counts as material (FVD units).
@@ -549,6 +552,8 @@ class EvaluationConfig:
             raise ConfigError(f"{where}.precision = {self.precision!r} must be 'bf16' (autocast on CUDA) or 'fp32'")
         if self.long_seconds < 2 * self.chunk_seconds:
             raise ConfigError(f"{where}.long_seconds must hold at least two chunks of chunk_seconds for FVD-slope")
+        if self.steering_guidance < 0:
+            raise ConfigError(f"{where}.steering_guidance = {self.steering_guidance} must be >= 0 (1: no guidance)")
         for mode, scales in self.steering_modes.items():
             if len(scales) != 2 or min(scales) <= 0:
                 raise ConfigError(f"{where}.steering_modes.{mode} must be [speed scale, yaw-rate scale], both > 0")

@@ -116,6 +116,15 @@ def diffusion_forcing_loss(
     return loss, {"loss": loss.item(), "tau_mean": tau.float().mean().item()}
 
 
+def guided_velocity(conditional: torch.Tensor, unconditional: torch.Tensor, scale: float) -> torch.Tensor:
+    """Classifier-free guidance (Ho and Salimans, 2022): ``unconditional + scale * (conditional - unconditional)``.
+
+    Scale 1 is the conditional velocity, 0 the unconditional one; above 1 the conditioning's effect is
+    extrapolated. Needs a model trained with its conditioning dropped at times (steering dropout).
+    """
+    return unconditional + scale * (conditional - unconditional)
+
+
 @torch.no_grad()
 def euler_sample(
     model_fn: ModelFn,

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from orbis2.config import DataConfig
-from orbis2.flow import ModelFn, euler_sample
+from orbis2.flow import ModelFn, euler_sample, guided_velocity
 from orbis2.windows import window_indices
 
 StepCallback = Callable[[int], None]
@@ -101,18 +101,36 @@ def can_cache(model: ModelFn, cond: dict) -> bool:
             and hasattr(model, "build_kv_cache") and "cond_frames" not in cond)
 
 
+def target_velocity(model: ModelFn, context: torch.Tensor, n_target: int, kv_cache: bool, cond: dict) -> ModelFn:
+    """The target frames' velocity as a function of (x_target, tau_target) after the clean ``context``, with the
+    context's temporal keys/values computed once where exact (:func:`can_cache`)."""
+    if kv_cache and can_cache(model, cond):
+        cache = model.build_kv_cache(context, n_target, cond.get("frame_rate"), cond.get("steering"))
+        return lambda x, tau: model.forward_cached(x, tau, cache, cond.get("frame_rate"), cond.get("steering"))
+    n_context = context.shape[1]
+    tau_context = torch.zeros(context.shape[0], n_context, device=context.device, dtype=context.dtype)
+    return lambda x, tau: model(torch.cat([context, x], dim=1), torch.cat([tau_context, tau], dim=1),
+                                **cond)[:, n_context:]
+
+
 def sample_frames(model: ModelFn, context: torch.Tensor, n_target: int, nfe: int, generator: torch.Generator,
-                  kv_cache: bool = True, **cond) -> torch.Tensor:
+                  kv_cache: bool = True, guidance: float = 1.0, **cond) -> torch.Tensor:
     """``euler_sample``, with the context's temporal keys/values computed once per call where exact
-    (:func:`can_cache`): the NFE loop then runs the target frames only."""
+    (:func:`can_cache`): the NFE loop then runs the target frames only.
+
+    ``guidance`` != 1 with a ``steering`` input: classifier-free guidance on the steering
+    (:func:`orbis2.flow.guided_velocity`), the unsteered velocity from the same model given no steering
+    (its dropout embedding); two evaluations per Euler step, the same noise.
+    """
+    if cond.get("steering") is not None and guidance != 1.0:
+        steered = target_velocity(model, context, n_target, kv_cache, cond)
+        free = target_velocity(model, context, n_target, kv_cache, {k: v for k, v in cond.items() if k != "steering"})
+        return euler_sample(model, context, n_target, nfe, generator, **cond,
+                            target_fn=lambda x, tau: guided_velocity(steered(x, tau), free(x, tau), guidance))
     if not (kv_cache and can_cache(model, cond)):
         return euler_sample(model, context, n_target, nfe, generator, **cond)
-    cache = model.build_kv_cache(context, n_target, cond.get("frame_rate"), cond.get("steering"))
-
-    def target_fn(x: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
-        return model.forward_cached(x, tau, cache, cond.get("frame_rate"), cond.get("steering"))
-
-    return euler_sample(model, context, n_target, nfe, generator, target_fn=target_fn, **cond)
+    return euler_sample(model, context, n_target, nfe, generator, **cond,
+                        target_fn=target_velocity(model, context, n_target, kv_cache, cond))
 
 
 def _slide(context: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
@@ -164,6 +182,7 @@ def cascaded_rollout(
     top_frames_per_step: int = 1,
     kv_cache: bool = True,
     subgoals: torch.Tensor | None = None,
+    steering_guidance: float = 1.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Hierarchical rollout; returns detail latents [B, frames_per_step * steps, ...] and the top
     predictor's frames [B, top_frames_per_step * steps, ...].
@@ -179,7 +198,8 @@ def cascaded_rollout(
     = 5, ``abstract_hz`` = 10); the subgoal is always the top's last new frame.
     ``kv_cache``: cache a causal top predictor's context keys/values (:func:`sample_frames`).
     ``subgoals`` [B, top_frames_per_step * steps, ...]: the top's frames given, not sampled (the real
-    future abstract latents: the bottom level's reference rollout).
+    future abstract latents: the bottom level's reference rollout). ``steering_guidance``: classifier-free
+    guidance on the top's steering (:func:`sample_frames`; 1 = none, the paper's sampler).
     """
     b = detail_context.shape[0]
     n_context = detail_context.shape[1]
@@ -189,7 +209,8 @@ def cascaded_rollout(
     for k in range(steps):
         if subgoals is None:
             top = sample_frames(abstract_model, abstract_context, top_frames_per_step, abstract_nfe, generator,
-                                kv_cache, frame_rate=abstract_hz, **_step_steering(steering, k, b, steps))
+                                kv_cache, steering_guidance, frame_rate=abstract_hz,
+                                **_step_steering(steering, k, b, steps))
         else:
             top = subgoals[:, k * top_frames_per_step:(k + 1) * top_frames_per_step]
         cond_frames, cond_mask = detail_conditioning(abstract_context[:, -1], top[:, -1], n_context,

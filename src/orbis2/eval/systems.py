@@ -120,7 +120,7 @@ class LoadedSystem:
                 abstract_nfe=top_nfe, detail_nfe=bottom_nfe, frames_per_step=self.step_frames(self.bottom),
                 abstract_hz=float(self.top.meta["frame_rate"]), detail_hz=bottom_rate, steering=steering,
                 top_frames_per_step=self.step_frames(self.top), kv_cache=self.inference.kv_cache,
-                subgoals=subgoals)
+                subgoals=subgoals, steering_guidance=self.inference.steering_guidance)
         return details
 
     @torch.no_grad()
@@ -237,10 +237,12 @@ def generated_indices(data: DataConfig, context_end: int, steps: int) -> np.ndar
 
 
 def inference_settings(ev: EvaluationConfig) -> Inference:
-    """Rollout precision, KV cache and compilation from ``evaluation``; sets the TF32 policy on CUDA."""
+    """Rollout precision, KV cache, compilation and steering guidance from ``evaluation``; sets the TF32 policy
+    on CUDA."""
     if torch.cuda.is_available():
         set_tf32(True)
-    return Inference(precision=ev.precision, compile=ev.compile, kv_cache=ev.kv_cache)
+    return Inference(precision=ev.precision, compile=ev.compile, kv_cache=ev.kv_cache,
+                     steering_guidance=ev.steering_guidance)
 
 
 def generate(system: LoadedSystem, cache: LatentCache, split: str, samples: list[Sample], steps: int,
