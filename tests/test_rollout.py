@@ -319,6 +319,7 @@ def test_cli_end_to_end_writes_mp4_and_gif(make_video, tmp_path, checkpoints, ca
     ("--abstract-nfe", "0", "--abstract-nfe 0: needs at least 1"),
     ("--detail-nfe", "-1", "--detail-nfe -1: needs at least 1"),
     ("--speed-scale", "nan", "--speed-scale nan: not a finite number"),
+    ("--steering-guidance", "-1", "--steering-guidance -1: must be >= 0"),
 ])
 def test_cli_rejects_bad_numbers_in_one_line(tmp_path, checkpoints, capsys, flag, value, fragment):
     err = _expect_exit_2(_args(tmp_path / "v.mp4", tmp_path / "o.mp4", checkpoints) + [flag, value], capsys,

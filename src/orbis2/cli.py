@@ -265,13 +265,16 @@ def rollout_command(args: argparse.Namespace) -> str:
 
 
 def check_numbers(args: argparse.Namespace) -> None:
-    """Numbers argparse accepts but a rollout cannot use (NaN, infinity, zero or negative lengths, no steps)."""
+    """Numbers argparse accepts but a rollout cannot use (NaN, infinity, zero or negative lengths, no steps,
+    negative guidance)."""
     for flag, value in (("--seconds", args.seconds), ("--speed-scale", args.speed_scale),
-                        ("--yaw-rate-scale", args.yaw_rate_scale)):
+                        ("--yaw-rate-scale", args.yaw_rate_scale), ("--steering-guidance", args.steering_guidance)):
         if not math.isfinite(value):
             raise OrbisError(f"{flag} {value}: not a finite number")
     if args.seconds <= 0:
         raise OrbisError(f"--seconds {args.seconds:g}: the rollout length must be > 0")
+    if args.steering_guidance < 0:
+        raise OrbisError(f"--steering-guidance {args.steering_guidance:g}: must be >= 0 (1: no guidance)")
     for flag, value in (("--abstract-nfe", args.abstract_nfe), ("--detail-nfe", args.detail_nfe)):
         if value < 1:
             raise OrbisError(f"{flag} {value}: needs at least 1 function evaluation per sample")
