@@ -57,7 +57,7 @@ def test_profile_key_selects_values(tmp_path):
     (lambda r: r["town"]["smoke"]["episodes"].pop("probe"), "town.smoke.episodes must name exactly the splits"),
     (lambda r: r["town"]["all"].update(workers=True), "town.smoke.workers must be an integer"),
     (lambda r: r.update(profile="huge"), "profile = 'huge' must be one of"),
-    (lambda r: r["evaluation"]["all"].update(steering_guidance=-1.0),
+    (lambda r: r["evaluation"]["smoke"].update(steering_guidance=-1.0),
      "evaluation.smoke.steering_guidance = -1.0 must be >= 0"),
     (lambda r: r.update(extra={}), "unknown top-level key(s) ['extra']"),
     (lambda r: r["data"].update(large={}), "data: unknown key(s) ['large']"),
