@@ -212,12 +212,29 @@ def test_the_probe_penalty_is_chosen_on_held_out_train_clips():
     x = rng.normal(size=(400, 300))
     y = np.stack([x[:, 0], -x[:, 0]], axis=1) + 0.3 * rng.normal(size=(400, 2))
     clips = np.repeat(np.arange(40), 10)
-    penalty, scores = select_penalty(x, y, clips, [1e-3, 10.0, 300.0, 1e7], folds=4, seed=0)
-    assert list(scores) == [1e-3, 10.0, 300.0, 1e7]
-    assert penalty == 10.0 and scores[penalty] > 0.6  # the signal explains ~90% of each target's variance
-    assert scores[1e-3] < 0 and abs(scores[1e7]) < 0.05 and scores[300.0] < scores[10.0]
+    penalties, scores = select_penalty(x, y, clips, [1e-3, 10.0, 300.0, 1e7], folds=4, seed=0)
+    assert penalties == [10.0, 10.0] and [list(s) for s in scores] == [[1e-3, 10.0, 300.0, 1e7]] * 2
+    for target in scores:
+        assert target[10.0] > 0.6  # the signal explains ~90% of each target's variance
+        assert target[1e-3] < 0 and abs(target[1e7]) < 0.05 and target[300.0] < target[10.0]
     with pytest.raises(ValueError, match="needs >= 4 train clips"):
         select_penalty(x, y, np.repeat(np.arange(3), 134)[:400], [1.0], folds=4, seed=0)
+
+
+def test_each_probe_target_gets_its_own_penalty():
+    """A target carried by one feature wants a weak penalty; one spread thinly over all 300 (each weight tiny,
+    the sum large) wants a strong one: a shared penalty would serve one of them badly."""
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=(400, 300))
+    sparse = 3.0 * x[:, 0] + 0.3 * rng.normal(size=400)
+    spread = x.mean(axis=1) * 17.0 + 1.0 * rng.normal(size=400)
+    y = np.stack([sparse, spread], axis=1)
+    clips = np.repeat(np.arange(40), 10)
+    penalties, scores = select_penalty(x, y, clips, [1.0, 30.0, 1000.0, 30000.0], folds=4, seed=0)
+    assert penalties[0] < penalties[1]
+    model = ridge_fit(x, y, penalties)
+    for j, penalty in enumerate(penalties):  # each column is the single-penalty fit of its own target
+        np.testing.assert_allclose(model[2][:, j], ridge_fit(x, y, penalty)[2][:, j])
 
 
 def test_sideways_shift_reads_a_known_translation():
@@ -233,6 +250,6 @@ def test_probe_readout_applies_the_probe_to_a_latent_pair():
     before, after = rng.normal(size=(64, 2, 3, 4)), rng.normal(size=(64, 2, 3, 4))
     features = np.concatenate([before.reshape(64, -1), after.reshape(64, -1)], axis=1)
     targets = features @ rng.normal(size=(48, 2))
-    probe = ridge_fit(features, targets, penalty=1e-6)
+    probe = ridge_fit(features, targets, 1e-6)
     read = probe_readout(probe, torch.from_numpy(before), torch.from_numpy(after), strips=0)
     np.testing.assert_allclose(read, targets, atol=1e-3)

@@ -255,8 +255,14 @@ def ridge_path(x: np.ndarray, y: np.ndarray, penalties) -> list[tuple[np.ndarray
     return [(mean, scale, np.linalg.solve(gram + penalty * eye, moment), bias) for penalty in penalties]
 
 
-def ridge_fit(x: np.ndarray, y: np.ndarray, penalty: float) -> tuple[np.ndarray, ...]:
-    return ridge_path(x, y, [penalty])[0]
+def ridge_fit(x: np.ndarray, y: np.ndarray, penalties) -> tuple[np.ndarray, ...]:
+    """Ridge with one penalty per target column (``penalties``: a sequence, or one value for every column)."""
+    penalties = np.broadcast_to(np.asarray(penalties, np.float64), (y.shape[1],))
+    unique = sorted(set(penalties.tolist()))
+    path = dict(zip(unique, ridge_path(x, y, unique)))
+    mean, scale, _, bias = path[unique[0]]
+    weights = np.stack([path[p][2][:, j] for j, p in enumerate(penalties.tolist())], axis=1)
+    return mean, scale, weights, bias
 
 
 def ridge_predict(model: tuple[np.ndarray, ...], x: np.ndarray) -> np.ndarray:
@@ -269,10 +275,12 @@ def weighted_r2(y: np.ndarray, pred: np.ndarray, weights: np.ndarray) -> float:
     return float(1.0 - weights @ (y - pred) ** 2 / (weights @ (y - centre) ** 2))
 
 
-def select_penalty(x: np.ndarray, y: np.ndarray, clips, penalties, folds: int, seed: int) -> tuple[float, dict]:
-    """The ridge penalty whose probe predicts held-out train clips best (mean R^2 over the targets, ``folds``
-    folds of whole clips), and each candidate's score. Thousands of features on a few thousand pairs: a
-    penalty too weak overfits the clips it saw, so it is chosen on train, never on val."""
+def select_penalty(x: np.ndarray, y: np.ndarray, clips, penalties, folds: int,
+                   seed: int) -> tuple[list[float], list[dict[float, float]]]:
+    """Per target column, the ridge penalty whose probe predicts held-out train clips best (R^2 over ``folds``
+    folds of whole clips), and each candidate's score per target. Thousands of features on a few thousand
+    pairs: a penalty too weak overfits the clips it saw, so it is chosen on train, never on val; and per
+    target, since speed and yaw rate are read from different parts of the latent."""
     labels = np.asarray([str(c) for c in clips])
     unique = np.random.default_rng(seed).permutation(np.unique(labels))
     if len(unique) < folds:
@@ -280,21 +288,23 @@ def select_penalty(x: np.ndarray, y: np.ndarray, clips, penalties, folds: int, s
                          f"got {len(unique)}")
     fold = dict(zip(unique, np.arange(len(unique)) % folds))
     assigned = np.array([fold[c] for c in labels])
-    r2: dict[float, list[float]] = {float(p): [] for p in penalties}
+    candidates = [float(p) for p in penalties]
+    r2 = np.zeros((len(candidates), y.shape[1], folds))
     for k in range(folds):
         held = assigned == k
-        for penalty, model in zip(r2, ridge_path(x[~held], y[~held], r2)):
+        for i, model in enumerate(ridge_path(x[~held], y[~held], candidates)):
             pred = ridge_predict(model, x[held])
-            r2[penalty] += [weighted_r2(y[held, j], pred[:, j], np.ones(int(held.sum()))) for j in range(y.shape[1])]
-    scores = {penalty: float(np.mean(values)) for penalty, values in r2.items()}
-    return max(scores, key=scores.get), scores
+            r2[i, :, k] = [weighted_r2(y[held, j], pred[:, j], np.ones(int(held.sum()))) for j in range(y.shape[1])]
+    scores = r2.mean(axis=2)
+    best = [candidates[i] for i in scores.argmax(axis=0)]
+    return best, [dict(zip(candidates, scores[:, j].tolist())) for j in range(y.shape[1])]
 
 
 def ego_motion_probe(train: tuple[np.ndarray, np.ndarray], val: tuple[np.ndarray, np.ndarray], val_clips,
-                     penalty: float, reps: int, seed: int,
+                     penalty, reps: int, seed: int,
                      names=("speed", "yaw_rate")) -> tuple[dict[str, Any], tuple[np.ndarray, ...]]:
     """Val R^2 (clip-bootstrap interval) of a ridge probe per target, and of the same probe on shuffled targets;
-    also the fitted probe.
+    also the fitted probe. ``penalty``: one per target (:func:`select_penalty`) or one for all.
 
     The shuffled control trains on train targets permuted across pairs: what R^2 a probe
     reaches without any real relation (about zero or below).
@@ -585,7 +595,10 @@ def latent_statistics(cache: LatentCache, data: DataConfig, settings,
     penalty, cv_r2 = select_penalty(*pairs["train"], settings.ridge, settings.probe_folds, seed)
     record, probe = ego_motion_probe(pairs["train"][:2], pairs["val"][:2], pairs["val"][2], penalty,
                                      settings.bootstrap_reps, seed)
-    out["ego_motion_probe"] = {**record, "penalty": penalty, "train_cv_r2": cv_r2,
+    names = ("speed", "yaw_rate")
+    out["ego_motion_probe"] = {**record, "penalty": dict(zip(names, penalty)),
+                               "train_cv_r2": {name: {str(p): r for p, r in scores.items()}
+                                               for name, scores in zip(names, cv_r2)},
                                "features": f"abstract latents at t and t + {step / data.fps:g} s, "
                                            + (f"{settings.strips} vertical strips x channels" if settings.strips
                                             else "the whole latent grid")}
