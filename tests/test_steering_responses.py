@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from orbis2.eval.steering import (
+    choose_guidance,
     image_turns,
     latent_turns,
     mode_record,
@@ -110,3 +111,19 @@ def test_image_turns_read_a_known_pan():
     np.testing.assert_allclose(out["commanded_turn_deg"], np.degrees([0.4, 0.4]))
     still = image_turns([np.repeat(video[:1], 11, axis=0)], [(np.ones(10), yaw)], fps=10.0, hfov_deg=90.0)
     assert abs(still["turn_deg"][0]) < 1e-6
+
+
+def test_choose_guidance_takes_the_smallest_scale_that_resolves_both_steps():
+    def record(low_lower, low_upper):
+        steps = {"original - yaw_rate_x0.5": {"low": low_lower}, "yaw_rate_x1.5 - original": {"low": low_upper}}
+        return {"responses": {"learned": {"turn_steps_deg": steps}}}
+
+    records = {1.0: record(5.0, -0.9), 2.0: record(8.5, 3.3), 3.0: record(9.0, 4.0)}
+    result = choose_guidance(records, "learned", material=2.0)
+    assert result["chosen"] == 2.0 and result["resolved"]
+    assert result["smaller_step_low_deg"] == {1.0: -0.9, 2.0: 3.3, 3.0: 4.0}
+    # None resolves: the scale with the largest smaller lower bound, flagged unresolved.
+    result = choose_guidance(records, "learned", material=5.0)
+    assert result["chosen"] == 3.0 and not result["resolved"]
+    with pytest.raises(ValueError, match="lacks the yaw-rate modes"):
+        choose_guidance({1.0: {"responses": {"learned": {"turn_steps_deg": {}}}}}, "learned", 2.0)

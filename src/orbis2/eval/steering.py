@@ -211,6 +211,28 @@ def steering_responses(per_sample: dict, name: str, clusters: list[str], seed: i
     return out
 
 
+def choose_guidance(records: dict[float, dict[str, Any]], instrument: str, material: float) -> dict[str, Any]:
+    """The steering-guidance scale a selection split supports, from ``eval_steering`` records keyed by scale.
+
+    The smallest scale whose two ordering steps (original - yaw x0.5, yaw x1.5 - original) read by
+    ``instrument`` both have an interval lower bound above ``material`` degrees; if none does, the scale
+    whose smaller lower bound is largest. Smallest, because a larger scale moves the subgoals further
+    sideways than real ones (over-steer) once the ordering is already resolved.
+    """
+    if not records:
+        raise ValueError("choose_guidance needs at least one record")
+    lows = {}
+    for scale, record in records.items():
+        steps = record["responses"][instrument]["turn_steps_deg"]
+        if len(steps) != 2:
+            raise ValueError(f"the record of guidance {scale:g} lacks the yaw-rate modes {YAW_ORDER}")
+        lows[float(scale)] = min(step["low"] for step in steps.values())
+    passing = sorted(scale for scale, low in lows.items() if low > material)
+    chosen = passing[0] if passing else max(lows, key=lows.get)
+    return {"chosen": chosen, "resolved": bool(passing), "instrument": instrument, "material_deg": material,
+            "smaller_step_low_deg": lows}
+
+
 def real_videos(clips: dict[str, Clip], samples: list[Sample], indices: list[np.ndarray]) -> list[np.ndarray]:
     """The real frames of each evaluated span: the last context frame, then the generated frames' indices."""
     return [clips[s.key].frames(np.concatenate([[s.context_end], idx])) for s, idx in zip(samples, indices)]
