@@ -12,6 +12,7 @@ import os
 import shutil
 import sqlite3
 import subprocess
+import sys
 from collections import Counter
 from pathlib import Path
 
@@ -174,6 +175,13 @@ def test_snakemake_smoke_dag(tmp_path):
     assert "rule action:" in out and "rule eval_steering:" in out and "rule report_main:" in out
     assert "rule abstract_tf:" not in out and "rule eval_fvd_hierarchical:" not in out
     assert len([r for r in mlflow_runs(root / "mlflow.db") if r[2] is None]) == 2  # one parent per invocation
+
+    # The guidance scale chosen on val starts from the trained models (one eval_steering per scale).
+    run([sys.executable, "tools/select_guidance.py", "--guidance", "1", "2", "--out", "selection"], root)
+    chosen = json.loads((root / "selection/selection.json").read_text())
+    assert chosen["split"] == "val" and chosen["chosen"] in (1.0, 2.0) and set(chosen["smaller_step_low_deg"]) == {
+        "1.0", "2.0"}
+    assert all(json.loads((root / f"selection/steering_g{w}.json").read_text())["split"] == "val" for w in (1, 2))
 
 
 def test_dvc_repro_smoke_dag(tmp_path):
