@@ -17,6 +17,7 @@ import numpy as np
 
 from orbis2.accel import default_device
 from orbis2.eval.conditioning import (
+    EGO_MOTION_TARGETS,
     evaluate_predictor,
     latent_statistics,
     latent_steering_response,
@@ -86,7 +87,7 @@ def main(argv: list[str] | None = None) -> None:
         run.log_metrics({f"latents_{level}_{k}": latents[level][k] for level in KINDS
                          for k in ("varying_share", "within_clip_share", "repeat_last_relative")})
         probe = latents["ego_motion_probe"]
-        run.log_metrics({f"ego_probe_{name}_r2": probe[name]["r2"] for name in ("speed", "yaw_rate")
+        run.log_metrics({f"ego_probe_{name}_r2": probe[name]["r2"] for name in EGO_MOTION_TARGETS
                          if np.isfinite(probe[name]["r2"])})
         responses = record.get("steering_response", {}).get("responses", {})
         run.log_metrics({f"steering_latent_response_{name}": r["relative"] for name, r in responses.items() if r})

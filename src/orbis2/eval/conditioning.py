@@ -218,6 +218,9 @@ def energy_shares(clips: list[np.ndarray], template: np.ndarray, step: int) -> d
             "repeat_last_relative": repeat_mse / variation, "frames": int(sum(len(x) for x in clips))}
 
 
+EGO_MOTION_TARGETS = ("speed", "yaw_rate")  # the probe's target columns, in odometry order
+
+
 def probe_features(latents: np.ndarray, strips: int) -> np.ndarray:
     """[N, C, h, w] -> [N, C * strips]: channel means over ``strips`` vertical strips (left to right);
     ``strips`` = 0 keeps the whole grid, [N, C * h * w]. A 16-channel latent loses most of the
@@ -280,7 +283,7 @@ def select_penalty(x: np.ndarray, y: np.ndarray, clips, penalties, folds: int,
     """Per target column, the ridge penalty whose probe predicts held-out train clips best (R^2 over ``folds``
     folds of whole clips), and each candidate's score per target. Thousands of features on a few thousand
     pairs: a penalty too weak overfits the clips it saw, so it is chosen on train, never on val; and per
-    target, since speed and yaw rate are read from different parts of the latent."""
+    target, since the targets need not share their best penalty (speed wants a stronger one here)."""
     labels = np.asarray([str(c) for c in clips])
     unique = np.random.default_rng(seed).permutation(np.unique(labels))
     if len(unique) < folds:
@@ -302,7 +305,7 @@ def select_penalty(x: np.ndarray, y: np.ndarray, clips, penalties, folds: int,
 
 def ego_motion_probe(train: tuple[np.ndarray, np.ndarray], val: tuple[np.ndarray, np.ndarray], val_clips,
                      penalty, reps: int, seed: int,
-                     names=("speed", "yaw_rate")) -> tuple[dict[str, Any], tuple[np.ndarray, ...]]:
+                     names=EGO_MOTION_TARGETS) -> tuple[dict[str, Any], tuple[np.ndarray, ...]]:
     """Val R^2 (clip-bootstrap interval) of a ridge probe per target, and of the same probe on shuffled targets;
     also the fitted probe. ``penalty``: one per target (:func:`select_penalty`) or one for all.
 
@@ -530,7 +533,7 @@ def latent_steering_response(readouts: dict[str, np.ndarray], modes: dict[str, l
         means["commanded"] = sign * commanded[sel, command]
         for mode, values in means.items():
             out["modes"].setdefault(mode, {})[name] = float(values.mean()) if sel.any() else None
-        motion = ("speed", "yaw_rate")[command]
+        motion = EGO_MOTION_TARGETS[command]
         low_mode, high_mode = f"{motion}_x0.5", f"{motion}_x1.5"
         if len(set(clusters[sel])) < 2 or gain <= 0 or low_mode not in modes or high_mode not in modes:
             out["responses"][name] = None
@@ -595,10 +598,9 @@ def latent_statistics(cache: LatentCache, data: DataConfig, settings,
     penalty, cv_r2 = select_penalty(*pairs["train"], settings.ridge, settings.probe_folds, seed)
     record, probe = ego_motion_probe(pairs["train"][:2], pairs["val"][:2], pairs["val"][2], penalty,
                                      settings.bootstrap_reps, seed)
-    names = ("speed", "yaw_rate")
-    out["ego_motion_probe"] = {**record, "penalty": dict(zip(names, penalty)),
+    out["ego_motion_probe"] = {**record, "penalty": dict(zip(EGO_MOTION_TARGETS, penalty)),
                                "train_cv_r2": {name: {str(p): r for p, r in scores.items()}
-                                               for name, scores in zip(names, cv_r2)},
+                                               for name, scores in zip(EGO_MOTION_TARGETS, cv_r2)},
                                "features": f"abstract latents at t and t + {step / data.fps:g} s, "
                                            + (f"{settings.strips} vertical strips x channels" if settings.strips
                                             else "the whole latent grid")}
