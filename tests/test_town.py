@@ -172,17 +172,49 @@ def test_ego_behaviour_stops_turns_and_stays_in_bounds(town, tracks):
         assert tr.speed.max() > 5.0  # it does cruise
         assert np.all(np.abs(np.diff(tr.speed)) * FPS <= 4.5 + 1e-9)  # bounded accel / braking
         assert np.all(np.abs(tr.yaw_rate) < 2.0)
-        on_road = (np.min(np.abs(town.road_x[None] - tr.x[:, None]), 1) < town.half_width) | (
-            np.min(np.abs(town.road_y[None] - tr.y[:, None]), 1) < town.half_width)
-        assert on_road.all()
-        # Driving along a road (heading within ~2 deg of an axis) means near a lane centre.
         hw = town.half_width
+        on_straight = (np.min(np.abs(town.road_x[None] - tr.x[:, None]), 1) < hw) | (
+            np.min(np.abs(town.road_y[None] - tr.y[:, None]), 1) < hw)
+        bend = town.bend_offset(tr.x, tr.y)
+        assert np.where(np.isnan(bend), on_straight, np.abs(bend) < hw).all()
+        # Driving along a road (heading within ~2 deg of an axis) means near a lane centre.
         along_x, along_y = np.abs(np.cos(tr.yaw)) > 0.9995, np.abs(np.sin(tr.yaw)) > 0.9995
         lanes_y = np.concatenate([town.road_y - hw / 2, town.road_y + hw / 2])
         lanes_x = np.concatenate([town.road_x - hw / 2, town.road_x + hw / 2])
         assert along_x.sum() + along_y.sum() > 0.5 * len(tr.t)
         assert np.all(np.min(np.abs(tr.y[along_x, None] - lanes_y), 1) < 0.25)
         assert np.all(np.min(np.abs(tr.x[along_y, None] - lanes_x), 1) < 0.25)
+
+
+def test_corners_are_bends_the_ego_drives_in_lane(town):
+    """A grid corner is a quarter-circle bend without traffic; the ego follows its lane round it
+    at the yaw rate of the lane's circle, and the camera sees road below it."""
+    hw = town.half_width
+    driven = []
+    for seed in range(6, 60):
+        tr = simulate_ego(town, seed, 20.0, FPS)
+        in_bend = ~np.isnan(town.bend_offset(tr.x, tr.y))
+        if in_bend.sum() >= 3 * FPS:
+            driven.append((tr, in_bend))
+    assert len(driven) >= 2
+    for tr, in_bend in driven[:2]:
+        offset = town.bend_offset(tr.x, tr.y)[in_bend]
+        assert np.all(np.abs(np.abs(offset) - hw / 2) < 0.35)  # on a lane centre
+        # Curvature of the driven path against its lane circle's (radius: distance to the centre).
+        turning = in_bend & (np.abs(tr.yaw_rate) > 0.05) & (tr.speed > 1.0)
+        corner = (tr.x > np.mean(town.road_x[[0, -1]])).astype(int) + 2 * (tr.y > np.mean(town.road_y[[0, -1]]))
+        lane_radius = town.bend_radius[corner[turning]] - town.bend_offset(tr.x[turning], tr.y[turning])
+        ratio = np.abs(tr.yaw_rate[turning]) / tr.speed[turning] * lane_radius
+        assert turning.sum() >= 2 * FPS and abs(np.median(ratio) - 1.0) < 0.1
+        frames = np.flatnonzero(in_bend)[::10]
+        short = EgoTrack(tr.t[frames], tr.x[frames], tr.y[frames], tr.yaw[frames], tr.speed[frames],
+                         tr.yaw_rate[frames])
+        for _, _, labels in render_episode(town, CAM, short):
+            assert labels[-1, CAM.width // 2] == IDS["road"]
+    for t in (0.0, 7.0, 30.0):  # the ring road carries no traffic
+        cars = town.car_boxes(t)
+        offset = town.bend_offset(cars[:, 0], cars[:, 1])
+        assert np.all(np.isnan(offset) | (np.abs(offset) > hw + 0.5))
 
 
 def test_ego_keeps_its_lane_in_the_rendered_frames(town, tracks):
@@ -229,8 +261,12 @@ def test_world_turns_often_both_ways_at_graded_rates():
     town = Town.generate("default", 3)
     tracks = [simulate_ego(town, seed, 20.0, FPS) for seed in range(32)]
     yaw_rate = np.concatenate([t.yaw_rate for t in tracks])
-    m = motion_statistics(np.concatenate([t.speed for t in tracks]), yaw_rate)
+    x, y = np.concatenate([t.x for t in tracks]), np.concatenate([t.y for t in tracks])
+    m = motion_statistics(np.concatenate([t.speed for t in tracks]), yaw_rate,
+                          on_bend=~np.isnan(town.bend_offset(x, y)))
     assert m["turning"] >= 0.2
+    # Curves as well as junctions: the corner bends, gentler than a junction turn.
+    assert m["bend_turning"] >= 0.02 and 0.15 <= m["bend_yaw_rate_median"] <= 0.45
     assert 0.6 <= m["left_right_ratio"] <= 1.6
     # Cruising 8-14 m/s between junctions a few seconds apart, 1.9-13.5 m/s on the turn arcs: an urban
     # drive's 6-14 m/s when moving.
@@ -256,3 +292,8 @@ def test_motion_statistics_known_answer():
     assert graded["turning_yaw_rate_median"] == pytest.approx(0.4)
     assert graded["turning_yaw_rate_p99"] == pytest.approx(0.2 + 0.99 * 0.4)
     assert motion_statistics(np.ones(3), np.zeros(3))["turning_yaw_rate_median"] == 0.0
+    bends = motion_statistics(speed, yaw, on_bend=np.array([False, True, True, True]))
+    assert bends["bend"] == 0.75 and bends["bend_turning"] == 0.5
+    assert bends["bend_yaw_rate_median"] == pytest.approx(0.1)
+    with pytest.raises(ValueError, match="on_bend"):
+        motion_statistics(speed, yaw, on_bend=np.ones(3, bool))

@@ -14,7 +14,7 @@ SPEED_BINS = np.arange(0.0, 16.0, 2.0)  # m/s, last bin open
 YAW_BINS = np.array([-np.inf, -0.5, -0.2, -0.05, 0.05, 0.2, 0.5, np.inf])  # rad/s
 
 
-def motion_statistics(speed: np.ndarray, yaw_rate: np.ndarray) -> dict[str, float]:
+def motion_statistics(speed: np.ndarray, yaw_rate: np.ndarray, on_bend: np.ndarray | None = None) -> dict[str, float]:
     """Per-frame shares and means over concatenated (speed, yaw_rate) samples.
 
     ``turning`` = share of frames with |yaw rate| > TURN_THRESHOLD, split into ``left`` (counter-
@@ -22,6 +22,9 @@ def motion_statistics(speed: np.ndarray, yaw_rate: np.ndarray) -> dict[str, floa
     are shares per bin (speed bins of 2 m/s; yaw-rate bins edged at +-0.05, 0.2, 0.5 rad/s).
     ``turning_yaw_rate_median`` and ``_p99``: |yaw rate| over the turning frames (0 without any),
     how graded the turns are, i.e. which steering counterfactuals stay inside the data.
+    With ``on_bend`` (per frame: the ego is on a road curve, not at a junction): ``bend`` = share
+    of frames on a curve, ``bend_turning`` = share turning there, ``bend_yaw_rate_median`` = the
+    median |yaw rate| of those frames (0 without any).
     """
     v = np.asarray(speed, np.float64)
     w = np.asarray(yaw_rate, np.float64)
@@ -43,6 +46,14 @@ def motion_statistics(speed: np.ndarray, yaw_rate: np.ndarray) -> dict[str, floa
     turning = np.abs(w[np.abs(w) > TURN_THRESHOLD])
     out["turning_yaw_rate_median"] = float(np.median(turning)) if turning.size else 0.0
     out["turning_yaw_rate_p99"] = float(np.percentile(turning, 99)) if turning.size else 0.0
+    if on_bend is not None:
+        bend = np.asarray(on_bend, bool)
+        if bend.shape != v.shape:
+            raise ValueError(f"on_bend must have the shape of speed {v.shape}, got {bend.shape}")
+        bend_turning = bend & (np.abs(w) > TURN_THRESHOLD)
+        out["bend"] = float(bend.mean())
+        out["bend_turning"] = float(bend_turning.mean())
+        out["bend_yaw_rate_median"] = float(np.median(np.abs(w[bend_turning]))) if bend_turning.any() else 0.0
     speed_hist = np.histogram(np.minimum(v, SPEED_BINS[-1] + 1.0), np.append(SPEED_BINS, np.inf))[0] / v.size
     yaw_hist = np.histogram(w, YAW_BINS)[0] / w.size
     out.update({f"speed_hist_{lo:g}": float(h) for lo, h in zip(SPEED_BINS, speed_hist)})

@@ -67,20 +67,24 @@ def cached_town(style: str, seed: int) -> Town:
     return Town.generate(style, seed)
 
 
+def split_town(cfg: TownConfig, split: str) -> tuple[str, int]:
+    """(style, town seed) a split drives in: the heldout split has its own town and style."""
+    return ("heldout", derive_seed(cfg.seed, 1)) if split == "heldout" else ("default", derive_seed(cfg.seed, 0))
+
+
 def plan_episodes(cfg: TownConfig, fps: int) -> list[EpisodePlan]:
-    main_town = derive_seed(cfg.seed, 0)
-    heldout_town = derive_seed(cfg.seed, 1)
     plans = []
     for split in ("train", "val", "probe", "heldout"):
-        town_seed, style = (heldout_town, "heldout") if split == "heldout" else (main_town, "default")
+        style, town_seed = split_town(cfg, split)
         plans += [EpisodePlan(split, i, style, town_seed, derive_seed(cfg.seed, SPLIT_CODES[split], i),
                               cfg.episode_seconds[split]) for i in range(cfg.episodes[split])]
-    town = cached_town("default", main_town)
+    style, main_town = split_town(cfg, "turns")
+    town = cached_town(style, main_town)
     seconds = cfg.episode_seconds["turns"]
     candidates = [derive_seed(cfg.seed, SPLIT_CODES["turns"], i) for i in range(cfg.turns_candidates)]
     yaw = [simulate_ego(town, s, seconds, fps).total_abs_yaw() for s in candidates]
     chosen = sorted(np.argsort(yaw, kind="stable")[::-1][: cfg.episodes["turns"]])
-    plans += [EpisodePlan("turns", i, "default", main_town, candidates[c], seconds) for i, c in enumerate(chosen)]
+    plans += [EpisodePlan("turns", i, style, main_town, candidates[c], seconds) for i, c in enumerate(chosen)]
     return plans
 
 
@@ -139,13 +143,17 @@ def build_town_dataset(root: Path, data: DataConfig, cfg: TownConfig) -> RawInde
     return index
 
 
-def split_motion_statistics(root: Path, index: RawIndex) -> dict[str, dict[str, float]]:
-    """`motion_statistics` of every split's odometry (the world's speeds and turns, per split)."""
+def split_motion_statistics(root: Path, index: RawIndex, cfg: TownConfig) -> dict[str, dict[str, float]]:
+    """`motion_statistics` of every split's odometry (the world's speeds and turns, per split),
+    with the frames on the town's corner bends (from the ego poses)."""
     stats = {}
     for split in sorted({e.split for e in index.episodes}):
         odo = [read_odometry(root / split / f"{e.stem}.parquet") for e in index.split(split)]
+        town = cached_town(*split_town(cfg, split))
+        x, y = np.concatenate([o["x"] for o in odo]), np.concatenate([o["y"] for o in odo])
         stats[split] = motion_statistics(np.concatenate([o["speed"] for o in odo]),
-                                         np.concatenate([o["yaw_rate"] for o in odo]))
+                                         np.concatenate([o["yaw_rate"] for o in odo]),
+                                         on_bend=~np.isnan(town.bend_offset(x, y)))
     return stats
 
 

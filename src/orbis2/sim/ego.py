@@ -72,6 +72,8 @@ def _plan_route(town: Town, rng: np.random.Generator, length: float, ds: float =
 
     Lanes are the right-hand lane centres (lane width = road half width ``hw``). Turns are quarter
     circles tangent to both lane centres: radius 1.5 hw for right turns, 2.5 hw for left turns.
+    A corner of the grid is a bend: the route follows it (radius: the bend's plus or minus half a
+    lane, concentric with it) at sqrt(lateral acceleration x radius), with no junction to stop at.
     """
     hw, st = town.half_width, town.style
     roads = (town.road_y, town.road_x)  # axis-0 roads run along x and sit at y = road_y[j]
@@ -85,7 +87,11 @@ def _plan_route(town: Town, rng: np.random.Generator, length: float, ds: float =
     road = int(rng.integers(len(roads[axis])))
     d = int(rng.choice([-1, 1]))
     seg = int(rng.integers(len(along[axis]) - 1))
-    s0 = rng.uniform(along[axis][seg] + hw + 8, along[axis][seg + 1] - hw - 8)
+    # Start on the straight part of the leg: clear of junctions, and of bends at grid corners.
+    c_lo, c_hi = (town.corner(*((k, road) if axis == 0 else (road, k))) for k in (seg, seg + 1))
+    lo = along[axis][seg] + (hw + 8 if c_lo is None else town.bend_radius[c_lo] + 3.0)
+    hi = along[axis][seg + 1] - (hw + 8 if c_hi is None else town.bend_radius[c_hi] + 3.0)
+    s0 = rng.uniform(min(lo, hi), max(lo, hi))  # a block under 23 m has no clear part: near its middle
     nxt = seg + 1 if d > 0 else seg
     cur = lane_point(axis, road, d, s0)
     pts, heads, kaps, lanes, turns, nodes = [], [], [], [], [], []
@@ -117,10 +123,12 @@ def _plan_route(town: Town, rng: np.random.Generator, length: float, ds: float =
                 options.append(sign)
                 weights.append((1.0 - st.straight_weight) * share)
         choice = options[rng.choice(len(options), p=np.asarray(weights) / np.sum(weights))]
-        nodes.append({"stop_xy": lane_point(axis, road, d, node_s - d * (hw + 6.3)), "ij": ij,
-                      "lane": (axis, road, d), "stop": rng.random() < st.stop_prob,
-                      "wait": rng.uniform(*st.stop_wait_s),
-                      "cruise": rng.uniform(*st.cruise_ms), "first": count})
+        bend = town.corner(*ij)
+        if bend is None:
+            nodes.append({"stop_xy": lane_point(axis, road, d, node_s - d * (hw + 6.3)), "ij": ij,
+                          "lane": (axis, road, d), "stop": rng.random() < st.stop_prob,
+                          "wait": rng.uniform(*st.stop_wait_s),
+                          "cruise": rng.uniform(*st.cruise_ms), "first": count})
         if choice == 0:
             end = lane_point(axis, road, d, node_s + d * (hw + 1.0))
             add_line(cur, end, (axis, road, d))
@@ -130,7 +138,12 @@ def _plan_route(town: Town, rng: np.random.Generator, length: float, ds: float =
         sign = float(choice)
         left = np.array([-h[1], h[0]])
         new_h = left * sign
-        radius = hw * (_R_TURN_LEFT if sign > 0 else _R_TURN_RIGHT)
+        if bend is None:
+            radius = hw * (_R_TURN_LEFT if sign > 0 else _R_TURN_RIGHT)
+            v_turn = (_V_TURN_LEFT if sign > 0 else _V_TURN_RIGHT) * rng.uniform(*st.turn_speed_scale)
+        else:
+            radius = town.bend_radius[bend] + sign * hw / 2
+            v_turn = math.sqrt(rng.uniform(*st.bend_lateral_accel_ms2) * radius)
         # Where the incoming and outgoing lane centres cross; the arc is tangent to both.
         corner = lane_point(axis, road, d, node_s) + np.array([new_h[1], -new_h[0]]) * hw / 2
         start = corner - h * radius
@@ -144,7 +157,6 @@ def _plan_route(town: Town, rng: np.random.Generator, length: float, ds: float =
         heads.append(ang + sign * np.pi / 2)
         kaps.append(np.full(n, sign / radius))
         lanes.append(np.full((n, 3), -1.0))
-        v_turn = (_V_TURN_LEFT if sign > 0 else _V_TURN_RIGHT) * rng.uniform(*st.turn_speed_scale)
         turns.append((count, count + n, v_turn))
         count += n
         total += radius * np.pi / 2

@@ -51,7 +51,9 @@ _FAR = 1.0e30  # "no hit" depth inside the kernels (converted to +inf on output)
  _S_GRASS2, _S_TERR, _S_TERR2, _S_ROOF, _S_GLASS) = range(0, 45, 3)
 (_S_FOG, _S_EXPO, _S_HW, _S_SW, _S_EXT, _S_KERB, _S_TILE, _S_DASH, _S_DASHP, _S_DOUBLE,
  _S_SMX0, _S_SMY0, _S_SMRES, _S_SMKX, _S_SMKY, _S_AOX0, _S_AOY0, _S_AORES, _S_SKYEL0,
- _S_SKYEL1, _S_N) = range(45, 66)
+ _S_SKYEL1) = range(45, 65)
+_S_BEND = 65  # four corner-bend radii (m): corners (x lo, y lo), (x hi, y lo), (x lo, y hi), (x hi, y hi)
+_S_N = _S_BEND + 4
 
 
 @_jit

@@ -1,10 +1,10 @@
 """Material kernels: procedural albedo of the surfaces the shading pass meets.
 
-Road asphalt with lane markings, stop lines and crosswalks (`_ground_material`) or open terrain;
-block tops with sidewalk tiles, kerb stones, lawn or paved yard (`_block_top_material`); building
-facades with floors, windows, frames, blinds and shop fronts (`_facade_material`); traffic sign
-faces (`_sign_face`); car bodies, cabins and wheels (`_car_material`). Each writes linear RGB
-into ``alb``; `orbis2.sim.shade` lights it.
+Road asphalt with lane markings, stop lines, crosswalks and the corner bends, or open terrain
+(`_ground_material`); block tops with sidewalk tiles, kerb stones, lawn or paved yard
+(`_block_top_material`); building facades with floors, windows, frames, blinds and shop fronts
+(`_facade_material`); traffic sign faces (`_sign_face`); car bodies, cabins and wheels
+(`_car_material`). Each writes linear RGB into ``alb``; `orbis2.sim.shade` lights it.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from orbis2.sim.kernels import (
     _K_WHEEL,
     _ROAD,
     _S_ASPH,
+    _S_BEND,
     _S_CLINE,
     _S_DASH,
     _S_DASHP,
@@ -89,14 +90,37 @@ def _road_markings(lat, along, dnode, fp_lat, fp_along, hw, xwalk, approach, st)
 
 
 @_jit
+def _corner_bend(wx, wy, road_x, road_y, st):
+    """(in a bend zone, lateral offset) of a ground point relative to the nearest corner bend.
+
+    Corner c of the grid is a quarter circle of road-centre radius R = ``st[_S_BEND + c]`` whose
+    centre lies R inside the corner on both axes. Its zone is the quarter plane beyond that centre
+    toward the corner: there the bend replaces the corner junction and the roads' extensions.
+    The offset is R minus the distance to the centre (positive toward the outside of the bend).
+    """
+    hi_x = wx > 0.5 * (road_x[0] + road_x[-1])
+    hi_y = wy > 0.5 * (road_y[0] + road_y[-1])
+    r = st[_S_BEND + int(hi_x) + 2 * int(hi_y)]
+    sx = -1.0 if hi_x else 1.0  # from the corner into the town
+    sy = -1.0 if hi_y else 1.0
+    dx = wx - (road_x[-1] if hi_x else road_x[0]) - sx * r
+    dy = wy - (road_y[-1] if hi_y else road_y[0]) - sy * r
+    if dx * sx >= 0.0 or dy * sy >= 0.0:
+        return False, 0.0
+    return True, r - math.hypot(dx, dy)
+
+
+@_jit
 def _ground_material(alb, wx, wy, fpx, fpy, fiso, grain, patch, tex, road_x, road_y, xwalk, st):
     """Road (asphalt, markings, kerb occlusion) or open terrain on the z = 0 plane -> (label, ao)."""
     hw = st[_S_HW]
+    in_bend, bend_lat = _corner_bend(wx, wy, road_x, road_y, st)
     ix, ddx = _nearest(road_x, wx)
     iy, ddy = _nearest(road_y, wy)
-    on_xr = abs(ddy) < hw and road_x[0] - st[_S_EXT] <= wx <= road_x[-1] + st[_S_EXT]
-    on_yr = abs(ddx) < hw and road_y[0] - st[_S_EXT] <= wy <= road_y[-1] + st[_S_EXT]
-    if not (on_xr or on_yr):
+    on_bend = in_bend and abs(bend_lat) < hw
+    on_xr = not in_bend and abs(ddy) < hw and road_x[0] - st[_S_EXT] <= wx <= road_x[-1] + st[_S_EXT]
+    on_yr = not in_bend and abs(ddx) < hw and road_y[0] - st[_S_EXT] <= wy <= road_y[-1] + st[_S_EXT]
+    if not (on_xr or on_yr or on_bend):
         f = 0.62 + 0.76 * grain
         _set3(alb, st[_S_TERR], st[_S_TERR + 1], st[_S_TERR + 2], f)
         _blend3(alb, st[_S_TERR2] * f, st[_S_TERR2 + 1] * f, st[_S_TERR2 + 2] * f, _smooth(0.35, 0.7, patch))
@@ -123,6 +147,12 @@ def _ground_material(alb, wx, wy, fpx, fpy, fiso, grain, patch, tex, road_x, roa
                                        inside and xwalk[ix, iy] > 0, approach, st)
         ao = 1.0 - 0.3 * math.exp(-(hw - abs(lat)) / 0.3)  # kerb occlusion
         tyre = _band(abs(abs(lat) - 0.5 * hw) - 0.75, 0.3, fp_lat)  # darker wheel tracks
+    elif on_bend:  # edge lines and a solid (or double) centre line: no overtaking in a bend
+        fp = max(fpx, fpy)
+        alat = abs(bend_lat)
+        paint = _band(alat - (hw - 0.3), 0.075, fp)
+        centre = _band(alat - 0.12, 0.06, fp) if st[_S_DOUBLE] > 0.5 else _band(bend_lat, 0.07, fp)
+        tyre = _band(abs(alat - 0.5 * hw) - 0.75, 0.3, fp)
     _set3(alb, st[_S_ASPH], st[_S_ASPH + 1], st[_S_ASPH + 2], f * (1.0 - 0.18 * tyre * patch))
     worn = 0.6 + 0.4 * wear
     _blend3(alb, st[_S_PAINT], st[_S_PAINT + 1], st[_S_PAINT + 2], paint * worn)

@@ -18,6 +18,12 @@ class TownStyle:
 
     blocks_per_axis: tuple[int, int] = (5, 7)
     block_size_m: tuple[float, float] = (22.0, 45.0)
+    # The four corners of the grid are bends, not junctions: the boundary roads form a ring
+    # whose corners are quarter circles (road centre radius drawn per corner), driven without
+    # stopping. The corner blocks are wider so that a bend ends well before the next junction.
+    corner_block_m: tuple[float, float] = (56.0, 72.0)
+    bend_radius_m: tuple[float, float] = (24.0, 40.0)
+    bend_lateral_accel_ms2: tuple[float, float] = (1.6, 3.0)
     lane_width_m: float = 3.5
     sidewalk_m: float = 3.0
     kerb_height_m: float = 0.15

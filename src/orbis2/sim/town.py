@@ -9,9 +9,12 @@ World model
 World frame: x east, y north, z up, metres; the ground plane is z = 0.
 
 * Roads form an irregular grid: roads running along x at the sorted positions ``Town.road_y`` and
-  roads running along y at ``Town.road_x`` (blocks ``style.block_size_m`` apart). Every road has two
-  lanes of ``style.lane_width_m`` with right-hand traffic and continues ``style.road_extension_m``
-  beyond the town into open terrain.
+  roads running along y at ``Town.road_x`` (blocks ``style.block_size_m`` apart, the outermost
+  ``style.corner_block_m``). Every road has two lanes of ``style.lane_width_m`` with right-hand
+  traffic and continues ``style.road_extension_m`` beyond the town into open terrain, except at
+  the four corners of the grid: there the two boundary roads meet in a bend, a quarter circle of
+  road-centre radius ``Town.bend_radius[c]`` (corner c = (x high) + 2 (y high)), so the boundary
+  roads form a ring road with curves. A corner block is a verge with trees, not a kerbed block.
 * Each block between four roads is a raised slab (``style.kerb_height_m``, its side is the kerb)
   whose outer band is sidewalk; inside it holds buildings (axis-aligned boxes on lots with
   setbacks, some with an upper tier) or a park (lawn, trees, hedges). Street lamps and trees line
@@ -19,6 +22,7 @@ World frame: x east, y north, z up, metres; the ground plane is z = 0.
   blobs) also fill a belt of terrain around the town; distant hills are huge flattened ellipsoids.
 * Other cars drive straight along lanes at constant per-lane speeds and wrap around at the ends
   of the extended roads, so their state is a pure function of (town seed, t) (`Town.car_boxes`).
+  The ring road carries no traffic: cars are axis-aligned prisms and could not follow a bend.
   They ignore each other and the ego: the ego follows them and gives way at junctions
   (`orbis2.sim.ego.simulate_ego`), and `orbis2.sim.render.render_episode` hides a car that would
   drive through the ego from behind, from the moment it is out of view behind it.
@@ -55,6 +59,7 @@ from orbis2.sim.kernels import (
     _S_AOX0,
     _S_AOY0,
     _S_ASPH,
+    _S_BEND,
     _S_CLINE,
     _S_DASH,
     _S_DASHP,
@@ -125,7 +130,8 @@ class Town:
     Build with `Town.generate(style, seed)`; everything is a pure function of (style, seed).
     Layout attributes: ``road_x`` (x of the roads running along y), ``road_y`` (y of the roads
     running along x), ``half_width`` (road half width = lane width, m), ``crosswalks`` [i, j]
-    per junction (road_x[i], road_y[j]). Traffic: one entry per car in the ``car_*`` arrays
+    per junction (road_x[i], road_y[j]), ``bend_radius`` [4] per corner bend (`Town.corner`).
+    Traffic: one entry per car in the ``car_*`` arrays
     (axis 0 = driving along x, road index, direction +-1, lane centre, speed, ...).
     """
 
@@ -155,10 +161,15 @@ class Town:
         roads = []
         for _ in range(2):
             n = int(rng.integers(st.blocks_per_axis[0], st.blocks_per_axis[1] + 1))
-            pos = np.concatenate([[0.0], np.cumsum(rng.uniform(*st.block_size_m, n))])
+            gaps = rng.uniform(*st.block_size_m, n)
+            gaps[[0, -1]] = rng.uniform(*st.corner_block_m, 2)
+            pos = np.concatenate([[0.0], np.cumsum(gaps)])
             roads.append(pos - pos[-1] / 2)
         self.road_x, self.road_y = roads
         nx, ny = len(self.road_x), len(self.road_y)
+        # A bend ends at least 12 m plus a half road before the next junction on either road.
+        room = np.minimum(np.diff(self.road_x)[[0, -1, 0, -1]], np.diff(self.road_y)[[0, 0, -1, -1]])
+        self.bend_radius = np.minimum(rng.uniform(*st.bend_radius_m, 4), room - hw - 12.0)
         self.crosswalks = (rng.random((nx, ny)) < st.crosswalk_prob).astype(np.uint8)
         b = _Builder()
         kerb = st.kerb_height_m
@@ -166,6 +177,9 @@ class Town:
             for j in range(ny - 1):
                 rect = (self.road_x[i] + hw, self.road_x[i + 1] - hw, self.road_y[j] + hw,
                         self.road_y[j + 1] - hw)
+                if i in (0, nx - 2) and j in (0, ny - 2):
+                    self._corner_verge(b, rng, rect)
+                    continue
                 park = rng.random() < st.park_fraction
                 paved = (not park) and rng.random() < st.paved_yard_fraction
                 b.box(*rect, 0.0, kerb, _K_BLOCK, (0, 0, 0), float(paved))
@@ -207,6 +221,14 @@ class Town:
             b.ellipsoid(x + 0.5 * r * np.cos(a), y + 0.5 * r * np.sin(a),
                         z0 + clear + rz + rng.uniform(-0.1, 0.5) * r, rr, rr * rng.uniform(0.8, 1.1),
                         _K_CANOPY, tint * rng.uniform(0.9, 1.1))
+
+    def _corner_verge(self, b: _Builder, rng, rect) -> None:
+        """A corner block: open terrain cut by the bend, with trees kept off the roads."""
+        x0, x1, y0, y1 = rect
+        n = int((x1 - x0) * (y1 - y0) / 220)
+        xy = rng.uniform((x0 + 2.5, y0 + 2.5), (x1 - 2.5, y1 - 2.5), (n, 2))
+        for x, y in xy[np.abs(self.bend_offset(xy[:, 0], xy[:, 1])) > self.half_width + 2.5]:
+            self._tree(b, rng, x, y, 0.0, rng.uniform(0.9, 1.3))
 
     def _park(self, b: _Builder, rng, rect) -> None:
         st = self.style
@@ -325,8 +347,10 @@ class Town:
         """Traffic signs on the right-hand corner of some intersection approaches."""
         hw, kerb = self.half_width, self.style.kerb_height_m
         metal = _lin(self.style.metal_rgb)
-        for x in self.road_x:
-            for y in self.road_y:
+        for i, x in enumerate(self.road_x):
+            for j, y in enumerate(self.road_y):
+                if self.corner(i, j) is not None:  # a bend, not a junction
+                    continue
                 for hx, hy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
                     if rng.random() > 0.45:
                         continue
@@ -385,6 +409,8 @@ class Town:
         for axis, (positions, along) in enumerate(((self.road_y, self.road_x), (self.road_x, self.road_y))):
             lo, hi = along[0] - ext, along[-1] + ext
             for road, c in enumerate(positions):
+                if road in (0, len(positions) - 1):  # the ring road
+                    continue
                 for d in (1, -1):
                     # Lane centre: right of the heading (d along the axis).
                     lat = c - d * hw / 2 if axis == 0 else c + d * hw / 2
@@ -411,6 +437,30 @@ class Town:
         self.car_width = np.where(self.car_type == 2, 1.95, 1.8)
         self.car_body_top = np.select([self.car_type == 2, self.car_type == 1], [1.25, 1.05], 1.0)
         self.car_height = self.car_body_top + np.where(self.car_type == 2, 0.75, 0.47)
+
+    # ---- corner bends
+
+    def corner(self, i: int, j: int) -> int | None:
+        """Index of the corner bend at grid node (road_x[i], road_y[j]), or None for a junction."""
+        nx, ny = len(self.road_x), len(self.road_y)
+        if i % (nx - 1) or j % (ny - 1):
+            return None
+        return int(i == nx - 1) + 2 * int(j == ny - 1)
+
+    def bend_offset(self, x, y) -> np.ndarray:
+        """Lateral offset (m) from the centre line of the nearest corner bend; NaN outside its zone.
+
+        The numpy twin of the ground shader's `_corner_bend`: the zone is the quarter plane beyond
+        the bend's centre toward its corner; the offset is R minus the distance to that centre.
+        """
+        x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+        hi_x = x > 0.5 * (self.road_x[0] + self.road_x[-1])
+        hi_y = y > 0.5 * (self.road_y[0] + self.road_y[-1])
+        r = self.bend_radius[hi_x.astype(int) + 2 * hi_y.astype(int)]
+        sx, sy = np.where(hi_x, -1.0, 1.0), np.where(hi_y, -1.0, 1.0)
+        dx = x - np.where(hi_x, self.road_x[-1], self.road_x[0]) - sx * r
+        dy = y - np.where(hi_y, self.road_y[-1], self.road_y[0]) - sy * r
+        return np.where((dx * sx < 0) & (dy * sy < 0), r - np.hypot(dx, dy), np.nan)
 
     def car_along(self, t) -> np.ndarray:
         """Position of every car along its road axis at time(s) t: shape t.shape + (n_cars,)."""
@@ -535,4 +585,5 @@ class Town:
         sh[_S_SMX0], sh[_S_SMY0], sh[_S_SMRES], sh[_S_SMKX], sh[_S_SMKY] = x0, y0, res, kx, ky
         sh[_S_AOX0], sh[_S_AOY0], sh[_S_AORES] = x0, y0, ao_res
         sh[_S_SKYEL0], sh[_S_SKYEL1] = sky_el
+        sh[_S_BEND:_S_BEND + 4] = self.bend_radius
         self.shading = sh
