@@ -401,7 +401,7 @@ class Town:
     # ---- traffic
 
     def _traffic(self) -> None:
-        """Cars on every lane of every road, constant per-lane speed, spaced randomly."""
+        """Cars on every lane of every road but the ring road, constant per-lane speed, spaced randomly."""
         st = self.style
         rng = _rng(self.seed, self._salt, 2)
         hw, ext = self.half_width, st.road_extension_m
