@@ -223,7 +223,8 @@ class Town:
                         _K_CANOPY, tint * rng.uniform(0.9, 1.1))
 
     def _corner_verge(self, b: _Builder, rng, rect) -> None:
-        """A corner block: open terrain cut by the bend, with trees kept off the roads."""
+        """A corner block: open terrain cut by the bend. Trees stand only in the bend's zone (the
+        part of the block toward the corner), 2.5 m or more off the road; the rest is open."""
         x0, x1, y0, y1 = rect
         n = int((x1 - x0) * (y1 - y0) / 220)
         xy = rng.uniform((x0 + 2.5, y0 + 2.5), (x1 - 2.5, y1 - 2.5), (n, 2))
