@@ -28,6 +28,7 @@ from orbis2.models.tokenizer import (
     build_discriminator,
     codebook_usage,
     load_mae_encoder,
+    to_uint8,
     tokenizer_config,
 )
 
@@ -322,3 +323,11 @@ def test_image_metrics():
     assert ssim(x, noisy) < 0.9
     assert ssim(x, noisy, reduction="none").shape == (2,)
     assert l1_reconstruction(x, x) == 0
+
+
+def test_to_uint8_maps_the_decoder_range_to_bytes_channels_last():
+    images = torch.tensor([-1.0, 0.0, 1.0, -3.0, 3.0, 0.5]).view(1, 3, 1, 2)
+    pixels = to_uint8(images)
+    assert pixels.dtype.name == "uint8" and pixels.shape == (1, 1, 2, 3)
+    # channel c of pixel (0, w) is images[0, c, 0, w]; out-of-range values saturate
+    assert pixels[0, 0].tolist() == [[0, 255, 255], [128, 0, 191]]

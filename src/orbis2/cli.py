@@ -29,7 +29,7 @@ from orbis2.io import atomic_file
 from orbis2.kinematics import integrate_odometry
 from orbis2.latents import encode_frames
 from orbis2.models.stdit import PredictorFile, load_predictor
-from orbis2.models.tokenizer import TokenizerFile, load_tokenizer
+from orbis2.models.tokenizer import TokenizerFile, load_tokenizer, to_uint8
 from orbis2.registry import layout_path
 from orbis2.rollout import cascaded_rollout, first_context_end, rollout_schedule, steering_sequences
 
@@ -144,11 +144,6 @@ def read_context(video: Path, cfg, needed: int) -> np.ndarray:
 # --------------------------------------------------------------------------- drawing
 
 
-def _to_uint8(images: torch.Tensor) -> np.ndarray:
-    """[N, 3, H, W] in [-1, 1] -> RGB uint8 [N, H, W, 3]."""
-    return ((images.clamp(-1, 1) + 1) * 127.5).round().byte().permute(0, 2, 3, 1).cpu().numpy()
-
-
 def draw_path_inset(frame: np.ndarray, x: np.ndarray, y: np.ndarray, current: int) -> np.ndarray:
     """A small top-down view of the steering path (x forward = up, y left = left) with the current position."""
     out = frame.copy()
@@ -249,7 +244,7 @@ def rollout_command(args: argparse.Namespace) -> str:
     generated = []
     with torch.inference_mode(), inference_autocast(device, args.precision):
         for chunk in details[0].split(8):
-            generated.append(_to_uint8(detail_tok.model.decode(detail_tok.denormalize(chunk)).float()))
+            generated.append(to_uint8(detail_tok.model.decode(detail_tok.denormalize(chunk))))
     context_frames = frames[list(first.detail_context)]
     video = np.concatenate([context_frames, np.concatenate(generated)])
     indices = np.array(list(first.detail_context) + [i for s in schedule for i in s.detail_target])

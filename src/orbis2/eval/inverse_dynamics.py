@@ -35,7 +35,7 @@ from orbis2.errors import OrbisError
 from orbis2.kinematics import integrate_controls
 from orbis2.latents import encode_frames
 from orbis2.models.inverse_dynamics import InverseDynamicsNet
-from orbis2.models.tokenizer import load_tokenizer
+from orbis2.models.tokenizer import load_tokenizer, to_uint8
 
 # The file the ``inverse_dynamics`` stage publishes in its output folder (what ``evaluation.inverse_dynamics:
 # learned`` loads).
@@ -218,6 +218,6 @@ def reconstruct(tokenizer_file: Path, shards: Path, split: str, data: ClipFrames
         with torch.inference_mode():
             for s in range(0, len(full), chunk):
                 image = tokenizer.model.decode(encode_frames(tokenizer, full[s:s + chunk]).to(device))
-                parts.append(((image.clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8).permute(0, 2, 3, 1).cpu())
-        frames.append(resize(torch.cat(parts).numpy(), scale))
+                parts.append(to_uint8(image))
+        frames.append(resize(np.concatenate(parts), scale))
     return ClipFrames(frames, data.odometry, data.keys)

@@ -38,7 +38,7 @@ from orbis2.config import DataConfig, EvaluationConfig
 from orbis2.errors import OrbisError
 from orbis2.latents import LatentCache
 from orbis2.models.stdit import PredictorFile, load_predictor
-from orbis2.models.tokenizer import TokenizerFile, load_tokenizer
+from orbis2.models.tokenizer import TokenizerFile, load_tokenizer, to_uint8
 from orbis2.registry import System, registry
 from orbis2.rollout import ScheduleStep, cascaded_rollout, first_context_end, flat_rollout, rollout_schedule
 
@@ -128,15 +128,10 @@ class LoadedSystem:
         """Normalised latents [B, T, C, h, w] -> RGB uint8 [B, T, H, W, 3] through the output level's tokenizer."""
         tokenizer = self.tokenizers[self.output_level]
         b, t = latents.shape[:2]
-
-        def to_uint8(images: torch.Tensor) -> torch.Tensor:
-            # Per chunk: float copies of every frame at once would cost 16 bytes per pixel and channel.
-            return ((images.float().clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8).permute(0, 2, 3, 1).cpu()
-
         with inference_autocast(self.device, self.inference.precision):
-            frames = torch.cat([to_uint8(tokenizer.model.decode(tokenizer.denormalize(part)))
-                                for part in latents.flatten(0, 1).split(chunk)])
-        return frames.numpy().reshape(b, t, *frames.shape[1:])
+            frames = np.concatenate([to_uint8(tokenizer.model.decode(tokenizer.denormalize(part)))
+                                     for part in latents.flatten(0, 1).split(chunk)])
+        return frames.reshape(b, t, *frames.shape[1:])
 
 
 def load_system(name: str, predictors: Mapping[str, Path], tokenizers: Mapping[str, Path],

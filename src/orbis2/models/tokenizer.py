@@ -23,6 +23,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -661,6 +662,16 @@ def _encoder(cfg: TokenizerConfig) -> ViTEncoder:
         mlp_ratio=cfg.mlp_ratio,
         learn_pos_embed=cfg.learn_pos_embed,
     )
+
+
+def to_uint8(images: torch.Tensor) -> np.ndarray:
+    """Decoded images ``[B, 3, H, W]`` in [-1, 1] -> RGB uint8 ``[B, H, W, 3]`` (on the CPU).
+
+    Converted on the images' device, so that only bytes leave it; callers decode in chunks and
+    convert each one, which keeps float copies of whole videos out of memory.
+    """
+    pixels = ((images.detach().float().clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8)
+    return pixels.permute(0, 2, 3, 1).cpu().numpy()
 
 
 def build_detail_tokenizer(config: TokenizerConfig | str = "default") -> DetailTokenizer:

@@ -58,6 +58,7 @@ from orbis2.models.tokenizer import (
     codebook_usage,
     load_mae_encoder,
     save_tokenizer,
+    to_uint8,
     tokenizer_config,
 )
 from orbis2.train import DataSpec, Update, load_weights, train, unwrap
@@ -103,11 +104,6 @@ def to_images(frames: np.ndarray | torch.Tensor) -> torch.Tensor:
     """RGB uint8 ``[B, H, W, 3]`` -> float ``[B, 3, H, W]`` in [-1, 1]."""
     frames = torch.as_tensor(frames)
     return frames.permute(0, 3, 1, 2).float().div(127.5).sub(1.0).contiguous()
-
-
-def to_uint8(images: torch.Tensor) -> np.ndarray:
-    """Float ``[B, 3, H, W]`` in [-1, 1] -> RGB uint8 ``[B, H, W, 3]``."""
-    return ((images.detach().float().cpu() + 1.0) * 127.5).round().clamp(0, 255).byte().permute(0, 2, 3, 1).numpy()
 
 
 def _shuffled(items: Iterable[Any], rng: np.random.Generator, size: int) -> Iterator[Any]:
