@@ -5,11 +5,6 @@ from orbis2.data.importer import input_files
 SOURCE = section("data")["source"]
 
 
-rule all:
-    input:
-        "reports/main_table.csv",
-
-
 rule town:
     threads: CPU["threads"]  # one process per core
     resources: **resources_of(CPU)
