@@ -1,11 +1,16 @@
-"""Shared fixtures: the project root, a config for the smoke profile, tiny synthetic videos."""
+"""Shared fixtures: the project root, a config for the smoke profile, tiny synthetic videos, and one
+smoke-profile project run through the main job and `reports/all` for the whole session."""
 
 from __future__ import annotations
 
+import os
+import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from orbis2.config import load_config
 from orbis2.data.video import write_video
@@ -35,3 +40,43 @@ def make_video(tmp_path):
         return path
 
     return make
+
+
+def project_copy(dest: Path) -> Path:
+    """Tracked and untracked-but-not-ignored files, as a fresh clone would have them, in a new git repo
+    whose params.yaml selects the smoke profile."""
+    files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=ROOT, capture_output=True,
+                           text=True, check=True).stdout.split()
+    for name in files:
+        if (ROOT / name).is_file():
+            (dest / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(ROOT / name, dest / name)
+    params = yaml.safe_load((dest / "params.yaml").read_text())
+    params["profile"] = "smoke"
+    (dest / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    for cmd in (["git", "init", "-q"], ["git", "add", "-A"], ["git", "commit", "-qm", "copy"]):
+        subprocess.run(cmd, cwd=dest, check=True, capture_output=True)
+    return dest
+
+
+def project_env(root: Path) -> dict[str, str]:
+    """The environment of a command run in a project copy: its own MLflow store, a new invocation id."""
+    env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{root / 'mlflow.db'}"}
+    env.pop("ORBIS2_PIPELINE_ID", None)
+    return env
+
+
+def run(cmd: list[str], cwd: Path) -> str:
+    proc = subprocess.run(cmd, cwd=cwd, env=project_env(cwd), capture_output=True, text=True, timeout=3600)
+    assert proc.returncode == 0, f"{' '.join(cmd)} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
+    return proc.stdout + proc.stderr
+
+
+@pytest.fixture(scope="session")
+def smoke_project(tmp_path_factory) -> Path:
+    """A fresh copy run as the README says, at the smoke scale: the main job, then every ablation.
+    Tests that change it work on their own copy (see test_docs) or run last on it (test_pipeline)."""
+    root = project_copy(tmp_path_factory.mktemp("smoke_project"))
+    run(["snakemake", "--cores", "2"], root)
+    run(["snakemake", "--cores", "2", "reports/all"], root)
+    return root

@@ -27,33 +27,9 @@ from orbis2.models.stdit import load_predictor
 from orbis2.models.tokenizer import load_tokenizer
 from orbis2.tasks.predictors import STAGES as STAGE_SPECS
 
-from conftest import ROOT
+from conftest import ROOT, project_copy, run
 
 pytestmark = pytest.mark.slow
-
-
-def project_copy(dest: Path) -> Path:
-    """Tracked and untracked-but-not-ignored files, as a fresh clone would have them, in a new git repo."""
-    files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=ROOT, capture_output=True,
-                           text=True, check=True).stdout.split()
-    for name in files:
-        if (ROOT / name).is_file():
-            (dest / name).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(ROOT / name, dest / name)
-    params = yaml.safe_load((dest / "params.yaml").read_text())
-    params["profile"] = "smoke"
-    (dest / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    for cmd in (["git", "init", "-q"], ["git", "add", "-A"], ["git", "commit", "-qm", "copy"]):
-        subprocess.run(cmd, cwd=dest, check=True, capture_output=True)
-    return dest
-
-
-def run(cmd: list[str], cwd: Path) -> str:
-    env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{cwd / 'mlflow.db'}"}
-    env.pop("ORBIS2_PIPELINE_ID", None)
-    proc = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=3600)
-    assert proc.returncode == 0, f"{' '.join(cmd)} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
-    return proc.stdout + proc.stderr
 
 
 def mlflow_runs(db: Path) -> list[tuple[str, str, str | None]]:
@@ -160,13 +136,14 @@ def set_param(root: Path, section: str, key: str, value) -> None:
     (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
 
 
-def test_snakemake_smoke_dag(tmp_path):
-    root = project_copy(tmp_path)
-    run(["snakemake", "--cores", "2", *TARGETS], root)
+def test_snakemake_smoke_dag(smoke_project):
+    """The session's smoke project: the README's main job (`snakemake --cores 2`, the default target),
+    then `reports/all`. Each invocation is one MLflow parent run; every stage ran once, under one of them."""
+    root = smoke_project
     check_outputs(root)
     runs = mlflow_runs(root / "mlflow.db")
-    parents = [r for r in runs if r[2] is None]
-    assert len(parents) == 1 and sorted(n for _, n, p in runs if p == parents[0][0]) == STAGES
+    parents = {r for r, _, p in runs if p is None}
+    assert len(parents) == 2 and sorted(n for _, n, p in runs if p in parents) == STAGES
 
     assert "Nothing to be done" in run(["snakemake", "--cores", "2", *TARGETS], root)
 
@@ -174,7 +151,7 @@ def test_snakemake_smoke_dag(tmp_path):
     out = run(["snakemake", "--cores", "2", *TARGETS], root)
     assert "rule action:" in out and "rule eval_steering:" in out and "rule report_main:" in out
     assert "rule abstract_tf:" not in out and "rule eval_fvd_hierarchical:" not in out
-    assert len([r for r in mlflow_runs(root / "mlflow.db") if r[2] is None]) == 2  # one parent per invocation
+    assert len([r for r in mlflow_runs(root / "mlflow.db") if r[2] is None]) == 3  # one parent per invocation
 
     # The guidance scale chosen on val starts from the trained models (one eval_steering per scale).
     run([sys.executable, "tools/select_guidance.py", "--guidance", "1", "2", "--out", "selection"], root)

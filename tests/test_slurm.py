@@ -13,9 +13,7 @@ import tempfile
 from pathlib import Path
 
 import pytest
-from test_pipeline import project_copy
-
-from conftest import ROOT
+from conftest import ROOT, project_copy
 
 
 def _slurm_answers() -> bool:

@@ -18,7 +18,7 @@ the same noise draws for every variant (paired):
   which the loss sees more directly than the one-step mean).
 
 Each figure is a mean over windows; the JSON keeps per-clip means so intervals can be drawn
-over clips. The files are what the README's learning-curve figure is drawn from; the chosen
+over clips. The files are what the learning-curve figure in docs/pipeline.md is drawn from; the chosen
 budgets in params.yaml come from them.
 """
 

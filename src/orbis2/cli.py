@@ -22,6 +22,7 @@ from tqdm import tqdm
 
 from orbis2.accel import compile_decoder, compile_predictor, inference_autocast, set_tf32
 from orbis2.config import PROFILES, load_config
+from orbis2.data.episodes import read_odometry
 from orbis2.data.importer import read_odometry_csv
 from orbis2.data.video import probe, read_video, resample_stride, write_video
 from orbis2.errors import OrbisError
@@ -65,13 +66,18 @@ def check_pairing(predictor: PredictorFile, path: Path, tokenizer: TokenizerFile
 
 
 def load_steering(args: argparse.Namespace, video: Path) -> tuple[dict[str, np.ndarray] | None, Path | None]:
-    """Odometry from --trajectory, else the video's own CSV next to it, else none (unconditional)."""
-    path = args.trajectory or (video.with_suffix(".csv") if video.with_suffix(".csv").is_file() else None)
+    """Odometry from --trajectory, else the video's own CSV or episode parquet next to it, else none
+    (unconditional). A parquet is the raw-episode layout of `town` and `import` (columns t, speed, yaw_rate)."""
+    beside = [video.with_suffix(s) for s in (".csv", ".parquet") if video.with_suffix(s).is_file()]
+    path = args.trajectory or (beside[0] if beside else None)
     if path is None:
         return None, None
     if not path.is_file():
         raise OrbisError(f"{path}: trajectory file not found; pass an existing CSV with columns timestamp, speed, "
-                         f"yaw_rate")
+                         f"yaw_rate (or an episode's .parquet)")
+    if path.suffix == ".parquet":
+        odometry = read_odometry(path)
+        return {"timestamp": odometry["t"], "speed": odometry["speed"], "yaw_rate": odometry["yaw_rate"]}, path
     return read_odometry_csv(path), path
 
 
@@ -175,7 +181,8 @@ def compose(generated: np.ndarray, real: np.ndarray | None, path: tuple[np.ndarr
 
 
 def write_outputs(out: Path, frames: np.ndarray, fps: float) -> Path:
-    """``out`` (mp4) and the GIF with the same stem; both written atomically."""
+    """``out`` (mp4) and the GIF with the same stem; both written atomically, the folder made if needed."""
+    out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_file(out) as tmp:
         write_video(tmp, frames, fps)
     gif = out.with_suffix(".gif")
@@ -236,7 +243,7 @@ def rollout_command(args: argparse.Namespace) -> str:
         details, _ = cascaded_rollout(
             abstract_pred.model, detail_pred.model, detail_ctx[None].to(device), abstract_ctx[None].to(device),
             steps, generator, abstract_nfe=args.abstract_nfe,
-            detail_nfe=args.detail_nfe or int(detail_pred.meta.get("sampling", {}).get("nfe", 30)),
+            detail_nfe=args.detail_nfe if args.detail_nfe is not None else int(detail_pred.meta.get("sampling", {}).get("nfe", 30)),
             abstract_hz=data.abstract_hz, detail_hz=data.detail_hz, steering=steering,
             on_step=lambda _: bar.update(1), kv_cache=not args.no_kv_cache,
             steering_guidance=args.steering_guidance)
@@ -271,7 +278,7 @@ def check_numbers(args: argparse.Namespace) -> None:
     if args.steering_guidance < 0:
         raise OrbisError(f"--steering-guidance {args.steering_guidance:g}: must be >= 0 (1: no guidance)")
     for flag, value in (("--abstract-nfe", args.abstract_nfe), ("--detail-nfe", args.detail_nfe)):
-        if value < 1:
+        if value is not None and value < 1:  # --detail-nfe None: the predictor's own steps
             raise OrbisError(f"{flag} {value}: needs at least 1 function evaluation per sample")
 
 
@@ -279,7 +286,8 @@ def add_rollout_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("rollout", help="roll the hierarchical world model forward from a video's context")
     p.add_argument("--video", type=Path, required=True, help="context video (any rate that is a multiple of data.fps)")
     p.add_argument("--trajectory", type=Path, default=None,
-                   help="CSV with columns timestamp, speed, yaw_rate (default: <video>.csv if present)")
+                   help="CSV with columns timestamp, speed, yaw_rate, or an episode's .parquet "
+                        "(default: <video>.csv or <video>.parquet if present)")
     p.add_argument("--hold-last", action="store_true",
                    help="a trajectory shorter than the rollout keeps its last speed and yaw rate (default: error)")
     p.add_argument("--steering-guidance", type=float, default=1.0,

@@ -1,0 +1,168 @@
+"""Every command the documentation shows is run, at the smoke scale, or is marked as not run with a reason.
+
+The commands are the lines of the ```bash blocks of README.md, docs/*.md and the package READMEs. A
+block whose commands cannot run here (a GPU, a cluster, a real dataset) has the line
+`<!-- not run in tests: <reason> -->` right before its opening fence. Every other command runs in a
+copy of the session's finished smoke project (the main job and `reports/all` done), in the order the
+pages give them, and must exit 0. Only what cannot run as written in a test is adapted, each in one
+place below: the install prefix must equal what CI installs, `pytest` collects instead of recursing,
+DVC's runs are dry (the Snakemake runs made the outputs; `dvc repro` would redo them) and a server is
+started, asked for its page and stopped.
+"""
+
+from __future__ import annotations
+
+import re
+import shlex
+import shutil
+import socket
+import subprocess
+import time
+import urllib.request
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from conftest import ROOT, project_env
+
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")), *sorted((ROOT / "src").glob("**/README.md"))]
+SHELL = {"bash", "sh", "shell"}
+NOT_RUN = re.compile(r"<!--\s*not run in tests:\s*(?P<why>.*?)\s*-->")
+INSTALL = 'pip install torch==2.13.0 && pip install -e ".[dev]"'
+
+
+@dataclass(frozen=True)
+class Command:
+    page: Path
+    line: int
+    text: str
+    not_run: str | None  # the reason, for a command in a marked block
+
+    def __str__(self) -> str:
+        return f"{self.page.relative_to(ROOT)}:{self.line}: {self.text}"
+
+
+def documented_commands(page: Path) -> list[Command]:
+    """The commands of a page's shell blocks: comments dropped, `\\`-continued lines joined."""
+    lines = page.read_text().splitlines()
+    commands, i = [], 0
+    while i < len(lines):
+        fence = re.match(r"^\s*```\s*(\w*)", lines[i])
+        if not fence:
+            i += 1
+            continue
+        previous = next((lines[j] for j in range(i - 1, -1, -1) if lines[j].strip()), "")
+        marked = NOT_RUN.search(previous)
+        end = next(j for j in range(i + 1, len(lines)) if lines[j].strip().startswith("```"))
+        if fence.group(1) in SHELL:
+            pending, start = "", None
+            for j in range(i + 1, end):
+                text = lines[j].strip()
+                start = start or j + 1
+                if text.endswith("\\"):
+                    pending += text[:-1] + " "
+                    continue
+                text = strip_comment(pending + text).strip()
+                if text:
+                    commands.append(Command(page, start, text, marked.group("why") if marked else None))
+                pending, start = "", None
+        i = end + 1
+    return commands
+
+
+def strip_comment(text: str) -> str:
+    """The command without a trailing `# comment` (a `#` inside quotes, or inside a word, stays)."""
+    quote = None
+    for i, char in enumerate(text):
+        if quote:
+            quote = None if char == quote else quote
+        elif char in "'\"":
+            quote = char
+        elif char == "#" and (i == 0 or text[i - 1].isspace()):
+            return text[:i]
+    return text
+
+
+ALL = [command for page in PAGES for command in documented_commands(page)]
+
+
+def ci_commands() -> list[str]:
+    lines = (ROOT / ".ci/run").read_text().splitlines()
+    return [line.strip() for line in lines if line.strip() and not line.lstrip().startswith(("#", "set ", "cd "))]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def serve(text: str, cwd: Path) -> str:
+    """Start a documented server on a free port, wait for its page, stop it; '' when it answered."""
+    port = free_port()
+    proc = subprocess.Popen(shlex.split(text) + ["--host", "127.0.0.1", "--port", str(port)], cwd=cwd,
+                            env=project_env(cwd), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        for _ in range(120):
+            if proc.poll() is not None:
+                return f"exited with {proc.returncode}: {proc.stdout.read()[-2000:]}"
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2) as page:
+                    return "" if page.status == 200 else f"answered {page.status}"
+            except OSError:
+                time.sleep(0.5)
+        return "did not answer within 60 s"
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+
+
+def adapted(text: str) -> str | None:
+    """What the test runs for a documented command (None: nothing more to run)."""
+    if text.startswith(INSTALL):
+        rest = text[len(INSTALL):].strip()
+        return adapted(rest.removeprefix("&&").strip()) if rest else None
+    if text == "pytest" or text.startswith("pytest "):
+        return text.replace("pytest", "pytest --collect-only -q", 1)
+    if re.match(r"^dvc (repro|exp run)\b", text):
+        return text + " --dry"
+    return text
+
+
+def test_every_shell_block_command_is_found_and_marked_blocks_say_why():
+    assert len(ALL) >= 10 and any(c.page.name == "README.md" for c in ALL)
+    for command in ALL:
+        assert command.not_run is None or len(command.not_run) > 10, f"{command}: say why it is not run"
+
+
+def test_the_documented_install_and_test_commands_are_what_ci_runs():
+    """The README's set-up installs exactly as CI does, and its test command is CI's."""
+    readme = [c.text for c in ALL if c.page.name == "README.md"]
+    ci = ci_commands()
+    assert ci == [f"{INSTALL} && pytest"], ci
+    assert f"{INSTALL} && pytest" in readme
+
+
+@pytest.mark.slow
+def test_documented_commands_run_in_a_finished_smoke_project(smoke_project, tmp_path):
+    root = Path(shutil.copytree(smoke_project, tmp_path / "project", symlinks=True))
+    failures, ran = [], 0
+    for command in ALL:
+        if command.not_run:
+            continue
+        text = adapted(command.text)
+        if text is None:
+            continue
+        if re.match(r"^mlflow (ui|server)\b", text):
+            problem = serve(text, root)
+        else:
+            proc = subprocess.run(["bash", "-c", text], cwd=root, env=project_env(root), capture_output=True,
+                                  text=True, timeout=900)
+            problem = "" if proc.returncode == 0 else \
+                f"exit {proc.returncode}:\n{proc.stdout[-1500:]}\n{proc.stderr[-1500:]}"
+        ran += 1
+        if problem:
+            failures.append(f"{command}\n  ran: {text}\n  {problem}")
+    assert not failures, "\n\n".join(failures)
+    assert ran >= 8

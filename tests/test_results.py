@@ -1,0 +1,79 @@
+"""Published results (docs/results/<profile>/) match today's params.yaml, or say that they are stale;
+the publishing tool copies a run's outputs and records how it was made."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from orbis2.config import load_params
+
+from conftest import ROOT
+
+sys.path.insert(0, str(ROOT / "tools"))
+from publish_results import params_digest, profile_params  # noqa: E402
+
+PUBLISHED = sorted((ROOT / "docs/results").glob("*/run.json"))
+
+
+@pytest.mark.parametrize("record", PUBLISHED, ids=lambda p: p.parent.name)
+def test_published_params_are_todays_or_marked_stale(record):
+    published = json.loads(record.read_text())
+    today = profile_params(load_params(ROOT / "params.yaml"), published["profile"])
+    assert published["params_sha256"] == params_digest(published["params"])
+    assert published["params"] == today or published["stale"], (
+        f"{record}: made with other params than today's params.yaml; publish a new run "
+        f"(python tools/publish_results.py) or mark it: python tools/publish_results.py --mark-stale "
+        f"{published['profile']} --why '...'")
+
+
+def test_every_published_folder_links_what_it_holds():
+    for record in PUBLISHED:
+        folder = record.parent
+        page = (folder / "README.md").read_text()
+        for name in ("summary.md", "stage_times.csv", "run.json", "main_table.csv"):
+            assert (folder / name).is_file() and f"]({name})" in page, (folder, name)
+
+
+def fake_run(root: Path, profile: str = "smoke") -> Path:
+    (root / "reports").mkdir(parents=True)
+    (root / "logs/benchmarks").mkdir(parents=True)
+    (root / "params.yaml").write_text((ROOT / "params.yaml").read_text())
+    (root / "reports/summary.md").write_text(f"# Summary\n\n## Setup\n\n- profile: {profile}\n- seed: 0\n")
+    (root / "reports/main_table.csv").write_text("model,fvd_val\nhierarchical,1.0\n")
+    for rule, seconds in (("town", 12.5), ("shards", 3.0)):
+        (root / f"logs/benchmarks/{rule}.tsv").write_text(f"s\tmax_rss\n1\t2\n{seconds}\t100\n")
+    return root
+
+
+def publish(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(ROOT / "tools/publish_results.py"), *args], cwd=cwd,
+                          capture_output=True, text=True)
+
+
+def test_publish_copies_the_run_and_records_it(tmp_path):
+    root = fake_run(tmp_path / "run")
+    proc = publish("--root", str(root), "--out", str(tmp_path / "results"), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    folder = tmp_path / "results/smoke"
+    record = json.loads((folder / "run.json").read_text())
+    assert record["profile"] == "smoke" and record["stale"] is None
+    assert record["params"] == profile_params(load_params(root / "params.yaml"), "smoke")
+    assert (folder / "main_table.csv").read_text() == (root / "reports/main_table.csv").read_text()
+    times = (folder / "stage_times.csv").read_text().splitlines()
+    assert times[1:] == ["town,12.5,100.0", "shards,3.0,100.0"] or times[1:] == ["shards,3.0,100.0", "town,12.5,100.0"]
+    assert "0.3 min in all over 2 stages" in (folder / "README.md").read_text()
+
+    proc = publish("--out", str(tmp_path / "results"), "--mark-stale", "smoke", "--why", "detail steps changed",
+                   cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((folder / "run.json").read_text())["stale"] == "detail steps changed"
+    assert "> **Stale**: detail steps changed" in (folder / "README.md").read_text()
+
+
+def test_publish_refuses_a_project_without_a_finished_run(tmp_path):
+    proc = publish("--root", str(tmp_path), "--out", str(tmp_path / "results"), cwd=tmp_path)
+    assert proc.returncode != 0 and "run the main job first" in proc.stderr
+    assert not (tmp_path / "results").exists()
