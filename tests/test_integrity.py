@@ -15,6 +15,7 @@ import torch
 from test_latents import save_detail
 from test_shards import make_raw
 
+from orbis2 import dag
 from orbis2.data.shards import ShardError, iter_samples, shard_paths, verify_shards, write_shards
 from orbis2.latents import LatentCacheError, LatentWindowDataset, build_latent_cache, open_cache
 from orbis2.models.tokenizer import build_abstract_tokenizer, save_tokenizer
@@ -143,3 +144,15 @@ def test_cache_files_are_checked_per_split_before_first_use(project, tmp_path, s
     flip(cache / "normalization.npz", 100)
     with pytest.raises(LatentCacheError, match="normalization.npz: content does not match"):
         open_cache(cache)
+
+
+def test_every_reader_of_shards_or_a_cache_takes_their_files_as_inputs():
+    """Snakemake sees a file changed in place only if it is an input: each reader lists the folder's files."""
+    rules = {rule.name: rule for rule in dag.snakemake_rules(ROOT)}
+    folders = {"shards": "shard_files", "latents": "latent_files"}
+    readers = {key: [r for r in rules.values() if key in r.input.keys()] for key in folders}
+    assert len(readers["shards"]) >= 7 and len(readers["latents"]) >= 5
+    for key, files in folders.items():
+        for rule in readers[key]:
+            assert callable(getattr(rule.input, files, None)), f"rule {rule.name}: no {files} input"
+    assert all(rules[name].is_checkpoint for name in ("shards", "latents", "latents_full"))
