@@ -109,6 +109,15 @@ def test_truncated_or_missing_shard_is_named(project, tmp_path):
         verify_shards(shards)
 
 
+def test_shards_read_from_a_url_are_verified_as_streamed(project, tmp_path):
+    shards = copy_of(project, tmp_path, "shards")
+    base = f"pipe:cat {shards}/{{}}"
+    assert verify_shards(shards, base=base) == sum(p.stat().st_size for p in shards.rglob("*.tar"))
+    shard = shard_paths(shards, "val")[0]
+    flip(shard, first_member(shard).offset_data)
+    with pytest.raises(ShardError, match=f"pipe:cat {shards}/val/val-000000.tar: content does not match"):
+        verify_shards(shards, base=base)
+
 def detail_array(cache):
     path = cache / "train" / "detail.npy"
     return path, np.load(path, mmap_mode="r").offset  # the first byte after the .npy header
