@@ -15,6 +15,7 @@
 import dataclasses
 import os
 import uuid
+from pathlib import Path
 
 from snakemake.utils import validate
 
@@ -57,9 +58,27 @@ def tokenizer_inputs(latent_set):
     return {f"{level}_tokenizer": P("tokenizer", entry.tokenizers[level]) for level in ("detail", "abstract")}
 
 
+def folder_files(stage):
+    """Every file in a checkpoint rule's output folder (input files of the rules that read it).
+
+    Snakemake dates a folder by the folder itself, so a shard or cache array changed in place
+    would go unseen; as files, a changed one is newer than what was made from it and re-runs
+    that rule, whose stage then verifies it. Listed once the checkpoint has run, so the first
+    run already records the full list. dvc.yaml leaves these out: DVC hashes the folder's content.
+    """
+    return lambda wildcards: sorted(str(f) for f in Path(getattr(checkpoints, stage).get().output[0]).rglob("*")
+                                    if f.is_file())
+
+
+def shard_inputs():
+    """The shards folder (input shards) and every file in it."""
+    return {"shards": P("shards"), "shard_files": folder_files("shards")}
+
+
 def latent_inputs(latent_set):
-    """A latent set's cache folder (input latents) and its tokenizers' folders."""
-    return {"latents": P("latents", REG.latent_sets[latent_set].stage), **tokenizer_inputs(latent_set)}
+    """A latent set's cache folder (input latents), every file in it, and its tokenizers' folders."""
+    stage = REG.latent_sets[latent_set].stage
+    return {"latents": P("latents", stage), "latent_files": folder_files(stage), **tokenizer_inputs(latent_set)}
 
 
 TOKENIZER_ARGS = " --detail-tokenizer {input.detail_tokenizer} --abstract-tokenizer {input.abstract_tokenizer}"

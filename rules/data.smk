@@ -44,7 +44,8 @@ rule import_videos:
         "python stages/import.py --profile {params.profile} --out {output.raw}" + TEE
 
 
-rule shards:
+# A checkpoint: the rules that read the shards list its files once it has run (folder_files).
+checkpoint shards:
     threads: CPU["threads"]
     resources: **resources_of(CPU)
     input:

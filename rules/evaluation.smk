@@ -23,7 +23,7 @@ for system_name, system in REG.systems.items():
         input:
             code_inputs("stages/eval_fvd.py"),
             **latent_inputs(system.latents),
-            shards=rules.shards.output.shards,
+            **shard_inputs(),
             assets=rules.assets.output.assets,
             **predictor_inputs(system.stages),
         output:
@@ -57,7 +57,7 @@ for target in REG.probe_targets:
         resources: **resources_of(LIGHT)
         input:
             code_inputs("stages/eval_probe.py"),
-            shards=rules.shards.output.shards,
+            **shard_inputs(),
             **tokenizer_inputs(REG.target_latents(target)),
             **({"assets": rules.assets.output.assets} if teacher else {}),
             **predictor_inputs(own_predictor),
@@ -80,7 +80,7 @@ rule inverse_dynamics:
     resources: **resources_of(GPU)
     input:
         code_inputs("stages/inverse_dynamics.py"),
-        shards=rules.shards.output.shards,
+        **shard_inputs(),
         tokenizer=P("tokenizer", "detail"),
     output:
         model=directory(P("inverse_dynamics")),
@@ -102,7 +102,7 @@ rule eval_steering:
     input:
         code_inputs("stages/eval_steering.py"),
         **latent_inputs("compressed"),
-        shards=rules.shards.output.shards,
+        **shard_inputs(),
         **predictor_inputs(STEERING_PREDICTORS),
         inverse_dynamics=rules.inverse_dynamics.output.model,
     output:

@@ -12,7 +12,7 @@ for tokenizer, kind in REG.tokenizers.items():
         resources: **resources_of(TRAIN)
         input:
             code_inputs(f"stages/tokenizer_{kind}.py"),
-            shards=rules.shards.output.shards,
+            **shard_inputs(),
             assets=rules.assets.output.assets,
         output:
             weights=directory(P("tokenizer", tokenizer)),
@@ -29,15 +29,16 @@ for tokenizer, kind in REG.tokenizers.items():
              " --assets {input.assets} --out {output.weights} --report {output.report}" + TEE)
 
 
+# Checkpoints, like `shards`: the rules that read a cache list its files (folder_files).
 for latent_set, entry in REG.latent_sets.items():
 
-    rule:
+    checkpoint:
         name: entry.stage
         threads: GPU["threads"]
         resources: **resources_of(GPU)
         input:
             code_inputs("stages/latents.py"),
-            shards=rules.shards.output.shards,
+            **shard_inputs(),
             **tokenizer_inputs(latent_set),
         output:
             latents=directory(P("latents", entry.stage)),

@@ -19,6 +19,7 @@ from typing import Any
 
 from orbis2.accel import default_device
 from orbis2.assets import ensure_asset
+from orbis2.data.shards import verify_shards
 from orbis2.eval.rollout_fvd import split_fvd
 from orbis2.eval.systems import SYSTEMS, inference_settings, load_system
 from orbis2.io import atomic_dir, write_json
@@ -54,6 +55,7 @@ def main(argv: list[str] | None = None) -> None:
     report, media = args.fvd or layout_path("fvd", name), args.media or layout_path("media", name)
     with open_stage(f"eval_fvd_{name}", args, ["data", "assets", "evaluation"]) as stage:
         cfg, run = stage.cfg, stage.run
+        verify_shards(args.shards)  # before any read; see verify_shards for why
         ev, dev = cfg.evaluation, default_device()
 
         latents = latent_paths(args, SYSTEMS[name].latents)

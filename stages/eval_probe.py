@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from orbis2.accel import default_device
+from orbis2.data.shards import verify_shards
 from orbis2.eval.probe import (
     predictor_features,
     probe_all,
@@ -61,6 +62,7 @@ def main(argv: list[str] | None = None) -> None:
     out = args.out or layout_path("probe", target)
     with open_stage(f"eval_probe_{target}", args, ["data", "evaluation"]) as stage:
         cfg, run = stage.cfg, stage.run
+        verify_shards(args.shards)  # before any read; see verify_shards for why
         ps, dev = cfg.evaluation.probe, default_device()
         probe_cfg = probe_config(ps, str(dev))
         sets = probe_sets(ps, (cfg.data.width, cfg.data.height), args.shards)

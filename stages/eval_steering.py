@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from orbis2.accel import default_device
-from orbis2.data.shards import split_clips
+from orbis2.data.shards import split_clips, verify_shards
 from orbis2.errors import OrbisError
 from orbis2.eval.inverse_dynamics import WEIGHTS_FILE
 from orbis2.eval.odometry import camera_intrinsics, get_inverse_dynamics
@@ -82,6 +82,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     with open_stage("eval_steering", args, ["data", "town", "evaluation"]) as stage:
         cfg, run = stage.cfg, stage.run
+        verify_shards(args.shards)  # before any read; see verify_shards for why
         ev, data = cfg.evaluation, cfg.data
         if data.detail_stride != 1:
             raise OrbisError(f"data.{cfg.profile}: the steering evaluation compares odometry at the video rate and "

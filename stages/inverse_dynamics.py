@@ -9,6 +9,7 @@ tokenizer's reconstructions of them and on shuffled pairs (the control); see
 from pathlib import Path
 
 from orbis2.accel import default_device
+from orbis2.data.shards import verify_shards
 from orbis2.eval.inverse_dynamics import (
     WEIGHTS_FILE,
     evaluate_instrument,
@@ -34,6 +35,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     with open_stage("inverse_dynamics", args, ["data", "inverse_dynamics"]) as stage:
         cfg, run = stage.cfg, stage.run
+        verify_shards(args.shards)  # before any read; see verify_shards for why
         ic, fps, dev = cfg.inverse_dynamics, float(cfg.data.fps), default_device()
 
         train = load_clips(args.shards, "train", ic.scale, ic.max_train_clips)

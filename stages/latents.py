@@ -9,7 +9,7 @@ the tokenizers' probes read, from the frames.
 
 from pathlib import Path
 
-from orbis2.data.shards import load_manifest
+from orbis2.data.shards import load_manifest, verify_shards
 from orbis2.latents import build_latent_cache
 from orbis2.registry import layout_path, registry
 from orbis2.stage import add_name_argument, add_tokenizer_arguments, latent_paths, open_stage, stage_parser
@@ -29,6 +29,7 @@ def main(argv: list[str] | None = None) -> None:
     name = args.name
     with open_stage(name, args, ["data", "latents"]) as stage:
         cfg, run = stage.cfg, stage.run
+        verify_shards(args.shards)  # before any read; see verify_shards for why
         paths = latent_paths(args, VARIANTS[name])
         out = args.out or paths.root
         skip = registry().latent_sets[VARIANTS[name]].skip_splits

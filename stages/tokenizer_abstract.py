@@ -11,6 +11,7 @@ tokenizer.pt, the samples and the report are published atomically at the end.
 
 from pathlib import Path
 
+from orbis2.data.shards import verify_shards
 from orbis2.registry import layout_path, registry
 from orbis2.stage import (
     TOKENIZER_FILE,
@@ -43,6 +44,7 @@ def main(argv: list[str] | None = None) -> None:
     sections = ["data", name]
     with open_stage(name, args, sections) as stage:
         cfg, run = stage.cfg, stage.run
+        verify_shards(args.shards)  # before any read; see verify_shards for why
         assets = args.assets or Path(cfg.assets.dir)
         teacher = asset_path(assets, TEACHER_ASSETS[cfg.section(name).teacher])
         inputs = {"shards": args.shards / "manifest.json", "teacher": teacher}

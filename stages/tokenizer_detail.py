@@ -8,6 +8,7 @@ at the end.
 
 from pathlib import Path
 
+from orbis2.data.shards import verify_shards
 from orbis2.registry import layout_path
 from orbis2.stage import (
     TOKENIZER_FILE,
@@ -35,6 +36,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     with open_stage("tokenizer_detail", args, SECTIONS) as stage:
         cfg, run = stage.cfg, stage.run
+        verify_shards(args.shards)  # before any read; see verify_shards for why
         assets = args.assets or Path(cfg.assets.dir)
         work = training_dir("tokenizer_detail", cfg, SECTIONS, {"shards": args.shards / "manifest.json"})
         metrics = train_detail_tokenizer(cfg, args.shards, work, assets, run)

@@ -70,7 +70,7 @@ def snakemake_rules(root: Path = ROOT, videos_as_folder: bool = True) -> dict[st
                                config={"train_launcher": raw["train_launcher"]})
         sections = {s for key in rule.params.keys() if key not in dag.NOT_SECTIONS
                     for s in dag.section_chain(raw, key)}
-        rules[rule.name] = {"cmd": cmd, "deps": {_as_folder(str(f), videos) for f in rule.input},
+        rules[rule.name] = {"cmd": cmd, "deps": {_as_folder(str(f), videos) for f in rule.input if not callable(f)},
                             "outs": {str(f) for f in rule.output},
                             "params": sections | ({"profile"} | ({"spec"} & set(rule.params.keys()))),
                             "param_keys": [k for k in rule.params.keys() if k not in dag.NOT_SECTIONS]}

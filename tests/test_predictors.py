@@ -10,6 +10,7 @@ import torch
 
 from orbis2.config import TrainConfig
 from orbis2.errors import OrbisError
+from orbis2.io import sha256_file
 from orbis2.latents import FORMAT, NORMALIZATION, LatentWindowDataset, open_cache
 from orbis2.models.stdit import best_sideways_shift, translate_columns
 from orbis2.tasks.predictors import (
@@ -52,11 +53,13 @@ def write_cache(root, clips: dict[str, list[int]], odometry=None):
                                          "start_frame": 0}
             offset += length
         (folder / "index.json").write_text(json.dumps(index))
-        meta["splits"][split] = {"frames": frames, "clips": len(lengths)}
-    (root / "meta.json").write_text(json.dumps(meta))
+        meta["splits"][split] = {"frames": frames, "clips": len(lengths),
+                                 "sha256": {f.name: sha256_file(f) for f in folder.iterdir()}}
     np.savez(root / NORMALIZATION, **{f"{kind}_{part}": value for kind in ("detail", "abstract")
                                       for part, value in (("shift", np.zeros((C, H, W), np.float32)),
                                                           ("scale", np.ones((C, 1, 1), np.float32)))})
+    meta["normalization_sha256"] = sha256_file(root / NORMALIZATION)
+    (root / "meta.json").write_text(json.dumps(meta))
     return open_cache(root)
 
 

@@ -192,7 +192,9 @@ def dvc_stage(rule, raw: dict, raw_dir: str, assets: str) -> dict:
     def dep(path: str) -> str:
         return raw_template if path == raw_dir else path
 
-    deps = [dep(str(f)) for f in rule.input]
+    # A function input lists a folder's files for Snakemake (the Snakefile's folder_files); DVC hashes the
+    # folder's content itself, so the folder, also an input, is the dependency.
+    deps = [dep(str(f)) for f in rule.input if not callable(f)]
     if rule.name == "import":  # the Snakefile lists every video file (input_files); DVC watches the folder
         videos = Path(raw["import"]["all"]["videos"])
         deps = list(dict.fromkeys("${import.all.videos}" if Path(d) == videos or videos in Path(d).parents else d

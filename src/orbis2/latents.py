@@ -4,7 +4,7 @@ Training the predictors re-reads the same frames for thousands of steps; decodin
 JPEGs and running two ViT encoders per step would cost far more than the predictor
 itself. The ``latents`` stage therefore encodes every frame once and stores
 
-    <root>/meta.json                   tokenizer checksums, shards manifest hash, geometry
+    <root>/meta.json                   tokenizer checksums, shards manifest hash, geometry, file checksums
     <root>/normalization.npz           each tokenizer's latent normalisation (shift, scale)
     <root>/<split>/detail.npy          float16 [N_frames, C, h, w]     (unscaled detail latent)
     <root>/<split>/abstract.npy        float16 [N_frames, C', h', w']  (unscaled abstract latent)
@@ -23,6 +23,11 @@ survive in ``index.json``, so every cached frame traces back to its sample in
 (|x| <= 1), where fp16 keeps about three significant digits. They are stored as the
 tokenizers encode them; readers apply the tokenizer's normalisation (``TokenizerFile.normalize``:
 per-position mean removed, per-channel unit variance) on the fly.
+
+``meta.json`` records the SHA-256 of every array, index and the normalisation file, and a
+reader checks a split's files before it first uses them (once per process, in the process
+that opens the cache): a flipped bit in a memory map would otherwise reach every predictor
+as a plausible-looking latent.
 """
 
 from __future__ import annotations
@@ -51,8 +56,9 @@ from orbis2.errors import OrbisError
 from orbis2.io import atomic_dir, sha256_file, write_json
 from orbis2.models.tokenizer import TokenizerFile, load_tokenizer
 
-FORMAT = 2
+FORMAT = 3  # 3: meta.json records every file's SHA-256
 KINDS = ("detail", "abstract")
+ARRAYS = (*KINDS, "odometry")
 META = "meta.json"
 INDEX = "index.json"
 NORMALIZATION = "normalization.npz"
@@ -206,9 +212,12 @@ def build_latent_cache(shards_root: str | Path, out_root: str | Path, detail: To
                 raise LatentCacheError(f"{shards_root / MANIFEST}: split '{split}' lists {frames} frames but its "
                                        f"shards hold {offset}; re-run the `shards` stage")
             write_json(tmp / split / INDEX, index)
-            meta["splits"][split] = {"frames": frames, "clips": len(index)}
+            meta["splits"][split] = {"frames": frames, "clips": len(index),
+                                     "sha256": {name: sha256_file(tmp / split / name)
+                                                for name in (*(f"{a}.npy" for a in ARRAYS), INDEX)}}
         np.savez(tmp / NORMALIZATION, **{f"{kind}_{part}": getattr(tokenizers[kind], part).cpu().numpy()
                                          for kind in KINDS for part in ("shift", "scale")})
+        meta["normalization_sha256"] = sha256_file(tmp / NORMALIZATION)
         write_json(tmp / META, meta)
     return meta
 
@@ -221,12 +230,15 @@ class LatentCache:
 
     The maps are per process and are dropped when the object is pickled (DataLoader workers
     started by spawn/forkserver, DDP), so each process maps the files instead of copying them.
+    The record of which splits were verified travels with it, so workers do not hash them again.
     """
 
     def __init__(self, root: Path, meta: dict[str, Any]):
         self.root, self.meta = root, meta
         self._arrays: dict[str, dict[str, np.ndarray]] = {}
+        self._verified: set[str] = set()
         path = root / NORMALIZATION
+        _check_file(path, meta["normalization_sha256"])
         try:
             with np.load(path) as norm:
                 self.norm = {key: torch.from_numpy(norm[key]) for key in norm.files}
@@ -248,7 +260,17 @@ class LatentCache:
                                    f"re-run the `latents` stage")
         return self.root / split
 
+    def verify(self, split: str) -> None:
+        """Check a split's arrays and index against the SHA-256 that ``meta.json`` recorded when they were written."""
+        if split in self._verified:
+            return
+        folder = self._folder(split)
+        for name, digest in self.meta["splits"][split]["sha256"].items():
+            _check_file(folder / name, digest)
+        self._verified.add(split)
+
     def index(self, split: str) -> dict[str, dict[str, Any]]:
+        self.verify(split)
         path = self._folder(split) / INDEX
         try:
             return json.loads(path.read_text())
@@ -258,6 +280,7 @@ class LatentCache:
     def arrays(self, split: str) -> dict[str, np.ndarray]:
         """``detail``, ``abstract`` and ``odometry`` of one split as read-only memory maps."""
         if split not in self._arrays:
+            self.verify(split)
             folder, frames = self._folder(split), self.meta["splits"][split]["frames"]
             expected = {kind: (frames, *self.meta["tokenizers"][kind]["shape"]) for kind in KINDS}
             expected["odometry"] = (frames, 2)
@@ -276,6 +299,14 @@ class LatentCache:
 
     def __getstate__(self) -> dict[str, Any]:
         return {**self.__dict__, "_arrays": {}}
+
+
+def _check_file(path: Path, digest: str) -> None:
+    if not path.is_file():
+        raise LatentCacheError(f"{path}: missing from the latent cache; re-run the `latents` stage")
+    if sha256_file(path) != digest:
+        raise LatentCacheError(f"{path}: content does not match the SHA-256 recorded in meta.json when the cache "
+                               f"was written (corrupt or modified); re-run the `latents` stage")
 
 
 def open_cache(root: str | Path, detail_checksum: str | None = None,

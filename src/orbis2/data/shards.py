@@ -31,7 +31,7 @@ import os
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterable, Iterator
 
 import cv2
 import numpy as np
@@ -164,16 +164,45 @@ def shard_paths(root: Path, split: str) -> list[Path]:
     return [Path(root) / s["path"] for s in manifest["splits"][split]["shards"]]
 
 
-def verify_shards(root: Path) -> None:
-    """Check every shard's size and SHA-256 against the manifest."""
-    for split in load_manifest(root)["splits"].values():
-        for shard in split["shards"]:
-            path = Path(root) / shard["path"]
-            if not path.is_file():
-                raise ShardError(f"{path}: listed in the manifest but missing; re-run the `shards` stage")
-            if path.stat().st_size != shard["bytes"] or sha256_file(path) != shard["sha256"]:
-                raise ShardError(f"{path}: content does not match the manifest's hash (corrupt or modified); "
+def verify_shards(root: Path, splits: Iterable[str] | None = None, base: str | None = None) -> int:
+    """Stream every shard of ``splits`` (default: all) and compare its size and SHA-256 with the manifest.
+
+    Stages call this before they read: a flipped byte in a JPEG payload still decodes (to wrong
+    pixels), and a damaged tar header mid-shard ends the archive early without an error in
+    ``tarfile``, so reading alone would not notice either. Shards are read from where
+    :func:`shard_urls` says (local files, or ``base``/``$ORBIS2_SHARDS_URL``). Returns the bytes checked.
+    """
+    manifest = load_manifest(root)
+    splits = list(manifest["splits"]) if splits is None else list(splits)
+    entries = [(url, shard) for split in splits
+               for url, shard in zip(shard_urls(root, split, base), manifest["splits"][split]["shards"])]
+    with tqdm(total=sum(s["bytes"] for _, s in entries), desc="verify shards", unit="B", unit_scale=True,
+              leave=False) as bar:
+        for url, shard in entries:
+            size, digest = _stream_digest(url, bar)
+            if size != shard["bytes"]:
+                raise ShardError(f"{url}: {size} bytes, the manifest says {shard['bytes']} (truncated or "
+                                 f"modified); re-run the `shards` stage")
+            if digest != shard["sha256"]:
+                raise ShardError(f"{url}: content does not match the manifest's hash (corrupt or modified); "
                                  f"re-run the `shards` stage")
+    return sum(s["bytes"] for _, s in entries)
+
+
+def _stream_digest(url: str, bar: tqdm) -> tuple[int, str]:
+    """Size and SHA-256 of one shard, read in 1 MiB blocks through ``webdataset.gopen`` (files, pipes, URLs)."""
+    digest, size = hashlib.sha256(), 0
+    try:
+        with wds.gopen(url, "rb") as stream:
+            while block := stream.read(1 << 20):
+                digest.update(block)
+                size += len(block)
+                bar.update(len(block))
+    except FileNotFoundError as err:
+        raise ShardError(f"{url}: listed in the manifest but missing; re-run the `shards` stage") from err
+    except OSError as err:
+        raise ShardError(f"{url}: unreadable ({err}); re-run the `shards` stage, or check the shards' URL") from err
+    return size, digest.hexdigest()
 
 
 def shard_urls(root: Path, split: str, base: str | None = None) -> list[str]:

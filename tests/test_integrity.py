@@ -1,0 +1,167 @@
+"""No silent corruption: a damaged shard or latent cache stops the stage that reads it (exit 2, the file named).
+
+The stage scripts run as subprocesses on small synthetic shards and a smoke-tokenizer cache built here.
+"""
+
+import os
+import shutil
+import subprocess
+import sys
+import tarfile
+
+import numpy as np
+import pytest
+import torch
+from test_latents import save_detail
+from test_shards import make_raw
+
+from orbis2 import dag
+from orbis2.data.shards import ShardError, iter_samples, shard_paths, verify_shards, write_shards
+from orbis2.latents import LatentCacheError, LatentWindowDataset, build_latent_cache, open_cache
+from orbis2.models.tokenizer import build_abstract_tokenizer, save_tokenizer
+
+from conftest import ROOT
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory, smoke_cfg):
+    """A project folder: params.yaml, shards (one train and one val clip), both tokenizers, the latent cache."""
+    root = tmp_path_factory.mktemp("project")
+    (root / "params.yaml").write_text((ROOT / "params.yaml").read_text())
+    make_raw(root / "raw", smoke_cfg, episodes=(("train", 1, 30), ("val", 1, 30)))
+    write_shards(root / "raw", root / "shards", smoke_cfg.data, smoke_cfg.shards)
+    (root / "detail").mkdir()
+    (root / "abstract").mkdir()
+    save_detail(root / "detail" / "tokenizer.pt", seed=0)
+    torch.manual_seed(1)
+    save_tokenizer(root / "abstract" / "tokenizer.pt", "abstract", build_abstract_tokenizer("smoke", teacher_dim=32),
+                   1.0, {"preset": "smoke", "teacher_dim": 32, "compress": True})
+    build_latent_cache(root / "shards", root / "latents", root / "detail" / "tokenizer.pt",
+                       root / "abstract" / "tokenizer.pt", batch_size=16, device="cpu")
+    return root
+
+
+def copy_of(project, tmp_path, name):
+    shutil.copytree(project / name, tmp_path / name)
+    return tmp_path / name
+
+
+def flip(path, offset):
+    data = bytearray(path.read_bytes())
+    data[offset] ^= 0x5A
+    path.write_bytes(bytes(data))
+
+
+def run_stage(cwd, project, script, *args):
+    env = {"MLFLOW_TRACKING_URI": f"sqlite:///{cwd / 'mlflow.db'}", "PATH": "/usr/bin:/bin"}
+    if "PYTHONPATH" in os.environ:
+        env["PYTHONPATH"] = os.environ["PYTHONPATH"]
+    shutil.copy(project / "params.yaml", cwd / "params.yaml")
+    return subprocess.run([sys.executable, str(ROOT / "stages" / script), "--profile", "smoke", *map(str, args)],
+                          cwd=cwd, capture_output=True, text=True, env=env, timeout=300)
+
+
+def first_member(shard):
+    """The first member (the first sample's first JPEG) of a shard: its header and payload offsets."""
+    with tarfile.open(shard) as tar:
+        member = tar.next()
+    assert member.name.endswith(".0000.jpg")
+    return member
+
+
+def test_a_flipped_jpeg_byte_stops_the_latents_stage(project, tmp_path):
+    shards = copy_of(project, tmp_path, "shards")
+    shard = shard_paths(shards, "train")[0]
+    member = first_member(shard)
+    flip(shard, member.offset_data + member.size // 2)
+    assert len(list(iter_samples(shard))) == 1  # reading alone does not notice: the JPEG still decodes
+    proc = run_stage(tmp_path, project, "latents.py", "--shards", shards, "--detail-tokenizer", project / "detail",
+                     "--abstract-tokenizer", project / "abstract", "--out", tmp_path / "latents")
+    assert proc.returncode == 2, proc.stderr
+    assert f"{shard}: content does not match the manifest's hash" in proc.stderr
+    assert "re-run the `shards` stage" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "latents").exists()
+
+
+def test_a_flipped_tar_header_byte_stops_the_tokenizer_stage(project, tmp_path):
+    shards = copy_of(project, tmp_path, "shards")
+    shard = shard_paths(shards, "val")[0]
+    flip(shard, first_member(shard).offset + 3)  # inside the member's name field
+    with pytest.raises(ShardError, match=f"{shard}: content does not match"):
+        verify_shards(shards)
+    proc = run_stage(tmp_path, project, "tokenizer_detail.py", "--shards", shards, "--assets", tmp_path / "assets",
+                     "--out", tmp_path / "tokenizer", "--report", tmp_path / "report.json")
+    assert proc.returncode == 2, proc.stderr
+    assert f"{shard}: content does not match the manifest's hash" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "tokenizer").exists() and not (tmp_path / "report.json").exists()
+
+
+def test_truncated_or_missing_shard_is_named(project, tmp_path):
+    shards = copy_of(project, tmp_path, "shards")
+    assert verify_shards(shards, ["val"]) == shard_paths(shards, "val")[0].stat().st_size
+    shard = shard_paths(shards, "train")[0]
+    shard.write_bytes(shard.read_bytes()[:-1024])
+    with pytest.raises(ShardError, match=f"{shard}: .* bytes, the manifest says .*truncated"):
+        verify_shards(shards)
+    verify_shards(shards, ["val"])  # a stage may check only the splits it reads
+    shard.unlink()
+    with pytest.raises(ShardError, match=f"{shard}: listed in the manifest but missing"):
+        verify_shards(shards)
+
+
+def test_shards_read_from_a_url_are_verified_as_streamed(project, tmp_path):
+    shards = copy_of(project, tmp_path, "shards")
+    base = f"pipe:cat {shards}/{{}}"
+    assert verify_shards(shards, base=base) == sum(p.stat().st_size for p in shards.rglob("*.tar"))
+    shard = shard_paths(shards, "val")[0]
+    flip(shard, first_member(shard).offset_data)
+    with pytest.raises(ShardError, match=f"pipe:cat {shards}/val/val-000000.tar: content does not match"):
+        verify_shards(shards, base=base)
+
+def detail_array(cache):
+    path = cache / "train" / "detail.npy"
+    return path, np.load(path, mmap_mode="r").offset  # the first byte after the .npy header
+
+
+def test_a_flipped_latent_byte_stops_the_predictor_stage(project, tmp_path):
+    cache = copy_of(project, tmp_path, "latents")
+    path, data_start = detail_array(cache)
+    flip(path, data_start + 101)
+    proc = run_stage(tmp_path, project, "predictor.py", "abstract_df", "--latents", cache,
+                     "--detail-tokenizer", project / "detail", "--abstract-tokenizer", project / "abstract",
+                     "--out", tmp_path / "predictor", "--report", tmp_path / "report.json")
+    assert proc.returncode == 2, proc.stderr
+    assert f"{path}: content does not match the SHA-256 recorded in meta.json" in proc.stderr
+    assert "re-run the `latents` stage" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "predictor").exists() and not (tmp_path / "report.json").exists()
+
+
+def test_cache_files_are_checked_per_split_before_first_use(project, tmp_path, smoke_cfg):
+    cache = copy_of(project, tmp_path, "latents")
+    LatentWindowDataset(cache, "val", smoke_cfg.data)  # intact
+    path, data_start = detail_array(cache)
+    flip(path, data_start)
+    opened = open_cache(cache)
+    opened.arrays("val")  # another split's damage does not stop a reader of this one
+    for use in (lambda: opened.arrays("train"), lambda: LatentWindowDataset(cache, "train", smoke_cfg.data)):
+        with pytest.raises(LatentCacheError, match=f"{path}: content does not match"):
+            use()
+    flip(path, data_start)  # restored
+    (cache / "val" / "index.json").write_text("{}")
+    with pytest.raises(LatentCacheError, match="val/index.json: content does not match"):
+        open_cache(cache).index("val")
+    flip(cache / "normalization.npz", 100)
+    with pytest.raises(LatentCacheError, match="normalization.npz: content does not match"):
+        open_cache(cache)
+
+
+def test_every_reader_of_shards_or_a_cache_takes_their_files_as_inputs():
+    """Snakemake sees a file changed in place only if it is an input: each reader lists the folder's files."""
+    rules = {rule.name: rule for rule in dag.snakemake_rules(ROOT)}
+    folders = {"shards": "shard_files", "latents": "latent_files"}
+    readers = {key: [r for r in rules.values() if key in r.input.keys()] for key in folders}
+    assert len(readers["shards"]) >= 7 and len(readers["latents"]) >= 5
+    for key, files in folders.items():
+        for rule in readers[key]:
+            assert callable(getattr(rule.input, files, None)), f"rule {rule.name}: no {files} input"
+    assert all(rules[name].is_checkpoint for name in ("shards", "latents", "latents_full"))
