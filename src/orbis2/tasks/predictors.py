@@ -49,6 +49,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 from torch import nn
+from torch.utils.data import DataLoader
 
 from orbis2.config import (
     ActionConfig,
@@ -152,14 +153,15 @@ def steering_interval(data: DataConfig) -> slice:
 
 
 def steering_features(odometry: torch.Tensor, has_odometry: torch.Tensor, data: DataConfig,
-                      cfg: ActionConfig) -> tuple[torch.Tensor, torch.Tensor]:
+                      cfg: ActionConfig, interval: slice | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Native odometry span [B, S, 2] -> unit-scale steering [B, T, 2] and ``unknown`` [B].
 
     Speed and yaw rate over the predicted interval, divided by the configured
     scales. A sample without odometry, or with any NaN in the interval, is
-    ``unknown``: it must run unconditionally (its values are zeroed).
+    ``unknown``: it must run unconditionally (its values are zeroed). ``interval``: the
+    :func:`steering_interval` of ``data`` when the caller has it (the training step).
     """
-    values = odometry[:, steering_interval(data)]
+    values = odometry[:, steering_interval(data) if interval is None else interval]
     values = values / values.new_tensor([cfg.speed_scale, cfg.yaw_rate_scale])
     unknown = ~has_odometry.bool() | torch.isnan(values).flatten(1).any(dim=1)
     return torch.where(unknown[:, None, None], torch.zeros_like(values), values), unknown
@@ -260,27 +262,55 @@ def turn_repeats(dataset: LatentWindowDataset, data: DataConfig, cfg: PredictorC
     return repeats
 
 
-def window_batches(dataset: LatentWindowDataset, spec: DataSpec,
-                   repeats: np.ndarray | None = None) -> Iterator[dict[str, torch.Tensor]]:
-    """Endless train batches of this rank from batch ``spec.start`` on; a pure function of the spec.
+def window_index_batches(n_windows: int, spec: DataSpec, split: str,
+                         repeats: np.ndarray | None = None) -> Iterator[list[int]]:
+    """Endless window indices of this rank's train batches from batch ``spec.start`` on; a pure function of the spec.
 
     Each epoch is a permutation drawn from ``(seed, epoch)``, shared by all ranks, of
     the windows with window i listed ``repeats[i]`` times (once without ``repeats``),
     of which each rank keeps every ``world_size``-th entry; skipping to ``start``
     reads no windows.
     """
-    pool = np.arange(len(dataset)) if repeats is None else np.repeat(np.arange(len(dataset)), repeats)
+    pool = np.arange(n_windows) if repeats is None else np.repeat(np.arange(n_windows), repeats)
     n = len(pool)
     per_epoch = (n // spec.world_size) // spec.batch_size
     if per_epoch == 0:
-        raise OrbisError(f"the {dataset.split} split gives {n} windows, fewer than one batch of {spec.batch_size} "
+        raise OrbisError(f"the {split} split gives {n} windows, fewer than one batch of {spec.batch_size} "
                          f"per process; lower the batch size or anchor_stride, or add data")
     first_epoch, offset = divmod(spec.start, per_epoch)
     for epoch in itertools.count(first_epoch):
         order = pool[np.random.default_rng([spec.seed, epoch]).permutation(n)][spec.rank::spec.world_size]
         for b in range(offset, per_epoch):
-            yield collate([dataset[int(i)] for i in order[b * spec.batch_size:(b + 1) * spec.batch_size]])
+            yield [int(i) for i in order[b * spec.batch_size:(b + 1) * spec.batch_size]]
         offset = 0
+
+
+class _IndexBatches:
+    """The ``batch_sampler`` of a :class:`~torch.utils.data.DataLoader`: one pass is the endless index stream."""
+
+    def __init__(self, batches: Iterator[list[int]]):
+        self.batches = batches
+
+    def __iter__(self) -> Iterator[list[int]]:
+        return self.batches
+
+
+def window_batches(dataset: LatentWindowDataset, spec: DataSpec,
+                   repeats: np.ndarray | None = None) -> Iterator[dict[str, torch.Tensor]]:
+    """Endless train batches of this rank (:func:`window_index_batches`), read and collated by a DataLoader.
+
+    ``spec.num_workers`` worker processes read and collate the next batches while the
+    network trains (0: in this process, what the CPU profiles use); ``spec.pin_memory``
+    collates into page-locked memory, so the training loop's ``non_blocking`` copy
+    overlaps with compute. The batches are the same either way, in the same order.
+    """
+    indices = window_index_batches(len(dataset), spec, dataset.split, repeats)
+    if spec.num_workers == 0 and not spec.pin_memory:
+        return (collate([dataset[i] for i in batch]) for batch in indices)
+    loader = DataLoader(dataset, batch_sampler=_IndexBatches(indices), collate_fn=collate,
+                        num_workers=spec.num_workers, pin_memory=spec.pin_memory,
+                        prefetch_factor=2 if spec.num_workers else None)
+    return iter(loader)
 
 
 def step_generator(seed: int, rank: int, step: int, device: torch.device) -> torch.Generator:
@@ -310,7 +340,9 @@ class PredictorTask:
         self._val_init: float | None = None
         self._teacher: nn.Module | None = None
         self._turn_columns: float | None = None
+        # Window arithmetic done once, not inside the (compilable) loss.
         self.slots = detail_condition_slots(data) if self.spec.condition is not None else None
+        self.steer = steering_interval(data) if self.spec.steering else None
 
     @property
     def rank(self) -> int:
@@ -417,7 +449,8 @@ class PredictorTask:
         targets = frames[:, n_context:]
         if self.spec.steering:
             assert isinstance(cfg, ActionConfig)
-            cond["steering"], unknown = steering_features(batch["odometry"], batch["has_odometry"], self.data, cfg)
+            cond["steering"], unknown = steering_features(batch["odometry"], batch["has_odometry"], self.data, cfg,
+                                                               self.steer)
             cond["steering_drop"] = unknown | (draws["steering_drop"] < (cfg.steering_dropout if augment else 0.0))
             metrics = {"steering_unknown": unknown.float().mean(),
                        "steering_dropped": cond["steering_drop"].float().mean()}
@@ -431,7 +464,8 @@ class PredictorTask:
             context_drop_prob=cfg.context_drop_prob if augment else 0.0, **cond)
         return loss, {**tf_metrics, **metrics}
 
-    def loss(self, model: nn.Module, batch: dict[str, torch.Tensor], step: int) -> tuple[torch.Tensor, dict]:
+    def loss(self, model: nn.Module, batch: dict[str, torch.Tensor], step: int
+             ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         device = batch[self.batch_key].device
         return self.objective(model, batch, step_generator(self.cfg.train.seed, self.rank, step, device), True)
 
