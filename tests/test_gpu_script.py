@@ -9,6 +9,7 @@ import pytest
 import yaml
 
 from orbis2.config import load_config
+
 from conftest import ROOT
 
 sys.path.insert(0, str(ROOT / "benchmarks"))

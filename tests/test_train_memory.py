@@ -7,6 +7,7 @@ from orbis2.config import load_config
 from orbis2.models.stdit import build_stdit_from
 from orbis2.tasks.memory import _inputs, calibrate, measure, stage_estimate, tokens
 from orbis2.tasks.predictors import STAGES
+
 from conftest import ROOT
 
 PAPER_GPUS = 8  # the paper's node; the profile's batch sizes are global

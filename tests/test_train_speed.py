@@ -6,13 +6,13 @@ from pathlib import Path
 
 import pytest
 import torch
+from test_predictors import SPAN, tiny_cfg, write_cache
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from orbis2.config import ConfigError, TrainConfig
 from orbis2.models.stdit import build_stdit
 from orbis2.tasks.predictors import PredictorTask, window_batches
 from orbis2.train import DataSpec, _Env, _Meter, _Run, set_checkpointing
-from test_predictors import SPAN, tiny_cfg, write_cache
 
 aten = torch.ops.aten
 SYNC_OPS = {aten._local_scalar_dense.default, aten.item.default, aten.is_nonzero.default}
@@ -188,3 +188,12 @@ def test_worker_processes_and_pinning_give_the_same_batches(cache, smoke_cfg):
     for _ in range(4):
         a, b = next(plain), next(loaded)
         assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_compile_compiles_the_trained_network_and_not_its_average(cache, smoke_cfg, tmp_path):
+    """``compile: true`` wraps the training network in place (the state dict keeps its names); EMA stays eager."""
+    _, run = make_run("abstract_tf", cache, smoke_cfg, tmp_path, compile=True, ema_decay=0.9)
+    assert run.model._compiled_call_impl is not None and run.ema._compiled_call_impl is None
+    assert list(run.model.state_dict()) == list(run.ema.state_dict())
+    _, plain = make_run("abstract_tf", cache, smoke_cfg, tmp_path / "plain")
+    assert plain.model._compiled_call_impl is None
