@@ -197,3 +197,31 @@ def test_compile_compiles_the_trained_network_and_not_its_average(cache, smoke_c
     assert list(run.model.state_dict()) == list(run.ema.state_dict())
     _, plain = make_run("abstract_tf", cache, smoke_cfg, tmp_path / "plain")
     assert plain.model._compiled_call_impl is None
+
+
+def test_the_split_losses_draw_as_the_single_function_did():
+    """Teacher forcing and diffusion forcing from their draws equal the draw-as-you-go procedure bit for bit."""
+    from orbis2.flow import diffusion_forcing_loss, interpolate, teacher_forcing_loss
+
+    def network(x, tau, **_):
+        return torch.tanh(x * 1.3 + tau[:, :, None, None, None])
+
+    context, target = torch.randn(4, 5, 3, 2, 2), torch.randn(4, 1, 3, 2, 2)
+    g = torch.Generator().manual_seed(7)  # the draws of the old single function, in its order
+    eps, tau = torch.randn(target.shape, generator=g), torch.rand(4, 1, generator=g)
+    noised = torch.rand(4, generator=g) < 0.5
+    aug = torch.randn(context.shape, generator=g) * 0.1
+    dropped = torch.rand(4, generator=g) < 0.2
+    ctx = torch.where(noised[:, None, None, None, None], context + aug, context)
+    ctx = torch.where(dropped[:, None, None, None, None], torch.zeros_like(ctx), ctx)
+    tau_ctx = torch.where(dropped[:, None], torch.ones(4, 5), torch.zeros(4, 5))
+    x = torch.cat([ctx, interpolate(target, eps, tau)], 1)
+    expected = torch.nn.functional.mse_loss(network(x, torch.cat([tau_ctx, tau], 1))[:, 5:], eps - target)
+    loss, metrics = teacher_forcing_loss(network, context, target, torch.Generator().manual_seed(7), 0.5, 0.1, 0.2)
+    assert torch.equal(loss, expected) and torch.equal(metrics["context_dropped"], dropped.float().mean())
+
+    frames = torch.randn(2, 6, 3, 2, 2)
+    g = torch.Generator().manual_seed(8)
+    eps, tau = torch.randn(frames.shape, generator=g), torch.rand(2, 6, generator=g)
+    expected = torch.nn.functional.mse_loss(network(interpolate(frames, eps, tau), tau), eps - frames)
+    assert torch.equal(diffusion_forcing_loss(network, frames, torch.Generator().manual_seed(8))[0], expected)
