@@ -129,16 +129,22 @@ class Step:
         self.optimizer.step()
 
     def model_flops(self) -> float:
-        """FLOPs of one step as the model defines them (no recomputation), counted on a plain eager run."""
+        """FLOPs of one step as the model defines them (no recomputation), counted on a plain eager run.
+
+        Counted on one sample and multiplied by the batch (every op is per sample), so that the run without
+        checkpointing fits in memory at a batch that needs checkpointing.
+        """
         set_checkpointing(self.model, 0)
-        forward, self.forward = self.forward, self.model
+        saved = self.forward, self.x, self.cond
+        self.forward, self.x = self.model, self.x[:1]
+        self.cond = {k: v[:1] if torch.is_tensor(v) else v for k, v in self.cond.items()}
         try:
             with FlopCounterMode(display=False) as counter:
                 self()
         finally:
             set_checkpointing(self.model, self.checkpointing, self.policy)
-            self.forward = forward
-        return float(counter.get_total_flops())
+            self.forward, self.x, self.cond = saved
+        return float(counter.get_total_flops()) * self.batch
 
     def timed(self, steps: int, warmup: int) -> float:
         """Median seconds per step after ``warmup`` steps (compilation happens there)."""

@@ -4,7 +4,7 @@
 #   OUT=/path/to/results bash tools/gpu_run.sh         # from the repository root, on the GPU machine
 #   DRY=1 OUT=/tmp/gpu-dry bash tools/gpu_run.sh       # the same parts on the CPU at the smoke preset
 #
-# Parts, each under its own time limit (seconds, overridable: T_DEPS, T_PEAK, T_FORWARDS, T_TOGGLES,
+# Parts, each under its own time limit (seconds, overridable: T_PEAK, T_FORWARDS, T_TOGGLES,
 # T_GRAPHS, T_ROLLOUTS, T_TRAIN, T_DAG) and all within BUDGET (default 470 s): a failed or timed-out
 # part does not stop the others, and a part never gets more than what is left of the budget.
 #   peak      device, memory, bf16 matmul peak (table and measured)          -> peak.json
@@ -93,13 +93,13 @@ else
   rollout=(--seconds 2 --repeats 3)
   train=(--presets paper --mfu-preset paper --batch-size 8 --checkpointing 24 --steps 3 --warmup 2)
 fi
-step peak "${T_PEAK:-20}" "$PY" benchmarks/gpu_suite.py peak --out "$OUT" "${suite[@]}"
-step forwards "${T_FORWARDS:-45}" "$PY" benchmarks/gpu_suite.py forwards --out "$OUT" "${suite[@]}"
-step toggles "${T_TOGGLES:-60}" "$PY" benchmarks/gpu_suite.py toggles --out "$OUT" "${suite[@]}"
-step graphs "${T_GRAPHS:-25}" "$PY" benchmarks/gpu_suite.py graphs --out "$OUT" "${suite[@]}"
-step rollouts "${T_ROLLOUTS:-100}" "$PY" benchmarks/bench_rollout.py --preset "$preset" --device "$device" \
+step peak "${T_PEAK:-15}" "$PY" benchmarks/gpu_suite.py peak --out "$OUT" "${suite[@]}"
+step forwards "${T_FORWARDS:-40}" "$PY" benchmarks/gpu_suite.py forwards --out "$OUT" "${suite[@]}"
+step toggles "${T_TOGGLES:-70}" "$PY" benchmarks/gpu_suite.py toggles --out "$OUT" "${suite[@]}"
+step graphs "${T_GRAPHS:-20}" "$PY" benchmarks/gpu_suite.py graphs --out "$OUT" "${suite[@]}"
+step rollouts "${T_ROLLOUTS:-90}" "$PY" benchmarks/bench_rollout.py --preset "$preset" --device "$device" \
   "${rollout[@]}" --timeout 45 --json "$OUT/rollouts.json"
-step train "${T_TRAIN:-70}" "$PY" benchmarks/bench_train.py "${train[@]}" --policy selective --max-batch 0 \
+step train "${T_TRAIN:-60}" "$PY" benchmarks/bench_train.py "${train[@]}" --policy selective --max-batch 0 \
   --device "$device" --json "$OUT/train.json"
-step dag "${T_DAG:-150}" "$PY" benchmarks/gpu_suite.py dag --out "$OUT" "${suite[@]}"
+step dag "${T_DAG:-170}" "$PY" benchmarks/gpu_suite.py dag --out "$OUT" "${suite[@]}"
 log "done in $SECONDS s; results in $OUT"
