@@ -1,13 +1,14 @@
 """Training-step efficiency of the predictors: tokens/s at every preset, MFU at the paper preset, max batch.
 
     python benchmarks/bench_train.py [--presets smoke,default,paper] [--mfu-preset paper] [--batch-size 4]
-        [--checkpointing 24] [--precision bf16] [--compile] [--max-batch 64] [--json out.json]
+        [--checkpointing 24] [--policy selective] [--precision bf16] [--compile] [--max-batch 64] [--json out.json]
 
 Random weights, 16-channel latents on the preset's latent grid (paper: 18x32),
 teacher-forcing steps (forward, backward, fused AdamW on CUDA) of the abstract
 predictor (6 frames at 2 Hz, causal, steered) and of the detail predictor (10
 frames at 10 Hz, abstract-conditioned), with the training loop's settings:
-bf16 autocast and TF32 on CUDA, per-block activation checkpointing.
+bf16 autocast and TF32 on CUDA, per-block activation checkpointing (``--policy``
+full or selective, :func:`orbis2.train.set_checkpointing`).
 
 * **tokens/s** at every preset in ``--presets``;
 * **MFU** at ``--mfu-preset``: model FLOPs per step (``FlopCounterMode``, counted
@@ -35,6 +36,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from orbis2.accel import set_tf32
 from orbis2.flow import teacher_forcing_loss
 from orbis2.models.stdit import STDIT_PRESETS, build_stdit
+from orbis2.train import set_checkpointing
 
 LATENT_CHANNELS = 16
 GRIDS = {"smoke": (9, 16), "default": (9, 16), "paper": (18, 32)}
@@ -103,7 +105,8 @@ class Step:
             self.cond = {"frame_rate": 10.0, "cond_mask": mask,
                          "cond_frames": torch.randn(batch, frames, LATENT_CHANNELS, h, w, device=device)}
         self.model.to(device).train()
-        self.model.checkpoint_blocks = args.checkpointing
+        self.checkpointing, self.policy = args.checkpointing, args.policy
+        set_checkpointing(self.model, self.checkpointing, self.policy)
         torch.nn.init.normal_(self.model.final_layer.linear.weight, std=0.02)
         self.x = torch.randn(batch, frames, LATENT_CHANNELS, h, w, device=device)
         self.tokens = batch * frames * h * w
@@ -126,15 +129,22 @@ class Step:
         self.optimizer.step()
 
     def model_flops(self) -> float:
-        """FLOPs of one step as the model defines them (no recomputation), counted on a plain eager run."""
-        blocks, self.model.checkpoint_blocks = self.model.checkpoint_blocks, 0
-        forward, self.forward = self.forward, self.model
+        """FLOPs of one step as the model defines them (no recomputation), counted on a plain eager run.
+
+        Counted on one sample and multiplied by the batch (every op is per sample), so that the run without
+        checkpointing fits in memory at a batch that needs checkpointing.
+        """
+        set_checkpointing(self.model, 0)
+        saved = self.forward, self.x, self.cond
+        self.forward, self.x = self.model, self.x[:1]
+        self.cond = {k: v[:1] if torch.is_tensor(v) else v for k, v in self.cond.items()}
         try:
             with FlopCounterMode(display=False) as counter:
                 self()
         finally:
-            self.model.checkpoint_blocks, self.forward = blocks, forward
-        return float(counter.get_total_flops())
+            set_checkpointing(self.model, self.checkpointing, self.policy)
+            self.forward, self.x, self.cond = saved
+        return float(counter.get_total_flops()) * self.batch
 
     def timed(self, steps: int, warmup: int) -> float:
         """Median seconds per step after ``warmup`` steps (compilation happens there)."""
@@ -195,7 +205,8 @@ def max_batch(preset: str, device: torch.device, args: argparse.Namespace) -> di
             _free(device)
         batch *= 2
     total = torch.cuda.get_device_properties(device).total_memory / 2**30
-    return {**best, "checkpointing": args.checkpointing, "device_memory_gb": total, "tried_up_to": batch}
+    return {**best, "checkpointing": args.checkpointing, "policy": args.policy, "device_memory_gb": total,
+            "tried_up_to": batch}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -205,6 +216,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--batch-size", type=int, default=4)
     parser.add_argument("--checkpointing", type=int, default=0,
                         help="blocks with activation checkpointing in the timed steps (0 off)")
+    parser.add_argument("--policy", choices=("full", "selective"), default="full",
+                        help="what a checkpointed block keeps: its input (full) or its matmul outputs (selective)")
     parser.add_argument("--batch-checkpointing", type=int, default=1000,
                         help="blocks checkpointed in the max-batch search (default: all)")
     parser.add_argument("--precision", choices=("bf16", "fp32"), default="bf16")
@@ -232,7 +245,7 @@ def main(argv: list[str] | None = None) -> None:
     print(f"device {name}; bf16 peak (table) {table_peak or 'unknown'} TFLOP/s; measured matmul {measured:.1f} "
           f"TFLOP/s; {args.precision}, checkpointing {args.checkpointing}, batch {args.batch_size}")
     record: dict = {"device": name, "precision": args.precision, "compile": args.compile, "batch": args.batch_size,
-                    "checkpointing": args.checkpointing, "peak_bf16_tflops_table": table_peak,
+                    "checkpointing": args.checkpointing, "policy": args.policy, "peak_bf16_tflops_table": table_peak,
                     "matmul_tflops_measured": measured, "sdpa": sdpa_backends(device, args.mfu_preset), "runs": []}
     print(f"{'preset':<9}{'model':<10}{'params':>14}{'tokens/s':>12}{'step s':>9}{'TFLOP/s':>9}{'MFU tbl':>9}"
           f"{'MFU mm':>8}{'peak GB':>9}")

@@ -627,8 +627,11 @@ class PipelineConfig:
 
 
 # Fields that change only bookkeeping, never the trajectory: a resume may change them.
-# Activation checkpointing recomputes the same activations: it changes memory and time, not the numbers.
-BOOKKEEPING_FIELDS = frozenset({"log_every", "eval_every", "checkpoint_every", "activation_checkpointing"})
+# Activation checkpointing recomputes the same activations: it changes memory and time, not the numbers;
+# compilation changes only the order of floating-point operations (on GPU), not the method.
+BOOKKEEPING_FIELDS = frozenset({"log_every", "eval_every", "checkpoint_every", "activation_checkpointing",
+                                "checkpoint_policy", "compile"})
+CHECKPOINT_POLICIES = ("full", "selective")
 
 
 @dataclass(frozen=True)
@@ -637,7 +640,11 @@ class TrainConfig:
 
     GPU only: ``mixed_precision`` bf16 autocast, ``tf32`` for the remaining fp32
     matmuls, ``activation_checkpointing`` = how many of the model's first blocks
-    recompute their activations in the backward pass (0 off; >= depth all).
+    recompute their activations in the backward pass (0 off; >= depth all), with
+    ``checkpoint_policy`` ``full`` (keep only each block's input) or ``selective``
+    (keep the matmul and attention outputs, recompute the cheap elementwise and
+    norm ops). ``compile``: ``torch.compile`` the network for training (off by
+    default: on the CPU the compile time exceeds a short run's gain).
     """
 
     steps: int
@@ -653,6 +660,8 @@ class TrainConfig:
     mixed_precision: str = "bf16"
     tf32: bool = True
     activation_checkpointing: int = 0
+    checkpoint_policy: str = "full"
+    compile: bool = False
     log_every: int = 10
     eval_every: int = 0
     checkpoint_every: int = 500
@@ -669,6 +678,8 @@ class TrainConfig:
             "grad_clip": (self.grad_clip is None or self.grad_clip > 0, "> 0, or null for off"),
             "ema_decay": (self.ema_decay is None or 0 <= self.ema_decay < 1, "in [0, 1), or null for off"),
             "mixed_precision": (self.mixed_precision in ("bf16", "none"), "'bf16' or 'none'"),
+            "checkpoint_policy": (self.checkpoint_policy in CHECKPOINT_POLICIES, "'full' or 'selective'"),
+            "compile": (isinstance(self.compile, bool), "true or false"),
             **{name: (getattr(self, name) >= 1, ">= 1") for name in ("steps", "batch_size", "log_every",
                                                                      "checkpoint_every")},
             **{name: (getattr(self, name) >= 0, ">= 0") for name in ("weight_decay", "warmup_steps", "eval_every",

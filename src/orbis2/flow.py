@@ -59,6 +59,52 @@ def null_context(context: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.zeros_like(context), tau
 
 
+def teacher_forcing_draws(context: torch.Tensor, target: torch.Tensor, generator: torch.Generator
+                          ) -> dict[str, torch.Tensor]:
+    """The random numbers of one :func:`teacher_forcing_loss`, in its order of drawing.
+
+    Drawn apart from the loss so that the loss itself (:func:`teacher_forcing_from_draws`)
+    holds no generator and compiles to one graph with the network.
+    """
+    b = context.shape[0]
+    return {"eps": _randn(target.shape, target, generator), "tau": _rand((b, 1), target, generator),
+            "noise_draw": _rand((b,), target, generator), "aug": _randn(context.shape, context, generator),
+            "drop_draw": _rand((b,), target, generator)}
+
+
+def teacher_forcing_from_draws(
+    model_fn: ModelFn,
+    context: torch.Tensor,
+    target: torch.Tensor,
+    draws: dict[str, torch.Tensor],
+    context_noise_prob: float = 0.0,
+    context_noise_std: float = 0.1,
+    context_drop_prob: float = 0.0,
+    **cond,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """:func:`teacher_forcing_loss` given its :func:`teacher_forcing_draws`; metrics stay tensors (no host sync)."""
+    b, n_context = context.shape[:2]
+    eps = draws["eps"]
+    tau_target = draws["tau"].expand(b, target.shape[1])
+    tau_context = torch.zeros(b, n_context, device=target.device, dtype=target.dtype)
+
+    per_sample = (b,) + (1,) * (context.ndim - 1)
+    noised = draws["noise_draw"] < context_noise_prob
+    context = torch.where(noised.reshape(per_sample), context + draws["aug"] * context_noise_std, context)
+    dropped = draws["drop_draw"] < context_drop_prob
+    null, null_tau = null_context(context)
+    context = torch.where(dropped.reshape(per_sample), null, context)
+    tau_context = torch.where(dropped[:, None], null_tau, tau_context)
+
+    x = torch.cat([context, interpolate(target, eps, tau_target)], dim=1)
+    tau = torch.cat([tau_context, tau_target], dim=1)
+    velocity = model_fn(x, tau, **cond)[:, n_context:]
+    loss = F.mse_loss(velocity.float(), velocity_target(target, eps).float())
+    metrics = {"loss": loss.detach(), "context_noised": noised.float().mean(),
+               "context_dropped": dropped.float().mean()}
+    return loss, metrics
+
+
 def teacher_forcing_loss(
     model_fn: ModelFn,
     context: torch.Tensor,
@@ -68,7 +114,7 @@ def teacher_forcing_loss(
     context_noise_std: float = 0.1,
     context_drop_prob: float = 0.0,
     **cond,
-) -> tuple[torch.Tensor, dict[str, float]]:
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Eq. 1: clean context at tau = 0, one tau ~ U[0, 1] per sample for all target frames.
 
     ``context`` [B, F_c, ...] and ``target`` [B, F_t, ...] are packed on the
@@ -77,43 +123,31 @@ def teacher_forcing_loss(
     ``context_noise_std`` * N(0, 1) added (it stays at tau = 0), and with
     ``context_drop_prob`` it is replaced by the null context (``null_context``),
     which trains the context-free path the linear probes use (reference v1
-    code: 0.5 / 0.1 / 0.2).
+    code: 0.5 / 0.1 / 0.2). Metrics are 0-dim tensors, read by the caller when it logs.
     """
-    b, n_context = context.shape[:2]
-    eps = _randn(target.shape, target, generator)
-    tau_target = _rand((b, 1), target, generator).expand(b, target.shape[1])
-    tau_context = torch.zeros(b, n_context, device=target.device, dtype=target.dtype)
+    return teacher_forcing_from_draws(model_fn, context, target, teacher_forcing_draws(context, target, generator),
+                                      context_noise_prob, context_noise_std, context_drop_prob, **cond)
 
-    per_sample = (b,) + (1,) * (context.ndim - 1)
-    noised = _rand((b,), target, generator) < context_noise_prob
-    aug = _randn(context.shape, context, generator) * context_noise_std
-    context = torch.where(noised.reshape(per_sample), context + aug, context)
-    dropped = _rand((b,), target, generator) < context_drop_prob
-    null, null_tau = null_context(context)
-    context = torch.where(dropped.reshape(per_sample), null, context)
-    tau_context = torch.where(dropped[:, None], null_tau, tau_context)
 
-    x = torch.cat([context, interpolate(target, eps, tau_target)], dim=1)
-    tau = torch.cat([tau_context, tau_target], dim=1)
-    velocity = model_fn(x, tau, **cond)[:, n_context:]
-    loss = F.mse_loss(velocity.float(), velocity_target(target, eps).float())
-    metrics = {
-        "loss": loss.item(),
-        "context_noised": noised.float().mean().item(),
-        "context_dropped": dropped.float().mean().item(),
-    }
-    return loss, metrics
+def diffusion_forcing_draws(frames: torch.Tensor, generator: torch.Generator) -> dict[str, torch.Tensor]:
+    """The random numbers of one :func:`diffusion_forcing_loss` (noise, then one tau per frame)."""
+    return {"eps": _randn(frames.shape, frames, generator), "tau": _rand(tuple(frames.shape[:2]), frames, generator)}
+
+
+def diffusion_forcing_from_draws(model_fn: ModelFn, frames: torch.Tensor, draws: dict[str, torch.Tensor],
+                                 **cond) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """:func:`diffusion_forcing_loss` given its :func:`diffusion_forcing_draws`; metrics stay tensors."""
+    eps, tau = draws["eps"], draws["tau"]
+    velocity = model_fn(interpolate(frames, eps, tau), tau, **cond)
+    loss = F.mse_loss(velocity.float(), velocity_target(frames, eps).float())
+    return loss, {"loss": loss.detach(), "tau_mean": tau.float().mean()}
 
 
 def diffusion_forcing_loss(
     model_fn: ModelFn, frames: torch.Tensor, generator: torch.Generator, **cond
-) -> tuple[torch.Tensor, dict[str, float]]:
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Eq. 2: an independent tau_i ~ U[0, 1] for every frame of every sample, loss on all frames."""
-    eps = _randn(frames.shape, frames, generator)
-    tau = _rand(tuple(frames.shape[:2]), frames, generator)
-    velocity = model_fn(interpolate(frames, eps, tau), tau, **cond)
-    loss = F.mse_loss(velocity.float(), velocity_target(frames, eps).float())
-    return loss, {"loss": loss.item(), "tau_mean": tau.float().mean().item()}
+    return diffusion_forcing_from_draws(model_fn, frames, diffusion_forcing_draws(frames, generator), **cond)
 
 
 def guided_velocity(conditional: torch.Tensor, unconditional: torch.Tensor, scale: float) -> torch.Tensor:
@@ -160,6 +194,29 @@ def euler_sample(
     return x
 
 
+def reflow_draws(context: torch.Tensor, n_target: int, generator: torch.Generator, teacher_fn: ModelFn,
+                 teacher_nfe: int, **cond) -> dict[str, torch.Tensor]:
+    """The teacher's (noise, sample) pair and the student's tau for one :func:`reflow_loss`, in its order."""
+    b = context.shape[0]
+    eps = _randn((b, n_target, *context.shape[2:]), context, generator)
+    with torch.no_grad():
+        x_teacher = euler_sample(teacher_fn, context, n_target, teacher_nfe, generator, noise=eps, **cond).detach()
+    return {"eps": eps, "x_teacher": x_teacher, "tau": _rand((b, 1), context, generator)}
+
+
+def reflow_from_draws(model_fn: ModelFn, context: torch.Tensor, draws: dict[str, torch.Tensor],
+                      **cond) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """:func:`reflow_loss` given its :func:`reflow_draws`: the student's regression of the straight path."""
+    eps, x_teacher = draws["eps"], draws["x_teacher"]
+    b, n_context = context.shape[:2]
+    tau_target = draws["tau"].expand(b, eps.shape[1])
+    tau = torch.cat([torch.zeros(b, n_context, device=context.device, dtype=context.dtype), tau_target], dim=1)
+    x = torch.cat([context, interpolate(x_teacher, eps, tau_target)], dim=1)
+    velocity = model_fn(x, tau, **cond)[:, n_context:]
+    loss = F.mse_loss(velocity.float(), velocity_target(x_teacher, eps).float())
+    return loss, {"loss": loss.detach()}
+
+
 def reflow_loss(
     model_fn: ModelFn,
     teacher_fn: ModelFn,
@@ -168,7 +225,7 @@ def reflow_loss(
     generator: torch.Generator,
     teacher_nfe: int,
     **cond,
-) -> tuple[torch.Tensor, dict[str, float]]:
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Rectified-flow reflow distillation (Liu et al., 2023, "Flow straight and fast"), with eq. 1's conditioning.
 
     The teacher integrates its ODE from noise ``eps`` to a sample ``x_T``
@@ -179,13 +236,5 @@ def reflow_loss(
     sampler as the teacher's flow matching; only the pairing of data and noise
     changes (coupled by the teacher instead of independent).
     """
-    b, n_context = context.shape[:2]
-    eps = _randn((b, n_target, *context.shape[2:]), context, generator)
-    with torch.no_grad():
-        x_teacher = euler_sample(teacher_fn, context, n_target, teacher_nfe, generator, noise=eps, **cond).detach()
-    tau_target = _rand((b, 1), context, generator).expand(b, n_target)
-    tau = torch.cat([torch.zeros(b, n_context, device=context.device, dtype=context.dtype), tau_target], dim=1)
-    x = torch.cat([context, interpolate(x_teacher, eps, tau_target)], dim=1)
-    velocity = model_fn(x, tau, **cond)[:, n_context:]
-    loss = F.mse_loss(velocity.float(), velocity_target(x_teacher, eps).float())
-    return loss, {"loss": loss.item()}
+    draws = reflow_draws(context, n_target, generator, teacher_fn, teacher_nfe, **cond)
+    return reflow_from_draws(model_fn, context, draws, **cond)

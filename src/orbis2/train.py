@@ -23,6 +23,7 @@ import atexit
 import contextlib
 import copy
 import dataclasses
+import functools
 import hashlib
 import io
 import math
@@ -44,14 +45,16 @@ import torch.distributed as dist
 import torch.multiprocessing as mp
 from torch import nn
 from torch.nn.parallel import DistributedDataParallel
+from torch.utils.checkpoint import CheckpointPolicy, checkpoint, create_selective_checkpoint_contexts
 from tqdm import tqdm
 
 from orbis2.accel import set_tf32
-from orbis2.config import ConfigError, TrainConfig
+from orbis2.config import CHECKPOINT_POLICIES, ConfigError, TrainConfig
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file
 
-LossOutput = tuple[torch.Tensor, dict[str, float]]
+# The loss and its metrics (0-dim tensors or numbers; tensors are read only when the metrics are logged).
+LossOutput = tuple[torch.Tensor, dict[str, Any]]
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
@@ -88,6 +91,7 @@ class DataSpec:
     seed: int
     start: int
     num_workers: int
+    pin_memory: bool = False  # CUDA: collate into page-locked memory, so that the copy to the device is asynchronous
 
 
 @dataclass(frozen=True)
@@ -140,6 +144,60 @@ class TrainResult:
 
 class ResumeError(OrbisError):
     """A checkpoint in the output folder cannot continue this run."""
+
+
+# The ops whose outputs selective checkpointing keeps: matmuls and attention (the compute); everything else in a
+# block (norms, modulation, activations, residual adds) is recomputed in the backward pass.
+SAVED_OPS = frozenset(
+    getattr(torch.ops.aten, name).default
+    for name in ("mm", "addmm", "bmm", "baddbmm", "_scaled_dot_product_flash_attention",
+                 "_scaled_dot_product_efficient_attention", "_scaled_dot_product_cudnn_attention",
+                 "_scaled_dot_product_flash_attention_for_cpu", "_scaled_mm")
+    if hasattr(torch.ops.aten, name))
+
+
+def _selective_policy(ctx: Any, op: Any, *args: Any, **kwargs: Any) -> CheckpointPolicy:
+    return CheckpointPolicy.MUST_SAVE if op in SAVED_OPS else CheckpointPolicy.PREFER_RECOMPUTE
+
+
+class _SelectiveCheckpoint:
+    """A block's ``forward`` run under selective activation checkpointing while it trains.
+
+    Set as the block's instance attribute ``forward``, so the state dict keeps its names
+    and a deep copy (the EMA model) checkpoints its own block.
+    """
+
+    def __init__(self, forward: Callable[..., Any]):
+        self.forward = forward
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        module = self.forward.__self__
+        if not (module.training and torch.is_grad_enabled()):
+            return self.forward(*args, **kwargs)
+        context = functools.partial(create_selective_checkpoint_contexts, _selective_policy)
+        return checkpoint(self.forward, *args, use_reentrant=False, context_fn=context, **kwargs)
+
+
+def set_checkpointing(model: nn.Module, blocks: int, policy: str = "full") -> None:
+    """Activation checkpointing of the model's first ``blocks`` blocks, ``full`` or ``selective`` (``SAVED_OPS``).
+
+    ``full`` is the model's own (``checkpoint_blocks``); ``selective`` wraps each block's forward in
+    :func:`torch.utils.checkpoint.checkpoint` with a policy from
+    :func:`torch.utils.checkpoint.create_selective_checkpoint_contexts`. Both recompute exactly what they
+    dropped: losses and gradients equal the plain run's bit for bit.
+    """
+    if not (hasattr(model, "checkpoint_blocks") and isinstance(getattr(model, "blocks", None), nn.ModuleList)):
+        raise ConfigError(f"activation_checkpointing = {blocks}: {type(model).__name__} does not support it; "
+                          f"set it to 0")
+    if policy not in CHECKPOINT_POLICIES:
+        raise ConfigError(f"checkpoint_policy = {policy!r} must be one of {CHECKPOINT_POLICIES}")
+    for block in model.blocks:
+        if isinstance(block.__dict__.get("forward"), _SelectiveCheckpoint):
+            del block.forward
+    model.checkpoint_blocks = blocks if policy == "full" else 0
+    if policy == "selective":
+        for block in model.blocks[:blocks]:
+            block.forward = _SelectiveCheckpoint(block.forward)
 
 
 def unwrap(model: nn.Module) -> nn.Module:
@@ -264,10 +322,7 @@ class _Run:
         if env.device.type == "cuda":
             set_tf32(cfg.tf32)
         if cfg.activation_checkpointing:
-            if not hasattr(self.raw, "checkpoint_blocks"):
-                raise ConfigError(f"activation_checkpointing = {cfg.activation_checkpointing}: "
-                                  f"{type(self.raw).__name__} does not support it; set it to 0")
-            self.raw.checkpoint_blocks = cfg.activation_checkpointing
+            set_checkpointing(self.raw, cfg.activation_checkpointing, cfg.checkpoint_policy)
         extras = list(task.extra_updates(self.raw)) if hasattr(task, "extra_updates") else []
         claimed = {id(p) for update in extras for p in update.params}
         if len(claimed) != sum(len(update.params) for update in extras):
@@ -285,6 +340,8 @@ class _Run:
             self.model = DistributedDataParallel(self.raw, device_ids=[env.device] if cuda else None,
                                                  find_unused_parameters=bool(extras))
         self.ema = None if cfg.ema_decay is None else copy.deepcopy(self.raw).requires_grad_(False).eval()
+        if cfg.compile:
+            self.model.compile()  # in place: the state dict keeps its names; the EMA copy stays eager
         self.step = self.start_step = self.position = 0
         self.metrics: dict[str, float] = {}
         self.history: list[tuple[int, dict[str, float]]] = []
@@ -298,7 +355,7 @@ class _Run:
         self.resume()
         cfg, env = self.cfg, self.env
         spec = DataSpec(env.rank, env.world_size, cfg.batch_size // env.world_size, cfg.seed, self.position,
-                        cfg.num_workers)
+                        cfg.num_workers, pin_memory=env.device.type == "cuda")
         batches: Iterator[Any] = iter(self.task.batches(spec))
         meter = _Meter()
         started = time.perf_counter()

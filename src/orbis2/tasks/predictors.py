@@ -49,6 +49,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 from torch import nn
+from torch.utils.data import DataLoader
 
 from orbis2.config import (
     ActionConfig,
@@ -60,7 +61,15 @@ from orbis2.config import (
 )
 from orbis2.data.motion import TURN_THRESHOLD
 from orbis2.errors import OrbisError
-from orbis2.flow import diffusion_forcing_loss, euler_sample, reflow_loss, teacher_forcing_loss
+from orbis2.flow import (
+    diffusion_forcing_draws,
+    diffusion_forcing_from_draws,
+    euler_sample,
+    reflow_draws,
+    reflow_from_draws,
+    teacher_forcing_draws,
+    teacher_forcing_from_draws,
+)
 from orbis2.io import sha256_file
 from orbis2.latents import LatentCache, LatentWindowDataset
 from orbis2.models.stdit import (
@@ -117,15 +126,18 @@ def detail_condition_slots(data: DataConfig) -> dict[int, int]:
     return slots
 
 
-def detail_condition(abstract: torch.Tensor, data: DataConfig) -> tuple[torch.Tensor, torch.Tensor]:
+def detail_condition(abstract: torch.Tensor, data: DataConfig, slots: dict[int, int] | None = None
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
     """Slow window [B, A, C, h, w] -> ``cond_frames`` [B, F_detail, C, h, w] and ``cond_mask`` [B, F_detail].
 
     The slow window holds abstract latents (the hierarchy) or detail ones (Exp. 4's bottom predictor).
+    ``slots``: :func:`detail_condition_slots` of ``data`` when the caller has them already (the training
+    step, which must not run the window arithmetic inside a compiled region).
     """
     b = abstract.shape[0]
     frames = abstract.new_zeros(b, data.detail_window, *abstract.shape[2:])
     mask = torch.zeros(b, data.detail_window, dtype=torch.bool, device=abstract.device)
-    for slot, index in detail_condition_slots(data).items():
+    for slot, index in (detail_condition_slots(data) if slots is None else slots).items():
         frames[:, slot] = abstract[:, index]
         mask[:, slot] = True
     return frames, mask
@@ -141,14 +153,15 @@ def steering_interval(data: DataConfig) -> slice:
 
 
 def steering_features(odometry: torch.Tensor, has_odometry: torch.Tensor, data: DataConfig,
-                      cfg: ActionConfig) -> tuple[torch.Tensor, torch.Tensor]:
+                      cfg: ActionConfig, interval: slice | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Native odometry span [B, S, 2] -> unit-scale steering [B, T, 2] and ``unknown`` [B].
 
     Speed and yaw rate over the predicted interval, divided by the configured
     scales. A sample without odometry, or with any NaN in the interval, is
-    ``unknown``: it must run unconditionally (its values are zeroed).
+    ``unknown``: it must run unconditionally (its values are zeroed). ``interval``: the
+    :func:`steering_interval` of ``data`` when the caller has it (the training step).
     """
-    values = odometry[:, steering_interval(data)]
+    values = odometry[:, steering_interval(data) if interval is None else interval]
     values = values / values.new_tensor([cfg.speed_scale, cfg.yaw_rate_scale])
     unknown = ~has_odometry.bool() | torch.isnan(values).flatten(1).any(dim=1)
     return torch.where(unknown[:, None, None], torch.zeros_like(values), values), unknown
@@ -185,8 +198,8 @@ def turn_columns_per_yaw_rate(dataset: LatentWindowDataset, data: DataConfig, wi
     return float((shift[known] * yaw[known]).sum() / (yaw[known] ** 2).sum())
 
 
-def offset_yaw(targets: torch.Tensor, steering: torch.Tensor, active: torch.Tensor, generator: torch.Generator,
-               prob: float, max_offset: float, columns_per_yaw_rate: float,
+def offset_yaw(targets: torch.Tensor, steering: torch.Tensor, active: torch.Tensor,
+               draws: torch.Generator | torch.Tensor, prob: float, max_offset: float, columns_per_yaw_rate: float,
                yaw_rate_scale: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Counterfactual turns for the steered fine-tune: targets [B, T, C, h, w] and unit-scale steering [B, S, 2].
 
@@ -196,10 +209,12 @@ def offset_yaw(targets: torch.Tensor, steering: torch.Tensor, active: torch.Tens
     columns (:func:`translate_columns`): the frames a slightly sharper or gentler
     turn would have shown, approximated as a pure sideways move of the grid. The
     world turns at a few rates only; these samples show the predictor how the
-    scene moves with the yaw rate in between and beyond them.
+    scene moves with the yaw rate in between and beyond them. ``draws`` is a
+    generator, or the [2, B] uniforms it would give (:func:`offset_yaw_draws`).
     """
     b, n_target = targets.shape[:2]
-    draws = torch.rand(2, b, generator=generator, device=generator.device).to(targets.device)
+    if isinstance(draws, torch.Generator):
+        draws = offset_yaw_draws(b, draws, targets.device)
     delta = torch.where(active & (draws[0] < prob), (2 * draws[1] - 1) * max_offset, torch.zeros_like(draws[1]))
     moved = torch.stack([translate_columns(targets[:, j], delta * columns_per_yaw_rate * (j + 1) / n_target)
                          for j in range(n_target)], dim=1)
@@ -207,6 +222,11 @@ def offset_yaw(targets: torch.Tensor, steering: torch.Tensor, active: torch.Tens
     steering = steering.clone()
     steering[..., 1] += (delta / yaw_rate_scale)[:, None]
     return moved, steering
+
+
+def offset_yaw_draws(b: int, generator: torch.Generator, device: torch.device) -> torch.Tensor:
+    """The [2, B] uniforms of one :func:`offset_yaw` (whether to offset, and by how much)."""
+    return torch.rand(2, b, generator=generator, device=generator.device).to(device)
 
 
 # --------------------------------------------------------------------------- data
@@ -242,27 +262,55 @@ def turn_repeats(dataset: LatentWindowDataset, data: DataConfig, cfg: PredictorC
     return repeats
 
 
-def window_batches(dataset: LatentWindowDataset, spec: DataSpec,
-                   repeats: np.ndarray | None = None) -> Iterator[dict[str, torch.Tensor]]:
-    """Endless train batches of this rank from batch ``spec.start`` on; a pure function of the spec.
+def window_index_batches(n_windows: int, spec: DataSpec, split: str,
+                         repeats: np.ndarray | None = None) -> Iterator[list[int]]:
+    """Endless window indices of this rank's train batches from batch ``spec.start`` on; a pure function of the spec.
 
     Each epoch is a permutation drawn from ``(seed, epoch)``, shared by all ranks, of
     the windows with window i listed ``repeats[i]`` times (once without ``repeats``),
     of which each rank keeps every ``world_size``-th entry; skipping to ``start``
     reads no windows.
     """
-    pool = np.arange(len(dataset)) if repeats is None else np.repeat(np.arange(len(dataset)), repeats)
+    pool = np.arange(n_windows) if repeats is None else np.repeat(np.arange(n_windows), repeats)
     n = len(pool)
     per_epoch = (n // spec.world_size) // spec.batch_size
     if per_epoch == 0:
-        raise OrbisError(f"the {dataset.split} split gives {n} windows, fewer than one batch of {spec.batch_size} "
+        raise OrbisError(f"the {split} split gives {n} windows, fewer than one batch of {spec.batch_size} "
                          f"per process; lower the batch size or anchor_stride, or add data")
     first_epoch, offset = divmod(spec.start, per_epoch)
     for epoch in itertools.count(first_epoch):
         order = pool[np.random.default_rng([spec.seed, epoch]).permutation(n)][spec.rank::spec.world_size]
         for b in range(offset, per_epoch):
-            yield collate([dataset[int(i)] for i in order[b * spec.batch_size:(b + 1) * spec.batch_size]])
+            yield [int(i) for i in order[b * spec.batch_size:(b + 1) * spec.batch_size]]
         offset = 0
+
+
+class _IndexBatches:
+    """The ``batch_sampler`` of a :class:`~torch.utils.data.DataLoader`: one pass is the endless index stream."""
+
+    def __init__(self, batches: Iterator[list[int]]):
+        self.batches = batches
+
+    def __iter__(self) -> Iterator[list[int]]:
+        return self.batches
+
+
+def window_batches(dataset: LatentWindowDataset, spec: DataSpec,
+                   repeats: np.ndarray | None = None) -> Iterator[dict[str, torch.Tensor]]:
+    """Endless train batches of this rank (:func:`window_index_batches`), read and collated by a DataLoader.
+
+    ``spec.num_workers`` worker processes read and collate the next batches while the
+    network trains (0: in this process, what the CPU profiles use); ``spec.pin_memory``
+    collates into page-locked memory, so the training loop's ``non_blocking`` copy
+    overlaps with compute. The batches are the same either way, in the same order.
+    """
+    indices = window_index_batches(len(dataset), spec, dataset.split, repeats)
+    if spec.num_workers == 0 and not spec.pin_memory:
+        return (collate([dataset[i] for i in batch]) for batch in indices)
+    loader = DataLoader(dataset, batch_sampler=_IndexBatches(indices), collate_fn=collate,
+                        num_workers=spec.num_workers, pin_memory=spec.pin_memory,
+                        prefetch_factor=2 if spec.num_workers else None)
+    return iter(loader)
 
 
 def step_generator(seed: int, rank: int, step: int, device: torch.device) -> torch.Generator:
@@ -292,6 +340,9 @@ class PredictorTask:
         self._val_init: float | None = None
         self._teacher: nn.Module | None = None
         self._turn_columns: float | None = None
+        # Window arithmetic done once, not inside the (compilable) loss.
+        self.slots = detail_condition_slots(data) if self.spec.condition is not None else None
+        self.steer = steering_interval(data) if self.spec.steering else None
 
     @property
     def rank(self) -> int:
@@ -346,42 +397,75 @@ class PredictorTask:
         return self._teacher.to(device)
 
     def objective(self, model: nn.Module, batch: dict[str, torch.Tensor], generator: torch.Generator,
-                  augment: bool) -> tuple[torch.Tensor, dict[str, float]]:
+                  augment: bool) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """The flow-matching loss of this stage; ``augment`` switches on context noise/drop and steering dropout."""
+        return self.objective_from_draws(model, batch, self.draws(batch, generator, augment), augment)
+
+    def draws(self, batch: dict[str, torch.Tensor], generator: torch.Generator,
+              augment: bool) -> dict[str, torch.Tensor]:
+        """Every random number of one :meth:`objective`, in its order of drawing (and the teacher's pairs).
+
+        Apart from the loss, so that :meth:`objective_from_draws` holds no generator: it runs without a host
+        sync and compiles with the network.
+        """
         frames = batch[self.batch_key]
+        n_context = rate_geometry(self.data, self.spec.rate)[2]
+        if self.spec.objective == "diffusion_forcing":
+            return diffusion_forcing_draws(frames, generator)
+        if self.spec.objective == "reflow":
+            assert isinstance(self.cfg, DistillConfig)
+            return reflow_draws(frames[:, :n_context], frames.shape[1] - n_context, generator,
+                                self.teacher(frames.device), self.cfg.teacher_nfe, **self.condition(batch))
+        cfg, out = self.cfg, {}
+        if self.spec.steering:
+            assert isinstance(cfg, ActionConfig)
+            out["steering_drop"] = torch.rand(len(frames), generator=generator, device=generator.device
+                                              ).to(frames.device)
+            if augment and cfg.yaw_offset_prob > 0:
+                out["yaw"] = offset_yaw_draws(len(frames), generator, frames.device)
+        return {**out, **teacher_forcing_draws(frames[:, :n_context], frames[:, n_context:], generator)}
+
+    def condition(self, batch: dict[str, torch.Tensor]) -> dict[str, Any]:
+        """The network's conditioning of this batch: frame rate, and the subgoal slots where the stage has them."""
         cond: dict[str, Any] = {"frame_rate": self.frame_rate}
         if self.spec.condition is not None:
             subgoals = batch[window_key(self.spec.condition, "slow")]
-            cond["cond_frames"], cond["cond_mask"] = detail_condition(subgoals, self.data)
+            cond["cond_frames"], cond["cond_mask"] = detail_condition(subgoals, self.data, self.slots)
+        return cond
+
+    def objective_from_draws(self, model: nn.Module, batch: dict[str, torch.Tensor], draws: dict[str, torch.Tensor],
+                             augment: bool) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """:meth:`objective` given its :meth:`draws`: no generator, no host sync; metrics are 0-dim tensors."""
+        frames = batch[self.batch_key]
+        cond = self.condition(batch)
         if self.spec.objective == "diffusion_forcing":
-            return diffusion_forcing_loss(model, frames, generator, **cond)
+            return diffusion_forcing_from_draws(model, frames, draws, **cond)
         n_context = rate_geometry(self.data, self.spec.rate)[2]
         if self.spec.objective == "reflow":
-            assert isinstance(self.cfg, DistillConfig)
-            return reflow_loss(model, self.teacher(frames.device), frames[:, :n_context],
-                               frames.shape[1] - n_context, generator, self.cfg.teacher_nfe, **cond)
+            return reflow_from_draws(model, frames[:, :n_context], draws, **cond)
         cfg = self.cfg
         assert isinstance(cfg, TeacherForcingConfig)
-        metrics: dict[str, float] = {}
+        metrics: dict[str, torch.Tensor] = {}
         targets = frames[:, n_context:]
         if self.spec.steering:
             assert isinstance(cfg, ActionConfig)
-            cond["steering"], unknown = steering_features(batch["odometry"], batch["has_odometry"], self.data, cfg)
-            dropped = torch.rand(len(frames), generator=generator, device=generator.device).to(frames.device)
-            cond["steering_drop"] = unknown | (dropped < (cfg.steering_dropout if augment else 0.0))
-            metrics = {"steering_unknown": unknown.float().mean().item(),
-                       "steering_dropped": cond["steering_drop"].float().mean().item()}
-            if augment and cfg.yaw_offset_prob > 0:
+            cond["steering"], unknown = steering_features(batch["odometry"], batch["has_odometry"], self.data, cfg,
+                                                               self.steer)
+            cond["steering_drop"] = unknown | (draws["steering_drop"] < (cfg.steering_dropout if augment else 0.0))
+            metrics = {"steering_unknown": unknown.float().mean(),
+                       "steering_dropped": cond["steering_drop"].float().mean()}
+            if "yaw" in draws:
                 targets, cond["steering"] = offset_yaw(
-                    targets, cond["steering"], ~cond["steering_drop"], generator, cfg.yaw_offset_prob,
+                    targets, cond["steering"], ~cond["steering_drop"], draws["yaw"], cfg.yaw_offset_prob,
                     cfg.yaw_offset_max, self.turn_columns(), cfg.yaw_rate_scale)
-        loss, tf_metrics = teacher_forcing_loss(
-            model, frames[:, :n_context], targets, generator,
+        loss, tf_metrics = teacher_forcing_from_draws(
+            model, frames[:, :n_context], targets, draws,
             context_noise_prob=cfg.context_noise_prob if augment else 0.0, context_noise_std=cfg.context_noise_std,
             context_drop_prob=cfg.context_drop_prob if augment else 0.0, **cond)
         return loss, {**tf_metrics, **metrics}
 
-    def loss(self, model: nn.Module, batch: dict[str, torch.Tensor], step: int) -> tuple[torch.Tensor, dict]:
+    def loss(self, model: nn.Module, batch: dict[str, torch.Tensor], step: int
+             ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         device = batch[self.batch_key].device
         return self.objective(model, batch, step_generator(self.cfg.train.seed, self.rank, step, device), True)
 
