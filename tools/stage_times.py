@@ -4,7 +4,7 @@
 
 Reads the `benchmark:` files the rules write (`logs/benchmarks/<rule>.tsv`, one row per run of the
 rule; the last row is the latest) and lists the stages in the order they finished, with the sum.
-The README's timing table is this script's output.
+The stage-time table of docs/pipeline.md is this script's output.
 """
 
 from __future__ import annotations
