@@ -18,8 +18,8 @@ the same noise draws for every variant (paired):
   which the loss sees more directly than the one-step mean).
 
 Each figure is a mean over windows; the JSON keeps per-clip means so intervals can be drawn
-over clips. The files are what the learning-curve figure in docs/pipeline.md is drawn from; the chosen
-budgets in params.yaml come from them.
+over clips. The files are what docs/learning_curves/learning_curves.png is drawn from; the chosen
+budgets in params.yaml come from them (docs/pipeline.md, "How the default recipe was chosen").
 """
 
 from __future__ import annotations
