@@ -1,7 +1,9 @@
 """The ``orbis2`` command: use trained models.
 
 ``orbis2 rollout`` reads the context from any video, rolls the hierarchical
-model forward and writes an mp4 and a GIF. User-fixable problems (short video,
+model forward and writes an mp4 and a GIF. ``orbis2 evaluate`` scores any
+model's rollouts against the real videos they continue, through the code the
+``eval_fvd`` stages run (:mod:`orbis2.eval.evaluate`). User-fixable problems (short video,
 bad trajectory CSV, missing or mismatched checkpoints) print one message naming
 the file and the fix and exit with status 2.
 """
@@ -21,13 +23,23 @@ from PIL import Image
 from tqdm import tqdm
 
 from orbis2.accel import compile_decoder, compile_predictor, inference_autocast, set_tf32
+from orbis2.assets import AssetError, ensure_asset
 from orbis2.config import PROFILES, load_config
 from orbis2.data.importer import read_odometry_csv
 from orbis2.data.video import probe, read_video, resample_stride, write_video
 from orbis2.errors import OrbisError
-from orbis2.io import atomic_file
+from orbis2.eval.evaluate import (
+    evaluate_pairs,
+    file_sha256,
+    format_table,
+    pairs_from_folders,
+    pairs_from_manifest,
+    protocol,
+)
+from orbis2.io import atomic_file, write_json
 from orbis2.kinematics import integrate_odometry
 from orbis2.latents import encode_frames
+from orbis2.models.i3d import load_i3d
 from orbis2.models.stdit import PredictorFile, load_predictor
 from orbis2.models.tokenizer import TokenizerFile, load_tokenizer, to_uint8
 from orbis2.registry import layout_path
@@ -311,10 +323,62 @@ def add_rollout_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=rollout_command)
 
 
+def evaluate_command(args: argparse.Namespace) -> str:
+    """Score a folder (or manifest) of rollouts; write the record as JSON and return the table."""
+    if args.manifest is not None:
+        if args.generated is not None or args.real is not None:
+            raise OrbisError("--manifest names the videos itself; drop --generated and --real")
+        pairs = pairs_from_manifest(args.manifest)
+    elif args.generated is None or args.real is None:
+        raise OrbisError("pass --generated and --real folders (matched by file name), or --manifest")
+    else:
+        pairs = pairs_from_folders(args.generated, args.real)
+    cfg = load_config(args.params, args.profile)
+    proto = protocol(args.protocol, cfg.evaluation)
+    if args.i3d is not None and not args.i3d.is_file():
+        raise OrbisError(f"{args.i3d}: I3D weights not found; pass the converted i3d_kinetics400.pt")
+    try:
+        i3d_file = args.i3d or ensure_asset("i3d_kinetics400", Path(cfg.assets.dir),
+                                            cfg.assets.local.get("i3d_kinetics400"), download=False)
+    except AssetError as err:
+        raise OrbisError(f"{err}; or pass converted weights with --i3d") from err
+    device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    i3d = load_i3d(i3d_file).to(device).eval()
+    record = evaluate_pairs(pairs, args.context_frames, proto, i3d, file_sha256(i3d_file),
+                            args.generated_has_context, args.split)
+    if args.out is not None:
+        write_json(args.out, record)
+    return format_table(record)
+
+
+def add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("evaluate", help="score any model's rollouts: FVD, chunked FVD, FVD-slope, reference rows")
+    p.add_argument("--generated", type=Path, default=None, help="folder of generated videos (the continuations)")
+    p.add_argument("--real", type=Path, default=None,
+                   help="folder of the real videos they continue, same file stems: context frames, then the truth")
+    p.add_argument("--manifest", type=Path, default=None,
+                   help="CSV with columns name, generated, real and optionally clip (rows of one clip resample "
+                        "together), paths relative to the CSV; instead of --generated/--real")
+    p.add_argument("--context-frames", type=int, required=True,
+                   help="frames at the start of each real video the model was given as context")
+    p.add_argument("--generated-has-context", action="store_true",
+                   help="the generated videos start with the same context frames (they are skipped)")
+    p.add_argument("--protocol", choices=("orbis2", "paper"), default="orbis2",
+                   help="orbis2: the profile's evaluation windows; paper: 6-s FVD, 4 x 4-s chunks (default: orbis2)")
+    p.add_argument("--split", default="videos", help="name of this set in the record (default: videos)")
+    p.add_argument("--out", type=Path, default=None, help="write the record (FVDs, intervals, card) as JSON")
+    p.add_argument("--i3d", type=Path, default=None, help="I3D weights (default: assets.dir/i3d_kinetics400.pt)")
+    p.add_argument("--params", type=Path, default=Path("params.yaml"))
+    p.add_argument("--profile", default=None, help="smoke | default | gpu | paper (default: the file's `profile`)")
+    p.add_argument("--device", default=None, help="default: cuda if available, else cpu")
+    p.set_defaults(run=evaluate_command)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="orbis2", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     add_rollout_parser(sub)
+    add_evaluate_parser(sub)
     args = parser.parse_args(argv)
     try:
         print(args.run(args))
