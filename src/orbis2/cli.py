@@ -3,7 +3,9 @@
 ``orbis2 rollout`` reads the context from any video, rolls the hierarchical
 model forward and writes an mp4 and a GIF. ``orbis2 evaluate`` scores any
 model's rollouts against the real videos they continue, through the code the
-``eval_fvd`` stages run (:mod:`orbis2.eval.evaluate`). User-fixable problems (short video,
+``eval_fvd`` stages run (:mod:`orbis2.eval.evaluate`). ``orbis2 convert``
+turns nuPlan, PhysicalAI-AV, BDD100K or OpenDV-YouTube into the import layout
+(:mod:`orbis2.data.datasets`). User-fixable problems (short video,
 bad trajectory CSV, missing or mismatched checkpoints) print one message naming
 the file and the fix and exit with status 2.
 """
@@ -14,6 +16,7 @@ import argparse
 import math
 import pickle
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -25,6 +28,7 @@ from tqdm import tqdm
 from orbis2.accel import compile_decoder, compile_predictor, inference_autocast, set_tf32
 from orbis2.assets import AssetError, ensure_asset
 from orbis2.config import PROFILES, load_config
+from orbis2.data.datasets import bdd100k, nuplan, opendv, physicalai_av
 from orbis2.data.importer import read_odometry_csv
 from orbis2.data.video import probe, read_video, resample_stride, write_video
 from orbis2.errors import OrbisError
@@ -374,11 +378,58 @@ def add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=evaluate_command)
 
 
+def convert_command(args: argparse.Namespace) -> str:
+    """Turn a dataset tree into the import layout under ``--out``."""
+    start = time.perf_counter()
+    if args.dataset == "nuplan":
+        written = nuplan.convert(args.db, args.sensor_root, args.out, args.split, args.channel, args.clip_seconds,
+                                 args.turns_deg)
+    elif args.dataset == "physicalai-av":
+        written = physicalai_av.convert(args.root, args.out, args.split, args.camera)
+    elif args.dataset == "bdd100k":
+        written = bdd100k.convert(args.root, args.out, args.allow_missing_info)
+    else:
+        written = opendv.convert(args.meta, args.videos, args.out, args.allow_missing, args.limit)
+    with_csv = sum(video.with_suffix(".csv").is_file() for video in written)
+    return (f"{args.dataset}: {len(written)} videos ({with_csv} with odometry) -> {args.out} in "
+            f"{time.perf_counter() - start:.1f} s; next: python stages/import.py --videos {args.out}")
+
+
+def add_convert_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("convert", help="turn nuPlan, PhysicalAI-AV, BDD100K or OpenDV-YouTube into the import layout")
+    datasets = p.add_subparsers(dest="dataset", required=True)
+    n = datasets.add_parser("nuplan", help="front camera + ego poses of nuPlan log databases")
+    n.add_argument("--db", type=Path, required=True, help="a log .db, or a folder of them (nuplan-v1.1/splits/<s>)")
+    n.add_argument("--sensor-root", type=Path, required=True, help="nuplan-v1.1/sensor_blobs")
+    n.add_argument("--split", default="val", help="import split to write (default: val)")
+    n.add_argument("--channel", default="CAM_F0", help="camera channel (default: CAM_F0, the front camera)")
+    n.add_argument("--clip-seconds", type=float, default=20.0, help="cut logs into clips this long (default: 20)")
+    n.add_argument("--turns-deg", type=float, default=None,
+                   help="keep only clips whose heading changes by at least this many degrees (nuPlan-turns)")
+    a = datasets.add_parser("physicalai-av", help="front camera + egomotion of PhysicalAI-Autonomous-Vehicles")
+    a.add_argument("--root", type=Path, required=True, help="dataset root (features.csv, clip_index.parquet, chunks)")
+    a.add_argument("--split", default="train", help="import split to write (default: train)")
+    a.add_argument("--camera", default="camera_front_wide_120fov", help="camera feature (default: %(default)s)")
+    b = datasets.add_parser("bdd100k", help="BDD100K videos with their info (GPS/IMU) files")
+    b.add_argument("--root", type=Path, required=True, help="the bdd100k folder holding videos/ and info/")
+    b.add_argument("--allow-missing-info", action="store_true", help="link videos without info, without odometry")
+    o = datasets.add_parser("opendv", help="OpenDV-YouTube videos, without odometry (unconditional)")
+    o.add_argument("--meta", type=Path, required=True, help="meta/OpenDV-YouTube.json")
+    o.add_argument("--videos", type=Path, required=True, help="download root (<youtuber>/<videoid>.mp4)")
+    o.add_argument("--allow-missing", action="store_true", help="convert the listed videos that are present")
+    o.add_argument("--limit", type=int, default=None, help="convert at most this many videos")
+    for parser in (n, a, b, o):
+        parser.add_argument("--out", type=Path, default=Path("data/videos"),
+                            help="import folder to write into (default: data/videos)")
+    p.set_defaults(run=convert_command)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="orbis2", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     add_rollout_parser(sub)
     add_evaluate_parser(sub)
+    add_convert_parser(sub)
     args = parser.parse_args(argv)
     try:
         print(args.run(args))
