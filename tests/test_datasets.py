@@ -48,15 +48,15 @@ def assert_recovered(csv_path, offset=0.0, rel=0.01):
     return odo
 
 
-def frames(n, seed=0):
+def frames(n, seed=0, size=(48, 64)):
     rng = np.random.default_rng(seed)
-    return rng.integers(0, 255, (n, 48, 64, 3), dtype=np.uint8)
+    return rng.integers(0, 255, (n, *size, 3), dtype=np.uint8)
 
 
 # --------------------------------------------------------------------------- nuPlan
 
 
-def nuplan_tree(root, seconds=6.0, drop_image=None, drop_table=None):
+def nuplan_tree(root, seconds=6.0, drop_image=None, drop_table=None, size=(48, 64)):
     """One log database (camera, image, ego_pose, lidar_pc as in the devkit schema) and its CAM_F0 JPEGs."""
     db = root / "splits" / "mini" / "2021.05.12.22.00.38_veh-35_01008_01518.db"
     db.parent.mkdir(parents=True)
@@ -86,7 +86,7 @@ def nuplan_tree(root, seconds=6.0, drop_image=None, drop_table=None):
     if drop_table not in ("camera", "image"):
         for token, channel in ((b"f0", "CAM_F0"), (b"l0", "CAM_L0")):
             con.execute("INSERT INTO camera (token, channel, width, height) VALUES (?,?,?,?)", (token, channel, 64, 48))
-        images = frames(int(seconds * 10))
+        images = frames(int(seconds * 10), size=size)
         for i, image in enumerate(images):  # front images at 10 Hz, starting 50 ms after the first pose
             for token, channel in ((b"f0", "CAM_F0"), (b"l0", "CAM_L0")):
                 name = f"{db.stem}/{channel}/{i:04x}.jpg"
@@ -144,7 +144,8 @@ FEATURES = pd.DataFrame({
 })
 
 
-def physicalai_tree(root, clips=("25cd4769-5dcf-4b53-a351-bf2c5deb6124",), drop_ego_chunk=False):
+def physicalai_tree(root, clips=("25cd4769-5dcf-4b53-a351-bf2c5deb6124",), drop_ego_chunk=False, n_frames=60,
+                    size=(48, 64)):
     root.mkdir(parents=True)
     FEATURES.to_csv(root / "features.csv", index=False)
     pd.DataFrame({"chunk": [0] * len(clips) + [1]}, index=pd.Index([*clips, "not-downloaded"], name="clip_id")
@@ -155,12 +156,12 @@ def physicalai_tree(root, clips=("25cd4769-5dcf-4b53-a351-bf2c5deb6124",), drop_
     ego.parent.mkdir(parents=True)
     with zipfile.ZipFile(cam, "w") as cams, zipfile.ZipFile(ego, "w") as egos:
         for n, clip in enumerate(clips):
-            write_video(root / "tmp.mp4", frames(60, n), 30)
+            write_video(root / "tmp.mp4", frames(n_frames, n, size), 30)
             cams.write(root / "tmp.mp4", f"{clip}.camera_front_wide_120fov.mp4")
             buffer = io.BytesIO()
-            pd.DataFrame({"timestamp": T0_US + 20_000 + np.arange(60) * 33_333}).to_parquet(buffer)
+            pd.DataFrame({"timestamp": T0_US + 20_000 + np.arange(n_frames) * 33_333}).to_parquet(buffer)
             cams.writestr(f"{clip}.camera_front_wide_120fov.timestamps.parquet", buffer.getvalue())
-            t, x, y, heading = drive(2.5, 10.0)  # egomotion at 10 Hz
+            t, x, y, heading = drive(n_frames / 30 + 0.5, 10.0)  # egomotion at 10 Hz
             buffer = io.BytesIO()
             pd.DataFrame({"timestamp": T0_US + np.round(t * 1e6).astype(np.int64), "x": x, "y": y, "z": 0.0,
                           "qx": 0.0, "qy": 0.0, "qz": np.sin(heading / 2), "qw": np.cos(heading / 2),
@@ -194,14 +195,14 @@ def test_physicalai_av_partial_download_stops_naming_the_file(tmp_path):
 # --------------------------------------------------------------------------- BDD100K
 
 
-def bdd_tree(root, missing_info=False):
+def bdd_tree(root, missing_info=False, n_frames=240, size=(48, 64)):
     video = root / "videos" / "train" / "b1c66a42-6f7d68ca.mov"
     video.parent.mkdir(parents=True)
-    write_video(video, frames(30 * 8), 30)
+    write_video(video, frames(n_frames, size=size), 30)
     if missing_info:
         return root
     start_ms = 1_503_835_467_014
-    t, x, y, heading = drive(10.0, 1.0)  # location fixes at 1 Hz, the first 0.4 s after the first frame
+    t, x, y, heading = drive(n_frames / 30 + 2, 1.0)  # location fixes at 1 Hz, the first 0.4 s after the first frame
     v, _ = truth(t)
     course = np.degrees(-heading) % 360  # clockwise from north, as the phones report it
     info = {"rideID": "f9a4cba2", "startTime": start_ms, "endTime": start_ms + 40_000, "filename": video.name,
@@ -237,7 +238,7 @@ def test_bdd100k_missing_info_stops_unless_allowed(tmp_path):
 # --------------------------------------------------------------------------- OpenDV-YouTube
 
 
-def opendv_tree(root, missing=False):
+def opendv_tree(root, missing=False, n_frames=60, size=(48, 64)):
     meta = root / "meta" / "OpenDV-YouTube.json"
     meta.parent.mkdir(parents=True)
     entries = [{"id": 1, "youtuber": "J Utah", "videoid": "qGjPSiWdU3A", "split": "Train", "start_discard": 1,
@@ -247,7 +248,7 @@ def opendv_tree(root, missing=False):
     meta.write_text(json.dumps(entries))
     for n, entry in enumerate(entries[: 1 if missing else 2]):
         write_video(root / "videos" / entry["youtuber"].replace(" ", "_") / f"{entry['videoid']}.mp4",
-                    frames(60, n), 10)
+                    frames(n_frames, n, size), 10)
     return meta
 
 
