@@ -20,10 +20,9 @@ from typing import Any
 
 from orbis2.accel import default_device
 from orbis2.assets import ensure_asset
-from orbis2.eval.evaluate import file_sha256
 from orbis2.eval.rollout_fvd import split_fvd
 from orbis2.eval.systems import SYSTEMS, inference_settings, load_system
-from orbis2.io import atomic_dir, write_json
+from orbis2.io import atomic_dir, sha256_file, write_json
 from orbis2.latents import open_cache
 from orbis2.models.i3d import load_i3d
 from orbis2.registry import layout_path
@@ -68,7 +67,7 @@ def main(argv: list[str] | None = None) -> None:
         assets = args.assets or Path(cfg.assets.dir)
         i3d_file = ensure_asset("i3d_kinetics400", assets, cfg.assets.local.get("i3d_kinetics400"), download=False)
         i3d = load_i3d(i3d_file).to(dev).eval()
-        i3d_sha = file_sha256(i3d_file)
+        i3d_sha = sha256_file(i3d_file)
 
         record: dict[str, Any] = {"model": name, "label": SYSTEMS[name].label, "parameters": system.parameters,
                                   "latent_channels": system.bottom.model.latent_channels,

@@ -12,6 +12,7 @@ from orbis2.data.video import read_video, write_video
 from orbis2.eval.evaluate import (
     EvaluateError,
     Protocol,
+    context_frames,
     evaluate_pairs,
     format_table,
     pairs_from_folders,
@@ -105,10 +106,13 @@ def test_manifest_groups_rows_by_clip_and_context_frames_can_lead_the_rollouts(t
         write_video(pair.generated, scene(int(pair.name), CONTEXT + FRAMES), FPS, lossless=True)
     with (tmp_path / "manifest.csv").open("w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["name", "generated", "real", "clip"])
-        writer.writerows([p.name, f"generated/{p.name}.mkv", f"real/{p.name}.mkv", f"ep{int(p.name) // 2}"]
+        writer.writerow(["name", "generated", "real", "clip", "context_frames"])
+        writer.writerows([p.name, f"generated/{p.name}.mkv", f"real/{p.name}.mkv", f"ep{int(p.name) // 2}", CONTEXT]
                          for p in pairs)
     from_manifest = pairs_from_manifest(tmp_path / "manifest.csv")
+    assert context_frames(from_manifest, None, tmp_path / "manifest.csv") == CONTEXT
+    with pytest.raises(EvaluateError, match="pass --context-frames"):
+        context_frames(pairs, None, None)
     record = evaluate_pairs(from_manifest, CONTEXT, PROTO, PooledPixels(), "sha", generated_has_context=True)
     assert abs(record["fvd"]["fvd"]) < 1e-6
     assert (record["fvd"]["clips"], record["fvd"]["videos"], record["protocol"]["clips"]) == (4, 8, 4)

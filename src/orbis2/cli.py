@@ -33,14 +33,14 @@ from orbis2.data.importer import read_odometry_csv
 from orbis2.data.video import probe, read_video, resample_stride, write_video
 from orbis2.errors import OrbisError
 from orbis2.eval.evaluate import (
+    context_frames,
     evaluate_pairs,
-    file_sha256,
     format_table,
     pairs_from_folders,
     pairs_from_manifest,
     protocol,
 )
-from orbis2.io import atomic_file, write_json
+from orbis2.io import atomic_file, sha256_file, write_json
 from orbis2.kinematics import integrate_odometry
 from orbis2.latents import encode_frames
 from orbis2.models.i3d import load_i3d
@@ -348,7 +348,8 @@ def evaluate_command(args: argparse.Namespace) -> str:
         raise OrbisError(f"{err}; or pass converted weights with --i3d") from err
     device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     i3d = load_i3d(i3d_file).to(device).eval()
-    record = evaluate_pairs(pairs, args.context_frames, proto, i3d, file_sha256(i3d_file),
+    context = context_frames(pairs, args.context_frames, args.manifest)
+    record = evaluate_pairs(pairs, context, proto, i3d, sha256_file(i3d_file),
                             args.generated_has_context, args.split)
     if args.out is not None:
         write_json(args.out, record)
@@ -362,9 +363,10 @@ def add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
                    help="folder of the real videos they continue, same file stems: context frames, then the truth")
     p.add_argument("--manifest", type=Path, default=None,
                    help="CSV with columns name, generated, real and optionally clip (rows of one clip resample "
-                        "together), paths relative to the CSV; instead of --generated/--real")
-    p.add_argument("--context-frames", type=int, required=True,
-                   help="frames at the start of each real video the model was given as context")
+                        "together) and context_frames, paths relative to the CSV; instead of --generated/--real")
+    p.add_argument("--context-frames", type=int, default=None,
+                   help="frames at the start of each real video the model was given as context (default: the "
+                        "manifest's context_frames column)")
     p.add_argument("--generated-has-context", action="store_true",
                    help="the generated videos start with the same context frames (they are skipped)")
     p.add_argument("--protocol", choices=("orbis2", "paper"), default="orbis2",

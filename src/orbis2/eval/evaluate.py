@@ -27,7 +27,6 @@ Two protocols:
 from __future__ import annotations
 
 import csv
-import hashlib
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
@@ -170,6 +169,7 @@ class Pair:
     generated: Path
     real: Path
     clip: str
+    context_frames: int | None = None  # from a manifest's optional column
 
 
 def pairs_from_folders(generated: Path, real: Path) -> list[Pair]:
@@ -189,7 +189,8 @@ def pairs_from_folders(generated: Path, real: Path) -> list[Pair]:
 
 
 def pairs_from_manifest(manifest: Path) -> list[Pair]:
-    """Rows ``name, generated, real[, clip]`` (paths relative to the manifest); rows of one clip resample together."""
+    """Rows ``name, generated, real[, clip][, context_frames]`` (paths relative to the manifest); rows of one clip
+    resample together."""
     if not manifest.is_file():
         raise EvaluateError(f"{manifest}: manifest not found; pass a CSV with columns name, generated, real[, clip]")
     with manifest.open(newline="") as f:
@@ -206,7 +207,10 @@ def pairs_from_manifest(manifest: Path) -> list[Pair]:
             if not path.is_file():
                 raise EvaluateError(f"{manifest}, line {line}: {path} does not exist; fix the path (relative to "
                                     f"the manifest's folder)")
-        pairs.append(Pair(row["name"], *paths, row.get("clip") or row["name"]))
+        context = row.get("context_frames")
+        if context is not None and not context.strip().isdigit():
+            raise EvaluateError(f"{manifest}, line {line}: context_frames {context!r} is not a whole number")
+        pairs.append(Pair(row["name"], *paths, row.get("clip") or row["name"], int(context) if context else None))
     if len({p.name for p in pairs}) != len(pairs):
         raise EvaluateError(f"{manifest}: names repeat; give every rollout its own name")
     return pairs
@@ -254,12 +258,15 @@ def pairing_check(first_generated: np.ndarray, last_context: np.ndarray) -> dict
             "definition": "rollouts whose first frame is nearest to their own real video's last context frame"}
 
 
-def file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with Path(path).open("rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+def context_frames(pairs: list[Pair], given: int | None, where: Path | None) -> int:
+    """The stated context length: ``given``, else the manifest's one value of ``context_frames``."""
+    stated = {p.context_frames for p in pairs} - {None}
+    if given is not None:
+        return given
+    if len(stated) == 1:
+        return stated.pop()
+    raise EvaluateError(f"{where or 'the videos'}: " + ("rows state different context_frames; score them apart"
+                        if stated else "pass --context-frames (or a context_frames column in the manifest)"))
 
 
 def evaluate_pairs(pairs: list[Pair], context_frames: int, proto: Protocol, i3d, i3d_sha256: str,

@@ -137,9 +137,10 @@ def write_rollouts(folder: Path, frames: np.ndarray, clips: dict[str, Clip], sam
         write_video(folder / "generated" / f"{name}.mkv", video, data.detail_hz, lossless=True)
         truth = clips[sample.key].frames(np.concatenate([context_indices(data, sample.context_end), idx]))
         write_video(folder / "real" / f"{name}.mkv", truth, data.detail_hz, lossless=True)
-        rows.append({"name": name, "generated": f"generated/{name}.mkv", "real": f"real/{name}.mkv", "clip": clip})
+        rows.append({"name": name, "generated": f"generated/{name}.mkv", "real": f"real/{name}.mkv", "clip": clip,
+                     "context_frames": data.detail_context})
     with (folder / "manifest.csv").open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=["name", "generated", "real", "clip"])
+        writer = csv.DictWriter(f, fieldnames=["name", "generated", "real", "clip", "context_frames"])
         writer.writeheader()
         writer.writerows(rows)
 
