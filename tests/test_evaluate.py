@@ -128,6 +128,9 @@ def test_paper_protocol_needs_its_six_seconds(tmp_path):
     paper = protocol("paper", Ev)
     assert (paper.seconds, paper.long_seconds, paper.chunk_seconds) == (6.0, 16.0, 4.0)
     assert len(paper.chunks(10)[0]) == 4
+    short = Protocol("short", 1.6, 6.4, 1.6, 20, 0, 5)
+    assert "no chunked FVD" in evaluate_pairs(write_set(tmp_path / "s"), CONTEXT, short, PooledPixels(),
+                                              "sha")["warnings"][-1]
     with pytest.raises(EvaluateError, match="6 s = 60 frames"):
         evaluate_pairs(write_set(tmp_path), CONTEXT, paper, PooledPixels(), "sha")
 

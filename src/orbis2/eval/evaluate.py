@@ -241,6 +241,11 @@ class PickedVideos:
         return self.frames[:, [self.position[int(p)] for p in i3d_picks(window)]]
 
 
+def frame_count(path: Path) -> int:
+    """Frames in a video: the container's count, or decoded and counted where it reports none."""
+    return probe(path).frames or sum(1 for _ in iter_frames(path))
+
+
 def pairing_check(first_generated: np.ndarray, last_context: np.ndarray) -> dict[str, Any]:
     """How many rollouts start closest to their own real video: FVD compares sets, so it cannot see shuffled pairs.
 
@@ -288,7 +293,7 @@ def evaluate_pairs(pairs: list[Pair], context_frames: int, proto: Protocol, i3d,
         if not math.isclose(info.fps, fps, rel_tol=1e-3):
             raise EvaluateError(f"{pair.generated}: {info.fps:g} fps, but {pairs[0].generated} has {fps:g}; "
                                 f"write every rollout at one rate")
-    lengths = [probe(p.generated).frames - (context_frames if generated_has_context else 0) for p in pairs]
+    lengths = [frame_count(p.generated) - (context_frames if generated_has_context else 0) for p in pairs]
     short, chunks, whole = windows_of(proto, fps, min(lengths))
     picks = np.unique(np.concatenate([i3d_picks(w) for w in [short, *chunks, *([whole] if whole else [])]]))
     real_stride = {p.real: resample_stride(probe(p.real).fps, round(fps), 1e-3, p.real) for p in pairs}
@@ -324,6 +329,8 @@ def evaluate_pairs(pairs: list[Pair], context_frames: int, proto: Protocol, i3d,
     out["references"] = references
     out["pairing"] = pairing_check(gen.clip(short)[:, 0], last.frames[:, 0])
     out["warnings"] = sample_size_warnings(out["fvd"], references)
+    if not chunks:
+        out["warnings"].append(f"the rollouts are shorter than {proto.long_seconds:g} s: no chunked FVD or FVD-slope")
     if out["pairing"]["fraction"] < 0.5:
         out["warnings"].insert(0, f"only {out['pairing']['matched']} of {len(pairs)} rollouts start nearest to their "
                                   f"own real video: the pairs look shuffled (check the names or the manifest), or "
