@@ -116,6 +116,7 @@ def test_manifest_groups_rows_by_clip_and_context_frames_can_lead_the_rollouts(t
     record = evaluate_pairs(from_manifest, CONTEXT, PROTO, PooledPixels(), "sha", generated_has_context=True)
     assert abs(record["fvd"]["fvd"]) < 1e-6
     assert (record["fvd"]["clips"], record["fvd"]["videos"], record["protocol"]["clips"]) == (4, 8, 4)
+    assert record["pairing"]["matched"] == 8
     # without the flag the context frames are scored as if generated: the first frames no longer match
     shifted = evaluate_pairs(from_manifest, CONTEXT, PROTO, PooledPixels(), "sha")
     assert shifted["fvd"]["fvd"] > 1e-3

@@ -246,21 +246,22 @@ def frame_count(path: Path) -> int:
     return probe(path).frames or sum(1 for _ in iter_frames(path))
 
 
-def pairing_check(first_generated: np.ndarray, last_context: np.ndarray) -> dict[str, Any]:
-    """How many rollouts start closest to their own real video: FVD compares sets, so it cannot see shuffled pairs.
+def pairing_check(first_generated: np.ndarray, last_context: np.ndarray, clusters: Sequence[str]) -> dict[str, Any]:
+    """How many rollouts start closest to their own clip: FVD compares sets, so it cannot see shuffled pairs.
 
     A continuation's first frame follows the last context frame of its own real video;
-    the check counts the rollouts whose first frame is nearer (mean absolute difference on
-    a 4x subsampled grid) to that frame than to any other real video's. With correct
-    pairs nearly all are; with shuffled pairs about 1 / N are.
+    the check counts the rollouts whose first frame is nearest (mean absolute difference on
+    a 4x subsampled grid) to the last context frame of a real video of their own clip
+    (several starts in one clip look alike). With correct pairs and a model that continues
+    its context nearly all are; with shuffled pairs about one clip's share are.
     """
     a = first_generated[:, ::4, ::4].reshape(len(first_generated), -1).astype(np.float32)
     b = last_context[:, ::4, ::4].reshape(len(last_context), -1).astype(np.float32)
     distance = np.stack([np.abs(row - b).mean(axis=1) for row in a])  # [generated, real]
-    own = np.diag(distance)
-    matched = int(np.sum(own <= distance.min(axis=1)))
+    labels = np.asarray([str(c) for c in clusters])
+    matched = int(np.sum(labels[distance.argmin(axis=1)] == labels))
     return {"matched": matched, "videos": len(a), "fraction": matched / len(a),
-            "definition": "rollouts whose first frame is nearest to their own real video's last context frame"}
+            "definition": "rollouts whose first frame is nearest to the last context frame of their own clip"}
 
 
 def context_frames(pairs: list[Pair], given: int | None, where: Path | None) -> int:
@@ -327,7 +328,7 @@ def evaluate_pairs(pairs: list[Pair], context_frames: int, proto: Protocol, i3d,
                   "repeat_last": fvd_with_interval(real_short, i3d_features(still, i3d), clusters,
                                                    proto.bootstrap_reps, proto.seed)}
     out["references"] = references
-    out["pairing"] = pairing_check(gen.clip(short)[:, 0], last.frames[:, 0])
+    out["pairing"] = pairing_check(gen.clip(short)[:, 0], last.frames[:, 0], clusters)
     out["warnings"] = sample_size_warnings(out["fvd"], references)
     if not chunks:
         out["warnings"].append(f"the rollouts are shorter than {proto.long_seconds:g} s: no chunked FVD or FVD-slope")
