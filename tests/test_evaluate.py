@@ -19,6 +19,7 @@ from orbis2.eval.evaluate import (
     pairs_from_manifest,
     protocol,
 )
+from orbis2.kinematics import integrate_controls
 
 FPS, CONTEXT, FRAMES = 10, 3, 32  # 3 context frames, then 3.2 s of continuation
 PROTO = Protocol("test", seconds=1.6, long_seconds=3.2, chunk_seconds=1.6, bootstrap_reps=20, seed=0, floor_splits=5)
@@ -152,3 +153,31 @@ def test_bad_input_stops_with_the_file_and_the_fix(tmp_path, capsys):
     write_video(short[0].real, scene(0, CONTEXT + 10), FPS, lossless=True)
     with pytest.raises(EvaluateError, match="00.mkv: 13 frames, but the protocol needs"):
         evaluate_pairs(short, CONTEXT, PROTO, PooledPixels(), "sha")
+
+
+class LeftArc:
+    """Stand-in instrument: reads every video as a 10 m/s left arc at 0.3 rad/s (the interface's [T, 2] positions)."""
+
+    def __call__(self, frames, K):
+        return integrate_controls(np.full(len(frames) - 1, 10.0), np.full(len(frames) - 1, 0.3), 1 / FPS)[:len(frames)]
+
+
+def test_trajectories_give_steering_ade_and_the_signed_turn(tmp_path):
+    pairs = write_set(tmp_path)
+    for n, pair in enumerate(pairs):  # half command the arc the instrument reads, half its mirror image
+        yaw = 0.3 if n % 2 == 0 else -0.3
+        pair.generated.with_suffix(".csv").write_text(
+            "timestamp,speed,yaw_rate\n" + "".join(f"{t / FPS:.2f},10.0,{yaw}\n" for t in range(FRAMES)))
+    pairs = pairs_from_folders(tmp_path / "generated", tmp_path / "real")
+    assert all(p.trajectory is not None for p in pairs)
+    record = evaluate_pairs(pairs, CONTEXT, PROTO, PooledPixels(), "sha", instrument=LeftArc(),
+                            instrument_name="left-arc")
+    steering = record["steering"]
+    commanded = np.degrees(0.3 * 15 / FPS) / 2  # end-point angle of the 1.5-s arc: half its heading change
+    assert steering["commanded_turn_deg"]["estimate"] == pytest.approx(commanded, rel=1e-6)
+    assert steering["turn_deg"]["estimate"] == pytest.approx(0.0, abs=1e-6)  # +turn for half, -turn for the rest
+    assert steering["ade_m"]["estimate"] > 0.5 and steering["ade_m"]["low"] <= steering["ade_m"]["high"]
+    assert "steering (left-arc)" in format_table(record)
+    pairs[0].trajectory.write_text("timestamp,speed,yaw_rate\n0,10,0.3\n0.5,10,0.3\n")
+    with pytest.raises(EvaluateError, match="00.csv: covers 0-0.5 s, but the scored window needs 0-1.5 s"):
+        evaluate_pairs(pairs, CONTEXT, PROTO, PooledPixels(), "sha", instrument=LeftArc())

@@ -40,6 +40,8 @@ from orbis2.eval.evaluate import (
     pairs_from_manifest,
     protocol,
 )
+from orbis2.eval.inverse_dynamics import WEIGHTS_FILE
+from orbis2.eval.odometry import get_inverse_dynamics
 from orbis2.io import atomic_file, sha256_file, write_json
 from orbis2.kinematics import integrate_odometry
 from orbis2.latents import encode_frames
@@ -349,8 +351,12 @@ def evaluate_command(args: argparse.Namespace) -> str:
     device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     i3d = load_i3d(i3d_file).to(device).eval()
     context = context_frames(pairs, args.context_frames, args.manifest)
-    record = evaluate_pairs(pairs, context, proto, i3d, sha256_file(i3d_file),
-                            args.generated_has_context, args.split)
+    instrument = None
+    if any(p.trajectory for p in pairs):
+        instrument = get_inverse_dynamics(args.instrument, args.instrument_weights)
+    hfov = args.hfov_deg if args.hfov_deg is not None else cfg.town.hfov_deg
+    record = evaluate_pairs(pairs, context, proto, i3d, sha256_file(i3d_file), args.generated_has_context,
+                            args.split, instrument, args.instrument, hfov)
     if args.out is not None:
         write_json(args.out, record)
     return format_table(record)
@@ -371,6 +377,13 @@ def add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
                    help="the generated videos start with the same context frames (they are skipped)")
     p.add_argument("--protocol", choices=("orbis2", "paper"), default="orbis2",
                    help="orbis2: the profile's evaluation windows; paper: 6-s FVD, 4 x 4-s chunks (default: orbis2)")
+    p.add_argument("--instrument", choices=("learned", "opencv"), default="learned",
+                   help="reads the trajectory of rollouts that have one: the inverse_dynamics stage's network "
+                        "(default) or OpenCV visual odometry")
+    p.add_argument("--instrument-weights", type=Path, default=layout_path("inverse_dynamics") / WEIGHTS_FILE,
+                   help="the learned instrument's weights (default: %(default)s)")
+    p.add_argument("--hfov-deg", type=float, default=None,
+                   help="horizontal field of view of the rollouts' camera (default: the town camera's)")
     p.add_argument("--split", default="videos", help="name of this set in the record (default: videos)")
     p.add_argument("--out", type=Path, default=None, help="write the record (FVDs, intervals, card) as JSON")
     p.add_argument("--i3d", type=Path, default=None, help="I3D weights (default: assets.dir/i3d_kinetics400.pt)")

@@ -30,16 +30,20 @@ import csv
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
+from itertools import islice
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from orbis2.data.importer import read_odometry_csv
 from orbis2.data.video import VIDEO_SUFFIXES, iter_frames, probe, resample_stride
 from orbis2.errors import OrbisError
 from orbis2.eval.fvd import CLIP_FRAMES, I3D_SIZE, chunk_windows, even_frame_indices, i3d_features
+from orbis2.eval.odometry import camera_intrinsics
 from orbis2.eval.references import fvd_with_interval, real_floor
-from orbis2.eval.stats import fvd_slope_interval
+from orbis2.eval.stats import fvd_slope_interval, mean_interval
+from orbis2.eval.steering import score_videos
 
 Features = Callable[[slice], np.ndarray]  # I3D features [N, 400] of the videos' frames in a window
 I3D_FEATURES = 400  # Kinetics-400 logits: below this many videos the covariance is rank-deficient
@@ -170,6 +174,7 @@ class Pair:
     real: Path
     clip: str
     context_frames: int | None = None  # from a manifest's optional column
+    trajectory: Path | None = None  # commanded (speed, yaw rate) CSV, times from the first generated frame
 
 
 def pairs_from_folders(generated: Path, real: Path) -> list[Pair]:
@@ -185,12 +190,13 @@ def pairs_from_folders(generated: Path, real: Path) -> list[Pair]:
     if missing:
         raise EvaluateError(f"{real}: no real video named {missing[0]!r} (and {len(missing) - 1} more) for the "
                             f"generated ones; name each real video like the rollout that continues it")
-    return [Pair(stem, gen[stem], ref[stem], stem) for stem in sorted(gen)]
+    return [Pair(stem, gen[stem], ref[stem], stem, trajectory=gen[stem].with_suffix(".csv")
+                 if gen[stem].with_suffix(".csv").is_file() else None) for stem in sorted(gen)]
 
 
 def pairs_from_manifest(manifest: Path) -> list[Pair]:
-    """Rows ``name, generated, real[, clip][, context_frames]`` (paths relative to the manifest); rows of one clip
-    resample together."""
+    """Rows ``name, generated, real[, clip][, context_frames][, trajectory]`` (paths relative to the manifest); rows
+    of one clip resample together."""
     if not manifest.is_file():
         raise EvaluateError(f"{manifest}: manifest not found; pass a CSV with columns name, generated, real[, clip]")
     with manifest.open(newline="") as f:
@@ -210,7 +216,12 @@ def pairs_from_manifest(manifest: Path) -> list[Pair]:
         context = row.get("context_frames")
         if context is not None and not context.strip().isdigit():
             raise EvaluateError(f"{manifest}, line {line}: context_frames {context!r} is not a whole number")
-        pairs.append(Pair(row["name"], *paths, row.get("clip") or row["name"], int(context) if context else None))
+        trajectory = manifest.parent / row["trajectory"] if row.get("trajectory") else None
+        if trajectory is not None and not trajectory.is_file():
+            raise EvaluateError(f"{manifest}, line {line}: {trajectory} does not exist; fix the path (relative to "
+                                f"the manifest's folder)")
+        pairs.append(Pair(row["name"], *paths, row.get("clip") or row["name"], int(context) if context else None,
+                          trajectory))
     if len({p.name for p in pairs}) != len(pairs):
         raise EvaluateError(f"{manifest}: names repeat; give every rollout its own name")
     return pairs
@@ -275,13 +286,47 @@ def context_frames(pairs: list[Pair], given: int | None, where: Path | None) -> 
                         if stated else "pass --context-frames (or a context_frames column in the manifest)"))
 
 
+def steering_record(pairs: list[Pair], fps: float, window: slice, offset: int, clusters: list[str],
+                    proto: Protocol, instrument: Callable, instrument_name: str, hfov_deg: float) -> dict[str, Any]:
+    """Steering ADE (metres, after scale alignment) and the signed turn response (degrees, the commanded turn's
+    direction positive) of each rollout's first ``window``, read by ``instrument`` (:mod:`orbis2.eval.steering`,
+    the code of the ``eval_steering`` stage), with clip-bootstrap intervals."""
+    missing = [p for p in pairs if p.trajectory is None]
+    if missing:
+        raise EvaluateError(f"{missing[0].generated}: no trajectory (and {len(missing) - 1} more); give every "
+                            f"rollout one (<stem>.csv next to it, or the manifest's trajectory column) or none")
+    times = np.arange(window.stop) / fps
+    controls, videos = [], []
+    for pair in pairs:
+        odo = read_odometry_csv(pair.trajectory)
+        if odo["timestamp"][0] > 1e-6 or odo["timestamp"][-1] < times[-1] - 1e-6:
+            raise EvaluateError(f"{pair.trajectory}: covers {odo['timestamp'][0]:g}-{odo['timestamp'][-1]:g} s, "
+                                f"but the scored window needs 0-{times[-1]:g} s from the first generated frame")
+        controls.append((np.interp(times, odo["timestamp"], odo["speed"]),
+                         np.interp(times, odo["timestamp"], odo["yaw_rate"])))
+        frames = list(islice(iter_frames(pair.generated), offset, offset + window.stop))
+        videos.append(np.stack(frames))
+    first = videos[0]
+    scores = score_videos(videos, controls, instrument, camera_intrinsics(first.shape[2], first.shape[1], hfov_deg),
+                          fps)
+
+    def interval(values: np.ndarray) -> dict[str, Any]:
+        return mean_interval(values, clusters, proto.bootstrap_reps, seed=proto.seed).to_dict()
+
+    return {"instrument": instrument_name, "hfov_deg": hfov_deg, "seconds": window.stop / fps,
+            "ade_m": interval(scores["ade"]), "turn_deg": interval(scores["turn_deg"]),
+            "commanded_turn_deg": interval(scores["commanded_turn_deg"])}
+
+
 def evaluate_pairs(pairs: list[Pair], context_frames: int, proto: Protocol, i3d, i3d_sha256: str,
-                   generated_has_context: bool = False, split: str = "videos") -> dict[str, Any]:
+                   generated_has_context: bool = False, split: str = "videos", instrument: Callable | None = None,
+                   instrument_name: str = "", hfov_deg: float = 90.0) -> dict[str, Any]:
     """Score rollouts on disk: the generated videos' frame rate sets the windows; the real videos (the same rate or
     an integer multiple) hold ``context_frames`` context frames, then the continuation.
 
     Returns the FVD and chunked records of :func:`score_rollouts`, the real-vs-real floor and
-    the repeat-last row (the real last context frame held still), the warnings and the card.
+    the repeat-last row (the real last context frame held still), the warnings and the card;
+    with an ``instrument`` and the rollouts' trajectories also :func:`steering_record`.
     """
     if context_frames < 1:
         raise EvaluateError(f"--context-frames {context_frames}: a rollout continues at least one real frame")
@@ -336,6 +381,9 @@ def evaluate_pairs(pairs: list[Pair], context_frames: int, proto: Protocol, i3d,
         out["warnings"].insert(0, f"only {out['pairing']['matched']} of {len(pairs)} rollouts start nearest to their "
                                   f"own real video: the pairs look shuffled (check the names or the manifest), or "
                                   f"the rollouts do not continue their context")
+    if instrument is not None and any(p.trajectory for p in pairs):
+        out["steering"] = steering_record(pairs, fps, short, context_frames if generated_has_context else 0,
+                                          clusters, proto, instrument, instrument_name, hfov_deg)
     out["protocol"] = proto.card(fps, context_frames, clips, len(pairs), i3d_sha256, gen.frames.shape[2:4])
     out["videos"] = [asdict(p) | {"generated": str(p.generated), "real": str(p.real)} for p in pairs]
     return out
@@ -355,6 +403,12 @@ def format_table(record: dict[str, Any]) -> str:
         lines.append("chunked FVD   " + "  ".join(f"{c['start_s']:g}-{c['end_s']:g} s {c['fvd']:.1f} "
                                                   f"[{c['low']:.1f}, {c['high']:.1f}]" for c in ch["chunks"]))
         lines.append(f"FVD-slope     {ch['fvd_slope']:.1f} [{ch['fvd_slope_low']:.1f}, {ch['fvd_slope_high']:.1f}]")
+    if "steering" in record:
+        st = record["steering"]
+        ade, turn = st["ade_m"], st["turn_deg"]
+        lines.append(f"steering ({st['instrument']})  ADE {ade['estimate']:.2f} m [{ade['low']:.2f}, "
+                     f"{ade['high']:.2f}], turn {turn['estimate']:.1f} deg [{turn['low']:.1f}, {turn['high']:.1f}] of "
+                     f"{st['commanded_turn_deg']['estimate']:.1f} commanded")
     lines += [f"warning: {w}" for w in record["warnings"]]
     lines.append("protocol: " + ", ".join(f"{k}={v}" for k, v in record["protocol"].items()))
     return "\n".join(lines)
