@@ -19,6 +19,7 @@ from orbis2.eval.evaluate import (
     pairs_from_manifest,
     protocol,
 )
+from orbis2.eval.evaluate_steering import add_steering
 from orbis2.kinematics import integrate_controls
 
 FPS, CONTEXT, FRAMES = 10, 3, 32  # 3 context frames, then 3.2 s of continuation
@@ -170,8 +171,8 @@ def test_trajectories_give_steering_ade_and_the_signed_turn(tmp_path):
             "timestamp,speed,yaw_rate\n" + "".join(f"{t / FPS:.2f},10.0,{yaw}\n" for t in range(FRAMES)))
     pairs = pairs_from_folders(tmp_path / "generated", tmp_path / "real")
     assert all(p.trajectory is not None for p in pairs)
-    record = evaluate_pairs(pairs, CONTEXT, PROTO, PooledPixels(), "sha", instrument=LeftArc(),
-                            instrument_name="left-arc")
+    record = evaluate_pairs(pairs, CONTEXT, PROTO, PooledPixels(), "sha")
+    add_steering(record, pairs, PROTO, False, LeftArc(), "left-arc", 90.0)
     steering = record["steering"]
     commanded = np.degrees(0.3 * 15 / FPS) / 2  # end-point angle of the 1.5-s arc: half its heading change
     assert steering["commanded_turn_deg"]["estimate"] == pytest.approx(commanded, rel=1e-6)
@@ -180,4 +181,4 @@ def test_trajectories_give_steering_ade_and_the_signed_turn(tmp_path):
     assert "steering (left-arc)" in format_table(record)
     pairs[0].trajectory.write_text("timestamp,speed,yaw_rate\n0,10,0.3\n0.5,10,0.3\n")
     with pytest.raises(EvaluateError, match="00.csv: covers 0-0.5 s, but the scored window needs 0-1.5 s"):
-        evaluate_pairs(pairs, CONTEXT, PROTO, PooledPixels(), "sha", instrument=LeftArc())
+        add_steering(record, pairs, PROTO, False, LeftArc(), "left-arc", 90.0)

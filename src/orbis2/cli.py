@@ -40,6 +40,7 @@ from orbis2.eval.evaluate import (
     pairs_from_manifest,
     protocol,
 )
+from orbis2.eval.evaluate_steering import add_steering
 from orbis2.eval.inverse_dynamics import WEIGHTS_FILE
 from orbis2.eval.odometry import get_inverse_dynamics
 from orbis2.io import atomic_file, sha256_file, write_json
@@ -356,7 +357,9 @@ def evaluate_command(args: argparse.Namespace) -> str:
         instrument = get_inverse_dynamics(args.instrument, args.instrument_weights)
     hfov = args.hfov_deg if args.hfov_deg is not None else cfg.town.hfov_deg
     record = evaluate_pairs(pairs, context, proto, i3d, sha256_file(i3d_file), args.generated_has_context,
-                            args.split, instrument, args.instrument, hfov)
+                            args.split)
+    if instrument is not None:
+        add_steering(record, pairs, proto, args.generated_has_context, instrument, args.instrument, hfov)
     if args.out is not None:
         write_json(args.out, record)
     return format_table(record)

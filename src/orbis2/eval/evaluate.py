@@ -30,20 +30,16 @@ import csv
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
-from itertools import islice
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from orbis2.data.importer import read_odometry_csv
 from orbis2.data.video import VIDEO_SUFFIXES, iter_frames, probe, resample_stride
 from orbis2.errors import OrbisError
 from orbis2.eval.fvd import CLIP_FRAMES, I3D_SIZE, chunk_windows, even_frame_indices, i3d_features
-from orbis2.eval.odometry import camera_intrinsics
 from orbis2.eval.references import fvd_with_interval, real_floor
-from orbis2.eval.stats import fvd_slope_interval, mean_interval
-from orbis2.eval.steering import score_videos
+from orbis2.eval.stats import fvd_slope_interval
 
 Features = Callable[[slice], np.ndarray]  # I3D features [N, 400] of the videos' frames in a window
 I3D_FEATURES = 400  # Kinetics-400 logits: below this many videos the covariance is rank-deficient
@@ -286,47 +282,14 @@ def context_frames(pairs: list[Pair], given: int | None, where: Path | None) -> 
                         if stated else "pass --context-frames (or a context_frames column in the manifest)"))
 
 
-def steering_record(pairs: list[Pair], fps: float, window: slice, offset: int, clusters: list[str],
-                    proto: Protocol, instrument: Callable, instrument_name: str, hfov_deg: float) -> dict[str, Any]:
-    """Steering ADE (metres, after scale alignment) and the signed turn response (degrees, the commanded turn's
-    direction positive) of each rollout's first ``window``, read by ``instrument`` (:mod:`orbis2.eval.steering`,
-    the code of the ``eval_steering`` stage), with clip-bootstrap intervals."""
-    missing = [p for p in pairs if p.trajectory is None]
-    if missing:
-        raise EvaluateError(f"{missing[0].generated}: no trajectory (and {len(missing) - 1} more); give every "
-                            f"rollout one (<stem>.csv next to it, or the manifest's trajectory column) or none")
-    times = np.arange(window.stop) / fps
-    controls, videos = [], []
-    for pair in pairs:
-        odo = read_odometry_csv(pair.trajectory)
-        if odo["timestamp"][0] > 1e-6 or odo["timestamp"][-1] < times[-1] - 1e-6:
-            raise EvaluateError(f"{pair.trajectory}: covers {odo['timestamp'][0]:g}-{odo['timestamp'][-1]:g} s, "
-                                f"but the scored window needs 0-{times[-1]:g} s from the first generated frame")
-        controls.append((np.interp(times, odo["timestamp"], odo["speed"]),
-                         np.interp(times, odo["timestamp"], odo["yaw_rate"])))
-        frames = list(islice(iter_frames(pair.generated), offset, offset + window.stop))
-        videos.append(np.stack(frames))
-    first = videos[0]
-    scores = score_videos(videos, controls, instrument, camera_intrinsics(first.shape[2], first.shape[1], hfov_deg),
-                          fps)
-
-    def interval(values: np.ndarray) -> dict[str, Any]:
-        return mean_interval(values, clusters, proto.bootstrap_reps, seed=proto.seed).to_dict()
-
-    return {"instrument": instrument_name, "hfov_deg": hfov_deg, "seconds": window.stop / fps,
-            "ade_m": interval(scores["ade"]), "turn_deg": interval(scores["turn_deg"]),
-            "commanded_turn_deg": interval(scores["commanded_turn_deg"])}
-
-
 def evaluate_pairs(pairs: list[Pair], context_frames: int, proto: Protocol, i3d, i3d_sha256: str,
-                   generated_has_context: bool = False, split: str = "videos", instrument: Callable | None = None,
-                   instrument_name: str = "", hfov_deg: float = 90.0) -> dict[str, Any]:
+                   generated_has_context: bool = False, split: str = "videos") -> dict[str, Any]:
     """Score rollouts on disk: the generated videos' frame rate sets the windows; the real videos (the same rate or
     an integer multiple) hold ``context_frames`` context frames, then the continuation.
 
     Returns the FVD and chunked records of :func:`score_rollouts`, the real-vs-real floor and
-    the repeat-last row (the real last context frame held still), the warnings and the card;
-    with an ``instrument`` and the rollouts' trajectories also :func:`steering_record`.
+    the repeat-last row (the real last context frame held still), the warnings and the card
+    (steering scores are added by :mod:`orbis2.eval.evaluate_steering`).
     """
     if context_frames < 1:
         raise EvaluateError(f"--context-frames {context_frames}: a rollout continues at least one real frame")
@@ -381,9 +344,6 @@ def evaluate_pairs(pairs: list[Pair], context_frames: int, proto: Protocol, i3d,
         out["warnings"].insert(0, f"only {out['pairing']['matched']} of {len(pairs)} rollouts start nearest to their "
                                   f"own real video: the pairs look shuffled (check the names or the manifest), or "
                                   f"the rollouts do not continue their context")
-    if instrument is not None and any(p.trajectory for p in pairs):
-        out["steering"] = steering_record(pairs, fps, short, context_frames if generated_has_context else 0,
-                                          clusters, proto, instrument, instrument_name, hfov_deg)
     out["protocol"] = proto.card(fps, context_frames, clips, len(pairs), i3d_sha256, gen.frames.shape[2:4])
     out["videos"] = [asdict(p) | {"generated": str(p.generated), "real": str(p.real)} for p in pairs]
     return out
