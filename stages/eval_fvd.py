@@ -14,6 +14,7 @@ stage's unbiased one-step comparison, not a sample's MSE (which pays twice the
 conditional variance).
 """
 
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +23,7 @@ from orbis2.assets import ensure_asset
 from orbis2.data.shards import verify_shards
 from orbis2.eval.rollout_fvd import split_fvd
 from orbis2.eval.systems import SYSTEMS, inference_settings, load_system
-from orbis2.io import atomic_dir, write_json
+from orbis2.io import atomic_dir, sha256_file, write_json
 from orbis2.latents import open_cache
 from orbis2.models.i3d import load_i3d
 from orbis2.registry import layout_path
@@ -50,6 +51,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--fvd", type=Path, default=None, help=f"the record (default: {layout_path('fvd', '<name>')})")
     parser.add_argument("--media", type=Path, default=None,
                         help=f"sample videos and grid frames (default: {layout_path('media', '<name>')})")
+    parser.add_argument("--rollouts", type=Path, default=None,
+                        help="also write every rollout, its real video and a manifest per split here, losslessly, "
+                             "for `orbis2 evaluate` (decodes every frame: slower)")
     args = parser.parse_args(argv)
     name = args.name
     report, media = args.fvd or layout_path("fvd", name), args.media or layout_path("media", name)
@@ -65,18 +69,21 @@ def main(argv: list[str] | None = None) -> None:
         assets = args.assets or Path(cfg.assets.dir)
         i3d_file = ensure_asset("i3d_kinetics400", assets, cfg.assets.local.get("i3d_kinetics400"), download=False)
         i3d = load_i3d(i3d_file).to(dev).eval()
+        i3d_sha = sha256_file(i3d_file)
 
         record: dict[str, Any] = {"model": name, "label": SYSTEMS[name].label, "parameters": system.parameters,
                                   "latent_channels": system.bottom.model.latent_channels,
                                   "predictors": SYSTEMS[name].stages,
                                   "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe},
                                   "starts_per_clip": ev.starts_per_clip, "fvd_material": ev.fvd_material, "fvd": {},
-                                  "references": {}}
-        with atomic_dir(media) as tmp:
+                                  "references": {}, "protocol": {}}
+        with atomic_dir(media) as tmp, (atomic_dir(args.rollouts) if args.rollouts else nullcontext()) as rollouts:
             for split in ev.fvd_splits:
-                result = split_fvd(split, system, cache, i3d, tmp, cfg.data, ev, dev, args.shards, args.stats_cache)
+                result = split_fvd(split, system, cache, i3d, tmp, cfg.data, ev, dev, args.shards, args.stats_cache,
+                                   i3d_sha, rollouts)
                 record["fvd"][split] = result["fvd"]
                 record["references"][split] = result["references"]
+                record["protocol"][split] = result["protocol"]
                 if "chunked" in result:
                     record["chunked"] = result["chunked"]
 

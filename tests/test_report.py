@@ -525,3 +525,17 @@ def test_a_floor_on_too_few_clips_reads_na(evals):
     evals["fvd"]["hierarchical"]["references"]["val"]["real_floor"] = {"fvd": None, "clips": 2, "reason": "few"}
     floor = report.main_table(evals)[1]
     assert floor["fvd_val"] == floor["fvd_val_n"] == "NA" and floor["fvd_heldout"] == 30.0
+
+
+def test_fvd_tables_carry_the_protocol_card(evals, tmp_path):
+    card = {"protocol": "orbis2", "fps": 10, "seconds": 2.0, "i3d_frames": 16, "context_frames": 5,
+            "i3d_sha256": "ab12", "bootstrap_seed": 31, "source_resolution": [72, 128]}
+    evals["fvd"]["hierarchical"]["protocol"] = {"turns": card, "val": {**card, "clips": 2}}
+    report.write_main_report(evals, tmp_path, SETUP)
+    summary = (tmp_path / "summary.md").read_text()
+    main = summary.split("## Main results (Table 1)")[1].split("## ")[0]
+    assert "- FVD protocol, turns: protocol=orbis2, fps=10, seconds=2.0, i3d_frames=16, context_frames=5, " \
+           "i3d_sha256=ab12, bootstrap_seed=31" in main
+    assert "FVD protocol, val:" in main and "source_resolution" not in main
+    steering = summary.split("## Steering (Table 2)")[1].split("## ")[0]
+    assert "FVD protocol" not in steering

@@ -1,7 +1,11 @@
 """The ``orbis2`` command: use trained models.
 
 ``orbis2 rollout`` reads the context from any video, rolls the hierarchical
-model forward and writes an mp4 and a GIF. User-fixable problems (short video,
+model forward and writes an mp4 and a GIF. ``orbis2 evaluate`` scores any
+model's rollouts against the real videos they continue, through the code the
+``eval_fvd`` stages run (:mod:`orbis2.eval.evaluate`). ``orbis2 convert``
+turns nuPlan, PhysicalAI-AV, BDD100K or OpenDV-YouTube into the import layout
+(:mod:`orbis2.data.datasets`). User-fixable problems (short video,
 bad trajectory CSV, missing or mismatched checkpoints) print one message naming
 the file and the fix and exit with status 2.
 """
@@ -12,6 +16,7 @@ import argparse
 import math
 import pickle
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -21,14 +26,28 @@ from PIL import Image
 from tqdm import tqdm
 
 from orbis2.accel import compile_decoder, compile_predictor, inference_autocast, set_tf32
+from orbis2.assets import AssetError, ensure_asset
 from orbis2.config import PROFILES, load_config
+from orbis2.data.datasets import bdd100k, nuplan, opendv, physicalai_av
 from orbis2.data.episodes import read_odometry
 from orbis2.data.importer import read_odometry_csv
 from orbis2.data.video import probe, read_video, resample_stride, write_video
 from orbis2.errors import OrbisError
-from orbis2.io import atomic_file
+from orbis2.eval.evaluate import (
+    context_frames,
+    evaluate_pairs,
+    format_table,
+    pairs_from_folders,
+    pairs_from_manifest,
+    protocol,
+)
+from orbis2.eval.evaluate_steering import add_steering
+from orbis2.eval.inverse_dynamics import WEIGHTS_FILE
+from orbis2.eval.odometry import get_inverse_dynamics
+from orbis2.io import atomic_file, sha256_file, write_json
 from orbis2.kinematics import integrate_odometry
 from orbis2.latents import encode_frames
+from orbis2.models.i3d import load_i3d
 from orbis2.models.stdit import PredictorFile, load_predictor
 from orbis2.models.tokenizer import TokenizerFile, load_tokenizer, to_uint8
 from orbis2.registry import layout_path
@@ -319,10 +338,124 @@ def add_rollout_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=rollout_command)
 
 
+def evaluate_command(args: argparse.Namespace) -> str:
+    """Score a folder (or manifest) of rollouts; write the record as JSON and return the table."""
+    if args.manifest is not None:
+        if args.generated is not None or args.real is not None:
+            raise OrbisError("--manifest names the videos itself; drop --generated and --real")
+        pairs = pairs_from_manifest(args.manifest)
+    elif args.generated is None or args.real is None:
+        raise OrbisError("pass --generated and --real folders (matched by file name), or --manifest")
+    else:
+        pairs = pairs_from_folders(args.generated, args.real)
+    cfg = load_config(args.params, args.profile)
+    proto = protocol(args.protocol, cfg.evaluation)
+    if args.i3d is not None and not args.i3d.is_file():
+        raise OrbisError(f"{args.i3d}: I3D weights not found; pass the converted i3d_kinetics400.pt")
+    try:
+        i3d_file = args.i3d or ensure_asset("i3d_kinetics400", Path(cfg.assets.dir),
+                                            cfg.assets.local.get("i3d_kinetics400"), download=False)
+    except AssetError as err:
+        raise OrbisError(f"{err}; or pass converted weights with --i3d") from err
+    device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    i3d = load_i3d(i3d_file).to(device).eval()
+    context = context_frames(pairs, args.context_frames, args.manifest)
+    instrument = None
+    if any(p.trajectory for p in pairs):
+        instrument = get_inverse_dynamics(args.instrument, args.instrument_weights)
+    hfov = args.hfov_deg if args.hfov_deg is not None else cfg.town.hfov_deg
+    record = evaluate_pairs(pairs, context, proto, i3d, sha256_file(i3d_file), args.generated_has_context,
+                            args.split)
+    if instrument is not None:
+        add_steering(record, pairs, proto, args.generated_has_context, instrument, args.instrument, hfov)
+    if args.out is not None:
+        write_json(args.out, record)
+    return format_table(record)
+
+
+def add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("evaluate", help="score any model's rollouts: FVD, chunked FVD, FVD-slope, reference rows")
+    p.add_argument("--generated", type=Path, default=None, help="folder of generated videos (the continuations)")
+    p.add_argument("--real", type=Path, default=None,
+                   help="folder of the real videos they continue, same file stems: context frames, then the truth")
+    p.add_argument("--manifest", type=Path, default=None,
+                   help="CSV with columns name, generated, real and optionally clip (rows of one clip resample "
+                        "together) and context_frames, paths relative to the CSV; instead of --generated/--real")
+    p.add_argument("--context-frames", type=int, default=None,
+                   help="frames at the start of each real video the model was given as context (default: the "
+                        "manifest's context_frames column)")
+    p.add_argument("--generated-has-context", action="store_true",
+                   help="the generated videos start with the same context frames (they are skipped)")
+    p.add_argument("--protocol", choices=("orbis2", "paper"), default="orbis2",
+                   help="orbis2: the profile's evaluation windows; paper: 6-s FVD, 4 x 4-s chunks (default: orbis2)")
+    p.add_argument("--instrument", choices=("learned", "opencv"), default="learned",
+                   help="reads the trajectory of rollouts that have one: the inverse_dynamics stage's network "
+                        "(default) or OpenCV visual odometry")
+    p.add_argument("--instrument-weights", type=Path, default=layout_path("inverse_dynamics") / WEIGHTS_FILE,
+                   help="the learned instrument's weights (default: %(default)s)")
+    p.add_argument("--hfov-deg", type=float, default=None,
+                   help="horizontal field of view of the rollouts' camera (default: the town camera's)")
+    p.add_argument("--split", default="videos", help="name of this set in the record (default: videos)")
+    p.add_argument("--out", type=Path, default=None, help="write the record (FVDs, intervals, card) as JSON")
+    p.add_argument("--i3d", type=Path, default=None, help="I3D weights (default: assets.dir/i3d_kinetics400.pt)")
+    p.add_argument("--params", type=Path, default=Path("params.yaml"))
+    p.add_argument("--profile", default=None, help="smoke | default | gpu | paper (default: the file's `profile`)")
+    p.add_argument("--device", default=None, help="default: cuda if available, else cpu")
+    p.set_defaults(run=evaluate_command)
+
+
+def convert_command(args: argparse.Namespace) -> str:
+    """Turn a dataset tree into the import layout under ``--out``."""
+    start = time.perf_counter()
+    if args.dataset == "nuplan":
+        written = nuplan.convert(args.db, args.sensor_root, args.out, args.split, args.channel, args.clip_seconds,
+                                 args.turns_deg)
+    elif args.dataset == "physicalai-av":
+        written = physicalai_av.convert(args.root, args.out, args.split, args.camera)
+    elif args.dataset == "bdd100k":
+        written = bdd100k.convert(args.root, args.out, args.allow_missing_info)
+    else:
+        written = opendv.convert(args.meta, args.videos, args.out, args.allow_missing, args.limit)
+    with_csv = sum(video.with_suffix(".csv").is_file() for video in written)
+    return (f"{args.dataset}: {len(written)} videos ({with_csv} with odometry) -> {args.out} in "
+            f"{time.perf_counter() - start:.1f} s; next: python stages/import.py --videos {args.out}")
+
+
+def add_convert_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("convert", help="turn nuPlan, PhysicalAI-AV, BDD100K or OpenDV-YouTube into the import layout")
+    datasets = p.add_subparsers(dest="dataset", required=True)
+    n = datasets.add_parser("nuplan", help="front camera + ego poses of nuPlan log databases")
+    n.add_argument("--db", type=Path, required=True, help="a log .db, or a folder of them (nuplan-v1.1/splits/<s>)")
+    n.add_argument("--sensor-root", type=Path, required=True, help="nuplan-v1.1/sensor_blobs")
+    n.add_argument("--split", default="val", help="import split to write (default: val)")
+    n.add_argument("--channel", default="CAM_F0", help="camera channel (default: CAM_F0, the front camera)")
+    n.add_argument("--clip-seconds", type=float, default=20.0, help="cut logs into clips this long (default: 20)")
+    n.add_argument("--turns-deg", type=float, default=None,
+                   help="keep only clips whose heading changes by at least this many degrees (nuPlan-turns)")
+    a = datasets.add_parser("physicalai-av", help="front camera + egomotion of PhysicalAI-Autonomous-Vehicles")
+    a.add_argument("--root", type=Path, required=True, help="dataset root (features.csv, clip_index.parquet, chunks)")
+    a.add_argument("--split", default="train", help="import split to write (default: train)")
+    a.add_argument("--camera", default="camera_front_wide_120fov", help="camera feature (default: %(default)s)")
+    b = datasets.add_parser("bdd100k", help="BDD100K videos with their info (GPS/IMU) files")
+    b.add_argument("--root", type=Path, required=True, help="the bdd100k folder holding videos/ and info/")
+    b.add_argument("--allow-missing-info", action="store_true", help="link videos without info, without odometry")
+    o = datasets.add_parser("opendv", help="OpenDV-YouTube videos, without odometry (unconditional)")
+    o.add_argument("--meta", type=Path, required=True, help="meta/OpenDV-YouTube.json")
+    o.add_argument("--videos", type=Path, required=True, help="download root (<youtuber>/<videoid>.mp4)")
+    o.add_argument("--allow-missing", action="store_true", help="convert the listed videos that are present")
+    o.add_argument("--limit", type=int, default=None, help="convert at most this many videos")
+    for parser in (n, a, b, o):
+        parser.add_argument("--out", type=Path, default=Path("data/videos"),
+                            help="import folder to write into (default: data/videos)")
+    p.set_defaults(run=convert_command)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="orbis2", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     add_rollout_parser(sub)
+    add_evaluate_parser(sub)
+    add_convert_parser(sub)
     args = parser.parse_args(argv)
     try:
         print(args.run(args))

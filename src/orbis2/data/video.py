@@ -140,20 +140,25 @@ def resize_cover(frame: np.ndarray, size: tuple[int, int], nearest: bool = False
     return np.ascontiguousarray(resized[y0 : y0 + height, x0 : x0 + width])
 
 
-def write_video(path: Path, frames: Iterable[np.ndarray], fps: float) -> int:
-    """Write RGB frames as MPEG-4 (``mp4v``, the codec every OpenCV build can write).
+def write_video(path: Path, frames: Iterable[np.ndarray], fps: float, lossless: bool = False) -> int:
+    """Write RGB frames as MPEG-4 (``mp4v``, the codec every OpenCV build can write), or ``lossless`` as FFV1
+    in Matroska (``.mkv``): frames read back bit for bit, which a reproducible score needs.
 
     Returns the number of frames written. The caller makes the write atomic.
     """
+    if lossless and Path(path).suffix != ".mkv":
+        raise VideoError(f"{path}: lossless (FFV1) videos are written as .mkv; name the file <name>.mkv")
+    codec = "FFV1" if lossless else "mp4v"
     writer = None
     count = 0
     try:
         for frame in frames:
             if writer is None:
                 h, w = frame.shape[:2]
-                writer = cv2.VideoWriter(_opencv_name(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
+                Path(path).parent.mkdir(parents=True, exist_ok=True)
+                writer = cv2.VideoWriter(_opencv_name(path), cv2.VideoWriter_fourcc(*codec), float(fps), (w, h))
                 if not writer.isOpened():
-                    raise VideoError(f"{path}: OpenCV cannot write an mp4v video here")
+                    raise VideoError(f"{path}: OpenCV cannot write an {codec} video here")
             writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
             count += 1
     finally:

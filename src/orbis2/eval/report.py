@@ -593,11 +593,25 @@ def markdown_table(rows: Sequence[Row]) -> str:
     return "\n".join(lines)
 
 
+def protocol_lines(evals: Mapping) -> list[str]:
+    """The FVD protocol card of each split, from the FVD records that carry one (identical across systems but for
+    their I3D inputs' source resolution), so that a table's FVDs can be reproduced from what is printed beside it."""
+    cards: dict[str, dict] = {}
+    for record in (evals.get("fvd") or {}).values():
+        for split, card in (record or {}).get("protocol", {}).items():
+            cards.setdefault(split, {k: v for k, v in card.items() if k != "source_resolution"})
+    lines = [f"FVD protocol, {split}: " + ", ".join(f"{k}={v}" for k, v in card.items()) for split, card in
+             sorted(cards.items())]
+    return [*(f"- {line}" for line in lines), ""] if lines else []
+
+
 def summary_markdown(tables: Sequence[tuple[str, Sequence[Row]]], evals: Mapping, setup: Mapping) -> str:
     """The tables, the claims checked against them, then the setup that produced them."""
     parts = ["# Orbis 2 evaluation summary", ""]
     for title, rows in tables:
         parts += [f"## {title}", "", markdown_table(rows), ""]
+        if any(key.startswith("fvd") for row in rows for key in row):
+            parts += protocol_lines(evals)
     parts += ["## Reading", ""]
     for i, (claim, verdict, evidence) in enumerate(check_claims(evals), start=1):
         parts.append(f"{i}. {claim}: **{verdict}**. {evidence}.")

@@ -21,6 +21,7 @@ grey level), at a fraction of the decoding that dominates this stage on a CPU
 
 from __future__ import annotations
 
+import csv
 from pathlib import Path
 from typing import Any, Callable
 
@@ -30,9 +31,9 @@ import torch
 from orbis2.config import DataConfig, EvaluationConfig
 from orbis2.data.shards import Clip, split_clips, split_digest
 from orbis2.data.video import write_video
-from orbis2.eval.fvd import CLIP_FRAMES, cached_features, chunk_windows, even_frame_indices, i3d_features
-from orbis2.eval.references import fvd_with_interval, reference_rows
-from orbis2.eval.stats import fvd_slope_interval
+from orbis2.eval.evaluate import i3d_picks, protocol, score_rollouts
+from orbis2.eval.fvd import CLIP_FRAMES, cached_features, i3d_features
+from orbis2.eval.references import reference_rows
 from orbis2.eval.systems import (
     LoadedSystem,
     Sample,
@@ -47,7 +48,6 @@ from orbis2.latents import LatentCache
 
 # Times (s) of the frames shown in the qualitative rollout grid.
 GRID_TIMES = (0.5, 4.0, 8.0, 12.0, 16.0)
-Features = Callable[[slice], np.ndarray]  # I3D features [N, 400] of a frame window
 
 
 def real_videos(clips: dict[str, Clip], samples: list[Sample], indices: list[np.ndarray]) -> np.ndarray:
@@ -55,47 +55,45 @@ def real_videos(clips: dict[str, Clip], samples: list[Sample], indices: list[np.
     return np.stack([clips[s.key].frames(idx) for s, idx in zip(samples, indices)])
 
 
-def i3d_picks(window: slice) -> np.ndarray:
-    """Positions of the CLIP_FRAMES (16) frames of ``window`` that I3D sees (evenly spaced, both ends included)."""
-    return window.start + np.asarray(even_frame_indices(window.stop - window.start))
-
-
 class PickedFrames:
-    """Generated videos decoded only at the frames some FVD window's I3D clip reads."""
+    """Generated videos decoded only at the frames some FVD window's I3D clip reads (``frames``: every frame,
+    already decoded, to pick from instead)."""
 
-    def __init__(self, system: LoadedSystem, latents: torch.Tensor, windows: list[slice]):
+    def __init__(self, system: LoadedSystem, latents: torch.Tensor, windows: list[slice],
+                 frames: np.ndarray | None = None):
         picks = np.unique(np.concatenate([i3d_picks(w) for w in windows]))
         self.position = {int(p): i for i, p in enumerate(picks)}
-        self.frames = system.decode(latents[:, picks])
+        self.frames = system.decode(latents[:, picks]) if frames is None else frames[:, picks]
 
     def clip(self, window: slice) -> np.ndarray:
         """[N, 16, H, W, 3]: each video's I3D clip of ``window``."""
         return self.frames[:, [self.position[int(p)] for p in i3d_picks(window)]]
 
 
-def long_windows(data: DataConfig, ev: EvaluationConfig) -> tuple[list[slice], slice]:
-    """The long split's consecutive ``chunk_seconds`` windows and the span they cover."""
-    chunks = chunk_windows(round(ev.long_seconds * data.detail_hz), data.detail_hz, ev.chunk_seconds)
-    return chunks, slice(0, chunks[-1].stop)
-
-
 def split_fvd(split: str, system: LoadedSystem, cache: LatentCache, i3d, media: Path, data: DataConfig,
-              ev: EvaluationConfig, device: torch.device, shards: Path, stats_cache: Path) -> dict[str, Any]:
-    """Roll out one split: ``{"fvd": ..., "references": ...}``, plus ``"chunked"`` on the long split.
+              ev: EvaluationConfig, device: torch.device, shards: Path, stats_cache: Path, i3d_sha256: str = "",
+              rollouts: Path | None = None) -> dict[str, Any]:
+    """Roll out one split: ``{"fvd": ..., "references": ..., "protocol": ...}``, plus ``"chunked"`` on the long
+    split, scored by :func:`orbis2.eval.evaluate.score_rollouts` (the code ``orbis2 evaluate`` runs).
 
     Writes a sample video (``media/<split>.mp4``) and, on the long split, the frames of
     the qualitative grid (``media/grid.npz``). ``shards`` is the shard folder the cache
-    was encoded from; ``stats_cache`` the folder of cached real-video features.
+    was encoded from; ``stats_cache`` the folder of cached real-video features. Given
+    ``rollouts``, every frame is decoded and each rollout is written losslessly with the
+    real video it continues and a manifest (:func:`write_rollouts`); the FVDs are then
+    computed from exactly the frames written.
     """
     long = split == ev.long_split
+    proto = protocol("orbis2", ev)
     steps = rollout_steps(data, ev.long_seconds if long else ev.seconds)
     samples = eval_samples(cache, split, data, steps, ev.starts_per_clip)
     indices = [generated_indices(data, s.context_end, steps) for s in samples]
     clusters = sample_clusters(cache, split, samples)
     latents = generate(system, cache, split, samples, steps, data, ev, device)
-    short = slice(0, round(ev.seconds * data.detail_hz))
-    chunks, whole = long_windows(data, ev) if long else ([], short)
-    generated = PickedFrames(system, latents, [short, *chunks, whole])
+    short = proto.short(data.detail_hz)
+    chunks, whole = proto.chunks(data.detail_hz) if long else ([], None)
+    every = system.decode(latents) if rollouts is not None else None
+    generated = PickedFrames(system, latents, [short, *chunks, *([whole] if whole else [])], every)
     clips = split_clips(shards, split)
     what = f"{len(samples)}x{ev.starts_per_clip}starts|{steps}steps|{data.width}x{data.height}"
 
@@ -109,19 +107,42 @@ def split_fvd(split: str, system: LoadedSystem, cache: LatentCache, i3d, media: 
     def fake(window: slice) -> np.ndarray:
         return i3d_features(generated.clip(window), i3d)
 
-    real_short = real(short)
-    out: dict[str, Any] = {}
-    out["fvd"] = {**fvd_with_interval(real_short, fake(short), clusters, ev.fvd_bootstrap_reps, ev.seed),
-                  "frames": CLIP_FRAMES, "seconds": ev.seconds, "resolution": [224, 224],
-                  "source_resolution": list(generated.frames.shape[2:4]), "seed": ev.seed}
-    out["references"] = references(split, system, cache, samples, indices, short, real_short, clusters, what, i3d,
+    out = score_rollouts(split, real, fake, clusters, data.detail_hz, proto, short, chunks, whole)
+    out["fvd"]["source_resolution"] = list(generated.frames.shape[2:4])
+    out["references"] = references(split, system, cache, samples, indices, short, real(short), clusters, what, i3d,
                                    ev, cached)
-    first = system.decode(latents[:1])[0]  # the sample video, every frame
+    out["protocol"] = proto.card(data.detail_hz, data.detail_context, len(set(clusters)), len(samples), i3d_sha256,
+                                 generated.frames.shape[2:4])
+    first = every[0] if every is not None else system.decode(latents[:1])[0]  # the sample video, every frame
     if long:
-        out["chunked"] = chunked_record(split, chunks, whole, real, fake, clusters, data, ev)
         save_grid_frames(media / "grid.npz", first, data.detail_hz)
     write_video(media / f"{split}.mp4", first, data.detail_hz)
+    if rollouts is not None:
+        write_rollouts(rollouts / split, every, clips, samples, indices, clusters, data)
     return out
+
+
+def context_indices(data: DataConfig, context_end: int) -> np.ndarray:
+    """Native indices of a rollout's detail context frames (the last one is ``context_end``)."""
+    return context_end - data.detail_stride * np.arange(data.detail_context - 1, -1, -1)
+
+
+def write_rollouts(folder: Path, frames: np.ndarray, clips: dict[str, Clip], samples: list[Sample],
+                   indices: list[np.ndarray], clusters: list[str], data: DataConfig) -> None:
+    """Each rollout as ``generated/<n>.mkv`` and the real ``detail_context`` frames plus its true continuation as
+    ``real/<n>.mkv`` (lossless FFV1 at ``detail_hz``), and ``manifest.csv`` naming both and the episode."""
+    rows = []
+    for n, (sample, idx, clip, video) in enumerate(zip(samples, indices, clusters, frames)):
+        name = f"{n:04d}"
+        write_video(folder / "generated" / f"{name}.mkv", video, data.detail_hz, lossless=True)
+        truth = clips[sample.key].frames(np.concatenate([context_indices(data, sample.context_end), idx]))
+        write_video(folder / "real" / f"{name}.mkv", truth, data.detail_hz, lossless=True)
+        rows.append({"name": name, "generated": f"generated/{name}.mkv", "real": f"real/{name}.mkv", "clip": clip,
+                     "context_frames": data.detail_context})
+    with (folder / "manifest.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=["name", "generated", "real", "clip", "context_frames"])
+        writer.writeheader()
+        writer.writerows(rows)
 
 
 def references(split: str, system: LoadedSystem, cache: LatentCache, samples: list[Sample],
@@ -148,23 +169,6 @@ def references(split: str, system: LoadedSystem, cache: LatentCache, samples: li
     recon = cached(f"{key}|reconstruction", reconstruction)
     still = cached(f"{key}|repeat_last", repeat_last)
     return reference_rows(real, recon, still, clusters, ev.fvd_bootstrap_reps, ev.seed, ev.floor_splits)
-
-
-def chunked_record(split: str, windows: list[slice], whole: slice, real: Features, fake: Features,
-                   clusters: list[str], data: DataConfig, ev: EvaluationConfig) -> dict[str, Any]:
-    """Chunked FVD over consecutive ``chunk_seconds`` windows, FVD over ``whole`` (their span), and the FVD-slope,
-    each with a clip-bootstrap interval (all chunks on the same resamples)."""
-    reals, fakes = [real(w) for w in windows], [fake(w) for w in windows]
-    chunks, slope, slope_draws = fvd_slope_interval(reals, fakes, clusters, ev.fvd_bootstrap_reps, seed=ev.seed)
-    full = fvd_with_interval(real(whole), fake(whole), clusters, ev.fvd_bootstrap_reps, ev.seed)
-    return {"split": split, "seconds": len(windows) * ev.chunk_seconds, "chunk_seconds": ev.chunk_seconds,
-            "videos": len(clusters), "clips": slope.clusters, "seed": ev.seed,
-            "chunks": [{"start_s": w.start / data.detail_hz, "end_s": w.stop / data.detail_hz, "fvd": c.estimate,
-                        "low": c.low, "high": c.high} for w, c in zip(windows, chunks)],
-            "fvd_long": full["fvd"], "fvd_long_low": full["low"], "fvd_long_high": full["high"],
-            "fvd_slope": slope.estimate, "fvd_slope_low": slope.low, "fvd_slope_high": slope.high,
-            "bootstrap_reps": ev.fvd_bootstrap_reps, "bootstrap_seed": ev.seed,
-            "fvd_slope_draws": [float(d) for d in slope_draws]}
 
 
 def save_grid_frames(path: Path, frames: np.ndarray, fps: float) -> None:

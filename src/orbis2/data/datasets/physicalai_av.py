@@ -1,0 +1,110 @@
+"""PhysicalAI-Autonomous-Vehicles: the front camera and the ego-motion labels -> the import layout.
+
+The dataset is published in chunks: per feature one zip per chunk, its path given by the
+``chunk_path`` template in the root's ``features.csv`` (e.g.
+``camera/camera_front_wide_120fov/camera_front_wide_120fov.chunk_{chunk_id:04d}.zip``) and
+its members per clip by the ``clip_files_in_zip`` JSON templates there (the camera's
+``video`` mp4 and ``frame_timestamps`` Parquet with a ``timestamp`` column in
+microseconds; the ``egomotion`` Parquet with ``timestamp``, ``x``, ``y``, ``qx``, ``qy``,
+``qz``, ``qw``). ``clip_index.parquet`` maps each ``clip_id`` to its ``chunk``. These
+are the files the dataset's own interface (``physical_ai_av``) reads; this reader uses
+the same templates, so a partial download (some chunks) converts the clips it holds.
+
+The paper fine-tunes on the dataset's IMU-derived ego motion; the egomotion table is that
+motion, and speed and yaw rate are derived from its poses as for every dataset here.
+Videos are copied as published (their native rate); CSV times are seconds from a clip's
+first frame.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from orbis2.data.datasets import DatasetError, motion_from_poses, write_odometry_csv, yaw_of_quaternion
+from orbis2.io import atomic_file
+
+CAMERA = "camera_front_wide_120fov"
+EGOMOTION = "egomotion"
+
+
+def read_features(root: Path) -> pd.DataFrame:
+    path = root / "features.csv"
+    if not path.is_file():
+        raise DatasetError(f"{path}: missing; download features.csv and clip_index.parquet from the dataset's root "
+                           f"with the chunks")
+    features = pd.read_csv(path, index_col="feature")
+    missing = {"chunk_path", "clip_files_in_zip"} - set(features.columns)
+    if missing:
+        raise DatasetError(f"{path}: lacks column(s) {sorted(missing)}; download the current features.csv")
+    return features
+
+
+def templates(features: pd.DataFrame, feature: str, root: Path) -> tuple[str, dict[str, str]]:
+    if feature not in features.index:
+        raise DatasetError(f"{root / 'features.csv'}: lists no feature {feature!r}; pass one of "
+                           f"{sorted(features.index)}")
+    return features.at[feature, "chunk_path"], json.loads(features.at[feature, "clip_files_in_zip"])
+
+
+def read_parquet(archive: zipfile.ZipFile, member: str, zip_path: Path, columns: list[str]) -> pd.DataFrame:
+    try:
+        table = pd.read_parquet(io.BytesIO(archive.read(member)))
+    except KeyError:
+        raise DatasetError(f"{zip_path}: has no member {member}; the chunk is incomplete, download it "
+                           f"again") from None
+    if set(columns) - set(table.columns):
+        raise DatasetError(f"{zip_path}: {member} lacks column(s) {sorted(set(columns) - set(table.columns))}")
+    return table
+
+
+def convert(root: Path, out: Path, split: str = "train", camera: str = CAMERA) -> list[Path]:
+    """Convert every clip whose camera chunk is present; returns the videos written."""
+    features = read_features(root)
+    index_path = root / "clip_index.parquet"
+    if not index_path.is_file():
+        raise DatasetError(f"{index_path}: missing; download clip_index.parquet from the dataset's root")
+    index = pd.read_parquet(index_path)
+    cam_path, cam_files = templates(features, camera, root)
+    ego_path, ego_files = templates(features, EGOMOTION, root)
+    written = []
+    chunks = sorted(set(int(c) for c in index["chunk"]))
+    present = [c for c in chunks if (root / cam_path.format(chunk_id=c)).is_file()]
+    if not present:
+        raise DatasetError(f"{root / cam_path.format(chunk_id=chunks[0])}: no {camera} chunk is present; download "
+                           f"at least one chunk of {camera} and of {EGOMOTION}")
+    for chunk in present:
+        cam_zip, ego_zip = root / cam_path.format(chunk_id=chunk), root / ego_path.format(chunk_id=chunk)
+        if not ego_zip.is_file():
+            raise DatasetError(f"{ego_zip}: missing, but {cam_zip} is present; download the {EGOMOTION} chunk "
+                               f"{chunk} too")
+        with zipfile.ZipFile(cam_zip) as cams, zipfile.ZipFile(ego_zip) as egos:
+            for clip_id in index.index[index["chunk"] == chunk]:
+                names = {k: v.format(clip_id=clip_id) for k, v in cam_files.items()}
+                frame_t = read_parquet(cams, names["frame_timestamps"], cam_zip, ["timestamp"])["timestamp"]
+                ego = read_parquet(egos, ego_files[EGOMOTION].format(clip_id=clip_id), ego_zip,
+                                   ["timestamp", "x", "y", "qx", "qy", "qz", "qw"]).sort_values("timestamp")
+                t_pose = ego["timestamp"].to_numpy(np.float64) / 1e6
+                speed, yaw_rate = motion_from_poses(t_pose, ego["x"], ego["y"],
+                                                    yaw_of_quaternion(ego["qw"], ego["qx"], ego["qy"], ego["qz"]))
+                t = frame_t.to_numpy(np.float64) / 1e6
+                covered = (t >= t_pose[0]) & (t <= t_pose[-1])
+                if not covered[0] or covered.sum() < 2:
+                    raise DatasetError(f"{ego_zip}: the ego motion of clip {clip_id} does not cover its first "
+                                       f"frames; the chunk is incomplete, download it again")
+                video = out / split / f"{clip_id}.mp4"
+                with atomic_file(video) as tmp:
+                    try:
+                        tmp.write_bytes(cams.read(names["video"]))
+                    except KeyError:
+                        raise DatasetError(f"{cam_zip}: has no member {names['video']}; the chunk is incomplete, "
+                                           f"download it again") from None
+                write_odometry_csv(out / split / f"{clip_id}.csv", t[covered] - t[0],
+                                   np.interp(t[covered], t_pose, speed), np.interp(t[covered], t_pose, yaw_rate))
+                written.append(video)
+    return written
