@@ -58,17 +58,28 @@ def documented_commands(page: Path) -> list[Command]:
         if fence.group(1) in SHELL:
             pending, start = "", None
             for j in range(i + 1, end):
-                text = lines[j].strip()
                 start = start or j + 1
-                if text.endswith("\\"):
-                    pending += text[:-1] + " "
+                pending += lines[j] + "\n"
+                if pending.rstrip().endswith("\\"):
+                    pending = pending.rstrip()[:-1] + " "
                     continue
-                text = strip_comment(pending + text).strip()
+                if not quotes_closed(pending):  # a quoted argument over several lines (python -c "...")
+                    continue
+                text = strip_comment(pending).strip()
                 if text:
                     commands.append(Command(page, start, text, marked.group("why") if marked else None))
                 pending, start = "", None
+            assert not pending, f"{page}:{start}: a command is not finished when its block ends"
         i = end + 1
     return commands
+
+
+def quotes_closed(text: str) -> bool:
+    try:
+        shlex.split(text, comments=True)
+    except ValueError:
+        return False
+    return True
 
 
 def strip_comment(text: str) -> str:
@@ -166,3 +177,26 @@ def test_documented_commands_run_in_a_finished_smoke_project(smoke_project, tmp_
             failures.append(f"{command}\n  ran: {text}\n  {problem}")
     assert not failures, "\n\n".join(failures)
     assert ran >= 8
+
+
+def slug(heading: str) -> str:
+    """A heading's anchor as GitHub makes it."""
+    text = re.sub(r"[^\w\- ]", "", heading.strip().lower())
+    return text.replace(" ", "-")
+
+
+def test_relative_links_of_the_docs_point_at_files_and_headings_that_exist():
+    broken = []
+    for page in PAGES:
+        for target in re.findall(r"\]\(([^)\s]+)\)", page.read_text()):
+            if re.match(r"^[a-z]+:", target):
+                continue
+            path, _, anchor = target.partition("#")
+            file = (page.parent / path).resolve() if path else page
+            if not file.exists():
+                broken.append(f"{page.relative_to(ROOT)}: {target} (no such file)")
+            elif anchor and file.suffix == ".md":
+                headings = re.findall(r"^#+ (.*)$", file.read_text(), re.MULTILINE)
+                if anchor not in {slug(h) for h in headings}:
+                    broken.append(f"{page.relative_to(ROOT)}: {target} (no such heading)")
+    assert not broken, "\n".join(broken)
