@@ -356,10 +356,9 @@ class SteeringShift(nn.Module):
 
         Zero where ``drop`` (steering dropout, or no steering known): the unconditional path has no shift input.
         """
-        previous = previous.to(self.embed.weight.dtype)
         moved = torch.cat([translate_columns(previous, shift)
                            for shift in self.columns(steering, previous.shape[-1])], dim=1)
-        tokens = self.embed(patchify(moved[:, None], self.patch_size))[:, 0]
+        tokens = self.embed(patchify(moved[:, None], self.patch_size).to(self.embed.weight.dtype))[:, 0]
         if drop is not None:
             tokens = torch.where(drop.reshape(-1, 1, 1), torch.zeros_like(tokens), tokens)
         return tokens
@@ -410,10 +409,10 @@ class SubgoalShift(nn.Module):
         with torch.no_grad():
             columns = best_sideways_shift(cond_frames[:, first].float(), cond_frames[:, last].float(),
                                           *TURN_SEARCH) * (width / cond_frames.shape[-1])
-        previous = x[:, first].to(self.embed.weight.dtype)
+        previous = x[:, first]
         moved = torch.stack([translate_columns(previous, columns * (j - first) / (last - first))
                              for j in range(first + 1, n_frames)], dim=1)
-        return first, self.embed(patchify(moved, self.patch_size))
+        return first, self.embed(patchify(moved, self.patch_size).to(self.embed.weight.dtype))
 
 
 class AbstractConditioner(nn.Module):
