@@ -7,6 +7,7 @@ the shift search one candidate at a time): the precomputed paths must equal them
 
 from __future__ import annotations
 
+import copy
 import math
 
 import pytest
@@ -15,6 +16,7 @@ import torch.nn.functional as F
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_flatten
 
+from orbis2.accel import cast_for_inference, compile_predictor
 from orbis2.flow import euler_grid, euler_sample
 from orbis2.models.stdit import (
     TURN_SEARCH,
@@ -458,3 +460,44 @@ def test_euler_sample_with_a_plan_equals_euler_sample_on_the_window():
     plain = euler_sample(detail, x[:, :5], 5, 3, torch.Generator().manual_seed(4), **cond)
     planned = sample_frames(detail, x[:, :5], 5, 3, torch.Generator().manual_seed(4), **cond)
     assert plain.abs().max() > 1e-3 and torch.equal(planned, plain)
+
+
+# --------------------------------------------------------------------------- compile, weights cast once
+
+
+def test_regional_compile_traces_the_block_once_and_changes_nothing():
+    """Every block of every Euler step runs through one graph (the 'eager' backend: the graph's own ops)."""
+    detail = detail_model()
+    x, cond_frames, _ = detail_inputs("smoke")
+    cond = {"frame_rate": 10.0, "cond_frames": cond_frames, "cond_mask": (4, 9)}
+    expected = sample_frames(detail, x[:, :5], 5, 3, torch.Generator().manual_seed(5), **cond)
+    torch._dynamo.reset()
+    torch._dynamo.utils.counters.clear()
+    compile_predictor(detail, backend="eager")
+    compiled = sample_frames(detail, x[:, :5], 5, 3, torch.Generator().manual_seed(5), **cond)
+    assert torch.equal(compiled, expected)
+    stats = torch._dynamo.utils.counters["stats"]
+    assert stats["unique_graphs"] == 1 and stats["calls_captured"] > 0
+    assert not torch._dynamo.utils.counters["graph_break"]
+    torch._dynamo.reset()
+
+
+def test_weights_cast_once_give_autocasts_arithmetic():
+    """Linear weights cast to bf16 once equal autocast's cast at every call, bit for bit (CPU autocast here)."""
+    top, bottom = abstract_model(), detail_model()
+    xa, steering = abstract_inputs("smoke")
+    x, _, _ = detail_inputs("smoke")
+    runs = []
+    for cast in (False, True):
+        a, d = copy.deepcopy(top), copy.deepcopy(bottom)
+        if cast:
+            cast_for_inference(a, "cuda", "bf16")  # only the device's kind is read: the cast itself runs anywhere
+            cast_for_inference(d, "cuda", "bf16")
+            assert a.blocks[0].adaLN_modulation[1].weight.dtype == torch.bfloat16
+            assert a.frame_embed.dtype == torch.float32 and d.blocks[0].cross_gate.dtype == torch.float32
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            runs.append(cascaded_rollout(a, d, x[:, :5], xa[:, :5], 1, torch.Generator().manual_seed(6), 2, 2,
+                                         steering=steering[:, None]))
+    for plain, cast in zip(*runs):
+        assert torch.equal(plain, cast)
+    assert cast_for_inference(copy.deepcopy(top), "cpu").blocks[0].adaLN_modulation[1].weight.dtype == torch.float32
