@@ -107,7 +107,14 @@ def target_velocity(model: ModelFn, context: torch.Tensor, n_target: int, nfe: i
     taus = euler_grid(nfe)[:-1]
     if hasattr(model, "plan"):
         plan = model.plan(context, n_target, taus, kv_cache=kv_cache, modulations=modulations, **cond)
-        return lambda x, step: model.planned_velocity(plan, x, step)
+
+        def planned(x: torch.Tensor, step: int) -> torch.Tensor:
+            # One Euler step is one generation of CUDA graphs (blocks compiled with CUDA graphs, accel):
+            # the previous step's graph outputs are consumed by then.
+            torch.compiler.cudagraph_mark_step_begin()
+            return model.planned_velocity(plan, x, step)
+
+        return planned
     b, n_context = context.shape[:2]
     tau_context = torch.zeros(b, n_context, device=context.device, dtype=context.dtype)
 

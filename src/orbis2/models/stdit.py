@@ -175,7 +175,8 @@ class CrossAttention(nn.Module):
 
     def keys_values(self, context: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Context [B, M, cond_dim] -> keys and values [B, H, M, d]: fixed while the context is."""
-        k, v = self.kv(context).reshape(context.shape[0], context.shape[1], 2, self.num_heads, -1).permute(2, 0, 3, 1, 4)
+        b, m = context.shape[:2]
+        k, v = self.kv(context).reshape(b, m, 2, self.num_heads, -1).permute(2, 0, 3, 1, 4)
         return self.k_norm(k).to(v.dtype), v
 
     def forward(self, x: torch.Tensor, keys: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
@@ -960,7 +961,8 @@ class STDiT(nn.Module):
         window = torch.cat([plan.context, x], dim=1)
         f, (h, w) = window.shape[1], window.shape[-2:]
         tokens = self._tokens(window, plan.constants, f, 0, window[:, -2] if f >= 2 else None, plan.steering)
-        for block, modulation, cond in zip(self.blocks, modulations, plan.constants.blocks or [None] * len(self.blocks)):
+        conds = plan.constants.blocks or [None] * len(self.blocks)
+        for block, modulation, cond in zip(self.blocks, modulations, conds):
             tokens = block(tokens, modulation, self.causal, cond)
         out = self.final_layer(tokens, modulations[-1])
         return unpatchify(out, self.patch_size, self.latent_channels, h, w).to(window.dtype)[:, plan.context.shape[1]:]
