@@ -109,9 +109,9 @@ def target_velocity(model: ModelFn, context: torch.Tensor, n_target: int, nfe: i
         plan = model.plan(context, n_target, taus, kv_cache=kv_cache, modulations=modulations, **cond)
 
         def planned(x: torch.Tensor, step: int) -> torch.Tensor:
-            # One Euler step is one generation of CUDA graphs (blocks compiled with CUDA graphs, accel):
-            # the previous step's graph outputs are consumed by then.
-            torch.compiler.cudagraph_mark_step_begin()
+            if x.is_cuda:  # one Euler step is one generation of CUDA graphs (blocks compiled with CUDA graphs,
+                # accel): the previous step's graph outputs are consumed by then. Not on the CPU: it loads inductor.
+                torch.compiler.cudagraph_mark_step_begin()
             return model.planned_velocity(plan, x, step)
 
         return planned
