@@ -1,7 +1,7 @@
 """Generation speed side by side (paper Table 5): hierarchical, distilled, flat detail and an Orbis v1-style model.
 
     python benchmarks/bench_rollout.py [--preset paper] [--grid 18x32] [--seconds 2] [--precision bf16]
-        [--compile] [--no-kv-cache] [--no-decode] [--distill-nfe 4] [--json out.json]
+        [--compile] [--compile-cache DIR] [--no-kv-cache] [--distill-nfe 4] [--json out.json]
 
 Random weights at an ST-DiT preset's size, 16-channel latents on the latent grid,
 batch 1, every frame decoded by the detail tokenizer's decoder of the same preset
@@ -15,10 +15,16 @@ batch 1, every frame decoded by the detail tokenizer's decoder of the same prese
 * ``v1_style``: the same network run like Orbis v1: one frame per step at 10 Hz,
   30 NFE.
 
-Each system runs in its own subprocess so its peak memory is its own (CUDA:
+Every system runs the same way (sampling plans, weights cast to bf16 once on
+CUDA, and with ``--compile`` regional compilation with CUDA graphs on CUDA), so
+the ratios compare the networks and their NFE, not the implementations. Each
+system runs in its own subprocess so its peak memory is its own (CUDA:
 ``max_memory_allocated``, weights included; CPU: peak RSS). The first rollout
 is a warm-up whose time is reported apart (it holds the compilation with
-``--compile``). Speed depends on the network sizes and NFE only, so random
+``--compile``; ``compile_s`` is its excess over a timed rollout, and
+``--compile-cache`` keeps the compiled artifacts between runs). Frames/s
+include decoding; the rollout's and the decoder's times are also reported
+apart (medians). Speed depends on the network sizes and NFE only, so random
 weights measure what trained ones would.
 """
 
@@ -34,7 +40,14 @@ from pathlib import Path
 
 import torch
 
-from orbis2.accel import compile_decoder, compile_predictor, inference_autocast, set_tf32
+from orbis2.accel import (
+    cast_for_inference,
+    compile_cache,
+    compile_decoder,
+    compile_predictor,
+    inference_autocast,
+    set_tf32,
+)
 from orbis2.models.stdit import STDIT_PRESETS, build_stdit, stdit_config
 from orbis2.models.tokenizer import TOKENIZER_PRESETS, build_detail_tokenizer
 from orbis2.rollout import cascaded_rollout, flat_rollout
@@ -119,6 +132,7 @@ def rollout_worker(args: argparse.Namespace) -> dict:
     _perturb_outputs(*nets)
     for net in nets:
         net.requires_grad_(False)
+        cast_for_inference(net, device, args.precision)
     tokenizer.requires_grad_(False)
     if args.compile:
         for net in nets:
@@ -126,32 +140,44 @@ def rollout_worker(args: argparse.Namespace) -> dict:
         compile_decoder(tokenizer)
 
     @torch.no_grad()
-    def run() -> int:
+    def run() -> tuple[int, float, float]:
         with inference_autocast(device, args.precision):
+            start = time.perf_counter()
             latents = generate()
+            _sync(device)
+            rollout_s = time.perf_counter() - start
             frames = [tokenizer.decode(chunk).float() for chunk in latents[0].split(8)]
-        return sum(f.shape[0] for f in frames)
+            _sync(device)
+        return sum(f.shape[0] for f in frames), rollout_s, time.perf_counter() - start - rollout_s
 
-    _sync(device)
-    if device.type == "cuda":
-        torch.cuda.reset_peak_memory_stats(device)
-    start = time.perf_counter()
-    run()  # warm-up: kernel selection, allocator, compilation
-    _sync(device)
-    warmup_s = time.perf_counter() - start
-    timings = []
+    cache_dir = args.compile_cache if args.compile else None
+    with compile_cache(cache_dir / f"{args.worker}-{args.preset}.bin" if cache_dir else None) as cache_record:
+        _sync(device)
+        if device.type == "cuda":
+            torch.cuda.reset_peak_memory_stats(device)
+        start = time.perf_counter()
+        run()  # warm-up: kernel selection, allocator, compilation
+        _sync(device)
+        warmup_s = time.perf_counter() - start
+    timings, rollouts, decodes = [], [], []
     for _ in range(args.repeats):
         start = time.perf_counter()
-        frames = run()
+        frames, rollout_s, decode_s = run()
         _sync(device)
         timings.append(time.perf_counter() - start)
-    seconds = sorted(timings)[len(timings) // 2]
+        rollouts.append(rollout_s)
+        decodes.append(decode_s)
+    median = lambda values: sorted(values)[len(values) // 2]  # noqa: E731
+    seconds = median(timings)
     if device.type == "cuda":
         peak_mb = torch.cuda.max_memory_allocated(device) / 2**20
     else:
         peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
     return {"system": args.worker, "params": sum(n_params(n) for n in nets), "decoder_params": n_params(tokenizer),
-            "frames": frames, "fps": frames / seconds, "seconds": seconds, "warmup_s": warmup_s,
+            "frames": frames, "fps": frames / seconds, "seconds": seconds, "min_seconds": min(timings),
+            "rollout_s": median(rollouts), "decode_s": median(decodes), "warmup_s": warmup_s,
+            "compile_s": max(warmup_s - seconds, 0.0) if args.compile else 0.0,
+            "compile_cache_loaded": cache_record["loaded"],
             "peak_memory_mb": peak_mb, "memory_kind": "cuda_max_allocated" if device.type == "cuda" else "cpu_peak_rss",
             "nfe": {"hierarchical": [15, 30], "distilled": [15, args.distill_nfe]}.get(args.worker, [30])}
 
@@ -164,7 +190,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--seconds", type=float, default=1.0, help="seconds of 10 Hz video per timed rollout")
     parser.add_argument("--repeats", type=int, default=2, help="timed rollouts per system (median)")
     parser.add_argument("--precision", choices=("bf16", "fp32"), default="bf16", help="bf16 autocast on CUDA only")
-    parser.add_argument("--compile", action="store_true", help="torch.compile predictors and decoder")
+    parser.add_argument("--compile", action="store_true",
+                        help="torch.compile predictors (by region; CUDA graphs on CUDA) and decoder")
+    parser.add_argument("--compile-cache", type=Path, default=None,
+                        help="with --compile: directory keeping the compiled artifacts between runs")
     parser.add_argument("--no-kv-cache", dest="kv_cache", action="store_false")
     parser.add_argument("--distill-nfe", type=int, default=4, help="Euler steps of the distilled detail predictor")
     parser.add_argument("--systems", default=",".join(SYSTEMS), help=f"comma-separated subset of {SYSTEMS}")
@@ -221,12 +250,14 @@ def main(argv: list[str] | None = None) -> None:
     print(f"device {device_name}, preset {args.preset}, grid {args.grid[0]}x{args.grid[1]}x{LATENT_CHANNELS}, "
           f"{args.precision}{', compiled' if args.compile else ''}, KV cache {'on' if args.kv_cache else 'off'}, "
           f"{args.seconds:g} s of video per rollout, decoding included")
-    print(f"{'system':<14}{'params':>14}{'frames/s':>10}{'peak MB':>10}{'warm-up s':>11}")
+    print(f"{'system':<14}{'params':>14}{'frames/s':>10}{'rollout s':>10}{'decode s':>10}{'peak MB':>10}"
+          f"{'warm-up s':>11}")
     for name, r in results.items():
         if "error" in r:
             print(f"{name:<14}  skipped: {r['error']}")
             continue
-        print(f"{name:<14}{r['params']:>14,}{r['fps']:>10.2f}{r['peak_memory_mb']:>10.0f}{r['warmup_s']:>11.1f}")
+        print(f"{name:<14}{r['params']:>14,}{r['fps']:>10.2f}{r['rollout_s']:>10.2f}{r['decode_s']:>10.2f}"
+              f"{r['peak_memory_mb']:>10.0f}{r['warmup_s']:>11.1f}")
     for key, value in ratios().items():
         print(f"speed ratio {key}: {value:.2f}x")
 

@@ -159,6 +159,12 @@ def guided_velocity(conditional: torch.Tensor, unconditional: torch.Tensor, scal
     return unconditional + scale * (conditional - unconditional)
 
 
+def euler_grid(nfe: int) -> list[float]:
+    """The uniform noise-level grid 1 = tau_0 > ... > tau_nfe = 0 of :func:`euler_sample`, as Python numbers:
+    read once per sampling call, so the Euler steps themselves never read a tensor back."""
+    return torch.linspace(1.0, 0.0, nfe + 1).tolist()
+
+
 @torch.no_grad()
 def euler_sample(
     model_fn: ModelFn,
@@ -174,20 +180,21 @@ def euler_sample(
 
     Uniform grid, context at tau = 0 throughout (paper "Inference protocol":
     15 NFE abstract, 30 NFE detail). Returns the target frames [B, n_target, C, h, w].
-    ``target_fn(x_target, tau_target)``, when given, replaces the full-window call
-    with one that returns the target frames' velocity alone (a causal model with
-    its clean context's keys/values cached); the noise drawn is the same.
+    ``target_fn(x_target, step)``, when given, replaces the full-window call with one
+    that returns the target frames' velocity alone at Euler step ``step`` (tau =
+    ``euler_grid(nfe)[step]``), from inputs it prepared before the loop (the KV-cached
+    context, the modulations of every step, the conditioning); the noise drawn is the same.
     ``noise`` [B, n_target, C, h, w] replaces the draw (the start of a given ODE path).
     """
     b, n_context = context.shape[:2]
     x = _randn((b, n_target, *context.shape[2:]), context, generator) if noise is None else noise
     tau_context = torch.zeros(b, n_context, device=context.device, dtype=context.dtype)
-    grid = torch.linspace(1.0, 0.0, nfe + 1)
-    for tau_now, tau_next in zip(grid[:-1].tolist(), grid[1:].tolist()):
-        tau_target = torch.full((b, n_target), tau_now, device=context.device, dtype=context.dtype)
+    grid = euler_grid(nfe)
+    for step, (tau_now, tau_next) in enumerate(zip(grid[:-1], grid[1:])):
         if target_fn is not None:
-            velocity = target_fn(x, tau_target)
+            velocity = target_fn(x, step)
         else:
+            tau_target = torch.full((b, n_target), tau_now, device=context.device, dtype=context.dtype)
             tau = torch.cat([tau_context, tau_target], dim=1)
             velocity = model_fn(torch.cat([context, x], dim=1), tau, **cond)[:, n_context:]
         x = x + (tau_next - tau_now) * velocity.to(x.dtype)

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from orbis2.config import DataConfig
-from orbis2.flow import ModelFn, euler_sample, guided_velocity
+from orbis2.flow import ModelFn, euler_grid, euler_sample, guided_velocity
 from orbis2.windows import window_indices
 
 StepCallback = Callable[[int], None]
@@ -95,42 +95,68 @@ def steering_sequences(schedule: list[ScheduleStep], speed: np.ndarray, yaw_rate
     return torch.from_numpy(values).float()
 
 
-def can_cache(model: ModelFn, cond: dict) -> bool:
-    """A causal predictor without abstract conditioning: its clean context's keys/values can be cached."""
-    return (getattr(model, "causal", False) and getattr(model, "abstract_channels", 0) is None
-            and hasattr(model, "build_kv_cache") and "cond_frames" not in cond)
+def target_velocity(model: ModelFn, context: torch.Tensor, n_target: int, nfe: int, kv_cache: bool, cond: dict,
+                    modulations: list | None = None) -> ModelFn:
+    """The target frames' velocity as a function of (x_target, Euler step) after the clean ``context``.
+
+    An ST-DiT computes what stays fixed over the Euler steps once (``model.plan``: the conditioning, every
+    step's modulations, the context's temporal keys/values where exact), so each step runs the network's
+    blocks alone, without a host sync; any other velocity function is called on the whole window.
+    ``modulations``: the model's modulation table for these steps, computed earlier (the same every step).
+    """
+    taus = euler_grid(nfe)[:-1]
+    if hasattr(model, "plan"):
+        plan = model.plan(context, n_target, taus, kv_cache=kv_cache, modulations=modulations, **cond)
+
+        def planned(x: torch.Tensor, step: int) -> torch.Tensor:
+            if x.is_cuda:  # one Euler step is one generation of CUDA graphs (blocks compiled with CUDA graphs,
+                # accel): the previous step's graph outputs are consumed by then. Not on the CPU: it loads inductor.
+                torch.compiler.cudagraph_mark_step_begin()
+            return model.planned_velocity(plan, x, step)
+
+        return planned
+    b, n_context = context.shape[:2]
+    tau_context = torch.zeros(b, n_context, device=context.device, dtype=context.dtype)
+
+    def velocity(x: torch.Tensor, step: int) -> torch.Tensor:
+        tau = torch.full((b, n_target), taus[step], device=context.device, dtype=context.dtype)
+        return model(torch.cat([context, x], dim=1), torch.cat([tau_context, tau], dim=1), **cond)[:, n_context:]
+
+    return velocity
 
 
-def target_velocity(model: ModelFn, context: torch.Tensor, n_target: int, kv_cache: bool, cond: dict) -> ModelFn:
-    """The target frames' velocity as a function of (x_target, tau_target) after the clean ``context``, with the
-    context's temporal keys/values computed once where exact (:func:`can_cache`)."""
-    if kv_cache and can_cache(model, cond):
-        cache = model.build_kv_cache(context, n_target, cond.get("frame_rate"), cond.get("steering"))
-        return lambda x, tau: model.forward_cached(x, tau, cache, cond.get("frame_rate"), cond.get("steering"))
-    n_context = context.shape[1]
-    tau_context = torch.zeros(context.shape[0], n_context, device=context.device, dtype=context.dtype)
-    return lambda x, tau: model(torch.cat([context, x], dim=1), torch.cat([tau_context, tau], dim=1),
-                                **cond)[:, n_context:]
+def unsteered_modulations(model: ModelFn, context: torch.Tensor, n_target: int, nfe: int,
+                          kv_cache: bool) -> list | None:
+    """An ST-DiT's modulation table (``model.modulation_table``) for sampling without steering: it depends on
+    the noise levels alone, so a rollout computes it once for all its steps; None for other velocity functions."""
+    if not hasattr(model, "modulation_table"):
+        return None
+    b, n_context = context.shape[:2]
+    return model.modulation_table(euler_grid(nfe)[:-1], b, n_context, n_target, None, model.uses_kv_cache(kv_cache),
+                                  context.device, context.dtype)
 
 
 def sample_frames(model: ModelFn, context: torch.Tensor, n_target: int, nfe: int, generator: torch.Generator,
-                  kv_cache: bool = True, guidance: float = 1.0, **cond) -> torch.Tensor:
-    """``euler_sample``, with the context's temporal keys/values computed once per call where exact
-    (:func:`can_cache`): the NFE loop then runs the target frames only.
+                  kv_cache: bool = True, guidance: float = 1.0, modulations: list | None = None,
+                  **cond) -> torch.Tensor:
+    """``euler_sample``, with what stays fixed over its Euler steps computed once per call
+    (:func:`target_velocity`): the context's temporal keys/values where exact, the conditioning, the
+    modulations (``modulations``: precomputed for an unsteered call, :func:`unsteered_modulations`).
 
     ``guidance`` != 1 with a ``steering`` input: classifier-free guidance on the steering
     (:func:`orbis2.flow.guided_velocity`), the unsteered velocity from the same model given no steering
     (its dropout embedding); two evaluations per Euler step, the same noise.
     """
     if cond.get("steering") is not None and guidance != 1.0:
-        steered = target_velocity(model, context, n_target, kv_cache, cond)
-        free = target_velocity(model, context, n_target, kv_cache, {k: v for k, v in cond.items() if k != "steering"})
-        return euler_sample(model, context, n_target, nfe, generator, **cond,
-                            target_fn=lambda x, tau: guided_velocity(steered(x, tau), free(x, tau), guidance))
-    if not (kv_cache and can_cache(model, cond)):
-        return euler_sample(model, context, n_target, nfe, generator, **cond)
-    return euler_sample(model, context, n_target, nfe, generator, **cond,
-                        target_fn=target_velocity(model, context, n_target, kv_cache, cond))
+        steered = target_velocity(model, context, n_target, nfe, kv_cache, cond)
+        free = target_velocity(model, context, n_target, nfe, kv_cache,
+                               {k: v for k, v in cond.items() if k != "steering"})
+        return euler_sample(model, context, n_target, nfe, generator,
+                            target_fn=lambda x, step: guided_velocity(steered(x, step), free(x, step), guidance))
+    if cond.get("steering") is not None:
+        modulations = None  # the table depends on the steering
+    velocity = target_velocity(model, context, n_target, nfe, kv_cache, cond, modulations)
+    return euler_sample(model, context, n_target, nfe, generator, target_fn=velocity)
 
 
 def _slide(context: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
@@ -147,8 +173,9 @@ def _step_steering(steering: torch.Tensor | None, k: int, batch: int, steps: int
 
 
 def detail_conditioning(last_context: torch.Tensor, subgoal: torch.Tensor, n_context: int,
-                        n_target: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """cond_frames [B, F, C_a, h_a, w_a] and cond_mask [B, F] of one detail window.
+                        n_target: int) -> tuple[torch.Tensor, tuple[int, int]]:
+    """cond_frames [B, F, C_a, h_a, w_a] of one detail window and its conditioned slots (the ``cond_mask``:
+    known here, so passed as slots, which keeps the detail forward free of host syncs).
 
     The last abstract context latent sits at the last context slot and the
     subgoal at the last target slot; other slots carry zeros (the authors' code,
@@ -159,9 +186,7 @@ def detail_conditioning(last_context: torch.Tensor, subgoal: torch.Tensor, n_con
     cond = last_context.new_zeros((b, frames, *last_context.shape[1:]))
     cond[:, n_context - 1] = last_context
     cond[:, frames - 1] = subgoal
-    mask = torch.zeros(b, frames, dtype=torch.bool, device=last_context.device)
-    mask[:, [n_context - 1, frames - 1]] = True
-    return cond, mask
+    return cond, (n_context - 1, frames - 1)
 
 
 @torch.no_grad()
@@ -206,17 +231,23 @@ def cascaded_rollout(
     if subgoals is not None and subgoals.shape[1] != top_frames_per_step * steps:
         raise ValueError(f"subgoals must hold {top_frames_per_step * steps} frames, got {subgoals.shape[1]}")
     details, tops = [], []
+    detail_table = unsteered_modulations(detail_model, detail_context, frames_per_step, detail_nfe, kv_cache)
+    top_table = None
+    if steering is None and subgoals is None:
+        top_table = unsteered_modulations(abstract_model, abstract_context, top_frames_per_step, abstract_nfe,
+                                          kv_cache)
     for k in range(steps):
         if subgoals is None:
             top = sample_frames(abstract_model, abstract_context, top_frames_per_step, abstract_nfe, generator,
-                                kv_cache, steering_guidance, frame_rate=abstract_hz,
+                                kv_cache, steering_guidance, top_table, frame_rate=abstract_hz,
                                 **_step_steering(steering, k, b, steps))
         else:
             top = subgoals[:, k * top_frames_per_step:(k + 1) * top_frames_per_step]
         cond_frames, cond_mask = detail_conditioning(abstract_context[:, -1], top[:, -1], n_context,
                                                      frames_per_step)
-        new = euler_sample(detail_model, detail_context, frames_per_step, detail_nfe, generator,
-                           frame_rate=detail_hz, cond_frames=cond_frames, cond_mask=cond_mask)
+        new = sample_frames(detail_model, detail_context, frames_per_step, detail_nfe, generator, kv_cache,
+                            modulations=detail_table, frame_rate=detail_hz, cond_frames=cond_frames,
+                            cond_mask=cond_mask)
         detail_context = _slide(detail_context, new)
         abstract_context = _slide(abstract_context, top)
         details.append(new)
@@ -245,9 +276,10 @@ def flat_rollout(
     """
     b = context.shape[0]
     frames = []
+    table = None if steering is not None else unsteered_modulations(model, context, frames_per_step, nfe, kv_cache)
     for k in range(steps):
-        new = sample_frames(model, context, frames_per_step, nfe, generator, kv_cache, frame_rate=frame_rate,
-                            **_step_steering(steering, k, b, steps))
+        new = sample_frames(model, context, frames_per_step, nfe, generator, kv_cache, modulations=table,
+                            frame_rate=frame_rate, **_step_steering(steering, k, b, steps))
         context = _slide(context, new)
         frames.append(new)
         if on_step is not None:

@@ -33,8 +33,8 @@ path and the cross-attention fit that budget.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
-from functools import lru_cache
 from pathlib import Path
 
 import torch
@@ -64,11 +64,38 @@ def sinusoidal_embedding(values: torch.Tensor, dim: int, max_period: float = 100
     return torch.cat([torch.cos(angles), torch.sin(angles)], dim=-1)
 
 
-@lru_cache(maxsize=16)
-def _grid_positions(dim: int, h: int, w: int) -> torch.Tensor:
-    """Fixed 2-D sin-cos positions [h*w, dim], built once per grid on the CPU."""
-    with torch.device("cpu"):
-        return sincos_pos_embed_2d(dim, (h, w))
+def rate_embedding(frame_rate: torch.Tensor | float | None, batch: int, dim: int,
+                   device: torch.device) -> torch.Tensor | None:
+    """Frame rate in Hz (a number or [B]) -> sinusoidal features [B, dim] built on ``device`` (no host copy)."""
+    if frame_rate is None:
+        return None
+    if isinstance(frame_rate, torch.Tensor):
+        rate = frame_rate.to(device=device, dtype=torch.float32).expand(batch)
+    else:
+        rate = torch.full((batch,), float(frame_rate), device=device, dtype=torch.float32)
+    return sinusoidal_embedding(rate, dim)
+
+
+def conditioned_slots(cond_mask: torch.Tensor | Sequence[int]) -> tuple[int, ...]:
+    """The frame slots that carry an abstract latent, the same in every sample, from ``cond_mask`` [B, F].
+
+    Reads the mask on the host (a device sync) and checks it once: callers that know their slots
+    (rollouts, training windows) pass them as a tuple instead, which keeps the forward free of host syncs.
+    """
+    if not isinstance(cond_mask, torch.Tensor):
+        return tuple(int(slot) for slot in cond_mask)
+    mask = cond_mask.bool()
+    counts = mask.sum(dim=1)
+    if (counts != counts[0]).any():
+        raise ValueError(f"every sample needs the same number of conditioned slots, got {counts.tolist()}")
+    if not bool((mask == mask[0]).all()):
+        raise ValueError("every sample needs the same conditioned slots (cond_mask rows differ)")
+    return tuple(mask[0].nonzero().flatten().tolist())
+
+
+def grid_positions(dim: int, h: int, w: int, device: torch.device) -> torch.Tensor:
+    """Fixed 2-D sin-cos positions [h*w, dim] of a patch grid, built on ``device`` (no host copy)."""
+    return sincos_pos_embed_2d(dim, (h, w), device)
 
 
 def patchify(x: torch.Tensor, p: int) -> torch.Tensor:
@@ -110,8 +137,9 @@ class Attention(nn.Module):
 
     def forward(self, x: torch.Tensor, causal: bool = False, past: tuple[torch.Tensor, torch.Tensor] | None = None,
                 keep: list | None = None) -> torch.Tensor:
-        """``past``: cached (keys, values) [B, H, P, d] of earlier positions, attended before ``x``'s own;
-        ``keep``: a list that receives this call's (keys, values) for a later call's ``past``."""
+        """``past``: key and value buffers [B, H, P + n, d] holding earlier positions' keys/values in their first
+        P positions; this call writes its own n after them, in place, and attends over the whole buffer.
+        ``keep``: a list that receives this call's (keys, values)."""
         b, n, d = x.shape
         q, k, v = self.qkv(x).reshape(b, n, 3, self.num_heads, d // self.num_heads).permute(2, 0, 3, 1, 4)
         q, k = self.q_norm(q).to(v.dtype), self.k_norm(k).to(v.dtype)  # bf16 under autocast: flash-eligible
@@ -119,9 +147,12 @@ class Attention(nn.Module):
             keep.append((k, v))
         mask = None
         if past is not None:
-            k, v = torch.cat([past[0], k], dim=2), torch.cat([past[1], v], dim=2)
+            n_past = past[0].shape[2] - n
+            past[0][:, :, n_past:].copy_(k)
+            past[1][:, :, n_past:].copy_(v)
+            k, v = past
             if causal and n > 1:  # query i sees every cached position and its own first i + 1
-                mask = torch.ones(n, k.shape[2], dtype=torch.bool, device=x.device).tril(k.shape[2] - n)
+                mask = torch.ones(n, n_past + n, dtype=torch.bool, device=x.device).tril(n_past)
             causal = False
         out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, is_causal=causal)
         return self.proj(out.transpose(1, 2).reshape(b, n, d))
@@ -142,12 +173,17 @@ class CrossAttention(nn.Module):
         self.k_norm = nn.RMSNorm(head_dim, eps=1e-6)
         self.proj = nn.Linear(context_dim, dim)
 
-    def forward(self, x: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+    def keys_values(self, context: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Context [B, M, cond_dim] -> keys and values [B, H, M, d]: fixed while the context is."""
+        b, m = context.shape[:2]
+        k, v = self.kv(context).reshape(b, m, 2, self.num_heads, -1).permute(2, 0, 3, 1, 4)
+        return self.k_norm(k).to(v.dtype), v
+
+    def forward(self, x: torch.Tensor, keys: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
         b, n, _ = x.shape
         inner = self.q.out_features
         q = self.q(x).reshape(b, n, self.num_heads, -1).transpose(1, 2)
-        k, v = self.kv(context).reshape(b, context.shape[1], 2, self.num_heads, -1).permute(2, 0, 3, 1, 4)
-        out = F.scaled_dot_product_attention(self.q_norm(q).to(v.dtype), self.k_norm(k).to(v.dtype), v)
+        out = F.scaled_dot_product_attention(self.q_norm(q).to(values.dtype), keys, values)
         return self.proj(out.transpose(1, 2).reshape(b, n, inner))
 
 
@@ -271,11 +307,13 @@ def best_sideways_shift(before: torch.Tensor, after: torch.Tensor, reach: float,
     The shift of ``before`` (:func:`translate_columns`) among -reach .. reach in ``step`` that best
     matches ``after`` over the columns every candidate fills (``ceil(reach)`` from each border
     are left out).
+    All candidates are moved in one batched call (one kernel instead of one per candidate).
     """
     margin = math.ceil(reach)
     shifts = torch.arange(-reach, reach + step / 2, step, device=before.device)
-    errors = torch.stack([((translate_columns(before, shift.expand(len(before))) - after)[..., margin:-margin] ** 2)
-                          .flatten(1).mean(dim=1) for shift in shifts], dim=1)
+    b, n = len(before), len(shifts)
+    moved = translate_columns(before.repeat(n, 1, 1, 1), shifts.repeat_interleave(b)).unflatten(0, (n, b))
+    errors = ((moved - after)[..., margin:-margin] ** 2).flatten(2).mean(dim=2).T
     return shifts[errors.argmin(dim=1)]
 
 
@@ -301,6 +339,7 @@ class SteeringShift(nn.Module):
         super().__init__()
         self.patch_size, self.yaw_feature = patch_size, yaw_feature
         self.embed = nn.Linear(len(self.RATES) * patch_size * patch_size * latent_channels, hidden_size)
+        self.register_buffer("rates", torch.tensor(self.RATES), persistent=False)  # on the model's device
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -310,7 +349,7 @@ class SteeringShift(nn.Module):
     def columns(self, steering: torch.Tensor, width: int) -> torch.Tensor:
         """Steering [B, S, K] -> sideways shifts [len(RATES), B] in latent columns (a missing yaw rate counts as 0)."""
         yaw = torch.nan_to_num(steering[..., self.yaw_feature].float(), nan=0.0).mean(dim=1)
-        return yaw.new_tensor(self.RATES)[:, None] * width * yaw
+        return self.rates.to(yaw.dtype)[:, None] * width * yaw
 
     def forward(self, previous: torch.Tensor, steering: torch.Tensor,
                 drop: torch.Tensor | None = None) -> torch.Tensor:
@@ -318,10 +357,9 @@ class SteeringShift(nn.Module):
 
         Zero where ``drop`` (steering dropout, or no steering known): the unconditional path has no shift input.
         """
-        previous = previous.to(self.embed.weight.dtype)
         moved = torch.cat([translate_columns(previous, shift)
                            for shift in self.columns(steering, previous.shape[-1])], dim=1)
-        tokens = self.embed(patchify(moved[:, None], self.patch_size))[:, 0]
+        tokens = self.embed(patchify(moved[:, None], self.patch_size).to(self.embed.weight.dtype))[:, 0]
         if drop is not None:
             tokens = torch.where(drop.reshape(-1, 1, 1), torch.zeros_like(tokens), tokens)
         return tokens
@@ -354,24 +392,28 @@ class SubgoalShift(nn.Module):
         nn.init.zeros_(self.embed.weight)
         nn.init.zeros_(self.embed.bias)
 
-    def forward(self, x: torch.Tensor, cond_frames: torch.Tensor, cond_mask: torch.Tensor
-                ) -> tuple[int, torch.Tensor] | None:
-        """Frames [B, F, C, h, w], conditioning [B, F, C_a, h_a, w_a] / [B, F] -> (first, tokens [B, F', N, D])
-        for the frames after ``first``, the first conditioned slot; None with fewer than two conditioned slots."""
-        slots = cond_mask[0].nonzero().flatten().tolist()
+    def forward(self, x: torch.Tensor, cond_frames: torch.Tensor, slots: torch.Tensor | Sequence[int],
+                n_frames: int | None = None) -> tuple[int, torch.Tensor] | None:
+        """Frames [B, F', C, h, w] from the window's first up to at least slot ``first`` (the first conditioned one),
+        conditioning [B, F, C_a, h_a, w_a] at ``slots`` (a mask [B, F] or the slots, :func:`conditioned_slots`)
+        -> (first, tokens [B, F - first - 1, N, D]) for the frames
+        after ``first`` of the ``n_frames``-frame window (default F'); None with fewer than two conditioned slots.
+
+        Depends on clean frames only in a rollout (``first`` is a context slot): fixed over its Euler steps.
+        """
+        slots = conditioned_slots(slots)
         if len(slots) < 2:
             return None
-        if not bool((cond_mask == cond_mask[0]).all()):
-            raise ValueError("SubgoalShift needs the same conditioned slots in every sample")
         first, last = slots[0], slots[-1]
+        n_frames = x.shape[1] if n_frames is None else n_frames
         width = x.shape[-1]
         with torch.no_grad():
             columns = best_sideways_shift(cond_frames[:, first].float(), cond_frames[:, last].float(),
                                           *TURN_SEARCH) * (width / cond_frames.shape[-1])
-        previous = x[:, first].to(self.embed.weight.dtype)
+        previous = x[:, first]
         moved = torch.stack([translate_columns(previous, columns * (j - first) / (last - first))
-                             for j in range(first + 1, x.shape[1])], dim=1)
-        return first, self.embed(patchify(moved, self.patch_size))
+                             for j in range(first + 1, n_frames)], dim=1)
+        return first, self.embed(patchify(moved, self.patch_size).to(self.embed.weight.dtype))
 
 
 class AbstractConditioner(nn.Module):
@@ -390,17 +432,21 @@ class AbstractConditioner(nn.Module):
         self.patchify = nn.Linear(patch_size * patch_size * abstract_channels, cond_dim)
         self.frame_position = nn.Sequential(nn.Linear(1, cond_dim), nn.SiLU(), nn.Linear(cond_dim, cond_dim))
 
-    def forward(self, cond_frames: torch.Tensor, cond_mask: torch.Tensor, grid_hw: tuple[int, int]) -> torch.Tensor:
+    def forward(self, cond_frames: torch.Tensor, slots: tuple[int, ...], grid_hw: tuple[int, int]) -> torch.Tensor:
+        """``slots``: the conditioned frame slots (:func:`conditioned_slots`); the other slots' latents are zeroed."""
         b, f, c, ha, wa = cond_frames.shape
         h, w = grid_hw
         if (ha, wa) != (h, w):
             resized = F.interpolate(cond_frames.flatten(0, 1), size=(h, w), mode="bilinear", align_corners=False)
             cond_frames = resized.reshape(b, f, c, h, w)
         tokens = self.patchify(patchify(cond_frames, self.patch_size).to(self.patchify.weight.dtype))
-        tokens = tokens * cond_mask.to(tokens.dtype)[:, :, None, None]
+        keep = torch.zeros(f, device=tokens.device, dtype=tokens.dtype)
+        for s in slots:
+            keep[s] = 1.0
+        tokens = tokens * keep[None, :, None, None]
         slot = torch.arange(f, device=tokens.device, dtype=tokens.dtype) / max(f - 1, 1)
         p = self.patch_size
-        grid = _grid_positions(tokens.shape[-1], h // p, w // p).to(tokens)
+        grid = grid_positions(tokens.shape[-1], h // p, w // p, tokens.device).to(tokens.dtype)
         return tokens + self.frame_position(slot[:, None])[None, :, None] + grid
 
 
@@ -436,31 +482,44 @@ class STDiTBlock(nn.Module):
             self.cross_attn = CrossAttention(hidden_size, cond_dim, num_heads)
             self.cross_gate = nn.Parameter(torch.zeros(hidden_size))
 
+    def modulation(self, c: torch.Tensor) -> torch.Tensor:
+        """The adaLN output [B, F, 1, 12 D] for the per-frame conditioning ``c`` [B, F, D]: it depends on the
+        noise levels (and steering) alone, so a sampler computes it before its Euler loop."""
+        return self.adaLN_modulation(c)[:, :, None]
+
+    def conditioning(self, cond_tokens: torch.Tensor | None, cond_context: torch.Tensor | None
+                     ) -> BlockConditioning | None:
+        """The abstract conditioning's per-token modulation and cross-attention keys/values (fixed while the
+        conditioning frames are); None without conditioning."""
+        if cond_tokens is None:
+            return None
+        shift, scale, gate = self.cond_modulation(cond_tokens).chunk(3, dim=-1)
+        keys, values = self.cross_attn.keys_values(cond_context) if cond_context is not None else (None, None)
+        return BlockConditioning(shift, scale, torch.sigmoid(gate), keys, values)
+
     def forward(
         self,
         x: torch.Tensor,
-        c: torch.Tensor,
+        modulation: torch.Tensor,
         causal: bool,
-        cond_tokens: torch.Tensor | None = None,
-        cond_context: torch.Tensor | None = None,
+        cond: BlockConditioning | None = None,
         time_past: tuple[torch.Tensor, torch.Tensor] | None = None,
         time_keep: list | None = None,
     ) -> torch.Tensor:
-        """x [B, F, N, D]; c [B, F, D]; cond_tokens [B, F, N, cond_dim]; cond_context [B, M, cond_dim].
+        """x [B, F, N, D]; ``modulation`` from :meth:`modulation`; ``cond`` from :meth:`conditioning`.
 
         ``time_past`` / ``time_keep``: the temporal attention's key/value cache (:class:`TemporalKVCache`).
         """
         b, f, n, d = x.shape
-        if cond_tokens is not None:
-            shift, scale, gate = self.cond_modulation(cond_tokens).chunk(3, dim=-1)
-            x = x + torch.sigmoid(gate) * modulate(self.cond_norm(x), shift, scale)
+        if cond is not None:
+            x = x + cond.gate * modulate(self.cond_norm(x), cond.shift, cond.scale)
         (sh_sa, sc_sa, g_sa, sh_sm, sc_sm, g_sm,
-         sh_ta, sc_ta, g_ta, sh_tm, sc_tm, g_tm) = self.adaLN_modulation(c)[:, :, None].chunk(12, dim=-1)
+         sh_ta, sc_ta, g_ta, sh_tm, sc_tm, g_tm) = modulation.chunk(12, dim=-1)
 
         h = modulate(self.space_norm(x), sh_sa, sc_sa).reshape(b * f, n, d)
         x = x + g_sa * self.space_attn(h).reshape(b, f, n, d)
-        if cond_context is not None:
-            h = self.cross_attn(self.cross_norm(x).reshape(b, f * n, d), cond_context)
+        if cond is not None and cond.keys is not None:
+            h = self.cross_attn(self.cross_norm(x).reshape(b, f * n, d), cond.keys, cond.values)
             x = x + torch.tanh(self.cross_gate) * h.reshape(b, f, n, d)
         x = x + g_sm * self.space_mlp(modulate(self.space_mlp_norm(x), sh_sm, sc_sm))
 
@@ -479,9 +538,49 @@ class FinalLayer(nn.Module):
         self.adaLN_modulation = nn.Sequential(nn.SiLU(), nn.Linear(hidden_size, 2 * hidden_size))
         self.linear = nn.Linear(hidden_size, patch_size * patch_size * out_channels)
 
-    def forward(self, x: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
-        shift, scale = self.adaLN_modulation(c)[:, :, None].chunk(2, dim=-1)
+    def modulation(self, c: torch.Tensor) -> torch.Tensor:
+        return self.adaLN_modulation(c)[:, :, None]
+
+    def forward(self, x: torch.Tensor, modulation: torch.Tensor) -> torch.Tensor:
+        shift, scale = modulation.chunk(2, dim=-1)
         return self.linear(modulate(self.norm(x), shift, scale))
+
+
+def _block_step(block: STDiTBlock, x: torch.Tensor, c: torch.Tensor, causal: bool, cond_tokens: torch.Tensor | None,
+                cond_context: torch.Tensor | None) -> torch.Tensor:
+    """One block with its modulation and conditioning computed here: inside an activation checkpoint they are
+    recomputed in the backward pass instead of kept."""
+    return block(x, block.modulation(c), causal, block.conditioning(cond_tokens, cond_context))
+
+
+@dataclass
+class BlockConditioning:
+    """One block's abstract conditioning: the per-token adaLN path (shift, scale and sigmoid(gate)
+    [B, F, N, D]) and the cross-attention's keys and values [B, H, M, d] (None without conditioned slots)."""
+
+    shift: torch.Tensor
+    scale: torch.Tensor
+    gate: torch.Tensor
+    keys: torch.Tensor | None
+    values: torch.Tensor | None
+
+
+@dataclass
+class WindowConstants:
+    """What a forward reads besides the noisy frames and their noise levels: fixed over the Euler steps of
+    one sampling call, so :meth:`STDiT.plan` computes it once.
+
+    ``positions`` [N, D] and ``rate`` [B, D] (fp32), the abstract conditioning tokens [B, F, N, cond_dim] and
+    cross-attention context [B, M, cond_dim], per block the conditioning (``blocks``, when precomputed), and the
+    :class:`SubgoalShift` input (first conditioned slot, tokens of the frames after it).
+    """
+
+    positions: torch.Tensor
+    rate: torch.Tensor | None
+    cond_tokens: torch.Tensor | None = None
+    cond_context: torch.Tensor | None = None
+    blocks: list[BlockConditioning | None] | None = None
+    subgoal: tuple[int, torch.Tensor] | None = None
 
 
 # --------------------------------------------------------------------------- model
@@ -599,50 +698,85 @@ class STDiT(nn.Module):
             return c + self.steering.null.to(c.dtype)
         return c + self.steering(steering, steering_drop)[:, None]
 
-    def embed(self, x: torch.Tensor, frame_rate: torch.Tensor | float | None, total_frames: int | None = None,
+    def embed(self, x: torch.Tensor, constants: WindowConstants, total_frames: int | None = None,
               first: int = 0) -> torch.Tensor:
         """Latent frames [B, F, C, h, w] -> tokens [B, F, N, D] with all position encodings added.
 
         ``x`` may be frames ``first`` .. ``first + F - 1`` of a window of ``total_frames`` (the KV-cached path).
         """
-        b, f, _, h, w = x.shape
+        f = x.shape[1]
         total = f if total_frames is None else total_frames
         if total > self.max_frames:
             raise ValueError(f"got {total} frames but the predictor has max_frames = {self.max_frames}")
         tokens = self.x_embedder(patchify(x, self.patch_size).to(self.x_embedder.weight.dtype))
-        p = self.patch_size
-        tokens = tokens + _grid_positions(self.hidden_size, h // p, w // p).to(tokens)
+        tokens = tokens + constants.positions.to(tokens.dtype)
         start = self.max_frames - total + first
         tokens = tokens + self.frame_embed[start : start + f, None]
-        if frame_rate is not None:
-            rate = torch.as_tensor(frame_rate, device=x.device, dtype=torch.float32).expand(b)
-            tokens = tokens + sinusoidal_embedding(rate, self.hidden_size).to(tokens.dtype)[:, None, None]
+        if constants.rate is not None:
+            tokens = tokens + constants.rate.to(tokens.dtype)[:, None, None]
         return tokens
 
-    def _abstract_inputs(
-        self, cond_frames: torch.Tensor | None, cond_mask: torch.Tensor | None, grid_hw: tuple[int, int], n_frames: int
-    ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-        """Conditioning tokens per frame slot, and the cross-attention context (the conditioned slots' tokens)."""
+    def window_constants(
+        self,
+        frames: torch.Tensor,
+        n_frames: int,
+        frame_rate: torch.Tensor | float | None = None,
+        cond_frames: torch.Tensor | None = None,
+        cond_mask: torch.Tensor | Sequence[int] | None = None,
+        per_block: bool = False,
+    ) -> WindowConstants:
+        """The :class:`WindowConstants` of an ``n_frames`` window whose first frames are ``frames`` [B, F', C, h, w]
+        (the whole window, or its clean context: the :class:`SubgoalShift` reads the first conditioned slot only).
+
+        ``cond_mask``: [B, F] or the conditioned slots (:func:`conditioned_slots`); ``per_block``: also each block's
+        conditioning (a sampler's precomputation; a training forward computes it inside each block's checkpoint).
+        """
+        b, _, _, h, w = frames.shape
+        p = self.patch_size
+        constants = WindowConstants(grid_positions(self.hidden_size, h // p, w // p, frames.device),
+                                    rate_embedding(frame_rate, b, self.hidden_size, frames.device))
         if self.abstract_channels is None:
             if cond_frames is not None or cond_mask is not None:
                 raise ValueError("this predictor was built without abstract conditioning but got cond_frames")
-            return None, None
+            return constants
         if cond_frames is None or cond_mask is None:
             raise ValueError("the detail predictor needs cond_frames [B, F, C_a, h_a, w_a] and cond_mask [B, F]")
-        if cond_frames.shape[1] != n_frames or tuple(cond_mask.shape) != (cond_frames.shape[0], n_frames):
-            raise ValueError(
-                f"cond_frames {tuple(cond_frames.shape)} and cond_mask {tuple(cond_mask.shape)} "
-                f"must have one slot per input frame ({n_frames})"
-            )
-        cond_mask = cond_mask.bool()
-        tokens = self.abstract(cond_frames, cond_mask, grid_hw)
-        counts = cond_mask.sum(dim=1)
-        if (counts != counts[0]).any():
-            raise ValueError(f"every sample needs the same number of conditioned slots, got {counts.tolist()}")
-        if counts[0] == 0:
-            return tokens, None
-        b, _, n, dc = tokens.shape
-        return tokens, tokens[cond_mask].reshape(b, -1, dc)
+        if cond_frames.shape[:2] != (b, n_frames) or (isinstance(cond_mask, torch.Tensor)
+                                                      and tuple(cond_mask.shape) != (b, n_frames)):
+            shape = tuple(cond_mask.shape) if isinstance(cond_mask, torch.Tensor) else cond_mask
+            raise ValueError(f"cond_frames {tuple(cond_frames.shape)} and cond_mask {shape} "
+                             f"must have one slot per input frame ({n_frames})")
+        slots = conditioned_slots(cond_mask)
+        if any(not 0 <= s < n_frames for s in slots) or list(slots) != sorted(set(slots)):
+            raise ValueError(f"conditioned slots {slots} must be distinct and ascending in 0..{n_frames - 1}")
+        constants.cond_tokens = self.abstract(cond_frames, slots, (h, w))
+        if slots:
+            constants.cond_context = torch.cat([constants.cond_tokens[:, s] for s in slots], dim=1)
+        if per_block:
+            constants.blocks = [block.conditioning(constants.cond_tokens, constants.cond_context)
+                                for block in self.blocks]
+        if self.subgoal_shift is not None:
+            if slots and slots[0] >= frames.shape[1]:
+                raise ValueError(f"the subgoal shift reads slot {slots[0]}, beyond the {frames.shape[1]} frames given")
+            constants.subgoal = self.subgoal_shift(frames, cond_frames, slots, n_frames)
+        return constants
+
+    def modulations(self, c: torch.Tensor) -> list[torch.Tensor]:
+        """Every block's adaLN output, then the final layer's, for the conditioning ``c`` [B, F, D]."""
+        return [block.modulation(c) for block in self.blocks] + [self.final_layer.modulation(c)]
+
+    def _tokens(self, x: torch.Tensor, constants: WindowConstants, total: int, first: int,
+                previous: torch.Tensor | None, steering: torch.Tensor | None,
+                steering_drop: torch.Tensor | None = None) -> torch.Tensor:
+        """Embedded frames plus the shift inputs (:class:`SteeringShift` from ``previous``, :class:`SubgoalShift`)."""
+        tokens = self.embed(x, constants, total, first)
+        if previous is not None:
+            tokens = self._shift_input(tokens, previous, steering, steering_drop)
+        if constants.subgoal is not None:
+            first_slot, extra = constants.subgoal
+            tokens = torch.cat([tokens[:, : first_slot + 1], tokens[:, first_slot + 1:] + extra.to(tokens.dtype)],
+                               dim=1)
+        return tokens
 
     def forward(
         self,
@@ -650,7 +784,7 @@ class STDiT(nn.Module):
         tau: torch.Tensor,
         frame_rate: torch.Tensor | float | None = None,
         cond_frames: torch.Tensor | None = None,
-        cond_mask: torch.Tensor | None = None,
+        cond_mask: torch.Tensor | Sequence[int] | None = None,
         steering: torch.Tensor | None = None,
         steering_drop: torch.Tensor | None = None,
         features_from_block: int | None = None,
@@ -659,7 +793,8 @@ class STDiT(nn.Module):
 
         ``frame_rate``: Hz, a number or [B]. ``cond_frames``/``cond_mask``:
         abstract latents [B, F, C_a, h_a, w_a] at the slots where ``cond_mask``
-        [B, F] is true (detail predictor only). ``steering`` [B, S, K] with
+        [B, F] is true, or ``cond_mask`` as the tuple of those slots, which keeps the
+        forward free of host syncs (detail predictor only). ``steering`` [B, S, K] with
         optional per-sample ``steering_drop`` [B] (steered predictor only).
         ``features_from_block=k`` returns instead the token features after
         block k counted from the end (k=1: the last block) as [B, F, D, h/p, w/p],
@@ -672,20 +807,18 @@ class STDiT(nn.Module):
         if features_from_block is not None and not 1 <= features_from_block <= depth:
             raise ValueError(f"features_from_block = {features_from_block} must be in 1..{depth}")
         c = self.conditioning(tau, steering, steering_drop)
-        tokens = self.embed(x, frame_rate)
-        if f >= 2:
-            tokens = self._shift_input(tokens, x[:, -2], steering, steering_drop)
-        cond_tokens, cond_context = self._abstract_inputs(cond_frames, cond_mask, (h, w), f)
-        tokens = self._subgoal_shift_input(tokens, x, cond_frames, cond_mask)
+        constants = self.window_constants(x, f, frame_rate, cond_frames, cond_mask)
+        tokens = self._tokens(x, constants, f, 0, x[:, -2] if f >= 2 else None, steering, steering_drop)
         for index, block in enumerate(self.blocks):
+            args = (block, tokens, c, self.causal, constants.cond_tokens, constants.cond_context)
             if index < self.checkpoint_blocks and self.training and torch.is_grad_enabled():
-                tokens = checkpoint(block, tokens, c, self.causal, cond_tokens, cond_context, use_reentrant=False)
+                tokens = checkpoint(_block_step, *args, use_reentrant=False)
             else:
-                tokens = block(tokens, c, self.causal, cond_tokens, cond_context)
+                tokens = _block_step(*args)
             if features_from_block is not None and index == depth - features_from_block:
                 p = self.patch_size
                 return tokens.transpose(2, 3).reshape(b, f, self.hidden_size, h // p, w // p)
-        out = self.final_layer(tokens, c)
+        out = self.final_layer(tokens, self.final_layer.modulation(c))
         return unpatchify(out, self.patch_size, self.latent_channels, h, w).to(x.dtype)
 
     def _shift_input(self, tokens: torch.Tensor, previous: torch.Tensor, steering: torch.Tensor | None,
@@ -696,19 +829,12 @@ class STDiT(nn.Module):
         shift = self.steering_shift(previous, steering, steering_drop).to(tokens.dtype)
         return torch.cat([tokens[:, :-1], tokens[:, -1:] + shift[:, None]], dim=1)
 
-    def _subgoal_shift_input(self, tokens: torch.Tensor, x: torch.Tensor, cond_frames: torch.Tensor | None,
-                             cond_mask: torch.Tensor | None) -> torch.Tensor:
-        """``tokens`` [B, F, N, D] with the :class:`SubgoalShift` input added to the frames after the first
-        conditioned slot."""
-        if self.subgoal_shift is None or cond_frames is None:
-            return tokens
-        shifted = self.subgoal_shift(x, cond_frames, cond_mask.bool())
-        if shifted is None:
-            return tokens
-        first, extra = shifted
-        return torch.cat([tokens[:, : first + 1], tokens[:, first + 1:] + extra.to(tokens.dtype)], dim=1)
-
     # ------------------------------------------------------------- KV cache (causal predictor, clean context)
+
+    def uses_kv_cache(self, kv_cache: bool) -> bool:
+        """Whether sampling with ``kv_cache`` asked for caches the context: exact for a causal predictor
+        without abstract conditioning only."""
+        return kv_cache and self.causal and self.abstract_channels is None
 
     def _check_cacheable(self) -> None:
         if not self.causal or self.abstract_channels is not None:
@@ -727,17 +853,26 @@ class STDiT(nn.Module):
         Exact because context frames attend only to earlier frames (causal) and
         their noise level never changes during sampling: their features are the
         same at every Euler step of one rollout step, so :meth:`forward_cached`
-        needs to run only the target frames.
+        needs to run only the target frames. The keys/values go into buffers sized
+        for context and targets, which each cached forward fills in place.
         """
         self._check_cacheable()
-        b, f_c, _, h, w = context.shape
+        b, f_c = context.shape[:2]
         tau = torch.zeros(b, f_c, device=context.device, dtype=context.dtype)
         c = self.conditioning(tau, steering)
-        tokens = self.embed(context, frame_rate, total_frames=f_c + n_target)
+        constants = self.window_constants(context, f_c + n_target, frame_rate)
+        tokens = self.embed(context, constants, total_frames=f_c + n_target)
         keys: list[tuple[torch.Tensor, torch.Tensor]] = []
         for block in self.blocks:
-            tokens = block(tokens, c, True, time_keep=keys)
-        return TemporalKVCache(keys, f_c, n_target, context[:, -1])
+            tokens = block(tokens, block.modulation(c), True, time_keep=keys)
+        buffers = []
+        for k, v in keys:
+            k_buf, v_buf = k.new_empty((*k.shape[:2], f_c + n_target, k.shape[3])), v.new_empty(
+                (*v.shape[:2], f_c + n_target, v.shape[3]))
+            k_buf[:, :, :f_c] = k
+            v_buf[:, :, :f_c] = v
+            buffers.append((k_buf, v_buf))
+        return TemporalKVCache(buffers, f_c, n_target, context[:, -1])
 
     def forward_cached(
         self,
@@ -752,28 +887,110 @@ class STDiT(nn.Module):
         Equals ``forward(cat(context, x), cat(0, tau))[:, F_c:]`` (a test checks it).
         """
         self._check_cacheable()
-        b, f, _, h, w = x.shape
+        b, f = x.shape[:2]
         if f != cache.n_target or tuple(tau.shape) != (b, f):
             raise ValueError(f"the cache was built for {cache.n_target} target frames, got x {tuple(x.shape)} "
                              f"and tau {tuple(tau.shape)}")
-        c = self.conditioning(tau, steering)
-        tokens = self.embed(x, frame_rate, total_frames=cache.n_context + f, first=cache.n_context)
-        tokens = self._shift_input(tokens, x[:, -2] if f >= 2 else cache.last_context, steering)
-        for block, past in zip(self.blocks, cache.keys_values):
-            tokens = block(tokens, c, True, time_past=past)
-        out = self.final_layer(tokens, c)
+        constants = self.window_constants(x, cache.n_context + f, frame_rate)
+        return self._cached_velocity(x, self.modulations(self.conditioning(tau, steering)), cache, constants, steering)
+
+    def _cached_velocity(self, x: torch.Tensor, modulations: list[torch.Tensor], cache: TemporalKVCache,
+                         constants: WindowConstants, steering: torch.Tensor | None) -> torch.Tensor:
+        f, (h, w) = x.shape[1], x.shape[-2:]
+        tokens = self._tokens(x, constants, cache.n_context + f, cache.n_context,
+                              x[:, -2] if f >= 2 else cache.last_context, steering)
+        for block, modulation, past in zip(self.blocks, modulations, cache.keys_values):
+            tokens = block(tokens, modulation, True, time_past=past)
+        out = self.final_layer(tokens, modulations[-1])
         return unpatchify(out, self.patch_size, self.latent_channels, h, w).to(x.dtype)
+
+    # ------------------------------------------------------------- sampling: fixed inputs computed once
+
+    def modulation_table(self, taus: Sequence[float], batch: int, n_context: int, n_target: int,
+                         steering: torch.Tensor | None = None, cached: bool = False,
+                         device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32
+                         ) -> list[list[torch.Tensor]]:
+        """Per Euler step (target noise level ``taus[i]``, clean context), :meth:`modulations`: all adaLN
+        matmuls of a sampling call, out of its Euler loop. Without steering it is the same for every rollout step.
+        ``cached``: for the KV-cached forward (target frames only)."""
+        table = []
+        for tau in taus:
+            tau_target = torch.full((batch, n_target), tau, device=device, dtype=dtype)
+            if not cached:
+                tau_target = torch.cat([torch.zeros(batch, n_context, device=device, dtype=dtype), tau_target], dim=1)
+            table.append(self.modulations(self.conditioning(tau_target, steering)))
+        return table
+
+    @torch.no_grad()
+    def plan(
+        self,
+        context: torch.Tensor,
+        n_target: int,
+        taus: Sequence[float],
+        frame_rate: torch.Tensor | float | None = None,
+        cond_frames: torch.Tensor | None = None,
+        cond_mask: torch.Tensor | Sequence[int] | None = None,
+        steering: torch.Tensor | None = None,
+        kv_cache: bool = True,
+        modulations: list[list[torch.Tensor]] | None = None,
+    ) -> SamplingPlan:
+        """Everything the Euler steps at target noise levels ``taus`` after the clean ``context`` [B, F_c, C, h, w]
+        read that does not change from one step to the next, computed once (:meth:`planned_velocity`).
+
+        Inputs are checked here, once; the steps then hold no host sync. ``kv_cache``: keep the context's
+        temporal keys/values where exact (causal, no abstract conditioning). ``modulations``: a
+        :meth:`modulation_table` computed earlier for the same taus and inputs (reused across rollout steps).
+        """
+        b, f_c = context.shape[:2]
+        cached = self.uses_kv_cache(kv_cache)
+        cache = self.build_kv_cache(context, n_target, frame_rate, steering) if cached else None
+        constants = self.window_constants(context, f_c + n_target, frame_rate, cond_frames, cond_mask, per_block=True)
+        if modulations is None:
+            modulations = self.modulation_table(taus, b, f_c, n_target, steering, cached, context.device,
+                                                context.dtype)
+        if len(modulations) != len(taus):
+            raise ValueError(f"the modulation table has {len(modulations)} steps, the sampler {len(taus)}")
+        return SamplingPlan(context, n_target, constants, modulations, steering, cache)
+
+    def planned_velocity(self, plan: SamplingPlan, x: torch.Tensor, step: int) -> torch.Tensor:
+        """Velocity of the target frames ``x`` [B, F_t, C, h, w] at Euler step ``step`` of ``plan``: equals
+        ``forward(cat(context, x), cat(0, taus[step]), ...)[:, F_c:]`` bit for bit (a test checks it)."""
+        modulations = plan.modulations[step]
+        if plan.cache is not None:
+            return self._cached_velocity(x, modulations, plan.cache, plan.constants, plan.steering)
+        window = torch.cat([plan.context, x], dim=1)
+        f, (h, w) = window.shape[1], window.shape[-2:]
+        tokens = self._tokens(window, plan.constants, f, 0, window[:, -2] if f >= 2 else None, plan.steering)
+        conds = plan.constants.blocks or [None] * len(self.blocks)
+        for block, modulation, cond in zip(self.blocks, modulations, conds):
+            tokens = block(tokens, modulation, self.causal, cond)
+        out = self.final_layer(tokens, modulations[-1])
+        return unpatchify(out, self.patch_size, self.latent_channels, h, w).to(window.dtype)[:, plan.context.shape[1]:]
 
 
 @dataclass
 class TemporalKVCache:
-    """Per block, the temporal attention's keys and values [B*N, H, F_c, d] of a clean context window,
-    and its last frame [B, C, h, w] (the :class:`SteeringShift` input of a first target frame)."""
+    """Per block, key and value buffers [B*N, H, F_c + F_t, d] of the temporal attention: a clean context
+    window's in the first F_c positions, the latest target frames' after them (written in place by each
+    cached forward); and the context's last frame [B, C, h, w] (the :class:`SteeringShift` input of a first
+    target frame)."""
 
     keys_values: list[tuple[torch.Tensor, torch.Tensor]]
     n_context: int
     n_target: int
     last_context: torch.Tensor
+
+
+@dataclass
+class SamplingPlan:
+    """An ST-DiT's inputs that stay fixed over the Euler steps of one sampling call (:meth:`STDiT.plan`)."""
+
+    context: torch.Tensor
+    n_target: int
+    constants: WindowConstants
+    modulations: list[list[torch.Tensor]]
+    steering: torch.Tensor | None
+    cache: TemporalKVCache | None
 
 
 # --------------------------------------------------------------------------- sizes

@@ -36,19 +36,22 @@ from orbis2.models import ModelConfig, preset_config, split_build
 # --------------------------------------------------------------------------- ViT encoder
 
 
-def sincos_pos_embed_2d(embed_dim: int, grid_hw: tuple[int, int]) -> torch.Tensor:
-    """Fixed 2-D sin-cos position embedding [h*w, D] in MAE's layout.
+def sincos_pos_embed_2d(embed_dim: int, grid_hw: tuple[int, int],
+                        device: torch.device | str | None = None) -> torch.Tensor:
+    """Fixed 2-D sin-cos position embedding [h*w, D] in MAE's layout, built on ``device``.
 
     As in MAE, the first half of the channels encodes the column (x) and the
     second half the row (y), so an MAE checkpoint's embedding and ours agree.
+    Built where it is used, so a forward on an accelerator copies nothing from the host.
     """
     if embed_dim % 4:
         raise ValueError(f"embed_dim = {embed_dim} must be a multiple of 4 for 2-D sin-cos")
     h, w = grid_hw
     quarter = embed_dim // 4
-    omega = 1.0 / 10000 ** (torch.arange(quarter, dtype=torch.float64) / quarter)
+    omega = 1.0 / 10000 ** (torch.arange(quarter, dtype=torch.float64, device=device) / quarter)
     ys, xs = torch.meshgrid(
-        torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij"
+        torch.arange(h, dtype=torch.float64, device=device), torch.arange(w, dtype=torch.float64, device=device),
+        indexing="ij",
     )
 
     def encode(pos: torch.Tensor) -> torch.Tensor:
