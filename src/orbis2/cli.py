@@ -25,7 +25,7 @@ import torch
 from PIL import Image
 from tqdm import tqdm
 
-from orbis2.accel import compile_decoder, compile_predictor, inference_autocast, set_tf32
+from orbis2.accel import cast_for_inference, compile_decoder, compile_predictor, inference_autocast, set_tf32
 from orbis2.assets import AssetError, ensure_asset
 from orbis2.config import PROFILES, load_config
 from orbis2.data.datasets import bdd100k, nuplan, opendv, physicalai_av
@@ -254,6 +254,8 @@ def rollout_command(args: argparse.Namespace) -> str:
     generator = torch.Generator(device=device).manual_seed(args.seed)
     if device.type == "cuda":
         set_tf32(True)
+    for predictor in (abstract_pred, detail_pred):  # bf16 weights cast once on CUDA (a no-op on the CPU)
+        cast_for_inference(predictor.model, device, args.precision)
     if args.compile:
         compile_predictor(abstract_pred.model)
         compile_predictor(detail_pred.model)

@@ -33,7 +33,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from orbis2.accel import Inference, compile_decoder, compile_predictor, inference_autocast, set_tf32
+from orbis2.accel import (Inference, cast_for_inference, compile_decoder, compile_predictor, inference_autocast,
+                          set_tf32)
 from orbis2.config import DataConfig, EvaluationConfig
 from orbis2.errors import OrbisError
 from orbis2.latents import LatentCache
@@ -161,6 +162,8 @@ def load_system(name: str, predictors: Mapping[str, Path], tokenizers: Mapping[s
                 raise OrbisError(f"{predictors[stage]} was trained on latents of another {kind} tokenizer than "
                                  f"{tokenizers[kind]}; re-run `{stage}`")
     inference = inference or Inference()
+    for predictor in loaded.values():  # bf16 weights cast once on CUDA, not at every call (a no-op on the CPU)
+        cast_for_inference(predictor.model, device, inference.precision)
     if inference.compile:
         for predictor in loaded.values():
             compile_predictor(predictor.model)

@@ -430,7 +430,8 @@ class PredictorTask:
         cond: dict[str, Any] = {"frame_rate": self.frame_rate}
         if self.spec.condition is not None:
             subgoals = batch[window_key(self.spec.condition, "slow")]
-            cond["cond_frames"], cond["cond_mask"] = detail_condition(subgoals, self.data, self.slots)
+            cond["cond_frames"], _ = detail_condition(subgoals, self.data, self.slots)
+            cond["cond_mask"] = tuple(sorted(self.slots))  # static slots: the forward reads no mask (no sync)
         return cond
 
     def objective_from_draws(self, model: nn.Module, batch: dict[str, torch.Tensor], draws: dict[str, torch.Tensor],
