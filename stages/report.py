@@ -4,7 +4,9 @@
     python stages/report.py all    # reports/all/: every table (ablations too), figures, summary.md
 
 ``all`` also draws the qualitative rollout grid (from the FVD stages' saved frames)
-and copies the steering strip. The DAG passes every record the report reads
+and copies the steering strip. The pipeline's parent MLflow run gets ``main``'s
+headline (its tables' numbers as metrics, verdicts and claims as tags, the tables
+and ``summary.md``) and ``all``'s figures. The DAG passes every record the report reads
 (``--fvd NAME=FILE``, ``--probe NAME=FILE``, ...); by hand, without them, every
 record of registry.yaml's layout that exists is read.
 """
@@ -18,7 +20,9 @@ from orbis2.errors import OrbisError
 from orbis2.eval.figures import save_rollout_grid
 from orbis2.eval.report import (
     EVAL_KINDS,
+    check_claims,
     compression_from_evals,
+    headline,
     read_evals,
     report_setup,
     write_full_report,
@@ -83,6 +87,17 @@ def main(argv: list[str] | None = None) -> None:
             written = sorted(p for p in out.rglob("*") if p.is_file())
         for path in written:
             run.log_artifact(path, None if scope == "main" else "all")
+        if scope == "main":  # the pipeline's parent run: the headline numbers, verdicts and summary
+            metrics, verdicts = headline([p for p in written if p.suffix == ".csv"])
+            run.publish_metrics(metrics)
+            run.publish_tags({**verdicts, **{f"claim/{i}": f"{verdict}: {claim}" for i, (claim, verdict, _)
+                                             in enumerate(check_claims(evals), start=1)}})
+            for path in written:
+                run.publish(path, None if path.suffix == ".md" else "tables")
+        else:
+            for path in written:
+                if path.suffix == ".png":
+                    run.publish(path, "figures")
         stage.summary = f"{len(written)} files: " + ", ".join(p.name for p in written)
 
 

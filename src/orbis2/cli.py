@@ -17,13 +17,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-from PIL import Image
 from tqdm import tqdm
 
 from orbis2.accel import compile_decoder, compile_predictor, inference_autocast, set_tf32
 from orbis2.config import PROFILES, load_config
 from orbis2.data.importer import read_odometry_csv
-from orbis2.data.video import probe, read_video, resample_stride, write_video
+from orbis2.data.video import PLAYABLE_SUFFIXES, probe, read_video, resample_stride, write_gif, write_video
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file
 from orbis2.kinematics import integrate_odometry
@@ -177,12 +176,10 @@ def compose(generated: np.ndarray, real: np.ndarray | None, path: tuple[np.ndarr
 def write_outputs(out: Path, frames: np.ndarray, fps: float) -> Path:
     """``out`` (mp4) and the GIF with the same stem; both written atomically."""
     with atomic_file(out) as tmp:
-        write_video(tmp, frames, fps)
+        write_video(tmp, frames, fps, playable=True)
     gif = out.with_suffix(".gif")
     with atomic_file(gif) as tmp:
-        images = [Image.fromarray(f) for f in frames]
-        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:],
-                       duration=round(1000 / fps), loop=0)
+        write_gif(tmp, frames, fps)
     return gif
 
 
@@ -268,6 +265,8 @@ def check_numbers(args: argparse.Namespace) -> None:
             raise OrbisError(f"{flag} {value}: not a finite number")
     if args.seconds <= 0:
         raise OrbisError(f"--seconds {args.seconds:g}: the rollout length must be > 0")
+    if args.out.suffix.lower() not in PLAYABLE_SUFFIXES:
+        raise OrbisError(f"--out {args.out}: the video is written as VP9, in .mp4 or .webm; change the suffix")
     if args.steering_guidance < 0:
         raise OrbisError(f"--steering-guidance {args.steering_guidance:g}: must be >= 0 (1: no guidance)")
     for flag, value in (("--abstract-nfe", args.abstract_nfe), ("--detail-nfe", args.detail_nfe)):
@@ -287,7 +286,7 @@ def add_rollout_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--speed-scale", type=float, default=1.0, help="multiply the speeds (counterfactuals)")
     p.add_argument("--yaw-rate-scale", type=float, default=1.0, help="multiply the yaw rates (counterfactuals)")
     p.add_argument("--seconds", type=float, default=16.0, help="rollout length in seconds")
-    p.add_argument("--out", type=Path, required=True, help="output mp4; a GIF with the same stem is written too")
+    p.add_argument("--out", type=Path, required=True, help="output video (.mp4 or .webm, VP9); a GIF with the same stem is written too")
     p.add_argument("--detail-tokenizer", type=Path, default=layout_path("tokenizer", "detail") / "tokenizer.pt")
     p.add_argument("--abstract-tokenizer", type=Path, default=layout_path("tokenizer", "abstract") / "tokenizer.pt")
     p.add_argument("--abstract-predictor", type=Path, default=None,

@@ -29,7 +29,7 @@ import torch
 
 from orbis2.config import DataConfig, EvaluationConfig
 from orbis2.data.shards import Clip, split_clips, split_digest
-from orbis2.data.video import write_video
+from orbis2.data.video import write_gif, write_video
 from orbis2.eval.fvd import CLIP_FRAMES, cached_features, chunk_windows, even_frame_indices, i3d_features
 from orbis2.eval.references import fvd_with_interval, reference_rows
 from orbis2.eval.stats import fvd_slope_interval
@@ -79,11 +79,15 @@ def long_windows(data: DataConfig, ev: EvaluationConfig) -> tuple[list[slice], s
     return chunks, slice(0, chunks[-1].stop)
 
 
+GIF_WIDTH = 320  # pixels: the rollout thumbnails on the runs' pages
+
+
 def split_fvd(split: str, system: LoadedSystem, cache: LatentCache, i3d, media: Path, data: DataConfig,
               ev: EvaluationConfig, device: torch.device, shards: Path, stats_cache: Path) -> dict[str, Any]:
     """Roll out one split: ``{"fvd": ..., "references": ...}``, plus ``"chunked"`` on the long split.
 
-    Writes a sample video (``media/<split>.mp4``) and, on the long split, the frames of
+    Writes a sample video (``media/<split>.mp4``, VP9, and a GIF thumbnail ``media/<split>.gif``)
+    and, on the long split, the frames of
     the qualitative grid (``media/grid.npz``). ``shards`` is the shard folder the cache
     was encoded from; ``stats_cache`` the folder of cached real-video features.
     """
@@ -120,7 +124,8 @@ def split_fvd(split: str, system: LoadedSystem, cache: LatentCache, i3d, media: 
     if long:
         out["chunked"] = chunked_record(split, chunks, whole, real, fake, clusters, data, ev)
         save_grid_frames(media / "grid.npz", first, data.detail_hz)
-    write_video(media / f"{split}.mp4", first, data.detail_hz)
+    write_video(media / f"{split}.mp4", first, data.detail_hz, playable=True)
+    write_gif(media / f"{split}.gif", first, data.detail_hz, width=GIF_WIDTH)
     return out
 
 
