@@ -1,6 +1,6 @@
 """Stage `report_main` / `report_all`: the paper's tables, figures and a summary from the evaluation records.
 
-    python stages/report.py main   # reports/main_table.csv, steering.csv, speed.csv, summary.md
+    python stages/report.py main   # reports/main_table.csv, steering.csv, speed.csv, summary.md, headline.json
     python stages/report.py all    # reports/all/: every table (ablations too), figures, summary.md
 
 ``all`` also draws the qualitative rollout grid (from the FVD stages' saved frames)
@@ -20,6 +20,8 @@ from orbis2.errors import OrbisError
 from orbis2.eval.figures import save_rollout_grid
 from orbis2.eval.report import (
     EVAL_KINDS,
+    HEADLINE_JSON,
+    MAIN_CSV,
     check_claims,
     compression_from_evals,
     headline,
@@ -29,7 +31,7 @@ from orbis2.eval.report import (
     write_main_report,
 )
 from orbis2.eval.systems import SYSTEMS
-from orbis2.io import atomic_dir
+from orbis2.io import atomic_dir, write_json
 from orbis2.registry import layout_path, registry
 from orbis2.stage import add_name_argument, add_named_paths, open_stage, stage_parser
 
@@ -89,6 +91,10 @@ def main(argv: list[str] | None = None) -> None:
             run.log_artifact(path, None if scope == "main" else "all")
         if scope == "main":  # the pipeline's parent run: the headline numbers, verdicts and summary
             metrics, verdicts = headline([p for p in written if p.suffix == ".csv"])
+            table1, _ = headline([p for p in written if p.name == MAIN_CSV])
+            headline_file = (args.out or layout_path("reports")) / HEADLINE_JSON
+            write_json(headline_file, table1)  # DVC's metrics: Table 1 only, so `dvc metrics show` stays readable
+            run.log_artifact(headline_file)
             run.publish_metrics(metrics)
             run.publish_tags({**verdicts, **{f"claim/{i}": f"{verdict}: {claim}" for i, (claim, verdict, _)
                                              in enumerate(check_claims(evals), start=1)}})

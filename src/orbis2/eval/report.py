@@ -62,6 +62,7 @@ HIERARCHY_LAYOUT = (
 NA = "NA"
 
 MAIN_CSV = "main_table.csv"
+HEADLINE_JSON = "headline.json"  # Table 1 as flat metrics (headline): what `dvc metrics show` reads
 STEERING_CSV = "steering.csv"
 SPEED_CSV = "speed.csv"
 HIERARCHY_CSV = "hierarchy_ablation.csv"
