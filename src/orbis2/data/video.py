@@ -23,7 +23,7 @@ from orbis2.errors import OrbisError
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
 # FourCC of the codec written: for people (browsers play it) and for the dataset (fast, any OpenCV reads it).
-PLAYABLE_CODEC, DATASET_CODEC = "VP90", "mp4v"
+PLAYABLE_CODEC, DATASET_CODEC = "vp09", "mp4v"  # read back, OpenCV names them VP90 and FMP4
 PLAYABLE_SUFFIXES = (".mp4", ".webm")  # the containers VP9 is written into
 
 
