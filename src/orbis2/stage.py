@@ -221,10 +221,18 @@ def code_version(root: Path = Path(orbis2.__file__).parent) -> str:
     return digest.hexdigest()
 
 
+# Training results that are sizes, not scores: logged as params (table columns), not as one-point charts.
+SIZES = {"steps": "trained_steps", "parameters": "model_parameters"}
+
+
 def publish_training(run_dir: Path, out: Path, files: list[str], report: Path, metrics: dict[str, float],
                      run: StageRun) -> None:
     """Copy a finished training run's ``files``, ``samples/`` and ``curves/`` into the stage output,
-    atomically; write the metrics report, log the samples and the model (weights + config)."""
+    atomically; write the metrics report; log the final scores (at the last step), the sizes
+    (:data:`SIZES`) as params, the samples and the model (weights + config)."""
+    scores = {k: v for k, v in metrics.items() if k not in SIZES}
+    run.log_metrics(scores, step=int(metrics["steps"]))
+    run.log_params({name: int(metrics[key]) for key, name in SIZES.items() if key in metrics})
     with atomic_dir(out) as tmp:
         for name in files:
             shutil.copy2(run_dir / name, tmp / name)
@@ -235,4 +243,4 @@ def publish_training(run_dir: Path, out: Path, files: list[str], report: Path, m
         run.log_artifact(png, "samples")
     write_json(report, metrics)
     run.log_artifact(report)
-    run.log_model(out, metrics)
+    run.log_model(out, scores)

@@ -149,6 +149,10 @@ class StageRun:
         if self._mlflow:
             self._mlflow.log_metrics({k: float(v) for k, v in metrics.items()}, step=step)
 
+    def log_params(self, params: dict[str, Any]) -> None:
+        if self._mlflow:
+            self._mlflow.log_params({k: str(v) for k, v in params.items()})
+
     def log_artifact(self, path: Path, artifact_path: str | None = None) -> None:
         if self._mlflow:
             self._mlflow.log_artifact(str(path), artifact_path)
