@@ -105,7 +105,8 @@ def test_trained_model_is_logged_with_its_config(tmp_path):
     run = client.get_run(stage.info.run_id)  # listed on its run, with its metrics and training data
     assert [o.model_id for o in run.outputs.model_outputs] == [models[0].model_id]
     [metric] = client.get_logged_model(models[0].model_id).metrics
-    assert (metric.key, metric.value, metric.dataset_digest) == ("val_loss", 0.25, stage.data.tags["orbis2.shards_sha256"][:36])
+    digest = stage.data.tags["orbis2.shards_sha256"][:36]
+    assert (metric.key, metric.value, metric.dataset_digest) == ("val_loss", 0.25, digest)
 
 
 def test_invocation_key_under_dvc_names_the_call(tmp_path, monkeypatch):

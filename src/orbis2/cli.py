@@ -286,7 +286,7 @@ def add_rollout_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--speed-scale", type=float, default=1.0, help="multiply the speeds (counterfactuals)")
     p.add_argument("--yaw-rate-scale", type=float, default=1.0, help="multiply the yaw rates (counterfactuals)")
     p.add_argument("--seconds", type=float, default=16.0, help="rollout length in seconds")
-    p.add_argument("--out", type=Path, required=True, help="output video (.mp4 or .webm, VP9); a GIF with the same stem is written too")
+    p.add_argument("--out", type=Path, required=True, help="output video (.mp4 or .webm; VP9) and a GIF with its stem")
     p.add_argument("--detail-tokenizer", type=Path, default=layout_path("tokenizer", "detail") / "tokenizer.pt")
     p.add_argument("--abstract-tokenizer", type=Path, default=layout_path("tokenizer", "abstract") / "tokenizer.pt")
     p.add_argument("--abstract-predictor", type=Path, default=None,
