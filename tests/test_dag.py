@@ -217,3 +217,13 @@ def test_each_loss_curve_has_its_own_plot():
     plots = yaml.safe_load((ROOT / "dvc.yaml").read_text())["plots"]
     curves = [next(iter(p.values())) for p in plots if isinstance(p, dict) and "loss" in next(iter(p))]
     assert curves and all(len(c["y"]) == 1 for c in curves)  # one model per axis: each loss on its own scale
+
+
+def test_snakefile_says_when_its_profile_is_not_the_one_dvc_reads(capfd):
+    """A `--config profile=` other than params.yaml's is a run DVC's views cannot describe: the Snakefile says so."""
+    file_profile = load_params(ROOT / "params.yaml")["profile"]
+    other = next(p for p in PROFILES if p != file_profile)
+    dag.snakemake_rules(ROOT, other)
+    assert f"profile {other} (--config); params.yaml says {file_profile}" in capfd.readouterr().err
+    dag.snakemake_rules(ROOT)
+    assert "params.yaml says" not in capfd.readouterr().err
