@@ -90,7 +90,8 @@ def main(argv: list[str] | None = None) -> None:
         for path in written:
             run.log_artifact(path, None if scope == "main" else "all")
         if scope == "main":  # the pipeline's parent run: the headline numbers, verdicts and summary
-            metrics, verdicts = headline([p for p in written if p.suffix == ".csv"])
+            # conditioning: the effect of each row (its verdict is a tag; intervals and counts stay in the CSV)
+            metrics, verdicts = headline([p for p in written if p.suffix == ".csv"], {"conditioning": ("effect",)})
             table1, _ = headline([p for p in written if p.name == MAIN_CSV])
             headline_file = (args.out or layout_path("reports")) / HEADLINE_JSON
             write_json(headline_file, table1)  # DVC's metrics: Table 1 only, so `dvc metrics show` stays readable

@@ -538,3 +538,5 @@ def test_headline_names_each_number_by_table_row_and_column(tmp_path):
     assert metrics == {"main_table/hierarchical/fvd_heldout": 120.5, "main_table/hierarchical/miou": 0.31,
                        "main_table/flat/miou": 0.2, "conditioning/hierarchical/ade/no actions/effect": 0.4}
     assert tags == {"verdict/conditioning/hierarchical/ade/no actions": "used"}
+    metrics, _ = headline([tmp_path / "main_table.csv"], {"main_table": ("miou",)})
+    assert metrics == {"main_table/hierarchical/miou": 0.31, "main_table/flat/miou": 0.2}

@@ -707,13 +707,16 @@ def write_full_report(
 DESCRIPTIVE = ("label", "kind", "instrument", "device", "seed_verdicts")
 
 
-def headline(tables: Sequence[str | Path]) -> tuple[dict[str, float], dict[str, str]]:
+def headline(tables: Sequence[str | Path], columns: Mapping[str, Sequence[str]] | None = None
+             ) -> tuple[dict[str, float], dict[str, str]]:
     """The report tables' numbers as metrics ``<table>/<row>/<column>`` and their verdicts as
     tags ``verdict/<table>/<row>``: what the pipeline's parent run shows a reviewer.
 
     A row is named by its text cells outside :data:`DESCRIPTIVE` (``main_table/hierarchical``,
-    ``conditioning/hierarchical/ade/no_actions``); NA cells are left out.
+    ``conditioning/hierarchical/ade/no_actions``); NA cells are left out. ``columns`` keeps,
+    for the tables it names (by file stem), only those numeric columns.
     """
+    columns = columns or {}
     metrics: dict[str, float] = {}
     tags: dict[str, str] = {}
     for path in map(Path, tables):
@@ -724,8 +727,9 @@ def headline(tables: Sequence[str | Path]) -> tuple[dict[str, float], dict[str, 
             name = "/".join(_key(v) for k, v in row.items()
                             if numbers[k] is None and v != NA and k not in DESCRIPTIVE and k != "verdict")
             prefix = f"{path.stem}/{name}" if name else path.stem
+            kept = columns.get(path.stem)
             for column, value in numbers.items():
-                if value is not None and column not in DESCRIPTIVE:
+                if value is not None and column not in DESCRIPTIVE and (kept is None or column in kept):
                     metrics[f"{prefix}/{_key(column)}"] = value
             if row.get("verdict"):
                 tags[f"verdict/{prefix}"] = row["verdict"]
