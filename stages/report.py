@@ -36,6 +36,7 @@ from orbis2.registry import layout_path, registry
 from orbis2.stage import add_name_argument, add_named_paths, open_stage, stage_parser
 
 GRID = "grid.npz"  # the frames of the qualitative grid in an FVD stage's media folder
+INTERVAL_SUFFIXES = ("_low", "_high", "_n")  # Table 1's interval bounds and sample counts
 
 
 def given_or_all(given: list[tuple[str, Path]], kind: str, names: list[str], option: str) -> dict[str, Path]:
@@ -94,7 +95,9 @@ def main(argv: list[str] | None = None) -> None:
             metrics, verdicts = headline([p for p in written if p.suffix == ".csv"], {"conditioning": ("effect",)})
             table1, _ = headline([p for p in written if p.name == MAIN_CSV])
             headline_file = (args.out or layout_path("reports")) / HEADLINE_JSON
-            write_json(headline_file, table1)  # DVC's metrics: Table 1 only, so `dvc metrics show` stays readable
+            # DVC's metrics: Table 1's point estimates only (intervals and counts stay in the CSV), so that
+            # `dvc metrics show` and `dvc exp show` stay readable in a terminal
+            write_json(headline_file, {k: v for k, v in table1.items() if not k.endswith(INTERVAL_SUFFIXES)})
             run.log_artifact(headline_file)
             run.publish_metrics(metrics)
             run.publish_tags({**verdicts, **{f"claim/{i}": f"{verdict}: {claim}" for i, (claim, verdict, _)
