@@ -14,6 +14,7 @@
 
 import dataclasses
 import os
+import sys
 import uuid
 from pathlib import Path
 
@@ -24,7 +25,7 @@ from orbis2.dag import code_inputs
 from orbis2.registry import layout_path, registry
 
 configfile: "params.yaml"
-load_params("params.yaml")  # Snakemake's reader lets a key given twice pass; ours stops
+FILE_PROFILE = load_params("params.yaml")["profile"]  # Snakemake's reader lets a key given twice pass; ours stops
 
 # One id per invocation, inherited by every job (on Slurm via sbatch --export=ALL): the MLflow parent run.
 os.environ.setdefault("ORBIS2_PIPELINE_ID", f"snakemake:{uuid.uuid4()}")
@@ -32,6 +33,10 @@ envvars: "ORBIS2_PIPELINE_ID"
 
 config.setdefault("train_launcher", "python")
 PROFILE = config["profile"]
+if PROFILE != FILE_PROFILE:  # DVC reads params.yaml only: say where its views and this run part ways
+    print(f"profile {PROFILE} (--config); params.yaml says {FILE_PROFILE}, which is what `dvc params diff`, "
+          f"`dvc exp show` and `dvc status` read. MLflow records {PROFILE}. To let DVC see this run, set "
+          f"`profile: {PROFILE}` in params.yaml instead (docs/tracking.md).", file=sys.stderr)
 parse_config(config, PROFILE)  # the typed check first: its errors name the key (`abstract_df: unknown key(s) ...`)
 validate(config, "params.schema.yaml")  # then the file's shape: every section names every profile
 REG = registry()

@@ -29,6 +29,7 @@ rule report_main:
         f"{REPORTS}/speed.csv",
         f"{REPORTS}/conditioning.csv",
         f"{REPORTS}/summary.md",
+        f"{REPORTS}/headline.json",
     params:
         profile=PROFILE,
         data=section("data"),

@@ -89,6 +89,9 @@ def main(argv: list[str] | None = None) -> None:
 
         for video in sorted(media.glob("*.mp4")):
             run.log_artifact(video, "videos")
+        for gif in sorted(media.glob("*.gif")):  # the parent's rollout gallery: one thumbnail per system and split
+            run.log_artifact(gif, "videos")
+            run.publish(gif, "gallery", f"{name}_{gif.name}")
         write_json(report, record)
         run.log_artifact(report)
         run.log_metrics({f"fvd_{split}": v["fvd"] for split, v in record["fvd"].items()})

@@ -156,6 +156,7 @@ def main(argv: list[str] | None = None) -> None:
         run.log_artifact(args.out)
         save_strip(strip, data.detail_hz, args.strip)
         run.log_artifact(args.strip)
+        run.publish(args.strip, "figures")
         run.log_metrics({f"ade_{m}": v["ade"] for m, v in modes.items()})
         run.log_metrics({f"{reading}_deg_{m}": v["turn_deg"] for reading in ("latent_turn", "image_turn")
                          for m, v in record[reading]["modes"].items()})

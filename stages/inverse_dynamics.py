@@ -51,8 +51,10 @@ def main(argv: list[str] | None = None) -> None:
             instrument.save(tmp / WEIGHTS_FILE, record)
         write_json(args.report, record)
         run.log_artifact(args.report)
-        run.log_metrics({f"val_{kind}_{k}": v for kind in ("real", "reconstructed", "shuffled")
-                         for k, v in result[kind].items() if v is not None})
+        scores = {f"val_{kind}_{k}": v for kind in ("real", "reconstructed", "shuffled")
+                  for k, v in result[kind].items() if v is not None}
+        run.log_metrics(scores)
+        run.log_model(args.out, scores)  # the steering evaluation's instrument
 
         def pair(kind: str) -> str:
             return " / ".join("undefined" if result[kind][k] is None else f"{result[kind][k]:.2f}"

@@ -70,7 +70,6 @@ def main(argv: list[str] | None = None) -> None:
             stage.summary = "training rank done; rank 0 writes the outputs"
             return
 
-        run.log_metrics(metrics, step=int(metrics["steps"]))
         publish_training(work, out, [PREDICTOR_FILE], report, metrics, run)
         few = (f"; {pc.student_nfe}-step MSE to the teacher's {pc.teacher_nfe}-step sample "
                f"{metrics['few_step_mse_student']:.4f} (teacher's own {metrics['few_step_mse_teacher']:.4f})"

@@ -1,10 +1,12 @@
 """Stage `report_main` / `report_all`: the paper's tables, figures and a summary from the evaluation records.
 
-    python stages/report.py main   # reports/main_table.csv, steering.csv, speed.csv, summary.md
+    python stages/report.py main   # reports/main_table.csv, steering.csv, speed.csv, summary.md, headline.json
     python stages/report.py all    # reports/all/: every table (ablations too), figures, summary.md
 
 ``all`` also draws the qualitative rollout grid (from the FVD stages' saved frames)
-and copies the steering strip. The DAG passes every record the report reads
+and copies the steering strip. The pipeline's parent MLflow run gets ``main``'s
+headline (its tables' numbers as metrics, verdicts and claims as tags, the tables
+and ``summary.md``) and ``all``'s figures. The DAG passes every record the report reads
 (``--fvd NAME=FILE``, ``--probe NAME=FILE``, ...); by hand, without them, every
 record of registry.yaml's layout that exists is read.
 """
@@ -18,18 +20,23 @@ from orbis2.errors import OrbisError
 from orbis2.eval.figures import save_rollout_grid
 from orbis2.eval.report import (
     EVAL_KINDS,
+    HEADLINE_JSON,
+    MAIN_CSV,
+    check_claims,
     compression_from_evals,
+    headline,
     read_evals,
     report_setup,
     write_full_report,
     write_main_report,
 )
 from orbis2.eval.systems import SYSTEMS
-from orbis2.io import atomic_dir
+from orbis2.io import atomic_dir, write_json
 from orbis2.registry import layout_path, registry
 from orbis2.stage import add_name_argument, add_named_paths, open_stage, stage_parser
 
 GRID = "grid.npz"  # the frames of the qualitative grid in an FVD stage's media folder
+INTERVAL_SUFFIXES = ("_low", "_high", "_n")  # Table 1's interval bounds and sample counts
 
 
 def given_or_all(given: list[tuple[str, Path]], kind: str, names: list[str], option: str) -> dict[str, Path]:
@@ -83,6 +90,24 @@ def main(argv: list[str] | None = None) -> None:
             written = sorted(p for p in out.rglob("*") if p.is_file())
         for path in written:
             run.log_artifact(path, None if scope == "main" else "all")
+        if scope == "main":  # the pipeline's parent run: the headline numbers, verdicts and summary
+            # conditioning: the effect of each row (its verdict is a tag; intervals and counts stay in the CSV)
+            metrics, verdicts = headline([p for p in written if p.suffix == ".csv"], {"conditioning": ("effect",)})
+            table1, _ = headline([p for p in written if p.name == MAIN_CSV])
+            headline_file = (args.out or layout_path("reports")) / HEADLINE_JSON
+            # DVC's metrics: Table 1's point estimates only (intervals and counts stay in the CSV), so that
+            # `dvc metrics show` and `dvc exp show` stay readable in a terminal
+            write_json(headline_file, {k: v for k, v in table1.items() if not k.endswith(INTERVAL_SUFFIXES)})
+            run.log_artifact(headline_file)
+            run.publish_metrics(metrics)
+            run.publish_tags({**verdicts, **{f"claim/{i}": f"{verdict}: {claim}" for i, (claim, verdict, _)
+                                             in enumerate(check_claims(evals), start=1)}})
+            for path in written:
+                run.publish(path, None if path.suffix == ".md" else "tables")
+        else:
+            for path in written:
+                if path.suffix == ".png":
+                    run.publish(path, "figures")
         stage.summary = f"{len(written)} files: " + ", ".join(p.name for p in written)
 
 

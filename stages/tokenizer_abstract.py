@@ -54,7 +54,6 @@ def main(argv: list[str] | None = None) -> None:
             stage.summary = "training rank done; rank 0 writes the outputs"
             return
 
-        run.log_metrics(metrics, step=int(metrics["steps"]))
         publish_training(work, out, [TOKENIZER_FILE], report, metrics, run)
         stage.summary = (f"{metrics['steps']} steps against {cfg.section(name).teacher}, alignment "
                          f"{metrics['val_align']:.4g} (cosine {metrics['val_cosine']:.3f}), PSNR "

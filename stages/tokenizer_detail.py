@@ -44,7 +44,6 @@ def main(argv: list[str] | None = None) -> None:
             stage.summary = "training rank done; rank 0 writes the outputs"
             return
 
-        run.log_metrics(metrics, step=int(metrics["steps"]))
         publish_training(work, args.out, [TOKENIZER_FILE], args.report, metrics, run)
         stage.summary = (f"{metrics['steps']} steps, PSNR {metrics['val_psnr']:.2f} dB, SSIM "
                          f"{metrics['val_ssim']:.3f}, rFID {metrics['rfid']:.1f}, codebook perplexity "

@@ -199,3 +199,31 @@ def test_a_params_typo_fails_when_the_snakefile_is_read(tmp_path):
                                                    "abstract_df:\n  extends: _predictor\n  al:", 1))
     with pytest.raises(Exception, match=r"abstract_df: unknown key\(s\) \['al'\]"):
         snakemake_rules(root)
+
+
+def test_dvc_metrics_are_the_few_named_files():
+    """`dvc metrics show` reads the training reports and Table 1's headline only, each a rule's output;
+    the evaluation records (nested, hundreds of keys) are plain outputs."""
+    stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
+    metrics = {next(iter(m)): name for name, stage in stages.items() for m in stage.get("metrics", [])}
+    assert metrics["reports/headline.json"] == "report_main"
+    assert all(dag.METRICS.fullmatch(path) for path in metrics)
+    assert not [path for path in metrics if path.startswith("reports/eval/")]
+    trained = {name for name, stage in stages.items() if "--report reports/" in stage["cmd"]}
+    assert trained <= set(metrics.values()) and len(trained) >= 10
+
+
+def test_each_loss_curve_has_its_own_plot():
+    plots = yaml.safe_load((ROOT / "dvc.yaml").read_text())["plots"]
+    curves = [next(iter(p.values())) for p in plots if isinstance(p, dict) and "loss" in next(iter(p))]
+    assert curves and all(len(c["y"]) == 1 for c in curves)  # one model per axis: each loss on its own scale
+
+
+def test_snakefile_says_when_its_profile_is_not_the_one_dvc_reads(capfd):
+    """A `--config profile=` other than params.yaml's is a run DVC's views cannot describe: the Snakefile says so."""
+    file_profile = load_params(ROOT / "params.yaml")["profile"]
+    other = next(p for p in PROFILES if p != file_profile)
+    dag.snakemake_rules(ROOT, other)
+    assert f"profile {other} (--config); params.yaml says {file_profile}" in capfd.readouterr().err
+    dag.snakemake_rules(ROOT)
+    assert "params.yaml says" not in capfd.readouterr().err

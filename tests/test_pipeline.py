@@ -8,10 +8,8 @@ one stage's params re-runs that stage (and its dependents) only.
 import csv
 import json
 import math
-import os
 import shutil
 import sqlite3
-import subprocess
 import sys
 from collections import Counter
 from pathlib import Path
@@ -27,7 +25,7 @@ from orbis2.models.stdit import load_predictor
 from orbis2.models.tokenizer import load_tokenizer
 from orbis2.tasks.predictors import STAGES as STAGE_SPECS
 
-from conftest import ROOT, project_copy, run
+from conftest import project_copy, run
 
 pytestmark = pytest.mark.slow
 

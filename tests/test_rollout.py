@@ -12,7 +12,7 @@ from PIL import Image
 
 from orbis2.cli import main
 from orbis2.config import DataConfig
-from orbis2.data.video import read_video
+from orbis2.data.video import codec_of, read_video
 from orbis2.models.stdit import build_stdit, build_stdit_from, save_predictor
 from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer, save_tokenizer
 from orbis2.rollout import cascaded_rollout, first_context_end, flat_rollout, rollout_schedule, steering_sequences
@@ -304,11 +304,18 @@ def test_cli_end_to_end_writes_mp4_and_gif(make_video, tmp_path, checkpoints, ca
     main(_args(video, out, checkpoints, "--trajectory", traj, "--seconds", 1, "--side-by-side",
                "--yaw-rate-scale", 1.5))
     assert "steered by" in capsys.readouterr().out
+    assert codec_of(out) == "VP90"  # plays in a browser
     frames = read_video(out)
     assert frames.shape == (5 + 10, 72, 256, 3)  # 5 context + 2 steps of 5, real | generated
     assert frames[-1, :, :128].max() < 10  # the 25-frame video has no real frame 30: shown black
     with Image.open(out.with_suffix(".gif")) as gif:
         assert gif.n_frames == 15 and gif.size == (256, 72)
+
+
+def test_cli_refuses_an_output_browsers_cannot_play(tmp_path, checkpoints, capsys):
+    _expect_exit_2(_args(tmp_path / "v.mp4", tmp_path / "o.avi", checkpoints), capsys,
+                   f"--out {tmp_path / 'o.avi'}: the video is written as VP9, in .mp4 or .webm")
+    assert not list(tmp_path.iterdir())
 
 
 @pytest.mark.parametrize("flag, value, fragment", [

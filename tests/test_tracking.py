@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from orbis2.tracking import invocation_key, store_lock
+from orbis2.tracking import dataset_context, invocation_key, store_lock
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 
@@ -20,10 +20,16 @@ import sys
 from pathlib import Path
 from orbis2.tracking import stage_run
 stage, fail = sys.argv[1], sys.argv[2] == "fail"
-with stage_run(stage, {"profile": "smoke", "data": {"fps": 10}}) as run:
+with stage_run(stage, {"profile": "smoke", "data": {"fps": 10}},
+               {"profile": "smoke", "data": {"fps": 10}, "evaluation": {"seed": 3}}) as run:
     run.log_metrics({"x": 1.0})
     if Path("model").is_dir():
-        run.log_model(Path("model"))
+        run.log_model(Path("model"), {"val_loss": 0.25})
+    if Path("summary.md").is_file():
+        run.publish(Path("summary.md"))
+        run.publish(Path("summary.md"), "gallery", "renamed.md")
+        run.publish_metrics({"main_table/hierarchical/fvd_heldout": 12.5})
+        run.publish_tags({"verdict/conditioning/x": "used"})
     if fail:
         raise RuntimeError("stage failed on purpose")
 """
@@ -79,6 +85,8 @@ def test_parent_stays_failed_after_a_later_success(tmp_path):
 
 
 def test_trained_model_is_logged_with_its_config(tmp_path):
+    (tmp_path / "data/shards").mkdir(parents=True)
+    (tmp_path / "data/shards/manifest.json").write_text(json.dumps({"splits": {}}))
     (tmp_path / "model").mkdir()
     (tmp_path / "model/weights.pt").write_bytes(b"\x00" * 64)
     finish(start(tmp_path, "trainer", "inv"))
@@ -94,6 +102,11 @@ def test_trained_model_is_logged_with_its_config(tmp_path):
     local = Path(download_artifacts(models[0].artifact_location, dst_path=str(tmp_path / "dl"), tracking_uri=uri))
     assert (local / "weights.pt").stat().st_size == 64
     assert json.loads((local / "config.json").read_text())["data"] == {"fps": 10}
+    run = client.get_run(stage.info.run_id)  # listed on its run, with its metrics and training data
+    assert [o.model_id for o in run.outputs.model_outputs] == [models[0].model_id]
+    [metric] = client.get_logged_model(models[0].model_id).metrics
+    digest = stage.data.tags["orbis2.shards_sha256"][:36]
+    assert (metric.key, metric.value, metric.dataset_digest) == ("val_loss", 0.25, digest)
 
 
 def test_invocation_key_under_dvc_names_the_call(tmp_path, monkeypatch):
@@ -115,3 +128,51 @@ def test_invocation_key_under_dvc_names_the_call(tmp_path, monkeypatch):
                                        ("sqlite:////abs/store.db", "/abs/store.db.lock")])
 def test_sqlite_store_lock_sits_next_to_the_database(uri, lock):
     assert store_lock(uri).lock_file == str(Path(lock).absolute())
+
+
+def test_parent_run_carries_the_headline(tmp_path):
+    """The parent is what a reviewer opens: profile, params digest, commit, stage times, what stages publish."""
+    (tmp_path / "summary.md").write_text("# Summary\n")
+    finish(start(tmp_path, "report_main", "inv"))
+    from mlflow.artifacts import download_artifacts
+    from mlflow.tracking import MlflowClient
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    client = MlflowClient(tracking_uri=uri)
+    experiment = client.get_experiment_by_name("orbis2")
+    assert experiment.tags["mlflow.experimentKind"] == "custom_model_development"  # opens on runs, not GenAI
+    [parent] = [r for r in runs(tmp_path) if "mlflow.parentRunId" not in r.data.tags]
+    assert parent.info.run_name.startswith("pipeline smoke ")
+    assert parent.data.params["profile"] == "smoke" and parent.data.params["git_commit"] == "unknown"
+    assert parent.data.tags["orbis2.params_sha256"].startswith(parent.data.params["params_sha256"])
+    assert parent.data.metrics["main_table/hierarchical/fvd_heldout"] == 12.5
+    assert parent.data.tags["verdict/conditioning/x"] == "used"
+    names = {f.path for f in client.list_artifacts(parent.info.run_id)}
+    assert names == {"summary.md", "gallery", "params.json"}
+    assert [f.path for f in client.list_artifacts(parent.info.run_id, "gallery")] == ["gallery/renamed.md"]
+    config = json.loads(Path(download_artifacts(run_id=parent.info.run_id, artifact_path="params.json",
+                                                dst_path=str(tmp_path / "dl"), tracking_uri=uri)).read_text())
+    assert config["evaluation"] == {"seed": 3}  # the whole config, not only the first stage's sections
+
+
+def test_stage_times_reach_the_parent(tmp_path):
+    import subprocess as sp
+
+    env = {**os.environ, "PYTHONPATH": str(SRC), "ORBIS2_PIPELINE_ID": "inv", "ORBIS2_SYSTEM_METRICS": "0",
+           "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}
+    (tmp_path / "params.yaml").write_text((Path(__file__).resolve().parents[1] / "params.yaml").read_text())
+    code = ("import argparse\nfrom orbis2.stage import open_stage\n"
+            "with open_stage('timed', argparse.Namespace(params='params.yaml', profile='smoke'), ['data']) as s:\n"
+            "    s.summary = 'ok'\n")
+    proc = sp.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    [parent] = [r for r in runs(tmp_path) if "mlflow.parentRunId" not in r.data.tags]
+    [child] = [r for r in runs(tmp_path) if "mlflow.parentRunId" in r.data.tags]
+    assert parent.data.metrics["time/timed"] == pytest.approx(child.data.metrics["wall_seconds"], rel=0.2, abs=0.5)
+
+
+@pytest.mark.parametrize("stage, context", [("tokenizer_detail", "training"), ("predictor_top", "training"),
+                                            ("inverse_dynamics", "training"), ("eval_fvd_hierarchical", "evaluation"),
+                                            ("eval_steering", "evaluation"), ("latents_compressed", "inference")])
+def test_dataset_context_says_what_a_stage_does_with_the_shards(stage, context):
+    assert dataset_context(stage) == context

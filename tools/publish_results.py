@@ -100,7 +100,7 @@ def index_page(record: dict, times: pd.DataFrame, tables: list[str], pictures: l
         f"`{commit}`{' with uncommitted changes' if record['uncommitted'] else ''}, on {hardware}, "
         f"{m['memory_gib']} GiB, torch {m['torch']}.",
         "",
-        f"- [summary.md](summary.md): the run's own summary (every table, with sample counts and intervals)",
+        "- [summary.md](summary.md): the run's own summary (every table, with sample counts and intervals)",
         *[f"- [{name}]({name})" for name in tables],
         f"- [stage_times.csv](stage_times.csv): wall time and peak memory per stage, "
         f"{times['wall_s'].sum() / 60:.1f} min in all over {len(times)} stages",

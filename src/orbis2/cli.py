@@ -22,7 +22,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-from PIL import Image
 from tqdm import tqdm
 
 from orbis2.accel import cast_for_inference, compile_decoder, compile_predictor, inference_autocast, set_tf32
@@ -31,7 +30,7 @@ from orbis2.config import PROFILES, load_config
 from orbis2.data.datasets import bdd100k, nuplan, opendv, physicalai_av
 from orbis2.data.episodes import read_odometry
 from orbis2.data.importer import read_odometry_csv
-from orbis2.data.video import probe, read_video, resample_stride, write_video
+from orbis2.data.video import PLAYABLE_SUFFIXES, probe, read_video, resample_stride, write_gif, write_video
 from orbis2.errors import OrbisError
 from orbis2.eval.evaluate import (
     context_frames,
@@ -203,12 +202,10 @@ def write_outputs(out: Path, frames: np.ndarray, fps: float) -> Path:
     """``out`` (mp4) and the GIF with the same stem; both written atomically, the folder made if needed."""
     out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_file(out) as tmp:
-        write_video(tmp, frames, fps)
+        write_video(tmp, frames, fps, playable=True)
     gif = out.with_suffix(".gif")
     with atomic_file(gif) as tmp:
-        images = [Image.fromarray(f) for f in frames]
-        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:],
-                       duration=round(1000 / fps), loop=0)
+        write_gif(tmp, frames, fps)
     return gif
 
 
@@ -260,11 +257,13 @@ def rollout_command(args: argparse.Namespace) -> str:
         compile_predictor(abstract_pred.model)
         compile_predictor(detail_pred.model)
         compile_decoder(detail_tok.model)
+    # a distilled detail predictor records its few steps; the others sample with the paper's 30
+    detail_nfe = args.detail_nfe or int(detail_pred.meta.get("sampling", {}).get("nfe", 30))
     with tqdm(total=steps, desc="rollout", unit="step") as bar, inference_autocast(device, args.precision):
         details, _ = cascaded_rollout(
             abstract_pred.model, detail_pred.model, detail_ctx[None].to(device), abstract_ctx[None].to(device),
             steps, generator, abstract_nfe=args.abstract_nfe,
-            detail_nfe=args.detail_nfe if args.detail_nfe is not None else int(detail_pred.meta.get("sampling", {}).get("nfe", 30)),
+            detail_nfe=detail_nfe,
             abstract_hz=data.abstract_hz, detail_hz=data.detail_hz, steering=steering,
             on_step=lambda _: bar.update(1), kv_cache=not args.no_kv_cache,
             steering_guidance=args.steering_guidance)
@@ -296,6 +295,8 @@ def check_numbers(args: argparse.Namespace) -> None:
             raise OrbisError(f"{flag} {value}: not a finite number")
     if args.seconds <= 0:
         raise OrbisError(f"--seconds {args.seconds:g}: the rollout length must be > 0")
+    if args.out.suffix.lower() not in PLAYABLE_SUFFIXES:
+        raise OrbisError(f"--out {args.out}: the video is written as VP9, in .mp4 or .webm; change the suffix")
     if args.steering_guidance < 0:
         raise OrbisError(f"--steering-guidance {args.steering_guidance:g}: must be >= 0 (1: no guidance)")
     for flag, value in (("--abstract-nfe", args.abstract_nfe), ("--detail-nfe", args.detail_nfe)):
@@ -316,7 +317,7 @@ def add_rollout_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--speed-scale", type=float, default=1.0, help="multiply the speeds (counterfactuals)")
     p.add_argument("--yaw-rate-scale", type=float, default=1.0, help="multiply the yaw rates (counterfactuals)")
     p.add_argument("--seconds", type=float, default=16.0, help="rollout length in seconds")
-    p.add_argument("--out", type=Path, required=True, help="output mp4; a GIF with the same stem is written too")
+    p.add_argument("--out", type=Path, required=True, help="output video (.mp4 or .webm; VP9) and a GIF with its stem")
     p.add_argument("--detail-tokenizer", type=Path, default=layout_path("tokenizer", "detail") / "tokenizer.pt")
     p.add_argument("--abstract-tokenizer", type=Path, default=layout_path("tokenizer", "abstract") / "tokenizer.pt")
     p.add_argument("--abstract-predictor", type=Path, default=None,

@@ -56,10 +56,12 @@ def plots(rules: list) -> str:
     entries.append({"Chunked FVD (turns)": {"x": "end_s", "y": {str(report_all / "fvd_chunked.csv"):
                                                                  [name for name, system in reg.systems.items()
                                                                   if system.latents == "compressed"]}}})
-    entries.append({"Training loss": {"x": "step", "y": {f"{trained[name]}/curves/train.csv": "loss"
-                                                            for name in trained}}})
-    entries.append({"Predictor val loss": {"x": "step", "y": {f"{trained[name]}/curves/eval.csv": "val_loss"
-                                                                 for name in predictors}}})
+    # One plot per model: the losses differ by orders of magnitude (the abstract tokenizer's ~400 against
+    # the predictors' ~1), so a shared axis would flatten all but one.
+    entries += [{f"Training loss: {name}": {"x": "step", "y": {f"{trained[name]}/curves/train.csv": "loss"}}}
+                for name in trained]
+    entries += [{f"Validation loss: {name}": {"x": "step", "y": {f"{trained[name]}/curves/eval.csv": "val_loss"}}}
+                for name in predictors]
     text = yaml.safe_dump({"plots": entries}, sort_keys=False, width=120)
     return "\n# `dvc plots show` renders the report's figures, the chunked-FVD table and the training curves.\n" + text
 
@@ -78,6 +80,9 @@ SLURM_BASE = {"executor": "slurm", "jobs": 50,
               "latency-wait": 120,
               "retries": 1,  # a killed training job resumes from its last checkpoint
               "default-resources": {"slurm_partition": "cpu"}}
+# DVC's metrics: each training report (flat, a few named numbers) and the main table's headline.json,
+# so that `dvc metrics show` and `dvc exp show` stay readable; the evaluation records are plain outputs.
+METRICS = re.compile(r"reports/[^/]+\.json")
 # Rule params that are not params.yaml sections.
 NOT_SECTIONS = ("profile", "spec", "script", "args")
 
@@ -177,6 +182,8 @@ def _out_entry(out: str, assets: str) -> Any:
         return {out: {"cache": False, "persist": True}}  # downloads survive re-runs and are not cached twice
     if out.count("/") == 1 and out.endswith((".png", ".mp4")):
         return {out: {"cache": False}}  # the town's previews: for people, rebuilt with the town
+    if out.startswith("reports/") and out.endswith(".json"):
+        return {out: {"cache": False}}  # evaluation records: small, kept in git, not metrics (nested, hundreds of keys)
     return out
 
 
@@ -210,7 +217,7 @@ def dvc_stage(rule, raw: dict, raw_dir: str, assets: str) -> dict:
         params.append({"registry.yaml": [f"predictors.{rule.name}"]})
     stage: dict[str, Any] = {"cmd": dvc_command(rule, dep), "deps": deps, "params": params}
     outs = [str(f) for f in rule.output]
-    metrics = [o for o in outs if o.startswith("reports/") and o.endswith(".json")]
+    metrics = [o for o in outs if METRICS.fullmatch(o)]
     stage["outs"] = [_out_entry(o, assets) for o in outs if o not in metrics]
     if metrics:
         stage["metrics"] = [{m: {"cache": False}} for m in metrics]

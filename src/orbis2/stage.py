@@ -156,7 +156,8 @@ def open_stage(name: str, args: argparse.Namespace, sections: list[str]) -> Iter
     """Load the config of ``args.params``/``args.profile`` and open the stage's MLflow run for the block.
 
     ``sections`` are the params.yaml sections the stage reads; they are logged as the
-    run's parameters. On leaving the block the wall time is logged and
+    run's parameters. On leaving the block the wall time is logged (on the parent run
+    too, as ``time/<name>``) and
     ``[<name>] <summary> (<s> s, profile <p>)`` printed. A user-fixable problem
     (:class:`OrbisError`) prints ``[<name>] error: ...`` and exits with status 2.
     """
@@ -164,10 +165,12 @@ def open_stage(name: str, args: argparse.Namespace, sections: list[str]) -> Iter
     try:
         cfg = load_config(args.params, args.profile)
         params = {"profile": cfg.profile, **{s: as_dict(cfg.section(s)) for s in sections}}
-        with stage_run(name, params) as run:
+        with stage_run(name, params, as_dict(cfg)) as run:
             stage = Stage(name, cfg, run)
             yield stage
-            run.log_metrics({"wall_seconds": time.perf_counter() - started})
+            seconds = time.perf_counter() - started
+            run.log_metrics({"wall_seconds": seconds})
+            run.publish_metrics({f"time/{name}": seconds})
     except OrbisError as err:
         print(f"[{name}] error: {err}", file=sys.stderr)
         sys.exit(2)
@@ -218,10 +221,18 @@ def code_version(root: Path = Path(orbis2.__file__).parent) -> str:
     return digest.hexdigest()
 
 
+# Training results that are sizes, not scores: logged as params (table columns), not as one-point charts.
+SIZES = {"steps": "trained_steps", "parameters": "model_parameters"}
+
+
 def publish_training(run_dir: Path, out: Path, files: list[str], report: Path, metrics: dict[str, float],
                      run: StageRun) -> None:
     """Copy a finished training run's ``files``, ``samples/`` and ``curves/`` into the stage output,
-    atomically; write the metrics report, log the samples and the model (weights + config)."""
+    atomically; write the metrics report; log the final scores (at the last step), the sizes
+    (:data:`SIZES`) as params, the samples and the model (weights + config)."""
+    scores = {k: v for k, v in metrics.items() if k not in SIZES}
+    run.log_metrics(scores, step=int(metrics["steps"]))
+    run.log_params({name: int(metrics[key]) for key, name in SIZES.items() if key in metrics})
     with atomic_dir(out) as tmp:
         for name in files:
             shutil.copy2(run_dir / name, tmp / name)
@@ -232,4 +243,4 @@ def publish_training(run_dir: Path, out: Path, files: list[str], report: Path, m
         run.log_artifact(png, "samples")
     write_json(report, metrics)
     run.log_artifact(report)
-    run.log_model(out)
+    run.log_model(out, scores)

@@ -10,6 +10,13 @@ separate processes, possibly on other nodes, so the invocation is named by the
 orchestrator (:func:`invocation_key`) and every stage finds the parent run by
 that name. The parent's status follows its children: FAILED as soon as one
 stage failed, FINISHED only when every stage finished.
+
+The parent is what a reviewer opens first, so it carries the run's headline: the
+profile, commit and params digest (tags and params, set when it is created), each
+stage's wall time (``time/<stage>``) and whatever stages :meth:`StageRun.publish`
+there (the report's tables, verdicts and summary, the figures, a rollout gallery).
+The experiment is tagged as a model-development one, so MLflow 3 lists its runs
+rather than its GenAI overview.
 """
 
 from __future__ import annotations
@@ -18,6 +25,7 @@ import contextlib
 import hashlib
 import json
 import os
+import shutil
 import socket
 import subprocess
 import tempfile
@@ -37,9 +45,17 @@ PIPELINE_ENV = "ORBIS2_PIPELINE_ID"
 INVOCATION_TAG = "orbis2.invocation"
 SHARD_MANIFEST = Path("data/shards/manifest.json")
 # Stages upstream of the shards (or beside them): they do not read the dataset.
-NOT_SHARD_READERS = ("town", "import", "shards", "assets")
+NOT_SHARD_READERS = ("town", "import", "shards", "assets", "report_main", "report_all")
 _RUN_KEY = uuid.uuid4().hex  # a stage started by hand is its own invocation
 OWNER_TAG = "orbis2.process"  # the process that set the run RUNNING (see process_key)
+KIND_TAG, EXPERIMENT_KIND = "mlflow.experimentKind", "custom_model_development"  # MLflow 3's "not GenAI"
+# What a stage does with the shard set, as MLflow's dataset context (the others train on it).
+DATASET_CONTEXTS = {"eval_": "evaluation", "latents": "inference"}
+
+
+def dataset_context(stage: str) -> str:
+    """``training``, ``evaluation`` (eval_* stages) or ``inference`` (the latent cache)."""
+    return next((context for prefix, context in DATASET_CONTEXTS.items() if stage.startswith(prefix)), "training")
 
 
 def invocation_key() -> str:
@@ -124,23 +140,63 @@ class StageRun:
     (ranks other than 0 under torchrun) every call does nothing."""
 
     def __init__(self, mlflow_module: Any | None, run_id: str | None, stage: str = "",
-                 params: dict[str, Any] | None = None):
+                 params: dict[str, Any] | None = None, parent_id: str | None = None):
         self._mlflow = mlflow_module
-        self.run_id, self.stage, self.params = run_id, stage, params or {}
+        self.run_id, self.stage, self.params, self.parent_id = run_id, stage, params or {}, parent_id
+        self.dataset: Any = None  # the shard set logged as this run's input (log_shards)
 
     def log_metrics(self, metrics: dict[str, float], step: int | None = None) -> None:
         if self._mlflow:
             self._mlflow.log_metrics({k: float(v) for k, v in metrics.items()}, step=step)
 
+    def log_params(self, params: dict[str, Any]) -> None:
+        if self._mlflow:
+            self._mlflow.log_params({k: str(v) for k, v in params.items()})
+
     def log_artifact(self, path: Path, artifact_path: str | None = None) -> None:
         if self._mlflow:
             self._mlflow.log_artifact(str(path), artifact_path)
 
-    def log_model(self, folder: Path) -> None:
+    def publish(self, path: Path, artifact_path: str | None = None, name: str | None = None) -> None:
+        """Log an artifact on the pipeline's parent run too (as ``name`` when given), where a
+        reviewer looks first."""
+        if not (self._mlflow and self.parent_id):
+            return
+        client = self._mlflow.MlflowClient()
+        if name is None:
+            client.log_artifact(self.parent_id, str(path), artifact_path)
+            return
+        with tempfile.TemporaryDirectory() as tmp:
+            shutil.copy2(path, Path(tmp) / name)
+            client.log_artifact(self.parent_id, str(Path(tmp) / name), artifact_path)
+
+    def publish_metrics(self, metrics: dict[str, float]) -> None:
+        """Log headline metrics on the parent run (one value each, no step)."""
+        if self._mlflow and self.parent_id and metrics:
+            from mlflow.entities import Metric
+
+            now = int(time.time() * 1000)
+            items = [Metric(k, float(v), now, 0) for k, v in metrics.items()]
+            client = self._mlflow.MlflowClient()
+            for start in range(0, len(items), 1000):  # MLflow's batch limit
+                client.log_batch(self.parent_id, metrics=items[start:start + 1000])
+
+    def publish_tags(self, tags: dict[str, str]) -> None:
+        """Set tags on the parent run (verdicts: text, shown on its page)."""
+        if self._mlflow and self.parent_id:
+            client = self._mlflow.MlflowClient()
+            for key, value in tags.items():
+                client.set_tag(self.parent_id, key, str(value)[:5000])
+
+    def log_model(self, folder: Path, metrics: dict[str, float] | None = None) -> None:
         """Record a trained model: an MLflow logged model named after the stage, holding the
-        folder's files (final weights) and ``config.json`` (the stage's resolved params)."""
+        folder's files (final weights) and ``config.json`` (the stage's resolved params),
+        listed among the run's outputs, with ``metrics`` linked to it and to the shard set
+        it trained on."""
         if not self._mlflow:
             return
+        from mlflow.entities import LoggedModelOutput
+
         mlflow, config = self._mlflow, self.params
         flat = {k: str(v)[:6000] for k, v in flatten(config).items()}
         model = mlflow.initialize_logged_model(name=self.stage, source_run_id=self.run_id, params=flat,
@@ -151,9 +207,14 @@ class StageRun:
             (Path(tmp) / "config.json").write_text(json.dumps(config, indent=2, sort_keys=True, default=str))
             client.log_model_artifacts(model.model_id, tmp)
         mlflow.finalize_logged_model(model.model_id, "READY")
+        client.log_outputs(self.run_id, [LoggedModelOutput(model.model_id, 0)])
+        if metrics:
+            mlflow.log_metrics({k: float(v) for k, v in metrics.items()}, model_id=model.model_id,
+                               dataset=self.dataset)
 
     def log_shards(self, manifest: Path, context: str = "training") -> None:
-        """Log the shard set as the run's input dataset, identified by the manifest's SHA-256."""
+        """Log the shard set as the run's input dataset, identified by the manifest's SHA-256;
+        ``context`` says what the stage does with it (:func:`dataset_context`)."""
         if not self._mlflow:
             return
         from mlflow.data.dataset_source_registry import resolve_dataset_source
@@ -163,14 +224,16 @@ class StageRun:
         with warnings.catch_warnings():  # MLflow registers its local-file source twice and says so
             warnings.simplefilter("ignore")
             source = resolve_dataset_source(str(manifest.absolute()))
-        self._mlflow.log_input(MetaDataset(source, name=f"shards-{digest[:12]}", digest=digest[:36]),
-                               context=context)
+        self.dataset = MetaDataset(source, name=f"shards-{digest[:12]}", digest=digest[:36])
+        self._mlflow.log_input(self.dataset, context=context)
 
 
 @contextlib.contextmanager
-def stage_run(stage: str, params: dict[str, Any]) -> Iterator[StageRun]:
+def stage_run(stage: str, params: dict[str, Any], pipeline: dict[str, Any] | None = None) -> Iterator[StageRun]:
     """Open the stage's MLflow run (nested under the invocation's parent) for the block.
 
+    ``pipeline`` is the whole resolved config (default ``params``): the parent's
+    profile and params digest when this stage is the one that creates it.
     Under torchrun only rank 0 logs; the other ranks get a :class:`StageRun` that does nothing.
     """
     if int(os.environ.get("RANK", "0")) != 0:
@@ -184,8 +247,10 @@ def stage_run(stage: str, params: dict[str, Any]) -> Iterator[StageRun]:
     with store_lock(uri):  # the first stages of a fresh store would race on its schema migration
         experiment = mlflow.set_experiment(os.environ.get("MLFLOW_EXPERIMENT_NAME", "orbis2"))
         client = MlflowClient()
+        if experiment.tags.get(KIND_TAG) != EXPERIMENT_KIND:
+            client.set_experiment_tag(experiment.experiment_id, KIND_TAG, EXPERIMENT_KIND)
         mark_killed_runs(client, experiment.experiment_id)
-        parent_id = parent_run(client, experiment.experiment_id, invocation_key())
+        parent_id = parent_run(client, experiment.experiment_id, invocation_key(), pipeline or params)
     owner = {OWNER_TAG: key} if (key := process_key(os.getpid())) else {}  # no /proc: not tracked
     tags = {"orbis2.stage": stage, **provenance(params), **owner}
     status = "FAILED"
@@ -195,9 +260,9 @@ def stage_run(stage: str, params: dict[str, Any]) -> Iterator[StageRun]:
         flat = {k: str(v)[:6000] for k, v in flatten(params).items()}
         for start in range(0, len(flat), 100):  # MLflow limits one batch to 100 params
             mlflow.log_params(dict(list(flat.items())[start:start + 100]))
-        logger = StageRun(mlflow, run.info.run_id, stage, params)
+        logger = StageRun(mlflow, run.info.run_id, stage, params, parent_id)
         if stage not in NOT_SHARD_READERS and SHARD_MANIFEST.is_file():
-            logger.log_shards(SHARD_MANIFEST)
+            logger.log_shards(SHARD_MANIFEST, dataset_context(stage))
         try:
             yield logger
             status = "FINISHED"
@@ -206,16 +271,29 @@ def stage_run(stage: str, params: dict[str, Any]) -> Iterator[StageRun]:
             _settle_parent(client, experiment.experiment_id, parent_id)
 
 
-def parent_run(client: Any, experiment_id: str, key: str) -> str:
+def parent_run(client: Any, experiment_id: str, key: str, pipeline: dict[str, Any] | None = None) -> str:
     """The invocation's parent run, created by whichever stage comes first.
 
+    A new parent gets the provenance of ``pipeline`` (the whole resolved config) as
+    tags, its profile, commit and params digest also as params (the runs table's
+    columns), and the config itself as ``params.json``.
     Stages on other nodes (where the store lock does not reach) may create one at the
     same moment; every stage then keeps the oldest (by start time, then id) and deletes the others.
     """
     found = _parents(client, experiment_id, key)
     if not found:
-        client.create_run(experiment_id, run_name=f"pipeline {time.strftime('%Y-%m-%d %H:%M:%S')}",
-                          tags={INVOCATION_TAG: key, "orbis2.pipeline": "true"})
+        from mlflow.entities import Param
+
+        pipeline = pipeline or {}
+        tags = provenance(pipeline)
+        profile = tags["orbis2.profile"]
+        run = client.create_run(experiment_id,
+                                run_name=f"pipeline {profile} {time.strftime('%Y-%m-%d %H:%M:%S')}",
+                                tags={INVOCATION_TAG: key, "orbis2.pipeline": "true", **tags})
+        shown = {"profile": profile, "git_commit": tags.get("mlflow.source.git.commit", "unknown"),
+                 "params_sha256": tags["orbis2.params_sha256"][:12]}
+        client.log_batch(run.info.run_id, params=[Param(k, v) for k, v in shown.items()])
+        client.log_text(run.info.run_id, json.dumps(pipeline, indent=2, sort_keys=True, default=str), "params.json")
         found = _parents(client, experiment_id, key)
     keep, *duplicates = found
     for run in duplicates:

@@ -188,5 +188,5 @@ def write_previews(sheet_path: Path, video_path: Path, data: DataConfig, cfg: To
     with atomic_file(sheet_path) as tmp:
         cv2.imwrite(str(tmp), cv2.cvtColor(np.concatenate(rows, axis=0), cv2.COLOR_RGB2BGR))
     with atomic_file(video_path) as tmp:
-        write_video(tmp, video_frames, data.fps)
+        write_video(tmp, video_frames, data.fps, playable=True)
 

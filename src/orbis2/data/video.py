@@ -1,7 +1,12 @@
-"""Video files through OpenCV: probing, reading, writing, frame-rate resampling.
+"""Video files through OpenCV: probing, reading, writing, frame-rate resampling; GIFs through Pillow.
 
 Frames are RGB ``uint8`` arrays ``[H, W, 3]`` everywhere in the library; the BGR
 order OpenCV uses stays inside this module.
+
+Two codecs are written: videos people watch (rollouts, previews) as VP9, which
+browsers and MLflow's artifact view play (OpenCV's wheels carry libvpx, but no
+H.264 encoder); the dataset's own episodes as MPEG-4 Part 2 (``mp4v``), which
+encodes fast and which every OpenCV build reads, but which browsers do not play.
 """
 
 from __future__ import annotations
@@ -12,10 +17,14 @@ from typing import Iterable, Iterator
 
 import cv2
 import numpy as np
+from PIL import Image
 
 from orbis2.errors import OrbisError
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
+# FourCC of the codec written: for people (browsers play it) and for the dataset (fast, any OpenCV reads it).
+PLAYABLE_CODEC, DATASET_CODEC = "vp09", "mp4v"  # read back, OpenCV names them VP90 and FMP4
+PLAYABLE_SUFFIXES = (".mp4", ".webm")  # the containers VP9 is written into
 
 
 class VideoError(OrbisError):
@@ -140,15 +149,22 @@ def resize_cover(frame: np.ndarray, size: tuple[int, int], nearest: bool = False
     return np.ascontiguousarray(resized[y0 : y0 + height, x0 : x0 + width])
 
 
-def write_video(path: Path, frames: Iterable[np.ndarray], fps: float, lossless: bool = False) -> int:
-    """Write RGB frames as MPEG-4 (``mp4v``, the codec every OpenCV build can write), or ``lossless`` as FFV1
-    in Matroska (``.mkv``): frames read back bit for bit, which a reproducible score needs.
+def write_video(path: Path, frames: Iterable[np.ndarray], fps: float, playable: bool = False,
+                lossless: bool = False) -> int:
+    """Write RGB frames; ``playable``: VP9 (``.mp4`` or ``.webm``), for videos people watch in a
+    browser; ``lossless``: FFV1 in Matroska (``.mkv``), frames that read back bit for bit, which a
+    reproducible score needs; else MPEG-4 Part 2 (``mp4v``), for the dataset's episodes.
 
     Returns the number of frames written. The caller makes the write atomic.
     """
+    if playable and lossless:
+        raise ValueError("a video is either playable (VP9) or lossless (FFV1)")
     if lossless and Path(path).suffix != ".mkv":
-        raise VideoError(f"{path}: lossless (FFV1) videos are written as .mkv; name the file <name>.mkv")
-    codec = "FFV1" if lossless else "mp4v"
+        raise VideoError(f"{printable(path)}: lossless (FFV1) videos are written as .mkv; name the file <name>.mkv")
+    if playable and Path(path).suffix.lower() not in PLAYABLE_SUFFIXES:
+        raise VideoError(f"{printable(path)}: a video to watch is written as .mp4 or .webm (VP9); "
+                         f"change the file name's suffix")
+    codec = "FFV1" if lossless else PLAYABLE_CODEC if playable else DATASET_CODEC
     writer = None
     count = 0
     try:
@@ -158,10 +174,37 @@ def write_video(path: Path, frames: Iterable[np.ndarray], fps: float, lossless: 
                 Path(path).parent.mkdir(parents=True, exist_ok=True)
                 writer = cv2.VideoWriter(_opencv_name(path), cv2.VideoWriter_fourcc(*codec), float(fps), (w, h))
                 if not writer.isOpened():
-                    raise VideoError(f"{path}: OpenCV cannot write an {codec} video here")
+                    raise VideoError(f"{printable(path)}: OpenCV cannot write {codec} video here (its build has no "
+                                     f"such encoder, or the folder is not writable); install the "
+                                     f"opencv-python-headless wheel, which includes libvpx")
             writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
             count += 1
     finally:
         if writer is not None:
             writer.release()
     return count
+
+
+def codec_of(path: Path) -> str:
+    """The FourCC of a video's codec as OpenCV reports it (``VP90``, ``mp4v``, ``avc1``, ...)."""
+    cap = open_capture(path)
+    try:
+        code = int(cap.get(cv2.CAP_PROP_FOURCC)) & 0xFFFFFFFF
+    finally:
+        cap.release()
+    return code.to_bytes(4, "little").decode("ascii", "replace")
+
+
+def write_gif(path: Path, frames: Iterable[np.ndarray], fps: float, width: int | None = None) -> int:
+    """Write RGB frames as a looping GIF (a thumbnail that plays wherever an image shows),
+    scaled down to ``width`` pixels when given. The caller makes the write atomic."""
+    images = []
+    for frame in frames:
+        image = Image.fromarray(frame)
+        if width and image.width > width:
+            image = image.resize((width, max(1, round(image.height * width / image.width))), Image.Resampling.LANCZOS)
+        images.append(image)
+    if not images:
+        raise VideoError(f"{printable(path)}: no frames to write")
+    images[0].save(path, format="GIF", save_all=True, append_images=images[1:], duration=round(1000 / fps), loop=0)
+    return len(images)

@@ -12,7 +12,7 @@ I3D features of real videos (and of the references, which only depend on the
 decoding tokenizer) are cached in a folder keyed by the split's shard digest and a
 description of the videos, so that systems evaluated on the same clips share them.
 
-I3D sees 16 evenly spaced frames of each window (``even_frame_indices``), and the
+I3D sees 16 evenly spaced frames of each window (``orbis2.eval.fvd.even_frame_indices``), and the
 tokenizers decode frame by frame, so only those frames are decoded (and read from
 the shards): the frames of decoding every frame (up to float round-off, at most a
 grey level), at a fraction of the decoding that dominates this stage on a CPU
@@ -30,7 +30,7 @@ import torch
 
 from orbis2.config import DataConfig, EvaluationConfig
 from orbis2.data.shards import Clip, split_clips, split_digest
-from orbis2.data.video import write_video
+from orbis2.data.video import write_gif, write_video
 from orbis2.eval.evaluate import i3d_picks, protocol, score_rollouts
 from orbis2.eval.fvd import CLIP_FRAMES, cached_features, i3d_features
 from orbis2.eval.references import reference_rows
@@ -70,13 +70,17 @@ class PickedFrames:
         return self.frames[:, [self.position[int(p)] for p in i3d_picks(window)]]
 
 
+GIF_WIDTH = 320  # pixels: the rollout thumbnails on the runs' pages
+
+
 def split_fvd(split: str, system: LoadedSystem, cache: LatentCache, i3d, media: Path, data: DataConfig,
               ev: EvaluationConfig, device: torch.device, shards: Path, stats_cache: Path, i3d_sha256: str = "",
               rollouts: Path | None = None) -> dict[str, Any]:
     """Roll out one split: ``{"fvd": ..., "references": ..., "protocol": ...}``, plus ``"chunked"`` on the long
     split, scored by :func:`orbis2.eval.evaluate.score_rollouts` (the code ``orbis2 evaluate`` runs).
 
-    Writes a sample video (``media/<split>.mp4``) and, on the long split, the frames of
+    Writes a sample video (``media/<split>.mp4``, VP9, and a GIF thumbnail ``media/<split>.gif``)
+    and, on the long split, the frames of
     the qualitative grid (``media/grid.npz``). ``shards`` is the shard folder the cache
     was encoded from; ``stats_cache`` the folder of cached real-video features. Given
     ``rollouts``, every frame is decoded and each rollout is written losslessly with the
@@ -116,7 +120,8 @@ def split_fvd(split: str, system: LoadedSystem, cache: LatentCache, i3d, media: 
     first = every[0] if every is not None else system.decode(latents[:1])[0]  # the sample video, every frame
     if long:
         save_grid_frames(media / "grid.npz", first, data.detail_hz)
-    write_video(media / f"{split}.mp4", first, data.detail_hz)
+    write_video(media / f"{split}.mp4", first, data.detail_hz, playable=True)
+    write_gif(media / f"{split}.gif", first, data.detail_hz, width=GIF_WIDTH)
     if rollouts is not None:
         write_rollouts(rollouts / split, every, clips, samples, indices, clusters, data)
     return out
