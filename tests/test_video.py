@@ -6,7 +6,8 @@ import pytest
 from PIL import Image
 
 from orbis2.data.video import VideoError, codec_of, read_video, write_gif, write_video
-from tests.conftest import moving_pattern
+
+from conftest import moving_pattern
 
 
 @pytest.mark.parametrize("suffix", [".mp4", ".webm"])
