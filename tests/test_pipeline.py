@@ -199,4 +199,4 @@ def test_import_source_feeds_the_shards(tmp_path, make_video):
 
     shutil.rmtree(root / "data/shards")
     out = run(["snakemake", "--cores", "2", "data/shards"], root)
-    assert "rule shards:" in out and "rule town:" not in out
+    assert "checkpoint shards:" in out and "rule town:" not in out  # shards is a checkpoint (its files are inputs)
