@@ -17,7 +17,6 @@ import numpy as np
 
 from orbis2.accel import default_device
 from orbis2.eval.conditioning import (
-    EGO_MOTION_TARGETS,
     evaluate_predictor,
     latent_statistics,
     latent_steering_response,
@@ -26,12 +25,12 @@ from orbis2.eval.conditioning import (
     steering_readouts,
     val_window_pairs,
 )
+from orbis2.eval.ego_motion import EGO_MOTION_TARGETS
 from orbis2.io import write_json
 from orbis2.latents import KINDS, open_cache
 from orbis2.models.stdit import load_predictor
 from orbis2.registry import SCOPES, layout_path, registry
 from orbis2.stage import add_name_argument, add_predictor_argument, open_stage, predictor_files, stage_parser
-from orbis2.tasks.predictors import STAGES
 
 LATENT_SET = "compressed"
 
@@ -70,7 +69,7 @@ def main(argv: list[str] | None = None) -> None:
                                                  ev.seed)
             record["variants"] += variants
             record["baselines"] += baselines
-            if STAGES[name].steering:  # its response inside the model, read by the ego-motion probe
+            if registry().predictors[name].steering:  # its response inside the model, read by the ego-motion probe
                 readouts = [steering_readouts(name, predictor, first, data, ev.steering_modes, probe, settings, seed,
                                               dev) for seed in ev.seeds]
                 mean = {k: np.mean([r[k] for r in readouts], axis=0) for k in readouts[0]}

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from orbis2.accel import default_device
+from orbis2.assets import TEACHER_ASSETS, asset_path
 from orbis2.data.shards import verify_shards
 from orbis2.eval.probe import (
     predictor_features,
@@ -36,7 +37,6 @@ from orbis2.stage import (
     predictor_files,
     stage_parser,
 )
-from orbis2.tasks.tokenizers import TEACHER_ASSETS, asset_path
 
 # The main model's predictors are probed at ``block_main`` (the paper's 4th from the end), ablations at
 # ``block_ablation``. Per-block curves (paper Fig. 5: diffusion forcing vs teacher forcing at every block)

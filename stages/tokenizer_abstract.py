@@ -11,6 +11,7 @@ tokenizer.pt, the samples and the report are published atomically at the end.
 
 from pathlib import Path
 
+from orbis2.assets import TEACHER_ASSETS, asset_path
 from orbis2.data.shards import verify_shards
 from orbis2.registry import layout_path, registry
 from orbis2.stage import (
@@ -21,7 +22,7 @@ from orbis2.stage import (
     stage_parser,
     training_dir,
 )
-from orbis2.tasks.tokenizers import TEACHER_ASSETS, asset_path, train_abstract_tokenizer
+from orbis2.tasks.tokenizers import train_abstract_tokenizer
 
 # Stage name -> registry.yaml entry, for every abstract tokenizer.
 VARIANTS = {f"tokenizer_{name}": name for name, kind in registry().tokenizers.items() if kind == "abstract"}

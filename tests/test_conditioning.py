@@ -9,20 +9,16 @@ import torch
 
 from orbis2.eval.conditioning import (
     effect_rows,
-    ego_motion_pairs,
-    ego_motion_probe,
     energy_shares,
     flow_loss,
     latent_steering_response,
     one_step_mean,
-    probe_features,
     probe_readout,
-    ridge_fit,
-    select_penalty,
     sideways_shift,
     swapped,
     variant_errors,
 )
+from orbis2.eval.ego_motion import ego_motion_pairs, ego_motion_probe, probe_features, ridge_fit, select_penalty
 from orbis2.models.stdit import translate_columns
 
 CLIPS, PER_CLIP, N_CONTEXT, N_TARGET, SHAPE = 8, 4, 2, 3, (2, 3, 4)

@@ -147,6 +147,16 @@ def test_code_inputs_follow_the_import_graph():
     assert "src/orbis2/eval/report.py" not in code  # training does not import the report
 
 
+def test_evaluation_stages_depend_on_no_training_code():
+    """A change in training code re-runs the stages that train, not the evaluation of trained models."""
+    stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
+    evaluations = [name for name in stages if name.startswith(("eval_", "report"))]
+    assert len(evaluations) > 5
+    for name in evaluations:
+        training = [d for d in stages[name]["deps"] if d.startswith("src/orbis2/tasks/") or d == "src/orbis2/train.py"]
+        assert training == [], f"{name} depends on {training}"
+
+
 @pytest.mark.parametrize("profile", PROFILES)
 def test_dvc_and_snakemake_rerun_on_the_same_edits(both, profile):
     """An edit to any part of any params.yaml section changes a rule's resolved params (Snakemake re-runs)

@@ -18,9 +18,10 @@ LAYERS = (
      "orbis2.models"),
     ("orbis2.sim",),  # the driving simulator: numpy/numba/cv2 and orbis2.kinematics only
     ("orbis2.registry", "orbis2.config"),  # config checks model presets; both read registry.yaml
-    ("orbis2.windows", "orbis2.data"),
+    ("orbis2.windows", "orbis2.hierarchy", "orbis2.data"),  # hierarchy: what each predictor sees
     ("orbis2.latents", "orbis2.rollout", "orbis2.train", "orbis2.assets"),
-    ("orbis2.tasks", "orbis2.eval"),
+    ("orbis2.eval",),  # evaluation never imports training tasks: a change in training must not re-run it
+    ("orbis2.tasks",),
     ("orbis2.tracking", "orbis2.stage"),  # the MLflow run and what stage scripts share
     ("orbis2.cli", "orbis2.dag"),
 )

@@ -10,17 +10,14 @@ import torch
 
 from orbis2.config import TrainConfig
 from orbis2.errors import OrbisError
+from orbis2.hierarchy import detail_condition, detail_condition_slots, rate_geometry, steering_features
 from orbis2.io import sha256_file
 from orbis2.latents import FORMAT, NORMALIZATION, LatentWindowDataset, open_cache
 from orbis2.models.stdit import best_sideways_shift, translate_columns
 from orbis2.tasks.predictors import (
     STAGES,
     PredictorTask,
-    detail_condition,
-    detail_condition_slots,
     offset_yaw,
-    rate_geometry,
-    steering_features,
     turn_columns_per_yaw_rate,
     turn_repeats,
     window_batches,
@@ -118,7 +115,7 @@ def test_action_features_from_odometry(smoke_cfg):
     odometry = torch.stack([rows, -rows / 10], 1).expand(3, SPAN, 2).clone()  # row r: speed r, yaw rate -r/10
     odometry[1, 22, 1] = math.nan
     has = torch.tensor([True, True, False])
-    values, unknown = steering_features(odometry, has, smoke_cfg.data, cfg)
+    values, unknown = steering_features(odometry, has, smoke_cfg.data, (cfg.speed_scale, cfg.yaw_rate_scale))
     # The last context frame is native row 20 (4 abstract steps of 5 frames), the predicted one row 25;
     # rows 20..24 hold the controls that drive the ego from one to the other.
     speed = torch.tensor([20.0, 21, 22, 23, 24]) / cfg.speed_scale
@@ -136,7 +133,8 @@ def test_unknown_steering_runs_unconditionally(tiny_cache, smoke_cfg):
         torch.nn.init.normal_(p, std=0.1)
     batch = task.val_windows()[0]
     x, tau = batch["abstract"], torch.rand(len(batch["abstract"]), 6)
-    values, _ = steering_features(batch["odometry"], batch["has_odometry"], smoke_cfg.data, cfg)
+    values, _ = steering_features(batch["odometry"], batch["has_odometry"], smoke_cfg.data,
+                                  (cfg.speed_scale, cfg.yaw_rate_scale))
     unconditional = model(x, tau, frame_rate=2.0)
     unknown = torch.ones(len(x), dtype=torch.bool)
     assert torch.equal(model(x, tau, frame_rate=2.0, steering=values, steering_drop=unknown), unconditional)

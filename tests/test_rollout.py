@@ -53,7 +53,7 @@ def test_steering_sequences_sample_the_schedule():
     data = DataConfig(width=128, height=72, fps=10)
     schedule = rollout_schedule(data, 20, 2)
     speed, yaw = np.arange(40.0), -np.arange(40.0)
-    seq = steering_sequences(schedule, speed, yaw, speed_norm=2.0, yaw_rate_norm=1.0)
+    seq = steering_sequences(schedule, speed, yaw, (2.0, 1.0))
     assert seq.shape == (2, 5, 2)
     assert seq[1, :, 0].tolist() == [12.5, 13.0, 13.5, 14.0, 14.5]
     assert seq[0, :, 1].tolist() == [-20.0, -21.0, -22.0, -23.0, -24.0]
@@ -239,7 +239,8 @@ def checkpoints(tmp_path_factory):
                    3.45, {"preset": "smoke", "teacher_dim": 32, "compress": True})
     abstract_build = {"preset": "smoke", "latent_channels": 16, "causal": True, "steering": True}
     detail_build = {"preset": "smoke", "latent_channels": 16, "causal": False, "abstract_channels": 16}
-    save_predictor(paths["abstract"], build_stdit_from(abstract_build), abstract_build, {})
+    save_predictor(paths["abstract"], build_stdit_from(abstract_build), abstract_build,
+                   {"steering": {"scale": [10.0, 0.2]}})  # what the action stage records
     save_predictor(paths["detail"], build_stdit_from(detail_build), detail_build, {})
     return paths
 

@@ -38,17 +38,10 @@ import torch
 from orbis2.config import load_config
 from orbis2.eval.conditioning import flow_loss, one_step_mean, per_window_mse
 from orbis2.eval.figures import pyplot, save_figure
-from orbis2.latents import open_cache
+from orbis2.hierarchy import detail_condition, rate_geometry, steering_features, window_key
+from orbis2.latents import collate, open_cache
 from orbis2.registry import registry
-from orbis2.tasks.predictors import (
-    STAGES,
-    PredictorTask,
-    collate,
-    detail_condition,
-    rate_geometry,
-    steering_features,
-    window_key,
-)
+from orbis2.tasks.predictors import STAGES, PredictorTask
 from orbis2.train import train
 
 
@@ -92,7 +85,8 @@ class CurveTask(PredictorTask):
             none = variants["true"]["cond_mask"].clone().fill_(False)
             variants["no_subgoal"] = {"cond_frames": variants["true"]["cond_frames"] * 0, "cond_mask": none}
         if spec.steering:
-            steer, unknown = steering_features(self.batch["odometry"], self.batch["has_odometry"], data, self.cfg)
+            steer, unknown = steering_features(self.batch["odometry"], self.batch["has_odometry"], data,
+                                              (self.cfg.speed_scale, self.cfg.yaw_rate_scale))
             steer, unknown = steer.to(device), unknown.to(device)
             negated = steer * steer.new_tensor([1.0, -1.0])
             variants["true"] = {"steering": steer, "steering_drop": unknown}

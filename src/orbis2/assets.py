@@ -26,6 +26,7 @@ from typing import Callable
 
 import torch
 
+from orbis2.errors import OrbisError
 from orbis2.io import sha256_file
 from orbis2.models.i3d import convert_i3d_pickle
 from orbis2.models.teachers import load_dinov2_state_dict
@@ -87,6 +88,18 @@ ASSETS: dict[str, Asset] = {
         ),
     )
 }
+
+
+# The converted asset each frozen teacher of the abstract tokenizer loads.
+TEACHER_ASSETS = {"inception": "inception_v3", "dinov2": "dinov2_vitb14"}
+
+
+def asset_path(assets_dir: Path, name: str) -> Path:
+    """The converted file of asset ``name`` under the ``assets`` stage's folder; an error if it is not there."""
+    path = Path(assets_dir) / ASSETS[name].converted
+    if not path.is_file():
+        raise OrbisError(f"{path}: missing; run the `assets` stage first (python stages/assets.py)")
+    return path
 
 
 def _manual_fix(asset: Asset) -> str:

@@ -54,8 +54,6 @@ from orbis2.rollout import cascaded_rollout, first_context_end, rollout_schedule
 
 DEFAULT_ACTION = layout_path("predictor", "action") / "predictor.pt"
 DEFAULT_ABSTRACT_TF = layout_path("predictor", "abstract_tf") / "predictor.pt"
-# Steering inputs are divided by these (m/s, rad/s) unless the predictor's meta["steering"]["scale"] records its own.
-DEFAULT_STEERING_SCALE = (10.0, 0.5)
 
 
 # --------------------------------------------------------------------------- loading and checks
@@ -239,8 +237,10 @@ def rollout_command(args: argparse.Namespace) -> str:
         t = np.arange(last + 1) / data.fps
         speed = np.interp(t, odometry["timestamp"], odometry["speed"]) * args.speed_scale
         yaw_rate = np.interp(t, odometry["timestamp"], odometry["yaw_rate"]) * args.yaw_rate_scale
-        speed_norm, yaw_rate_norm = (abstract_pred.meta.get("steering") or {}).get("scale", DEFAULT_STEERING_SCALE)
-        steering = steering_sequences(schedule, speed, yaw_rate, speed_norm, yaw_rate_norm)
+        if "steering" not in abstract_pred.meta:
+            raise OrbisError(f"{abstract_path}: a steered predictor without its steering scale in the file; "
+                             f"re-train it with the action stage (python stages/predictor.py action)")
+        steering = steering_sequences(schedule, speed, yaw_rate, abstract_pred.meta["steering"]["scale"])
         steering = steering[None].to(device)
         x, y, _ = integrate_odometry(speed[context_end:], yaw_rate[context_end:], data.fps)
         path = (x, y)

@@ -378,3 +378,11 @@ class LatentWindowDataset(Dataset):
         # The same frames in the other latent space, for the hierarchy ablations' flat and top predictors.
         item["detail_slow"], item["abstract_fast"] = latent("detail", abstract), latent("abstract", detail)
         return item
+
+
+def collate(items: list[dict[str, Any]]) -> dict[str, torch.Tensor]:
+    """Stack the :class:`LatentWindowDataset` items' tensors the predictors read into one batch."""
+    return {**{key: torch.stack([i[key] for i in items])
+               for key in ("detail", "abstract", "detail_slow", "abstract_fast")},
+            "odometry": torch.stack([i["odometry"] for i in items]),
+            "has_odometry": torch.tensor([i["has_odometry"] for i in items])}

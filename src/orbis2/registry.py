@@ -118,6 +118,14 @@ class Registry:
         return list(dict.fromkeys(p for name in systems for p in self.systems[name].stages))
 
     @property
+    def steered(self) -> str:
+        """The steered top predictor (``steering: true``): the one ``eval_steering`` and the CLI drive."""
+        names = [name for name, spec in self.predictors.items() if spec.steering]
+        if len(names) != 1:
+            raise RegistryError(f"{registry_file()}: exactly one predictor must set steering: true, found {names}")
+        return names[0]
+
+    @property
     def probe_targets(self) -> list[str]:
         return [*self.representations, *(n for n, s in self.predictors.items() if s.probe)]
 

@@ -17,7 +17,7 @@ offsets the predictors were trained on.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +25,7 @@ import torch
 
 from orbis2.config import DataConfig
 from orbis2.flow import ModelFn, euler_grid, euler_sample, guided_velocity
+from orbis2.hierarchy import condition_frames, scale_steering, steering_rows
 from orbis2.windows import window_indices
 
 StepCallback = Callable[[int], None]
@@ -63,9 +64,7 @@ def rollout_schedule(data: DataConfig, context_end: int, steps: int) -> list[Sch
 
     Step k is a training window anchored ``k`` steps (0.5 s each) later; its
     context frames after ``context_end`` are earlier steps' predictions. The
-    steering samples are the native odometry rows from the last abstract context
-    frame up to (not including) the subgoal, i.e. the motion the subgoal
-    should reflect, anchored at the last context frame (the authors' code, "Steering").
+    steering samples are the training windows' (:func:`~orbis2.hierarchy.steering_rows`).
     """
     check_step_alignment(data)
     if context_end < first_context_end(data):
@@ -76,23 +75,23 @@ def rollout_schedule(data: DataConfig, context_end: int, steps: int) -> list[Sch
     for k in range(steps):
         anchor = context_end + k * advance
         detail, abstract = window_indices(data, anchor)
-        target = int(abstract[data.abstract_context])
         schedule.append(ScheduleStep(
             detail_context=tuple(int(i) for i in detail[: data.detail_context]),
             detail_target=tuple(int(i) for i in detail[data.detail_context:]),
             abstract_context=tuple(int(i) for i in abstract[: data.abstract_context]),
-            abstract_target=target,
-            steering=tuple(range(anchor, target)),
+            abstract_target=int(abstract[data.abstract_context]),
+            steering=tuple(steering_rows(data, anchor)),
         ))
     return schedule
 
 
 def steering_sequences(schedule: list[ScheduleStep], speed: np.ndarray, yaw_rate: np.ndarray,
-                       speed_norm: float = 1.0, yaw_rate_norm: float = 1.0) -> torch.Tensor:
-    """Per-step steering [steps, S, 2] (speed / speed_norm, yaw rate / yaw_rate_norm) from native-rate odometry."""
+                       scale: Sequence[float]) -> torch.Tensor:
+    """Per-step steering [steps, S, 2] of the steered predictor (:func:`~orbis2.hierarchy.scale_steering` by its
+    ``scale``) from native-rate speed and yaw rate."""
     index = np.array([step.steering for step in schedule])
-    values = np.stack([np.asarray(speed)[index] / speed_norm, np.asarray(yaw_rate)[index] / yaw_rate_norm], axis=-1)
-    return torch.from_numpy(values).float()
+    return scale_steering(torch.from_numpy(np.stack([np.asarray(speed)[index], np.asarray(yaw_rate)[index]], -1)),
+                          scale)
 
 
 def target_velocity(model: ModelFn, context: torch.Tensor, n_target: int, nfe: int, kv_cache: bool, cond: dict,
@@ -172,23 +171,6 @@ def _step_steering(steering: torch.Tensor | None, k: int, batch: int, steps: int
     return {"steering": steering[:, k]}
 
 
-def detail_conditioning(last_context: torch.Tensor, subgoal: torch.Tensor, n_context: int,
-                        n_target: int) -> tuple[torch.Tensor, tuple[int, int]]:
-    """cond_frames [B, F, C_a, h_a, w_a] of one detail window and its conditioned slots (the ``cond_mask``:
-    known here, so passed as slots, which keeps the detail forward free of host syncs).
-
-    The last abstract context latent sits at the last context slot and the
-    subgoal at the last target slot; other slots carry zeros (the authors' code,
-    "Hierarchy wiring").
-    """
-    b = last_context.shape[0]
-    frames = n_context + n_target
-    cond = last_context.new_zeros((b, frames, *last_context.shape[1:]))
-    cond[:, n_context - 1] = last_context
-    cond[:, frames - 1] = subgoal
-    return cond, (n_context - 1, frames - 1)
-
-
 @torch.no_grad()
 def cascaded_rollout(
     abstract_model: ModelFn,
@@ -243,8 +225,7 @@ def cascaded_rollout(
                                 **_step_steering(steering, k, b, steps))
         else:
             top = subgoals[:, k * top_frames_per_step:(k + 1) * top_frames_per_step]
-        cond_frames, cond_mask = detail_conditioning(abstract_context[:, -1], top[:, -1], n_context,
-                                                     frames_per_step)
+        cond_frames, cond_mask = condition_frames(abstract_context[:, -1], top[:, -1], n_context, frames_per_step)
         new = sample_frames(detail_model, detail_context, frames_per_step, detail_nfe, generator, kv_cache,
                             modulations=detail_table, frame_rate=detail_hz, cond_frames=cond_frames,
                             cond_mask=cond_mask)

@@ -57,6 +57,14 @@ import torch
 from orbis2.config import DataConfig
 from orbis2.data.motion import TURN_THRESHOLD
 from orbis2.errors import OrbisError
+from orbis2.eval.ego_motion import (
+    EGO_MOTION_TARGETS,
+    ego_motion_pairs,
+    ego_motion_probe,
+    probe_features,
+    ridge_predict,
+    select_penalty,
+)
 from orbis2.eval.stats import (
     bootstrap_statistic,
     decide,
@@ -64,20 +72,19 @@ from orbis2.eval.stats import (
     relative_difference,
 )
 from orbis2.flow import interpolate
-from orbis2.latents import KINDS, LatentCache, LatentWindowDataset
-from orbis2.models.stdit import best_sideways_shift
-from orbis2.registry import registry
-from orbis2.tasks.predictors import (
-    STAGES,
-    collate,
+from orbis2.hierarchy import (
     detail_condition,
     rate_geometry,
+    raw_steering,
+    scale_steering,
     steering_interval,
     window_key,
 )
+from orbis2.latents import KINDS, LatentCache, LatentWindowDataset, collate
+from orbis2.models.stdit import best_sideways_shift
+from orbis2.registry import registry
 
 ModelFn = Callable[..., torch.Tensor]
-STEERED = "action"  # the steered top predictor (stage eval_steering's)
 METRICS = ("loss", "one_step_mse")
 
 
@@ -85,7 +92,7 @@ def scope_predictors(scope: str) -> list[str]:
     """What ``eval_conditioning`` (scope ``main``) or ``eval_conditioning_all`` reads: the predictors of the
     scope's Table 1 systems (registry.yaml) and the steered top one, main ones first."""
     reg = registry()
-    return list(dict.fromkeys([*reg.table_predictors("main"), STEERED, *reg.table_predictors(scope)]))
+    return list(dict.fromkeys([*reg.table_predictors("main"), reg.steered, *reg.table_predictors(scope)]))
 MOVING_SPEED = 0.5  # m/s: a window "moves" above this mean speed
 
 
@@ -218,113 +225,6 @@ def energy_shares(clips: list[np.ndarray], template: np.ndarray, step: int) -> d
             "repeat_last_relative": repeat_mse / variation, "frames": int(sum(len(x) for x in clips))}
 
 
-EGO_MOTION_TARGETS = ("speed", "yaw_rate")  # the probe's target columns, in odometry order
-
-
-def probe_features(latents: np.ndarray, strips: int) -> np.ndarray:
-    """[N, C, h, w] -> [N, C * strips]: channel means over ``strips`` vertical strips (left to right);
-    ``strips`` = 0 keeps the whole grid, [N, C * h * w]. A 16-channel latent loses most of the
-    turn when pooled to strips (which suit a 768-channel teacher map), so the default is 0."""
-    if strips == 0:
-        return np.asarray(latents, np.float64).reshape(len(latents), -1)
-    parts = np.array_split(np.asarray(latents, np.float64), strips, axis=-1)
-    return np.concatenate([p.mean(axis=(-2, -1)) for p in parts], axis=1)
-
-
-def ego_motion_pairs(latents: list[np.ndarray], odometry: list[np.ndarray], labels: list[str], step: int,
-                     stride: int, strips: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Features (strips of the latents at t and t + step), targets (mean speed, yaw rate over [t, t + step)), clips."""
-    xs, ys, cs = [], [], []
-    for lat, odo, label in zip(latents, odometry, labels):
-        feats = probe_features(lat, strips)
-        for t in range(0, len(lat) - step, stride):
-            y = np.asarray(odo[t:t + step], np.float64).mean(axis=0)
-            if np.isfinite(y).all():
-                xs.append(np.concatenate([feats[t], feats[t + step]]))
-                ys.append(y)
-                cs.append(label)
-    if not xs:
-        raise ValueError("no ego-motion pairs: every clip is shorter than the step or lacks odometry")
-    return np.stack(xs), np.stack(ys), np.asarray(cs)
-
-
-def ridge_path(x: np.ndarray, y: np.ndarray, penalties) -> list[tuple[np.ndarray, ...]]:
-    """Ridge regression on standardised features (intercept unpenalised), one (mean, scale, weights, bias)
-    per penalty, sharing the Gram matrix."""
-    mean, scale = x.mean(axis=0), x.std(axis=0) + 1e-8
-    z = (x - mean) / scale
-    bias = y.mean(axis=0)
-    gram, moment, eye = z.T @ z, z.T @ (y - bias), np.eye(z.shape[1])
-    return [(mean, scale, np.linalg.solve(gram + penalty * eye, moment), bias) for penalty in penalties]
-
-
-def ridge_fit(x: np.ndarray, y: np.ndarray, penalties) -> tuple[np.ndarray, ...]:
-    """Ridge with one penalty per target column (``penalties``: a sequence, or one value for every column)."""
-    penalties = np.broadcast_to(np.asarray(penalties, np.float64), (y.shape[1],))
-    unique = sorted(set(penalties.tolist()))
-    path = dict(zip(unique, ridge_path(x, y, unique)))
-    mean, scale, _, bias = path[unique[0]]
-    weights = np.stack([path[p][2][:, j] for j, p in enumerate(penalties.tolist())], axis=1)
-    return mean, scale, weights, bias
-
-
-def ridge_predict(model: tuple[np.ndarray, ...], x: np.ndarray) -> np.ndarray:
-    mean, scale, weights, bias = model
-    return (x - mean) / scale @ weights + bias
-
-
-def weighted_r2(y: np.ndarray, pred: np.ndarray, weights: np.ndarray) -> float:
-    centre = weights @ y / weights.sum()
-    return float(1.0 - weights @ (y - pred) ** 2 / (weights @ (y - centre) ** 2))
-
-
-def select_penalty(x: np.ndarray, y: np.ndarray, clips, penalties, folds: int,
-                   seed: int) -> tuple[list[float], list[dict[float, float]]]:
-    """Per target column, the ridge penalty whose probe predicts held-out train clips best (R^2 over ``folds``
-    folds of whole clips), and each candidate's score per target. Thousands of features on a few thousand
-    pairs: a penalty too weak overfits the clips it saw, so it is chosen on train, never on val; and per
-    target, since the targets need not share their best penalty (speed wants a stronger one here)."""
-    labels = np.asarray([str(c) for c in clips])
-    unique = np.random.default_rng(seed).permutation(np.unique(labels))
-    if len(unique) < folds:
-        raise ValueError(f"choosing the probe's penalty over {folds} folds needs >= {folds} train clips, "
-                         f"got {len(unique)}")
-    fold = dict(zip(unique, np.arange(len(unique)) % folds))
-    assigned = np.array([fold[c] for c in labels])
-    candidates = [float(p) for p in penalties]
-    r2 = np.zeros((len(candidates), y.shape[1], folds))
-    for k in range(folds):
-        held = assigned == k
-        for i, model in enumerate(ridge_path(x[~held], y[~held], candidates)):
-            pred = ridge_predict(model, x[held])
-            r2[i, :, k] = [weighted_r2(y[held, j], pred[:, j], np.ones(int(held.sum()))) for j in range(y.shape[1])]
-    scores = r2.mean(axis=2)
-    best = [candidates[i] for i in scores.argmax(axis=0)]
-    return best, [dict(zip(candidates, scores[:, j].tolist())) for j in range(y.shape[1])]
-
-
-def ego_motion_probe(train: tuple[np.ndarray, np.ndarray], val: tuple[np.ndarray, np.ndarray], val_clips,
-                     penalty, reps: int, seed: int,
-                     names=EGO_MOTION_TARGETS) -> tuple[dict[str, Any], tuple[np.ndarray, ...]]:
-    """Val R^2 (clip-bootstrap interval) of a ridge probe per target, and of the same probe on shuffled targets;
-    also the fitted probe. ``penalty``: one per target (:func:`select_penalty`) or one for all.
-
-    The shuffled control trains on train targets permuted across pairs: what R^2 a probe
-    reaches without any real relation (about zero or below).
-    """
-    model = ridge_fit(*train, penalty)
-    pred = ridge_predict(model, val[0])
-    rng = np.random.default_rng(seed)
-    control = ridge_predict(ridge_fit(train[0], train[1][rng.permutation(len(train[1]))], penalty), val[0])
-    out: dict[str, Any] = {"train_pairs": len(train[0]), "val_pairs": len(val[0])}
-    for k, name in enumerate(names):
-        y = val[1][:, k]
-        iv = bootstrap_statistic(val_clips, lambda w, k=k, y=y: weighted_r2(y, pred[:, k], w), reps, seed=seed)
-        out[name] = {"r2": iv.estimate, "low": iv.low, "high": iv.high,
-                     "shuffled_r2": weighted_r2(y, control[:, k], np.ones(len(y)))}
-    return out, model
-
-
 # --------------------------------------------------------------------------- swaps
 
 
@@ -363,7 +263,7 @@ def condition_variants(stage: str, meta: dict, window: dict, keys, data: DataCon
                        frame_rate: float) -> dict[str, dict[str, Any]]:
     """Per variant the model's keyword inputs for ALL windows (sliced per batch later); "true" first."""
     base = {"frame_rate": frame_rate}
-    spec = STAGES[stage]
+    spec = registry().predictors[stage]
     if spec.condition is not None:
         slow = window[window_key(spec.condition, "slow")]
         other = slow.clone()
@@ -374,7 +274,7 @@ def condition_variants(stage: str, meta: dict, window: dict, keys, data: DataCon
                 "subgoal_other_clip": {**base, "cond_frames": other_frames, "cond_mask": mask},
                 "none": {**base, "cond_frames": torch.zeros_like(frames), "cond_mask": torch.zeros_like(mask)}}
     if spec.steering:
-        raw, unknown = raw_steering(window, data)
+        raw, unknown = raw_steering(window["odometry"], window["has_odometry"], steering_interval(data))
 
         def steer(values: torch.Tensor, drop: torch.Tensor | None = None) -> dict[str, Any]:
             return steering_condition(meta, values, unknown if drop is None else drop, frame_rate)
@@ -386,16 +286,9 @@ def condition_variants(stage: str, meta: dict, window: dict, keys, data: DataCon
     return {"true": base}
 
 
-def raw_steering(window: dict, data: DataConfig) -> tuple[torch.Tensor, torch.Tensor]:
-    """Speed and yaw rate [B, S, 2] (m/s, rad/s) over each window's predicted interval, and ``unknown`` [B]."""
-    raw = window["odometry"][:, steering_interval(data)]
-    return raw, ~window["has_odometry"].bool() | torch.isnan(raw).flatten(1).any(dim=1)
-
-
 def steering_condition(meta: dict, values: torch.Tensor, drop: torch.Tensor, frame_rate: float) -> dict[str, Any]:
     """A steered predictor's keyword inputs for raw steering ``values`` (scaled as its file records)."""
-    speed_norm, yaw_norm = meta["steering"]["scale"]
-    scaled = torch.nan_to_num(values / values.new_tensor([speed_norm, yaw_norm]))
+    scaled = torch.nan_to_num(scale_steering(values, meta["steering"]["scale"]))
     return {"frame_rate": frame_rate, "steering": scaled, "steering_drop": drop}
 
 
@@ -407,7 +300,7 @@ def _batch(cond: dict[str, Any], rows: slice, dev: torch.device) -> dict[str, An
 def evaluate_predictor(stage: str, predictor, first: dict, second: dict, keys, templates: dict[str, torch.Tensor],
                        data: DataConfig, settings, seed: int, dev: torch.device) -> tuple[dict, dict]:
     """(variant errors per window, one-step-mean and baseline errors at 0.5 s and 1 s per window) for one seed."""
-    spec = STAGES[stage]
+    spec = registry().predictors[stage]
     key, (rate, _, n_context) = window_key(spec.level, spec.rate), rate_geometry(data, spec.rate)
     model = predictor.model.eval()
     variants = condition_variants(stage, predictor.meta, first, keys, data, seed, float(rate))
@@ -472,9 +365,9 @@ def steering_readouts(stage: str, predictor, window: dict, data: DataConfig, mod
     """The commanded motion per window [N, 2] (mean speed and yaw rate over the predicted interval; NaN if
     unknown), and per window [N, 3] the :func:`motion_readout` of the real next latent ("real") and of the
     steered predictor's one-step mean under each mode's scaled steering (the same noise draws for every mode)."""
-    spec = STAGES[stage]
+    spec = registry().predictors[stage]
     key, (rate, _, n_context) = window_key(spec.level, spec.rate), rate_geometry(data, spec.rate)
-    raw, unknown = raw_steering(window, data)
+    raw, unknown = raw_steering(window["odometry"], window["has_odometry"], steering_interval(data))
     model = predictor.model.eval()
     generator = torch.Generator(dev).manual_seed(seed)
     parts: dict[str, list[np.ndarray]] = {"real": [], **{mode: [] for mode in modes}}

@@ -41,13 +41,12 @@ def steering_inputs(samples: list[Sample], odometry: np.ndarray, data: DataConfi
                                                                       torch.Tensor]:
     """One mode's commands: per sample the scaled (speed, yaw rate) from its last context frame on, and the
     steering input [N, steps, ...] of the steered predictor (``scale``: its speed and yaw-rate normalisers)."""
-    speed_norm, yaw_norm = scale
     controls, steering = [], []
     for s in samples:
         rows = odometry[s.offset: s.offset + s.context_end + steps * 5 + 1].astype(np.float64)
         speed, yaw = rows[:, 0] * speed_scale, rows[:, 1] * yaw_scale
         schedule = rollout_schedule(data, s.context_end, steps)
-        steering.append(steering_sequences(schedule, speed, yaw, speed_norm, yaw_norm))
+        steering.append(steering_sequences(schedule, speed, yaw, scale))
         controls.append((speed[s.context_end:], yaw[s.context_end:]))
     return controls, torch.stack(steering)
 

@@ -70,8 +70,17 @@ from orbis2.flow import (
     teacher_forcing_draws,
     teacher_forcing_from_draws,
 )
+from orbis2.hierarchy import (
+    STEERING_FEATURES,
+    detail_condition,
+    detail_condition_slots,
+    rate_geometry,
+    steering_features,
+    steering_interval,
+    window_key,
+)
 from orbis2.io import sha256_file
-from orbis2.latents import LatentCache, LatentWindowDataset
+from orbis2.latents import LatentCache, LatentWindowDataset, collate
 from orbis2.models.stdit import (
     TURN_SEARCH,
     best_sideways_shift,
@@ -86,7 +95,6 @@ from orbis2.windows import window_indices, window_span
 
 # Offset of the validation generator's seed from the training seed: a different stream, fixed across steps.
 VAL_SEED_OFFSET = 7919
-STEERING_FEATURES = ("speed", "yaw_rate")
 
 
 # What distinguishes the predictor stages: registry.yaml, ``predictors``.
@@ -94,77 +102,7 @@ StageSpec = PredictorSpec
 STAGES: dict[str, StageSpec] = registry().predictors
 
 
-def window_key(level: str, rate: str) -> str:
-    """The :class:`LatentWindowDataset` item key of ``level`` latents in the ``rate`` window."""
-    return {("detail", "fast"): "detail", ("abstract", "slow"): "abstract",
-            ("detail", "slow"): "detail_slow", ("abstract", "fast"): "abstract_fast"}[level, rate]
-
-
-def rate_geometry(data: DataConfig, rate: str) -> tuple[int, int, int]:
-    """(frames per second, window length, context length) of the ``slow`` or ``fast`` window."""
-    if rate == "slow":
-        return data.abstract_hz, data.abstract_window, data.abstract_context
-    return data.detail_hz, data.detail_window, data.detail_context
-
-
-# --------------------------------------------------------------------------- conditioning
-
-
-def detail_condition_slots(data: DataConfig) -> dict[int, int]:
-    """Detail frame slot -> abstract window index of the latent placed there.
-
-    The last detail context frame gets the last abstract context latent (same
-    native frame) and the last predicted detail frame gets the abstract subgoal
-    (the predicted abstract frame); every other slot gets none.
-    """
-    detail, abstract = window_indices(data, 0)
-    slots = {data.detail_context - 1: data.abstract_context - 1, data.detail_window - 1: data.abstract_window - 1}
-    for slot, index in slots.items():
-        if detail[slot] != abstract[index]:
-            raise OrbisError(f"detail slot {slot} (native frame {detail[slot]}) and abstract index {index} "
-                             f"(native frame {abstract[index]}) are not the same frame; check the data section")
-    return slots
-
-
-def detail_condition(abstract: torch.Tensor, data: DataConfig, slots: dict[int, int] | None = None
-                     ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Slow window [B, A, C, h, w] -> ``cond_frames`` [B, F_detail, C, h, w] and ``cond_mask`` [B, F_detail].
-
-    The slow window holds abstract latents (the hierarchy) or detail ones (Exp. 4's bottom predictor).
-    ``slots``: :func:`detail_condition_slots` of ``data`` when the caller has them already (the training
-    step, which must not run the window arithmetic inside a compiled region).
-    """
-    b = abstract.shape[0]
-    frames = abstract.new_zeros(b, data.detail_window, *abstract.shape[2:])
-    mask = torch.zeros(b, data.detail_window, dtype=torch.bool, device=abstract.device)
-    for slot, index in (detail_condition_slots(data) if slots is None else slots).items():
-        frames[:, slot] = abstract[:, index]
-        mask[:, slot] = True
-    return frames, mask
-
-
-def steering_interval(data: DataConfig) -> slice:
-    """Rows of the native odometry span (``item["odometry"]``) that drive the ego from the last
-    context frame to the predicted one: row k holds the controls over [t_k, t_k+1), so the
-    predicted frame's own row is excluded."""
-    detail, abstract = window_indices(data, 0)
-    first = int(window_span(detail, abstract)[0])
-    return slice(int(abstract[data.abstract_context - 1]) - first, int(abstract[-1]) - first)
-
-
-def steering_features(odometry: torch.Tensor, has_odometry: torch.Tensor, data: DataConfig,
-                      cfg: ActionConfig, interval: slice | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Native odometry span [B, S, 2] -> unit-scale steering [B, T, 2] and ``unknown`` [B].
-
-    Speed and yaw rate over the predicted interval, divided by the configured
-    scales. A sample without odometry, or with any NaN in the interval, is
-    ``unknown``: it must run unconditionally (its values are zeroed). ``interval``: the
-    :func:`steering_interval` of ``data`` when the caller has it (the training step).
-    """
-    values = odometry[:, steering_interval(data) if interval is None else interval]
-    values = values / values.new_tensor([cfg.speed_scale, cfg.yaw_rate_scale])
-    unknown = ~has_odometry.bool() | torch.isnan(values).flatten(1).any(dim=1)
-    return torch.where(unknown[:, None, None], torch.zeros_like(values), values), unknown
+# --------------------------------------------------------------------------- counterfactual turns
 
 
 def turn_columns_per_yaw_rate(dataset: LatentWindowDataset, data: DataConfig, windows: int = 2048) -> float:
@@ -230,14 +168,6 @@ def offset_yaw_draws(b: int, generator: torch.Generator, device: torch.device) -
 
 
 # --------------------------------------------------------------------------- data
-
-
-def collate(items: list[dict[str, Any]]) -> dict[str, torch.Tensor]:
-    """Stack the tensors the predictors use."""
-    return {**{key: torch.stack([i[key] for i in items])
-               for key in ("detail", "abstract", "detail_slow", "abstract_fast")},
-            "odometry": torch.stack([i["odometry"] for i in items]),
-            "has_odometry": torch.tensor([i["has_odometry"] for i in items])}
 
 
 def turn_repeats(dataset: LatentWindowDataset, data: DataConfig, cfg: PredictorConfig) -> np.ndarray:
@@ -450,8 +380,8 @@ class PredictorTask:
         targets = frames[:, n_context:]
         if self.spec.steering:
             assert isinstance(cfg, ActionConfig)
-            cond["steering"], unknown = steering_features(batch["odometry"], batch["has_odometry"], self.data, cfg,
-                                                               self.steer)
+            cond["steering"], unknown = steering_features(batch["odometry"], batch["has_odometry"], self.data,
+                                                          (cfg.speed_scale, cfg.yaw_rate_scale), self.steer)
             cond["steering_drop"] = unknown | (draws["steering_drop"] < (cfg.steering_dropout if augment else 0.0))
             metrics = {"steering_unknown": unknown.float().mean(),
                        "steering_dropped": cond["steering_drop"].float().mean()}

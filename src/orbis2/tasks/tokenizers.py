@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from torch import nn
 from tqdm import tqdm
 
-from orbis2.assets import ASSETS
+from orbis2.assets import TEACHER_ASSETS, asset_path
 from orbis2.config import AbstractTokenizerConfig, DetailTokenizerConfig, PipelineConfig
 from orbis2.data.shards import Clip, FrameDataset, load_manifest
 from orbis2.errors import OrbisError
@@ -69,7 +69,6 @@ SHUFFLE_BUFFER = 256
 GRID_IMAGES = 6
 # The FID network (TF InceptionV3 of the original FID) takes 299x299 inputs.
 FID_SIZE = 299
-TEACHER_ASSETS = {"inception": "inception_v3", "dinov2": "dinov2_vitb14"}
 DINOV2_PATCH = 14
 
 
@@ -462,13 +461,6 @@ def reconstruction_fid(model: nn.Module, inception_path: Path, val_frames: Itera
     real_stats = FeatureStats.from_features(torch.cat(real).numpy())
     fake_stats = FeatureStats.from_features(torch.cat(fake).numpy())
     return frechet_distance(real_stats.mean, real_stats.cov, fake_stats.mean, fake_stats.cov)
-
-
-def asset_path(assets_dir: Path, name: str) -> Path:
-    path = Path(assets_dir) / ASSETS[name].converted
-    if not path.is_file():
-        raise OrbisError(f"{path}: missing; run the `assets` stage first (python stages/assets.py)")
-    return path
 
 
 def _rank() -> int:
