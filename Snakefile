@@ -1,7 +1,7 @@
 # The pipeline DAG. Rules live in rules/*.smk; what they are made of (tokenizers,
 # latent sets, predictors, systems, probe targets, the main table) in registry.yaml,
-# every hyper-parameter in params.yaml (checked against params.schema.yaml and the
-# typed config when this file is read, so a typo fails here). dvc.yaml is generated
+# every hyper-parameter in params.yaml (checked by the typed config, orbis2.config,
+# when this file is read, so a typo fails here). dvc.yaml is generated
 # from these rules: `python -m orbis2.dag` (a test fails when it is stale).
 #
 #   snakemake --cores 2                       # main table, profile from params.yaml
@@ -18,9 +18,7 @@ import sys
 import uuid
 from pathlib import Path
 
-from snakemake.utils import validate
-
-from orbis2.config import load_params, parse_config, resolve_section
+from orbis2.config.params import load_params, parse_config, resolve_section
 from orbis2.dag import code_inputs
 from orbis2.registry import layout_path, registry
 
@@ -31,14 +29,12 @@ FILE_PROFILE = load_params("params.yaml")["profile"]  # Snakemake's reader lets 
 os.environ.setdefault("ORBIS2_PIPELINE_ID", f"snakemake:{uuid.uuid4()}")
 envvars: "ORBIS2_PIPELINE_ID"
 
-config.setdefault("train_launcher", "python")
 PROFILE = config["profile"]
 if PROFILE != FILE_PROFILE:  # DVC reads params.yaml only: say where its views and this run part ways
     print(f"profile {PROFILE} (--config); params.yaml says {FILE_PROFILE}, which is what `dvc params diff`, "
           f"`dvc exp show` and `dvc status` read. MLflow records {PROFILE}. To let DVC see this run, set "
           f"`profile: {PROFILE}` in params.yaml instead (docs/tracking.md).", file=sys.stderr)
-parse_config(config, PROFILE)  # the typed check first: its errors name the key (`abstract_df: unknown key(s) ...`)
-validate(config, "params.schema.yaml")  # then the file's shape: every section names every profile
+parse_config(config, PROFILE)  # every key, type and value, and the file's shape; errors name the key
 REG = registry()
 
 

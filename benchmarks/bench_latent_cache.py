@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, default_collate
 
-from orbis2.config import PipelineConfig, load_config
+from orbis2.config.params import PipelineConfig, load_config
 from orbis2.data.episodes import EpisodeRecord, RawIndex, write_odometry
 from orbis2.data.shards import MANIFEST, WindowDataset, write_shards
 from orbis2.data.video import write_video

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from orbis2.config import load_config
+from orbis2.config.params import load_config
+from orbis2.config.training import TrainConfig
 from orbis2.data.video import write_video
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -21,6 +22,19 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="session")
 def smoke_cfg():
     return load_config(ROOT / "params.yaml", "smoke")
+
+
+def train_config(**values) -> TrainConfig:
+    """A training config for unit tests: ``values`` over plain settings (AdamW, no weight decay, clipping or EMA).
+
+    TrainConfig has no defaults (params.yaml sets every field); tests that train tiny
+    models name what they vary and take the rest from here.
+    """
+    plain = dict(weight_decay=0.0, betas=(0.9, 0.999), optimizer="adamw", warmup_steps=0, min_lr_ratio=0.1,
+                 grad_clip=None, ema_decay=None, mixed_precision="bf16", tf32=True, activation_checkpointing=0,
+                 checkpoint_policy="full", compile=False, log_every=10, eval_every=0, checkpoint_every=500, seed=0,
+                 num_workers=0)
+    return TrainConfig(**{**plain, **values})
 
 
 def moving_pattern(n: int, width: int, height: int, seed: int = 0) -> np.ndarray:

@@ -1,11 +1,15 @@
-"""params.yaml resolution: profiles, strict keys, types and impossible values."""
+"""params.yaml resolution: profiles, strict keys, types and impossible values, and params.yaml as the one source."""
 
 import copy
+import dataclasses
+import typing
 
 import pytest
 import yaml
 
-from orbis2.config import ASSETS_DIR, PROFILES, ConfigError, load_config, load_params
+from orbis2.config.params import PROFILES, load_config, load_params, section_types
+from orbis2.config.sections import ASSETS_DIR
+from orbis2.errors import ConfigError
 from orbis2.registry import registry
 
 from conftest import ROOT
@@ -50,12 +54,19 @@ def test_profile_key_selects_values(tmp_path):
 
 @pytest.mark.parametrize("mutate, key", [
     (lambda r: r["town"]["all"].update(sede=1), "town.smoke: unknown key(s) ['sede']"),
-    (lambda r: r["data"]["all"].update(fps="ten"), "data.smoke.fps must be an integer"),
+    (lambda r: r["data"]["all"].update(fps="ten"), "data.smoke.fps must be int, got 'ten' (str)"),
     (lambda r: r["data"]["all"].update(fps=25), "data.smoke.fps = 25 must be an integer multiple of detail_hz"),
     (lambda r: r["data"]["all"].update(fps=15), "data.smoke.fps = 15 must be an integer multiple of detail_hz"),
     (lambda r: r["shards"]["smoke"]["clip_seconds"].update(train=1.0), "clip_seconds.train = 1.0 is shorter"),
     (lambda r: r["town"]["smoke"]["episodes"].pop("probe"), "town.smoke.episodes must name exactly the splits"),
-    (lambda r: r["town"]["all"].update(workers=True), "town.smoke.workers must be an integer"),
+    (lambda r: r["town"]["all"].update(workers=True), "town.smoke.workers must be int, got True (bool)"),
+    (lambda r: r["action"]["all"].update(speed_scale="fast"), "action.smoke.speed_scale must be float, got 'fast'"),
+    (lambda r: r["evaluation"]["all"]["probe"].update(kitti=3), "evaluation.smoke.probe.kitti must be str, got 3"),
+    (lambda r: r["_predictor"]["all"]["train"].update(betas=[0.9]),
+     "abstract_df.smoke.train.betas must be tuple[float, float], got [0.9]"),
+    (lambda r: r["_tokenizer"].pop("gpu"), "_tokenizer: no ['gpu']; every section names 'all' and each profile"),
+    (lambda r: r.update(_unused={"all": {}}), "_unused: no ['smoke', 'default', 'gpu', 'paper']"),
+    (lambda r: r.update(train_launcher=3), "train_launcher = 3 must be a command"),
     (lambda r: r.update(profile="huge"), "profile = 'huge' must be one of"),
     (lambda r: r["evaluation"]["smoke"].update(steering_guidance=-1.0),
      "evaluation.smoke.steering_guidance = -1.0 must be >= 0"),
@@ -106,3 +117,35 @@ def test_assets_dir_must_be_the_dags_output(tmp_path):
     with pytest.raises(ConfigError, match="dir = '/big/disk/assets' differs .* make data/assets a symlink"):
         load_config(path, "smoke")
     assert load_config(write_params(tmp_path, lambda r: r["assets"]["all"].update(dir="data/assets/")), "smoke")
+
+
+# --------------------------------------------------------------------------- one source of every value
+
+
+def typed_fields(cls, prefix=""):
+    """``(dotted name, field)`` of every field of section type ``cls``, nested sections (``train``, ...) included."""
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        if dataclasses.is_dataclass(hints[f.name]):
+            yield from typed_fields(hints[f.name], f"{prefix}{f.name}.")
+        else:
+            yield f"{prefix}{f.name}", f
+
+
+def test_no_section_field_has_a_default():
+    """params.yaml is the one source: a default in the code would silently take over when a key is missing."""
+    with_default = [f"{name}.{key}" for name, cls in section_types().items() for key, f in typed_fields(cls)
+                    if f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING]
+    assert with_default == []
+
+
+def test_a_key_missing_from_params_yaml_is_an_error_naming_section_key_and_file(tmp_path):
+    path = write_params(tmp_path, lambda r: r["action"]["all"].pop("yaw_rate_scale"))
+    with pytest.raises(ConfigError) as err:
+        load_config(path, "smoke")
+    message = str(err.value)
+    assert str(path) in message and "section 'action'" in message and "['yaw_rate_scale']" in message
+    assert "add it under action.all (or in the section it extends, _fine_tune -> _teacher_forcing" in message
+    nested = write_params(tmp_path, lambda r: r["_predictor"]["all"]["train"].pop("min_lr_ratio"))
+    with pytest.raises(ConfigError, match=r"section 'abstract_df' has no value for \['train.min_lr_ratio'\]"):
+        load_config(nested, "smoke")

@@ -11,7 +11,7 @@ import yaml
 from snakemake.utils import format as snakemake_format
 
 from orbis2 import dag
-from orbis2.config import PROFILES, load_params, resolve_section
+from orbis2.config.params import PROFILES, load_params, resolve_section
 
 from conftest import ROOT
 
@@ -177,7 +177,7 @@ def test_dvc_and_snakemake_rerun_on_the_same_edits(both, profile):
 
 
 def project_copy(dest: Path) -> Path:
-    for name in ("Snakefile", "params.yaml", "params.schema.yaml", "registry.yaml"):
+    for name in ("Snakefile", "params.yaml", "registry.yaml"):
         shutil.copy2(ROOT / name, dest / name)
     for folder in ("rules", "stages", "pipelines"):
         shutil.copytree(ROOT / folder, dest / folder)

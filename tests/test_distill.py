@@ -77,9 +77,10 @@ def test_distill_stage_beats_its_teacher_at_smoke_scale(smoke_cfg, tmp_path):
     """The `detail_distill` task (smoke section, the shared training loop) against a curved smoke teacher."""
     from test_predictors import SPAN, write_cache
 
-    from orbis2.config import TrainConfig
     from orbis2.tasks.predictors import PredictorTask
     from orbis2.train import load_weights, train
+
+    from conftest import train_config
 
     torch.set_num_threads(1)
     cache = write_cache(tmp_path / "cache", {"train": [SPAN + 3], "val": [SPAN + 5]})
@@ -87,7 +88,7 @@ def test_distill_stage_beats_its_teacher_at_smoke_scale(smoke_cfg, tmp_path):
     with torch.no_grad():
         for p in teacher.parameters():
             p.add_(0.1 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())))
-    cfg = dataclasses.replace(smoke_cfg.section("detail_distill"), val_batches=1, train=TrainConfig(
+    cfg = dataclasses.replace(smoke_cfg.section("detail_distill"), val_batches=1, train=train_config(
         steps=120, batch_size=4, lr=0.002, warmup_steps=2, log_every=20, checkpoint_every=1000, seed=3))
     task = PredictorTask("detail_distill", cfg, smoke_cfg.data, cache, teacher.state_dict())
     result = train(task, cfg.train, tmp_path / "run")

@@ -8,7 +8,7 @@ import sys
 import pytest
 import yaml
 
-from orbis2.config import load_config
+from orbis2.config.params import load_config
 
 from conftest import ROOT
 

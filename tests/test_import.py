@@ -188,7 +188,7 @@ def test_the_dag_watches_every_video_file(tmp_path, make_video, monkeypatch):
     """A video added to a split sub-folder must change the import rule's inputs (a folder's mtime does not)."""
     from test_dag import snakemake_rules
 
-    for name in ("Snakefile", "params.yaml", "params.schema.yaml", "registry.yaml"):
+    for name in ("Snakefile", "params.yaml", "registry.yaml"):
         (tmp_path / name).write_text((ROOT / name).read_text())
     shutil.copytree(ROOT / "rules", tmp_path / "rules")
     video = make_video("a.mp4", 30, fps=10, folder=tmp_path / "data" / "videos" / "train")

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from orbis2.config import InverseDynamicsConfig
+from orbis2.config.sections import InverseDynamicsConfig
 from orbis2.eval.inverse_dynamics import ClipFrames, Instrument, evaluate_instrument, pair_index, train_instrument
 from orbis2.eval.odometry import camera_intrinsics, trajectory_ade
 from orbis2.sim import Camera, Town, render_episode, simulate_ego
@@ -27,7 +27,8 @@ def episodes(town, seeds, seconds=12.0):
 def trained():
     town = Town.generate("default", 11)
     train, val = episodes(town, range(6)), episodes(town, (20, 21, 22))
-    cfg = InverseDynamicsConfig(steps=200, batch_size=32, width=16, scale=0.5, seed=0)
+    cfg = InverseDynamicsConfig(steps=200, batch_size=32, lr=2e-3, weight_decay=1e-4, width=16, scale=0.5,
+                                max_train_clips=None, eval_pairs=512, seed=0)
     torch.set_num_threads(2)
     return train_instrument(train, cfg, FPS, torch.device("cpu")), val
 

@@ -14,8 +14,8 @@ from conftest import ROOT
 
 SRC = ROOT / "src"
 LAYERS = (
-    ("orbis2.errors", "orbis2.io", "orbis2.flow", "orbis2.losses", "orbis2.kinematics", "orbis2.accel",
-     "orbis2.models"),
+    ("orbis2.errors", "orbis2.typecheck", "orbis2.io", "orbis2.flow", "orbis2.losses", "orbis2.kinematics",
+     "orbis2.accel", "orbis2.models"),  # typecheck: the one type checker of params sections and model sizes
     ("orbis2.sim",),  # the driving simulator: numpy/numba/cv2 and orbis2.kinematics only
     ("orbis2.registry", "orbis2.config"),  # config checks model presets; both read registry.yaml
     ("orbis2.windows", "orbis2.hierarchy", "orbis2.data"),  # hierarchy: what each predictor sees

@@ -18,7 +18,7 @@ import pytest
 import yaml
 from test_dag import dvc_stages
 
-from orbis2.config import load_config
+from orbis2.config.params import load_config
 from orbis2.data.shards import Clip, iter_samples, load_manifest, shard_paths, verify_shards
 from orbis2.latents import LatentWindowDataset, open_cache
 from orbis2.models.stdit import load_predictor

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 import torch
 
-from orbis2.config import TrainConfig
 from orbis2.errors import OrbisError
 from orbis2.hierarchy import detail_condition, detail_condition_slots, rate_geometry, steering_features
 from orbis2.io import sha256_file
@@ -24,6 +23,8 @@ from orbis2.tasks.predictors import (
 )
 from orbis2.train import DataSpec, load_weights, spawn_cpu_processes, train
 from orbis2.windows import window_indices, window_span
+
+from conftest import train_config
 
 C, H, W = 4, 3, 4
 SPAN = 26  # native frames of one training window (smoke data section)
@@ -71,8 +72,8 @@ def tiny_cfg(smoke_cfg, stage, **changes):
     cfg = smoke_cfg.section(stage)
     if hasattr(cfg, "yaw_offset_prob"):
         changes = {"yaw_offset_prob": 0.0, **changes}
-    train_cfg = TrainConfig(steps=80, batch_size=4, lr=0.003, warmup_steps=5, log_every=1, eval_every=80,
-                            checkpoint_every=1000, seed=3)
+    train_cfg = train_config(steps=80, batch_size=4, lr=0.003, warmup_steps=5, log_every=1, eval_every=80,
+                             checkpoint_every=1000, seed=3)
     return dataclasses.replace(cfg, **{"train": train_cfg, "init_from": None, "val_batches": 1, **changes})
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from orbis2.config import load_params
+from orbis2.config.params import load_params
 
 from conftest import ROOT
 

@@ -11,7 +11,7 @@ import torch
 from PIL import Image
 
 from orbis2.cli import main
-from orbis2.config import DataConfig
+from orbis2.config.sections import DataConfig
 from orbis2.data.video import codec_of, read_video
 from orbis2.models.stdit import build_stdit, build_stdit_from, save_predictor
 from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer, save_tokenizer
@@ -32,9 +32,15 @@ TABLE_20HZ = [  # fps 20: detail stride 2, abstract stride 10, last context fram
 ]
 
 
+def hierarchy(fps: int) -> DataConfig:
+    """The paper's two rates and windows (10 Hz detail 5+5, 2 Hz abstract 5+1) over a native rate of ``fps``."""
+    return DataConfig(width=128, height=72, fps=fps, source="town", detail_hz=10, abstract_hz=2, detail_window=10,
+                      detail_context=5, abstract_window=6, abstract_context=5)
+
+
 @pytest.mark.parametrize("fps, context_end, table", [(10, 20, TABLE_10HZ), (20, 40, TABLE_20HZ)])
 def test_schedule_matches_hand_table(fps, context_end, table):
-    data = DataConfig(width=128, height=72, fps=fps)
+    data = hierarchy(fps)
     assert first_context_end(data) == context_end
     schedule = rollout_schedule(data, context_end, len(table))
     got = [(s.detail_context, s.detail_target, s.abstract_context, s.abstract_target, s.steering) for s in schedule]
@@ -42,7 +48,7 @@ def test_schedule_matches_hand_table(fps, context_end, table):
 
 
 def test_schedule_later_start_shifts_everything_and_early_start_fails():
-    data = DataConfig(width=128, height=72, fps=10)
+    data = hierarchy(10)
     shifted = rollout_schedule(data, 27, 2)
     assert shifted[1].abstract_context == (12, 17, 22, 27, 32) and shifted[1].abstract_target == 37
     with pytest.raises(ValueError, match="needs >= 20"):
@@ -50,7 +56,7 @@ def test_schedule_later_start_shifts_everything_and_early_start_fails():
 
 
 def test_steering_sequences_sample_the_schedule():
-    data = DataConfig(width=128, height=72, fps=10)
+    data = hierarchy(10)
     schedule = rollout_schedule(data, 20, 2)
     speed, yaw = np.arange(40.0), -np.arange(40.0)
     seq = steering_sequences(schedule, speed, yaw, (2.0, 1.0))

@@ -25,6 +25,8 @@ from orbis2.tasks.tokenizers import (
 )
 from orbis2.train import DataSpec, TrainConfig, load_weights, train
 
+from conftest import train_config
+
 
 @pytest.fixture(autouse=True)
 def one_thread():
@@ -121,7 +123,7 @@ def test_latent_statistics_global_and_per_position():
 def tiny_train(**overrides) -> TrainConfig:
     values = dict(steps=8, batch_size=4, lr=2e-3, warmup_steps=1, log_every=1, eval_every=8, checkpoint_every=4,
                   mixed_precision="none", optimizer="adam", betas=(0.5, 0.9), seed=3)
-    return TrainConfig(**{**values, **overrides})
+    return train_config(**{**values, **overrides})
 
 
 def fake_inception(path):

@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from orbis2.config import ConfigError
+from orbis2.errors import ConfigError
 from orbis2.train import (
     DataSpec,
     ResumeError,
@@ -23,6 +23,8 @@ from orbis2.train import (
     spawn_cpu_processes,
     train,
 )
+
+from conftest import train_config
 
 DIM = 6
 
@@ -141,7 +143,7 @@ class Recorder:
 def config(**overrides) -> TrainConfig:
     values = dict(steps=30, batch_size=8, lr=1e-2, weight_decay=0.01, warmup_steps=4, min_lr_ratio=0.1,
                   grad_clip=1.0, ema_decay=0.9, mixed_precision="none", log_every=5, checkpoint_every=7, seed=3)
-    return TrainConfig(**{**values, **overrides})
+    return train_config(**{**values, **overrides})
 
 
 def saved_state(out_dir: Path) -> dict[str, dict[str, torch.Tensor]]:

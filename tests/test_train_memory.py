@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from orbis2.config import load_config
+from orbis2.config.params import load_config
 from orbis2.models.stdit import build_stdit_from
 from orbis2.tasks.memory import _inputs, calibrate, measure, stage_estimate, tokens
 from orbis2.tasks.predictors import STAGES

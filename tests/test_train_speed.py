@@ -8,10 +8,12 @@ import torch
 from test_predictors import SPAN, tiny_cfg, write_cache
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from orbis2.config import ConfigError, TrainConfig
+from orbis2.errors import ConfigError
 from orbis2.models.stdit import build_stdit
 from orbis2.tasks.predictors import PredictorTask, window_batches
 from orbis2.train import DataSpec, _Env, _Meter, _Run, set_checkpointing
+
+from conftest import train_config
 
 aten = torch.ops.aten
 SYNC_OPS = {aten._local_scalar_dense.default, aten.item.default, aten.is_nonzero.default}
@@ -164,15 +166,15 @@ def test_checkpointing_policies_keep_the_gradients():
 
 def test_bad_speed_options_are_refused():
     with pytest.raises(ConfigError, match="checkpoint_policy"):
-        TrainConfig(steps=1, batch_size=1, lr=0.1, checkpoint_policy="some")
+        train_config(steps=1, batch_size=1, lr=0.1, checkpoint_policy="some")
     with pytest.raises(ConfigError, match="compile"):
-        TrainConfig(steps=1, batch_size=1, lr=0.1, compile="yes")
+        train_config(steps=1, batch_size=1, lr=0.1, compile="yes")
     with pytest.raises(ConfigError, match="does not support"):
         set_checkpointing(torch.nn.Linear(2, 2), 1, "selective")
 
 
 def test_speed_options_do_not_change_the_resume_fingerprint():
-    base = TrainConfig(steps=1, batch_size=1, lr=0.1)
+    base = train_config(steps=1, batch_size=1, lr=0.1)
     fast = dataclasses.replace(base, compile=True, checkpoint_policy="selective", activation_checkpointing=2)
     assert fast.fingerprint() == base.fingerprint()
 

@@ -39,7 +39,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
-from orbis2.config import load_config, load_yaml  # noqa: E402
+from orbis2.config.params import load_config, load_yaml  # noqa: E402
 from orbis2.tasks.predictors import STAGES as PREDICTOR_STAGES  # noqa: E402
 
 

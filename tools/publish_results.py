@@ -28,7 +28,7 @@ from pathlib import Path
 import pandas as pd
 import torch
 
-from orbis2.config import PROFILES, load_params, resolve_section
+from orbis2.config.params import PROFILES, load_params, resolve_section
 from orbis2.io import atomic_file
 
 TABLES = ("main_table.csv", "steering.csv", "speed.csv", "conditioning.csv")

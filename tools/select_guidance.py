@@ -23,7 +23,7 @@ from pathlib import Path
 
 import yaml
 
-from orbis2.config import load_config, load_params
+from orbis2.config.params import load_config, load_params
 from orbis2.eval.steering import choose_guidance
 
 STAGE = Path(__file__).resolve().parents[1] / "stages" / "eval_steering.py"

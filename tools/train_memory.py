@@ -14,7 +14,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from orbis2.config import load_config
+from orbis2.config.params import load_config
 from orbis2.tasks.memory import stage_estimate
 from orbis2.tasks.predictors import STAGES
 

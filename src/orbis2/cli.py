@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from orbis2.accel import cast_for_inference, compile_decoder, compile_predictor, inference_autocast, set_tf32
 from orbis2.assets import AssetError, ensure_asset
-from orbis2.config import PROFILES, load_config
+from orbis2.config.params import PROFILES, load_config
 from orbis2.data.datasets import bdd100k, nuplan, opendv, physicalai_av
 from orbis2.data.episodes import read_odometry
 from orbis2.data.importer import read_odometry_csv

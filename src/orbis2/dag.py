@@ -23,7 +23,7 @@ from typing import Any
 
 import yaml
 
-from orbis2.config import load_params, section_chain
+from orbis2.config.params import load_params, section_chain
 from orbis2.registry import layout_path, registry
 
 ROOT = Path(__file__).resolve().parents[2]

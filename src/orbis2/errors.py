@@ -7,3 +7,7 @@ with status 2 instead of a stack trace; anything else is a bug and keeps its tra
 
 class OrbisError(ValueError):
     """A user-fixable problem; the message names the file or key and the fix."""
+
+
+class ConfigError(OrbisError):
+    """A params.yaml value (or a model size) is missing, unknown, mistyped or impossible."""

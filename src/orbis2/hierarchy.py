@@ -21,7 +21,7 @@ from collections.abc import Sequence
 
 import torch
 
-from orbis2.config import DataConfig
+from orbis2.config.sections import DataConfig
 from orbis2.errors import OrbisError
 from orbis2.windows import window_indices, window_span
 

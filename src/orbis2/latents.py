@@ -42,7 +42,7 @@ import torch
 from torch.utils.data import Dataset
 from tqdm import tqdm
 
-from orbis2.config import DataConfig
+from orbis2.config.sections import DataConfig
 from orbis2.data.shards import (
     MANIFEST,
     Clip,

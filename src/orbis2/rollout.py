@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from orbis2.config import DataConfig
+from orbis2.config.sections import DataConfig
 from orbis2.flow import ModelFn, euler_grid, euler_sample, guided_velocity
 from orbis2.hierarchy import condition_frames, scale_steering, steering_rows
 from orbis2.windows import window_indices

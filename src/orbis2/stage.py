@@ -30,7 +30,8 @@ from pathlib import Path
 from typing import Iterable, Iterator, Sequence
 
 import orbis2
-from orbis2.config import BOOKKEEPING_FIELDS, PipelineConfig, as_dict, load_config
+from orbis2.config.params import PipelineConfig, as_dict, load_config
+from orbis2.config.training import BOOKKEEPING_FIELDS
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_dir, sha256_file, write_json
 from orbis2.registry import layout_path, registry

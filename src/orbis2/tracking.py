@@ -38,7 +38,7 @@ from urllib.parse import urlparse
 
 from filelock import FileLock
 
-from orbis2.config import flatten
+from orbis2.config.params import flatten
 
 DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
 PIPELINE_ENV = "ORBIS2_PIPELINE_ID"

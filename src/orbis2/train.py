@@ -49,8 +49,8 @@ from torch.utils.checkpoint import CheckpointPolicy, checkpoint, create_selectiv
 from tqdm import tqdm
 
 from orbis2.accel import set_tf32
-from orbis2.config import CHECKPOINT_POLICIES, ConfigError, TrainConfig
-from orbis2.errors import OrbisError
+from orbis2.config.training import CHECKPOINT_POLICIES, TrainConfig
+from orbis2.errors import ConfigError, OrbisError
 from orbis2.io import atomic_file
 
 # The loss and its metrics (0-dim tensors or numbers; tensors are read only when the metrics are logged).

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from orbis2.config import DataConfig
+from orbis2.config.sections import DataConfig
 
 
 def window_indices(data: DataConfig, anchor: int) -> tuple[np.ndarray, np.ndarray]:

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from orbis2.config import SPLITS, DataConfig, ImportConfig
+from orbis2.config.sections import SPLITS, DataConfig, ImportConfig
 from orbis2.data.episodes import EpisodeRecord, RawIndex, write_odometry
 from orbis2.data.video import VIDEO_SUFFIXES, VideoError, probe, read_video, resample_stride, write_video
 from orbis2.errors import OrbisError

@@ -39,7 +39,7 @@ import webdataset as wds
 from torch.utils.data import IterableDataset, get_worker_info
 from tqdm import tqdm
 
-from orbis2.config import SPLITS, DataConfig, ShardsConfig
+from orbis2.config.sections import SPLITS, DataConfig, ShardsConfig
 from orbis2.data.episodes import RawIndex, read_odometry
 from orbis2.data.video import read_video
 from orbis2.errors import OrbisError

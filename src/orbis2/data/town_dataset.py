@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from orbis2.config import SPLITS, DataConfig, TownConfig
+from orbis2.config.sections import SPLITS, DataConfig, TownConfig
 from orbis2.data.episodes import EpisodeRecord, RawIndex, read_odometry, write_labels, write_odometry
 from orbis2.data.motion import motion_statistics
 from orbis2.data.video import write_video

@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from orbis2.config import DataConfig
+from orbis2.config.sections import DataConfig
 from orbis2.data.motion import TURN_THRESHOLD
 from orbis2.errors import OrbisError
 from orbis2.eval.ego_motion import (

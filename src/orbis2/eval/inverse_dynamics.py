@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 
 from orbis2.accel import conv_layout
-from orbis2.config import InverseDynamicsConfig
+from orbis2.config.sections import InverseDynamicsConfig
 from orbis2.data.shards import Clip, iter_samples, shard_paths
 from orbis2.errors import OrbisError
 from orbis2.kinematics import integrate_controls

@@ -41,7 +41,7 @@ import torch.nn.functional as F
 from torch import nn
 from tqdm import tqdm
 
-from orbis2.config import ProbeSettings
+from orbis2.config.sections import ProbeSettings
 from orbis2.data.probes import (
     IGNORE,
     NUM_CLASSES,

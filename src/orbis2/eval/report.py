@@ -24,7 +24,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import pandas as pd
 
-from orbis2.config import PipelineConfig
+from orbis2.config.params import PipelineConfig
 from orbis2.errors import OrbisError
 from orbis2.eval.conditioning import claim_verdict, conditioning_rows
 from orbis2.eval.figures import pyplot, save_figure

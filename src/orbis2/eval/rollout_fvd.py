@@ -28,7 +28,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from orbis2.config import DataConfig, EvaluationConfig
+from orbis2.config.sections import DataConfig, EvaluationConfig
 from orbis2.data.shards import Clip, split_clips, split_digest
 from orbis2.data.video import write_gif, write_video
 from orbis2.eval.evaluate import i3d_picks, protocol, score_rollouts

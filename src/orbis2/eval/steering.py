@@ -23,7 +23,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from orbis2.config import DataConfig
+from orbis2.config.sections import DataConfig
 from orbis2.data.shards import Clip
 from orbis2.eval.conditioning import sideways_shift
 from orbis2.eval.figures import save_steering_strip

@@ -34,7 +34,7 @@ import torch
 from tqdm import tqdm
 
 from orbis2.accel import Inference, cast_for_inference, compile_decoder, compile_predictor, inference_autocast, set_tf32
-from orbis2.config import DataConfig, EvaluationConfig
+from orbis2.config.sections import DataConfig, EvaluationConfig
 from orbis2.errors import OrbisError
 from orbis2.latents import LatentCache
 from orbis2.models.stdit import PredictorFile, load_predictor

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 import typing
-from functools import cache
 from typing import Any, ClassVar, TypeVar
+
+from orbis2.typecheck import field_types, typed
 
 C = TypeVar("C", bound="ModelConfig")
 
@@ -14,17 +15,17 @@ C = TypeVar("C", bound="ModelConfig")
 class ModelConfig:
     """Base of a model family's size config (``STDiTConfig``, ``TokenizerConfig``): a frozen dataclass.
 
-    Every construction checks the fields' types (an int is accepted for a float,
-    a list for a tuple) and the family's invariants (:meth:`check`); a
-    ``ValueError`` names the family (``KIND``) and the field.
+    Every construction checks the fields' types (``orbis2.typecheck``: an int is
+    accepted for a float, a list for a tuple) and the family's invariants
+    (:meth:`check`); a ``ValueError`` names the family (``KIND``) and the field.
     """
 
     KIND: ClassVar[str] = "model"
 
     def __post_init__(self) -> None:
-        hints = _hints(type(self))
+        hints = field_types(type(self))
         for f in dataclasses.fields(self):
-            object.__setattr__(self, f.name, _typed(self.KIND, f.name, hints[f.name], getattr(self, f.name)))
+            object.__setattr__(self, f.name, typed(hints[f.name], getattr(self, f.name), f"{self.KIND}: {f.name}"))
         self.check()
 
     def check(self) -> None:
@@ -69,31 +70,3 @@ def split_build(presets: dict[str, C], build: dict[str, Any]) -> tuple[C, dict[s
     fields = {f.name for f in dataclasses.fields(next(iter(presets.values())))}
     overrides = {key: rest.pop(key) for key in build if key in fields}
     return preset_config(presets, preset, overrides), rest
-
-
-@cache
-def _hints(cls: type) -> dict[str, Any]:
-    return typing.get_type_hints(cls)
-
-
-def _typed(kind: str, name: str, tp: Any, value: Any) -> Any:
-    """``value`` as a ``tp`` (int -> float, list -> tuple), or a ``ValueError`` naming the field."""
-    if typing.get_origin(tp) is tuple:
-        args = typing.get_args(tp)
-        if isinstance(value, (list, tuple)):
-            items = args[:1] * len(value) if args[1:] == (Ellipsis,) else args
-            if len(items) == len(value) and all(_is(a, v) for a, v in zip(items, value)):
-                return tuple(value)
-    elif _is(tp, value):
-        return float(value) if tp is float else value
-    raise ValueError(f"{kind}: {name} must be {_name(tp)}, got {value!r} ({type(value).__name__})")
-
-
-def _is(tp: type, value: Any) -> bool:
-    if isinstance(value, bool):
-        return tp is bool
-    return isinstance(value, (int, float)) if tp is float else isinstance(value, tp)
-
-
-def _name(tp: Any) -> str:
-    return getattr(tp, "__name__", None) if typing.get_origin(tp) is None else str(tp).replace("typing.", "")

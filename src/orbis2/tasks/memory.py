@@ -27,7 +27,7 @@ import torch
 from torch import nn
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from orbis2.config import PipelineConfig
+from orbis2.config.params import PipelineConfig
 from orbis2.models.stdit import build_stdit_from, stdit_config
 from orbis2.models.tokenizer import tokenizer_config
 from orbis2.registry import registry

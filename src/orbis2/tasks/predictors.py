@@ -51,14 +51,9 @@ import torch.distributed as dist
 from torch import nn
 from torch.utils.data import DataLoader
 
-from orbis2.config import (
-    ActionConfig,
-    DataConfig,
-    DistillConfig,
-    PipelineConfig,
-    PredictorConfig,
-    TeacherForcingConfig,
-)
+from orbis2.config.params import PipelineConfig
+from orbis2.config.sections import DataConfig
+from orbis2.config.training import ActionConfig, DistillConfig, PredictorConfig, TeacherForcingConfig
 from orbis2.data.motion import TURN_THRESHOLD
 from orbis2.errors import OrbisError
 from orbis2.flow import (

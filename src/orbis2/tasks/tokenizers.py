@@ -35,7 +35,8 @@ from torch import nn
 from tqdm import tqdm
 
 from orbis2.assets import TEACHER_ASSETS, asset_path
-from orbis2.config import AbstractTokenizerConfig, DetailTokenizerConfig, PipelineConfig
+from orbis2.config.params import PipelineConfig
+from orbis2.config.training import AbstractTokenizerConfig, DetailTokenizerConfig
 from orbis2.data.shards import Clip, FrameDataset, load_manifest
 from orbis2.errors import OrbisError
 from orbis2.eval.fvd import FeatureStats, frechet_distance
