@@ -100,8 +100,9 @@ def i3d_file(given: Path | None, cfg, assets: Path | None = None) -> Path:
 
 def evaluate_videos(pairs: list[Pair], cfg, *, context: int | None = None, where: Path | None = None,
                     protocol_name: str = "orbis2", generated_has_context: bool = False, split: str = "videos",
-                    i3d: Path | None = None, assets: Path | None = None, instrument: str = "learned", instrument_weights: Path | None = None,
-                    hfov_deg: float | None = None, device: str | None = None) -> dict[str, Any]:
+                    i3d: Path | None = None, assets: Path | None = None, instrument: str = "learned",
+                    instrument_weights: Path | None = None, hfov_deg: float | None = None,
+                    device: str | None = None) -> dict[str, Any]:
     """The record of ``orbis2 evaluate``: FVD, chunked FVD, references, warnings and card of ``pairs`` under the
     protocol named for ``cfg``'s evaluation section; steering scores too when the rollouts have trajectories.
     ``where`` (the manifest) is named when the context length is missing; I3D is ``i3d``, else the assets'."""
