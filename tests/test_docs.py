@@ -6,8 +6,10 @@ block whose commands cannot run here (a GPU, a cluster, a real dataset) has the 
 copy of the session's finished smoke project (the main job and `reports/all` done), in the order the
 pages give them, and must exit 0. Only what cannot run as written in a test is adapted, each in one
 place below: the install prefix must equal what CI installs, `pytest` collects instead of recursing,
-DVC's runs are dry (the Snakemake runs made the outputs; `dvc repro` would redo them) and a server is
-started, asked for its page and stopped.
+DVC's runs are dry (the Snakemake runs made the outputs; `dvc repro` would redo them), a server is
+started, asked for its page and stopped, and a command another page already gave (the same words, its
+options in any order) is run once: the pages repeat a step as a reminder, and its second run would only
+redo the same work. The slowest commands are printed with their times.
 """
 
 from __future__ import annotations
@@ -141,6 +143,35 @@ def adapted(text: str) -> str | None:
     return text
 
 
+def same_command(text: str) -> tuple:
+    """What makes two commands the same: the words that are not options, in order, and the options with their
+    values in any order (``--seconds 3 --yaw-rate-scale 1.5`` = ``--yaw-rate-scale 1.5 --seconds 3``). A
+    command with shell syntax (pipes, redirections, ``&&``, quotes) is only the same as its exact text."""
+    words = shlex.split(text)
+    if any(char in text for char in "|&;<>$`'\"\n"):
+        return (text,)
+    positional, options, i = [], set(), 0
+    while i < len(words):
+        if words[i].startswith("-"):
+            takes_value = i + 1 < len(words) and not words[i + 1].startswith("-")
+            options.add((words[i], words[i + 1]) if takes_value else (words[i],))
+            i += 2 if takes_value else 1
+        else:
+            positional.append(words[i])
+            i += 1
+    return tuple(positional), frozenset(options)
+
+
+def test_a_repeated_command_is_recognised_with_its_options_in_any_order():
+    assert same_command("orbis2 rollout --seconds 3 --yaw-rate-scale 1.5 --out a.mp4") == same_command(
+        "orbis2 rollout --yaw-rate-scale 1.5 --out a.mp4 --seconds 3")
+    assert same_command("orbis2 rollout --seconds 3 --out a.mp4") != same_command("orbis2 rollout --seconds 3 "
+                                                                                  "--out b.mp4")
+    assert same_command("cp a b") != same_command("cp b a")
+    assert same_command("x --flag a b") != same_command("x --flag b a")
+    assert same_command("dvc params diff | grep a") != same_command("dvc params diff  | grep a")
+
+
 def test_every_shell_block_command_is_found_and_marked_blocks_say_why():
     assert len(ALL) >= 10 and any(c.page.name == "README.md" for c in ALL)
     for command in ALL:
@@ -158,13 +189,15 @@ def test_the_documented_install_and_test_commands_are_what_ci_runs():
 @pytest.mark.slow
 def test_documented_commands_run_in_a_finished_smoke_project(smoke_project, tmp_path):
     root = Path(shutil.copytree(smoke_project, tmp_path / "project", symlinks=True))
-    failures, ran = [], 0
+    failures, ran, seen, times = [], 0, set(), []
     for command in ALL:
         if command.not_run:
             continue
         text = adapted(command.text)
-        if text is None:
+        if text is None or same_command(text) in seen:
             continue
+        seen.add(same_command(text))
+        started = time.perf_counter()
         if re.match(r"^mlflow (ui|server)\b", text):
             problem = serve(text, root)
         else:
@@ -173,8 +206,11 @@ def test_documented_commands_run_in_a_finished_smoke_project(smoke_project, tmp_
             problem = "" if proc.returncode == 0 else \
                 f"exit {proc.returncode}:\n{proc.stdout[-1500:]}\n{proc.stderr[-1500:]}"
         ran += 1
+        times.append((time.perf_counter() - started, str(command)))
         if problem:
             failures.append(f"{command}\n  ran: {text}\n  {problem}")
+    print("slowest documented commands:", *(f"{s:6.1f} s  {c}" for s, c in sorted(times, reverse=True)[:12]),
+          sep="\n")
     assert not failures, "\n\n".join(failures)
     assert ran >= 8
 

@@ -1,6 +1,9 @@
 """`orbis2 evaluate`: known answers on video folders (identical sets, shuffled pairs), the protocols, bad input."""
 
 import csv
+import json
+import runpy
+import sqlite3
 
 import numpy as np
 import pytest
@@ -8,6 +11,7 @@ import torch
 from torch import nn
 
 from orbis2.cli import main
+from orbis2.config.params import load_config
 from orbis2.data.video import read_video, write_video
 from orbis2.eval.evaluate import (
     EvaluateError,
@@ -20,7 +24,10 @@ from orbis2.eval.evaluate import (
     protocol,
 )
 from orbis2.eval.evaluate_steering import add_steering
+from orbis2.eval.evaluate_videos import read_rollout_folder
 from orbis2.kinematics import integrate_controls
+
+from conftest import ROOT, run
 
 FPS, CONTEXT, FRAMES = 10, 3, 32  # 3 context frames, then 3.2 s of continuation
 PROTO = Protocol("test", seconds=1.6, long_seconds=3.2, chunk_seconds=1.6, bootstrap_reps=20, seed=0, floor_splits=5)
@@ -182,3 +189,72 @@ def test_trajectories_give_steering_ade_and_the_signed_turn(tmp_path):
     pairs[0].trajectory.write_text("timestamp,speed,yaw_rate\n0,10,0.3\n0.5,10,0.3\n")
     with pytest.raises(EvaluateError, match="00.csv: covers 0-0.5 s, but the scored window needs 0-1.5 s"):
         add_steering(record, pairs, PROTO, False, LeftArc(), "left-arc", 90.0)
+
+
+def run_stage(argv, monkeypatch, tmp_path):
+    """stages/evaluate.py's main in this process (so the stand-in I3D is used), tracked in a store under tmp_path."""
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    monkeypatch.delenv("ORBIS2_PIPELINE_ID", raising=False)
+    monkeypatch.setattr("orbis2.eval.evaluate_videos.load_i3d", lambda path: PooledPixels())
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "i3d.pt").write_bytes(b"stand-in")
+    stage = runpy.run_path(str(ROOT / "stages/evaluate.py"), run_name="evaluate_stage")
+    stage["main"](["--params", str(ROOT / "params.yaml"), "--profile", "smoke", "--i3d", "i3d.pt", *argv])
+
+
+def test_the_evaluate_stage_scores_a_rollout_folder_and_logs_one_run(tmp_path, monkeypatch):
+    """data/rollouts/<name>/ with its options file -> the record of the same code, the table, the figure, one run."""
+    folder = tmp_path / "data/rollouts/mine"
+    pairs = write_set(folder, noise=20)
+    (folder / "evaluate.yaml").write_text(f"context_frames: {CONTEXT}\nsplit: turns\n")
+    run_stage(["--rollouts", "data/rollouts/mine"], monkeypatch, tmp_path)
+    out = tmp_path / "reports/evaluate/mine"
+    record = json.loads((out / "fvd.json").read_text())
+    smoke = protocol("orbis2", load_config(ROOT / "params.yaml", "smoke").evaluation)
+    assert (record["protocol"]["seconds"], record["protocol"]["context_frames"]) == (smoke.seconds, CONTEXT)
+    expected = evaluate_pairs(pairs, CONTEXT, smoke, PooledPixels(), record["protocol"]["i3d_sha256"], split="turns")
+    assert record["fvd"]["fvd"] == pytest.approx(expected["fvd"]["fvd"]) and record["fvd"]["fvd"] > 1e-3
+    assert record["fvd"]["draws"] == pytest.approx(expected["fvd"]["draws"])
+    table = (out / "table.txt").read_text()
+    assert table.splitlines()[0] == format_table(record).splitlines()[0] and "protocol: protocol=orbis2" in table
+    assert (out / "fvd.png").read_bytes()[:4] == b"\x89PNG"
+    with sqlite3.connect(tmp_path / "mlflow.db") as con:
+        runs = dict(con.execute("select name, run_uuid from runs where name like 'evaluate_%'"))
+        metrics = dict(con.execute("select key, value from metrics where run_uuid = ?", (runs["evaluate_mine"],)))
+    assert list(runs) == ["evaluate_mine"] and metrics["fvd"] == pytest.approx(record["fvd"]["fvd"])
+
+    (folder / "evaluate.yaml").write_text("context_frame: 3\n")
+    with pytest.raises(SystemExit) as exit_info:
+        run_stage(["--rollouts", "data/rollouts/mine"], monkeypatch, tmp_path)
+    assert exit_info.value.code == 2
+
+
+def test_a_folder_without_rollouts_or_with_a_misspelt_option_names_the_fix(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(EvaluateError, match="empty: holds neither manifest.csv nor the folders generated/ and real/"):
+        read_rollout_folder(tmp_path / "empty")
+    write_set(tmp_path / "mine")
+    (tmp_path / "mine/evaluate.yaml").write_text("context_frame: 3\n")
+    with pytest.raises(EvaluateError, match=r"evaluate.yaml: unknown option\(s\) \['context_frame'\]"):
+        read_rollout_folder(tmp_path / "mine")
+
+
+def test_the_rule_reads_the_folder_and_the_instrument_only_for_trajectories(tmp_path):
+    """`snakemake -n reports/evaluate/<name>/fvd.json` plans the stage on data/rollouts/<name>/, with the learned
+    instrument (and the stage that trains it) only when the rollouts come with trajectories."""
+    for name in ("Snakefile", "params.yaml", "params.schema.yaml", "registry.yaml", "rules", "src", "stages"):
+        (tmp_path / name).symlink_to(ROOT / name)  # what the DAG reads; outputs and rollouts stay in tmp_path
+    pairs = write_set(tmp_path / "data/rollouts/plain", n=2)
+    write_set(tmp_path / "data/rollouts/steered", n=2)
+    for pair in pairs:
+        (tmp_path / "data/rollouts/steered/generated" / f"{pair.name}.csv").write_text("timestamp,speed,yaw_rate\n")
+    out = run(["snakemake", "-n", "-p", "--cores", "1", "reports/evaluate/plain/fvd.json",
+               "reports/evaluate/steered/fvd.json"], tmp_path)
+    commands = [line.removeprefix("Shell command: ") for line in out.splitlines()
+                if line.startswith("Shell command: python stages/")]
+    evaluate = {line.split("--rollouts data/rollouts/")[1].split()[0]: line
+                for line in commands if line.startswith("python stages/evaluate.py")}
+    assert "--assets data/assets --fvd reports/evaluate/plain/fvd.json --table reports/evaluate/plain/table.txt" \
+        in evaluate["plain"]
+    assert "--instrument data/inverse_dynamics --fvd reports/evaluate/steered/fvd.json" in evaluate["steered"]
+    assert any(line.startswith("python stages/inverse_dynamics.py") for line in commands)

@@ -25,28 +25,18 @@ import torch
 from tqdm import tqdm
 
 from orbis2.accel import cast_for_inference, compile_decoder, compile_predictor, inference_autocast, set_tf32
-from orbis2.assets import AssetError, ensure_asset
 from orbis2.config.params import PROFILES, load_config
 from orbis2.data.datasets import bdd100k, nuplan, opendv, physicalai_av
 from orbis2.data.episodes import read_odometry
 from orbis2.data.importer import read_odometry_csv
 from orbis2.data.video import PLAYABLE_SUFFIXES, probe, read_video, resample_stride, write_gif, write_video
 from orbis2.errors import OrbisError
-from orbis2.eval.evaluate import (
-    context_frames,
-    evaluate_pairs,
-    format_table,
-    pairs_from_folders,
-    pairs_from_manifest,
-    protocol,
-)
-from orbis2.eval.evaluate_steering import add_steering
+from orbis2.eval.evaluate import format_table, pairs_from_folders, pairs_from_manifest
+from orbis2.eval.evaluate_videos import evaluate_videos
 from orbis2.eval.inverse_dynamics import WEIGHTS_FILE
-from orbis2.eval.odometry import get_inverse_dynamics
-from orbis2.io import atomic_file, sha256_file, write_json
+from orbis2.io import atomic_file, write_json
 from orbis2.kinematics import integrate_odometry
 from orbis2.latents import encode_frames
-from orbis2.models.i3d import load_i3d
 from orbis2.models.stdit import PredictorFile, load_predictor
 from orbis2.models.tokenizer import TokenizerFile, load_tokenizer, to_uint8
 from orbis2.registry import layout_path
@@ -351,26 +341,11 @@ def evaluate_command(args: argparse.Namespace) -> str:
         raise OrbisError("pass --generated and --real folders (matched by file name), or --manifest")
     else:
         pairs = pairs_from_folders(args.generated, args.real)
-    cfg = load_config(args.params, args.profile)
-    proto = protocol(args.protocol, cfg.evaluation)
-    if args.i3d is not None and not args.i3d.is_file():
-        raise OrbisError(f"{args.i3d}: I3D weights not found; pass the converted i3d_kinetics400.pt")
-    try:
-        i3d_file = args.i3d or ensure_asset("i3d_kinetics400", Path(cfg.assets.dir),
-                                            cfg.assets.local.get("i3d_kinetics400"), download=False)
-    except AssetError as err:
-        raise OrbisError(f"{err}; or pass converted weights with --i3d") from err
-    device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
-    i3d = load_i3d(i3d_file).to(device).eval()
-    context = context_frames(pairs, args.context_frames, args.manifest)
-    instrument = None
-    if any(p.trajectory for p in pairs):
-        instrument = get_inverse_dynamics(args.instrument, args.instrument_weights)
-    hfov = args.hfov_deg if args.hfov_deg is not None else cfg.town.hfov_deg
-    record = evaluate_pairs(pairs, context, proto, i3d, sha256_file(i3d_file), args.generated_has_context,
-                            args.split)
-    if instrument is not None:
-        add_steering(record, pairs, proto, args.generated_has_context, instrument, args.instrument, hfov)
+    record = evaluate_videos(pairs, load_config(args.params, args.profile), context=args.context_frames,
+                             where=args.manifest, protocol_name=args.protocol,
+                             generated_has_context=args.generated_has_context, split=args.split, i3d=args.i3d,
+                             instrument=args.instrument, instrument_weights=args.instrument_weights,
+                             hfov_deg=args.hfov_deg, device=args.device)
     if args.out is not None:
         write_json(args.out, record)
     return format_table(record)

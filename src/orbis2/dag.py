@@ -3,7 +3,8 @@
 The Snakefile (with ``rules/*.smk`` and ``registry.yaml``) is the one
 description of the DAG; ``python -m orbis2.dag`` reads its rules through the
 Snakemake API and writes ``dvc.yaml`` and ``pipelines/import/dvc.yaml`` (a test
-fails when they are stale). Each rule passes its inputs and outputs to the stage
+fails when they are stale); a rule with wildcards is Snakemake's only
+(:func:`snakemake_only`). Each rule passes its inputs and outputs to the stage
 as options (``--shards {input.shards}``); a DVC command carries the concrete
 paths in their place, so every path in both DAGs comes from the rules. DVC
 tracks, per stage, ``<section>.all`` and ``<section>.${profile}`` of every params
@@ -224,6 +225,13 @@ def dvc_stage(rule, raw: dict, raw_dir: str, assets: str) -> dict:
     return stage
 
 
+def snakemake_only(rule) -> bool:
+    """A rule with wildcards (``evaluate``: ``reports/evaluate/{name}/fvd.json`` for any folder
+    ``data/rollouts/{name}``) makes whatever target it is asked for; a DVC stage has fixed paths, so
+    dvc.yaml leaves such a rule out (its resources still go into the SLURM profile)."""
+    return rule.has_wildcards()
+
+
 def slurm_resources(rule) -> dict:
     """A rule's SLURM request: GPU rules on the gpu partition, one task with the rule's threads."""
     value = {name: int(rule.resources[name].value) for name in ("gpu", "_cores", "mem_mb", "runtime")}
@@ -241,7 +249,7 @@ def generate(root: Path = ROOT) -> dict[Path, str]:
     rules = snakemake_rules(root)
     by_name = {rule.name: rule for rule in rules}
     raw_dir, assets = str(by_name["shards"].input.raw), str(by_name["assets"].output.assets)
-    stages = {rule.name: dvc_stage(rule, raw, raw_dir, assets) for rule in rules}
+    stages = {rule.name: dvc_stage(rule, raw, raw_dir, assets) for rule in rules if not snakemake_only(rule)}
     slurm = {**SLURM_BASE, "set-resources": {rule.name: slurm_resources(rule) for rule in rules}}
     imported = stages.pop("import")
     imported["wdir"] = "../.."

@@ -3,7 +3,7 @@
 One code path for every FVD the project reports: :func:`score_rollouts` takes the
 I3D features of the real and generated frames of each window and returns the
 records; the ``eval_fvd_<system>`` stage feeds it the frames its rollouts decode,
-``orbis2 evaluate`` (:func:`evaluate_folder`) the frames of video files another
+``orbis2 evaluate`` (:mod:`orbis2.eval.evaluate_videos`) the frames of video files another
 model wrote. Each record carries its :class:`Protocol` card (frames, rate,
 windows, context, resize, clips and videos, the I3D weights' checksum, seeds), so
 a number can be reproduced from what is printed beside it.

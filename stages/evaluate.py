@@ -1,0 +1,72 @@
+"""Stage `evaluate_<name>`: score a folder of any model's rollouts, as `orbis2 evaluate` does
+-> reports/evaluate/<name>/fvd.json (the record), table.txt (the table and its protocol card), fvd.png.
+
+    snakemake --cores 2 reports/evaluate/<name>/fvd.json      # reads data/rollouts/<name>/
+    python stages/evaluate.py --rollouts data/rollouts/<name>
+
+The folder holds manifest.csv, or generated/ and real/ matched by file name, and
+optionally evaluate.yaml with the options `orbis2 evaluate` would take
+(``context_frames``, ``generated_has_context``, ``protocol``, ``instrument``,
+``hfov_deg``, ``split``; :mod:`orbis2.eval.evaluate_videos`). A rule with a
+wildcard, so Snakemake only: dvc.yaml's stages are fixed.
+"""
+
+from pathlib import Path
+
+from orbis2.eval.evaluate import format_table
+from orbis2.eval.evaluate_videos import evaluate_videos, plot_record, read_rollout_folder
+from orbis2.eval.inverse_dynamics import WEIGHTS_FILE
+from orbis2.io import atomic_file, write_json
+from orbis2.registry import layout_path
+from orbis2.stage import open_stage, stage_parser
+
+RECORD, TABLE, FIGURE = "fvd.json", "table.txt", "fvd.png"
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = stage_parser("evaluate.py", __doc__)
+    parser.add_argument("--rollouts", type=Path, required=True, help="the folder of rollouts (data/rollouts/<name>)")
+    parser.add_argument("--assets", type=Path, default=None, help="pretrained assets, I3D (default: assets.dir)")
+    parser.add_argument("--i3d", type=Path, default=None, help="I3D weights (default: the assets' i3d_kinetics400.pt)")
+    parser.add_argument("--instrument", type=Path, default=layout_path("inverse_dynamics"),
+                        help="the learned steering instrument's folder, read when the rollouts have trajectories "
+                             "(default: %(default)s)")
+    for option, file, what in (("--fvd", RECORD, "the record"), ("--table", TABLE, "the table and its card"),
+                               ("--figure", FIGURE, "the figure")):
+        parser.add_argument(option, type=Path, default=None,
+                            help=f"{what} (default: {layout_path('evaluate', '<name>') / file}, <name> the folder's)")
+    args = parser.parse_args(argv)
+    name = args.rollouts.name
+    out = {key: getattr(args, key) or layout_path("evaluate", name) / file
+           for key, file in (("fvd", RECORD), ("table", TABLE), ("figure", FIGURE))}
+    with open_stage(f"evaluate_{name}", args, ["assets", "evaluation", "town"]) as stage:
+        cfg, run = stage.cfg, stage.run
+        folder = read_rollout_folder(args.rollouts)
+        opts = folder.options
+        record = evaluate_videos(folder.pairs, cfg, context=opts["context_frames"], where=folder.manifest,
+                                 protocol_name=opts["protocol"], generated_has_context=opts["generated_has_context"],
+                                 split=opts["split"], i3d=args.i3d, assets=args.assets,
+                                 instrument=opts["instrument"],
+                                 instrument_weights=args.instrument / WEIGHTS_FILE, hfov_deg=opts["hfov_deg"])
+        table = format_table(record)
+        write_json(out["fvd"], record)
+        with atomic_file(out["table"]) as tmp:
+            tmp.write_text(table + "\n")
+        plot_record(record, out["figure"])
+        for file in out.values():
+            run.log_artifact(file)
+        fvd = record["fvd"]
+        run.log_params({"rollout_videos": fvd["videos"], "rollout_clips": fvd["clips"], "protocol": opts["protocol"]})
+        run.log_metrics({"fvd": fvd["fvd"], "fvd_low": fvd["low"], "fvd_high": fvd["high"]})
+        run.log_metrics({f"fvd_{ref}": row["fvd"] for ref, row in record["references"].items()
+                         if row["fvd"] is not None})
+        if "chunked" in record:
+            run.log_metrics({"fvd_slope": record["chunked"]["fvd_slope"]})
+        if "steering" in record:
+            run.log_metrics({"steering_ade_m": record["steering"]["ade_m"]["estimate"],
+                             "steering_turn_deg": record["steering"]["turn_deg"]["estimate"]})
+        stage.summary = f"{name}: " + table.splitlines()[0]
+
+
+if __name__ == "__main__":
+    main()
