@@ -21,7 +21,7 @@ from pathlib import Path
 from snakemake.utils import validate
 
 from orbis2.config import load_params, parse_config, resolve_section
-from orbis2.dag import code_inputs
+from orbis2.dag import code_inputs, commit_to_dvc, config_drift
 from orbis2.registry import layout_path, registry
 
 configfile: "params.yaml"
@@ -32,6 +32,7 @@ os.environ.setdefault("ORBIS2_PIPELINE_ID", f"snakemake:{uuid.uuid4()}")
 envvars: "ORBIS2_PIPELINE_ID"
 
 config.setdefault("train_launcher", "python")
+DVC_DRIFT = config_drift(config)  # the keys DVC cannot see; read before anything fills in defaults
 PROFILE = config["profile"]
 if PROFILE != FILE_PROFILE:  # DVC reads params.yaml only: say where its views and this run part ways
     print(f"profile {PROFILE} (--config); params.yaml says {FILE_PROFILE}, which is what `dvc params diff`, "
@@ -149,3 +150,9 @@ include: "rules/tokenizers.smk"
 include: "rules/predictors.smk"
 include: "rules/evaluation.smk"
 include: "rules/reports.smk"
+
+
+# A successful run leaves DVC's lock in step (when DVC reads the same config): `dvc status` is clean and
+# `dvc repro` re-runs only what changes. ORBIS2_DVC_COMMIT=0 turns it off.
+onsuccess:
+    commit_to_dvc([job.rule.name for job in workflow.dag.jobs], DVC_DRIFT)
