@@ -234,6 +234,7 @@ def draw_loss_curves(curves: Path, title: str) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import pandas as pd
+    from matplotlib.ticker import MaxNLocator
 
     drawn = []
     for curve, metric in LOSS_PLOTS.items():
@@ -244,6 +245,7 @@ def draw_loss_curves(curves: Path, title: str) -> list[Path]:
         try:
             ax.plot(table["step"], table[metric], marker="o" if len(table) <= 20 else None)
             ax.set(xlabel="step", ylabel=metric, title=f"{title}: {metric}")
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
             ax.grid(alpha=0.3)
             fig.savefig(curves / f"{metric}.png", format="png", dpi=100, bbox_inches="tight")
         finally:
