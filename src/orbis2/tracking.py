@@ -322,7 +322,8 @@ def stage_run(stage: str, params: dict[str, Any], pipeline: dict[str, Any] | Non
     mlflow.set_tracking_uri(uri)
     with store_lock(uri):  # the first stages of a fresh store would race on its schema migration
         if (db := sqlite_path(uri)) is not None and db.is_file():
-            relocate_store(db)  # a project folder that moved: its runs' artifacts are where it is now
+            with contextlib.suppress(OrbisError):  # not a store yet: MLflow creates or rejects it below
+                relocate_store(db)  # a project folder that moved: its runs' artifacts are where it is now
         experiment = mlflow.set_experiment(os.environ.get("MLFLOW_EXPERIMENT_NAME", "orbis2"))
         client = MlflowClient()
         if experiment.tags.get(KIND_TAG) != EXPERIMENT_KIND:
