@@ -226,3 +226,21 @@ def test_relocate_names_a_missing_store(tmp_path):
                            f"sqlite:///{tmp_path / 'nowhere.db'}"], env=env, capture_output=True, text=True,
                           timeout=300)
     assert proc.returncode == 2 and "nowhere.db: no such store" in proc.stderr
+
+
+def test_a_stage_in_a_moved_project_repoints_the_store(tmp_path):
+    """A stage started in a moved project writes into it, not into the old folder, and finds the old runs too."""
+    from mlflow.artifacts import download_artifacts
+
+    old, new = tmp_path / "project", tmp_path / "elsewhere"
+    old.mkdir()
+    (old / "summary.md").write_text("# Summary\n")
+    finish(start(old, "report_main", "inv"))
+    old.rename(new)
+    finish(start(new, "next", "inv-2"))
+    assert not old.exists()
+    assert all(r.info.artifact_uri.startswith((f"{new}/", f"{new.as_uri()}/")) for r in runs(new))  # path or URI
+    first = next(r for r in runs(new) if r.info.run_name == "report_main")
+    assert Path(download_artifacts(run_id=first.data.tags["mlflow.parentRunId"], artifact_path="summary.md",
+                                   dst_path=str(tmp_path / "dl"), tracking_uri=f"sqlite:///{new / 'mlflow.db'}")
+                ).read_text() == "# Summary\n"
