@@ -133,7 +133,7 @@ def relocate_store(db: Path) -> tuple[str, str] | None:
     """Re-point a moved SQLite store's local artifact locations at the folder it now lives in.
 
     MLflow has no relative artifact locations for a SQLite store: an experiment keeps the absolute
-    ``file://`` path it was created with (``<project>/mlruns/<id>``), and every run and logged model a
+    path (or ``file://`` URI) it was created with (``<project>/mlruns/<id>``), and every run and logged model a
     path below it. An experiment located outside ``db``'s folder whose location's tail
     (``mlruns/<id>``, or longer) exists below it says the store moved, or was copied (the original
     may still exist: the copy must not write into it); the old root is what precedes the longest such
