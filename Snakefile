@@ -19,7 +19,7 @@ import uuid
 from pathlib import Path
 
 from orbis2.config.params import load_params, parse_config, resolve_section
-from orbis2.dag import code_inputs
+from orbis2.dag import code_inputs, commit_to_dvc, config_drift
 from orbis2.registry import layout_path, registry
 
 configfile: "params.yaml"
@@ -29,6 +29,7 @@ FILE_PROFILE = load_params("params.yaml")["profile"]  # Snakemake's reader lets 
 os.environ.setdefault("ORBIS2_PIPELINE_ID", f"snakemake:{uuid.uuid4()}")
 envvars: "ORBIS2_PIPELINE_ID"
 
+DVC_DRIFT = config_drift(config)  # the keys DVC cannot see
 PROFILE = config["profile"]
 if PROFILE != FILE_PROFILE:  # DVC reads params.yaml only: say where its views and this run part ways
     print(f"profile {PROFILE} (--config); params.yaml says {FILE_PROFILE}, which is what `dvc params diff`, "
@@ -146,3 +147,9 @@ include: "rules/predictors.smk"
 include: "rules/evaluation.smk"
 include: "rules/evaluate.smk"
 include: "rules/reports.smk"
+
+
+# A successful run leaves DVC's lock in step (when DVC reads the same config): `dvc status` is clean and
+# `dvc repro` re-runs only what changes. ORBIS2_DVC_COMMIT=0 turns it off.
+onsuccess:
+    commit_to_dvc([job.rule.name for job in workflow.dag.jobs], DVC_DRIFT)

@@ -235,9 +235,13 @@ def test_dvc_metrics_are_the_few_named_files():
 
 
 def test_each_loss_curve_has_its_own_plot():
+    """One image per model and loss (each on its own scale), for every training stage."""
     plots = yaml.safe_load((ROOT / "dvc.yaml").read_text())["plots"]
-    curves = [next(iter(p.values())) for p in plots if isinstance(p, dict) and "loss" in next(iter(p))]
-    assert curves and all(len(c["y"]) == 1 for c in curves)  # one model per axis: each loss on its own scale
+    losses = [p for p in plots if "/curves/" in p]
+    stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
+    trained = {stage["outs"][0] for stage in stages.values()  # the stages of the one training loop
+               if re.search(r"stages/(tokenizer_\w+|predictor)\.py", stage["cmd"])}
+    assert {p.split("/curves/")[0] for p in losses} == trained and len(set(losses)) == len(losses)
 
 
 def test_snakefile_says_when_its_profile_is_not_the_one_dvc_reads(capfd):

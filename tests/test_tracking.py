@@ -176,3 +176,71 @@ def test_stage_times_reach_the_parent(tmp_path):
                                             ("eval_steering", "evaluation"), ("latents_compressed", "inference")])
 def test_dataset_context_says_what_a_stage_does_with_the_shards(stage, context):
     assert dataset_context(stage) == context
+
+
+def test_a_moved_store_finds_its_artifacts(tmp_path):
+    """MLflow records absolute artifact paths; `python -m orbis2.tracking relocate` re-points a moved store."""
+    from mlflow.artifacts import download_artifacts
+    from mlflow.exceptions import MlflowException
+    from mlflow.tracking import MlflowClient
+
+    old, new = tmp_path / "project", tmp_path / "moved" / "project"
+    old.mkdir()
+    (old / "summary.md").write_text("# Summary\n")
+    (old / "model").mkdir()
+    (old / "model/weights.pt").write_bytes(b"\x01" * 32)
+    finish(start(old, "report_main", "inv"))
+    new.parent.mkdir()
+    old.rename(new)
+    assert not old.exists()
+
+    uri = f"sqlite:///{new / 'mlflow.db'}"
+    client = MlflowClient(tracking_uri=uri)
+    [parent] = [r for r in runs(new) if "mlflow.parentRunId" not in r.data.tags]
+    with pytest.raises((OSError, MlflowException)):  # the store still names the old folder
+        download_artifacts(run_id=parent.info.run_id, artifact_path="summary.md", dst_path=str(tmp_path / "dl0"),
+                           tracking_uri=uri)
+
+    env = {**os.environ, "PYTHONPATH": str(SRC)}
+    env.pop("MLFLOW_TRACKING_URI", None)
+    proc = subprocess.run([sys.executable, "-m", "orbis2.tracking", "relocate"], cwd=new, env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0 and f"re-pointed from {old} to {new}" in proc.stdout, proc.stderr[-2000:]
+    summary = download_artifacts(run_id=parent.info.run_id, artifact_path="summary.md",
+                                 dst_path=str(tmp_path / "dl1"), tracking_uri=uri)
+    assert Path(summary).read_text() == "# Summary\n"
+    [model] = client.search_logged_models([client.get_experiment_by_name("orbis2").experiment_id])
+    weights = Path(download_artifacts(model.artifact_location, dst_path=str(tmp_path / "dl2"), tracking_uri=uri))
+    assert (weights / "weights.pt").read_bytes() == b"\x01" * 32
+    assert all(str(new) in r.info.artifact_uri for r in runs(new))
+    assert not old.exists()  # nothing was written at the old place
+
+    proc = subprocess.run([sys.executable, "-m", "orbis2.tracking", "relocate"], cwd=new, env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0 and "already point here" in proc.stdout
+
+
+def test_relocate_names_a_missing_store(tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(SRC)}
+    proc = subprocess.run([sys.executable, "-m", "orbis2.tracking", "relocate", "--store",
+                           f"sqlite:///{tmp_path / 'nowhere.db'}"], env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 2 and "nowhere.db: no such store" in proc.stderr
+
+
+def test_a_stage_in_a_moved_project_repoints_the_store(tmp_path):
+    """A stage started in a moved project writes into it, not into the old folder, and finds the old runs too."""
+    from mlflow.artifacts import download_artifacts
+
+    old, new = tmp_path / "project", tmp_path / "elsewhere"
+    old.mkdir()
+    (old / "summary.md").write_text("# Summary\n")
+    finish(start(old, "report_main", "inv"))
+    old.rename(new)
+    finish(start(new, "next", "inv-2"))
+    assert not old.exists()
+    assert all(r.info.artifact_uri.startswith((f"{new}/", f"{new.as_uri()}/")) for r in runs(new))  # path or URI
+    first = next(r for r in runs(new) if r.info.run_name == "report_main")
+    assert Path(download_artifacts(run_id=first.data.tags["mlflow.parentRunId"], artifact_path="summary.md",
+                                   dst_path=str(tmp_path / "dl"), tracking_uri=f"sqlite:///{new / 'mlflow.db'}")
+                ).read_text() == "# Summary\n"

@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import argparse
 import ast
+import os
 import re
+import subprocess
 import sys
 from functools import lru_cache
 from pathlib import Path
@@ -26,6 +28,7 @@ import yaml
 
 from orbis2.config.params import load_params, section_chain
 from orbis2.registry import layout_path, registry
+from orbis2.stage import LOSS_PLOTS
 
 ROOT = Path(__file__).resolve().parents[2]
 SRC = ROOT / "src"
@@ -46,25 +49,26 @@ FIGURES = ["fvd_chunked.png", "probe_per_block.png", "bubble_params_fvd_miou.png
 
 
 def plots(rules: list) -> str:
-    """dvc.yaml's `plots`: the report's figures, the chunked-FVD table and every training stage's curves
-    (``<output>/curves/{train,eval}.csv``, written by the training loop), at the rules' output paths."""
+    """dvc.yaml's `plots`: the report's figures and one PNG per loss of every training stage
+    (``<output>/curves/<metric>.png``, :data:`orbis2.stage.LOSS_PLOTS`), at the rules' output paths.
+
+    Images only: DVC copies them beside its page, while a data plot makes the page load its chart
+    library (Vega) from the network, blank offline. The chunked-FVD curve is the report's
+    ``fvd_chunked.png``; the training curves' numbers stay in ``<output>/curves/*.csv`` and in MLflow.
+    """
     reg = registry()
     by_name = {rule.name: rule for rule in rules}
     trained = {rule.name: str(rule.output.weights) for rule in rules if "weights" in rule.output.keys()}
     predictors = [name for name, spec in reg.predictors.items() if spec.objective != "reflow"]
     report_all = Path(by_name["report_all"].output.report)
-    entries: list = [str(report_all / "figures" / name) for name in FIGURES]
-    entries.append({"Chunked FVD (turns)": {"x": "end_s", "y": {str(report_all / "fvd_chunked.csv"):
-                                                                 [name for name, system in reg.systems.items()
-                                                                  if system.latents == "compressed"]}}})
-    # One plot per model: the losses differ by orders of magnitude (the abstract tokenizer's ~400 against
-    # the predictors' ~1), so a shared axis would flatten all but one.
-    entries += [{f"Training loss: {name}": {"x": "step", "y": {f"{trained[name]}/curves/train.csv": "loss"}}}
-                for name in trained]
-    entries += [{f"Validation loss: {name}": {"x": "step", "y": {f"{trained[name]}/curves/eval.csv": "val_loss"}}}
-                for name in predictors]
+    entries = [str(report_all / "figures" / name) for name in FIGURES]
+    # One image per model and loss: the losses differ by orders of magnitude (the abstract tokenizer's ~400
+    # against the predictors' ~1), so each keeps its own axis.
+    train, val = (f"curves/{metric}.png" for metric in LOSS_PLOTS.values())
+    entries += [f"{trained[name]}/{train}" for name in trained]
+    entries += [f"{trained[name]}/{val}" for name in predictors]
     text = yaml.safe_dump({"plots": entries}, sort_keys=False, width=120)
-    return "\n# `dvc plots show` renders the report's figures, the chunked-FVD table and the training curves.\n" + text
+    return "\n# `dvc plots show` renders the report's figures and each training loss, as images.\n" + text
 
 
 SLURM_HEADER = """\
@@ -261,6 +265,51 @@ def generate(root: Path = ROOT) -> dict[Path, str]:
                                                                   "stages": {"import": imported}}),
         root / "profiles/slurm/config.yaml": SLURM_HEADER + dump(slurm),
     }
+
+
+# --------------------------------------------------------------------------- handing a Snakemake run to DVC
+
+IMPORT_STAGE = "pipelines/import/dvc.yaml:import"
+COMMIT_ENV = "ORBIS2_DVC_COMMIT"  # 0: a Snakemake run leaves dvc.lock alone
+
+
+def config_drift(config: dict[str, Any], params_file: Path | str = "params.yaml") -> list[str]:
+    """The top-level keys where Snakemake's config (params.yaml with ``--config`` on top) differs from the
+    file DVC reads; ``train_launcher`` does not count (it changes how a stage starts, not what it makes)."""
+    raw = load_params(params_file)
+    keys = (set(config) | set(raw)) - {"train_launcher"}
+    return sorted(key for key in keys if config.get(key) != raw.get(key))
+
+
+def commit_to_dvc(rules: list[str], drift: list[str], root: Path | str = ".") -> bool:
+    """Record the outputs of a successful Snakemake run's ``rules`` in dvc.lock (``dvc commit --force``), so that
+    ``dvc status`` is clean and ``dvc repro`` re-runs only what changes afterwards; True when it did.
+
+    ``rules`` are every job of the run's DAG (run or found up to date), so a stage outside the targets, whose
+    outputs may be older than its params, is never recorded. Skipped, with a line saying why, when
+    ``drift`` names config keys DVC would not see (``--config``), when ``ORBIS2_DVC_COMMIT=0``, or outside a
+    DVC project; a failed commit only warns: the run itself succeeded.
+    """
+    root = Path(root)
+    if os.environ.get(COMMIT_ENV, "1") == "0" or not (root / ".dvc").is_dir():
+        return False
+    if drift:
+        print(f"dvc.lock not updated: this run's config differs from params.yaml in {', '.join(drift)} "
+              "(--config), and DVC reads params.yaml only (docs/tracking.md).", file=sys.stderr)
+        return False
+    stages = set(yaml.safe_load((root / "dvc.yaml").read_text())["stages"])
+    targets = sorted(name for name in set(rules) if name in stages)
+    targets += [IMPORT_STAGE] if "import" in rules else []
+    if not targets:
+        return False
+    proc = subprocess.run([sys.executable, "-m", "dvc", "commit", "--force", "--quiet", *targets], cwd=root,
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        print(f"dvc.lock not updated: `dvc commit --force {' '.join(targets)}` failed:\n{proc.stderr.strip()}",
+              file=sys.stderr)
+        return False
+    print(f"dvc.lock records this run ({len(targets)} stages): `dvc status` is clean.", file=sys.stderr)
+    return True
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -222,15 +222,49 @@ def code_version(root: Path = Path(orbis2.__file__).parent) -> str:
     return digest.hexdigest()
 
 
+# The losses drawn beside each training run's curves, one PNG each (``curves/<metric>.png``) on its own y scale:
+# {curve file: column}. They are dvc.yaml's plots, as images so that `dvc plots show`'s page needs no network.
+LOSS_PLOTS = {"train": "loss", "eval": "val_loss"}
+
+
+def draw_loss_curves(curves: Path, title: str) -> list[Path]:
+    """Draw each loss of :data:`LOSS_PLOTS` that ``curves`` (a run's ``curves/`` folder, not yet published)
+    holds; the PNGs written. Plain matplotlib (Agg), so that every stage does not depend on the report's code."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import pandas as pd
+    from matplotlib.ticker import MaxNLocator
+
+    drawn = []
+    for curve, metric in LOSS_PLOTS.items():
+        table = pd.read_csv(curves / f"{curve}.csv") if (curves / f"{curve}.csv").is_file() else None
+        if table is None or metric not in table or table[metric].isna().all():
+            continue
+        fig, ax = plt.subplots(figsize=(6, 3.5))
+        try:
+            ax.plot(table["step"], table[metric], marker="o" if len(table) <= 20 else None)
+            ax.set(xlabel="step", ylabel=metric, title=f"{title}: {metric}")
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+            ax.grid(alpha=0.3)
+            fig.savefig(curves / f"{metric}.png", format="png", dpi=100, bbox_inches="tight")
+        finally:
+            plt.close(fig)
+        drawn.append(curves / f"{metric}.png")
+    return drawn
+
+
 # Training results that are sizes, not scores: logged as params (table columns), not as one-point charts.
 SIZES = {"steps": "trained_steps", "parameters": "model_parameters"}
 
 
 def publish_training(run_dir: Path, out: Path, files: list[str], report: Path, metrics: dict[str, float],
                      run: StageRun) -> None:
-    """Copy a finished training run's ``files``, ``samples/`` and ``curves/`` into the stage output,
-    atomically; write the metrics report; log the final scores (at the last step), the sizes
-    (:data:`SIZES`) as params, the samples and the model (weights + config)."""
+    """Copy a finished training run's ``files``, ``samples/`` and ``curves/`` (with a PNG per loss,
+    :func:`draw_loss_curves`) into the stage output, atomically; write the metrics report; log the final
+    scores (at the last step), the sizes (:data:`SIZES`) as params, the samples and the model (weights +
+    config)."""
     scores = {k: v for k, v in metrics.items() if k not in SIZES}
     run.log_metrics(scores, step=int(metrics["steps"]))
     run.log_params({name: int(metrics[key]) for key, name in SIZES.items() if key in metrics})
@@ -240,6 +274,8 @@ def publish_training(run_dir: Path, out: Path, files: list[str], report: Path, m
         for folder in ("samples", "curves"):
             if (run_dir / folder).is_dir():
                 shutil.copytree(run_dir / folder, tmp / folder)
+        if (tmp / "curves").is_dir():
+            draw_loss_curves(tmp / "curves", run.stage or out.name)
     for png in sorted((out / "samples").glob("*.png")):
         run.log_artifact(png, "samples")
     write_json(report, metrics)

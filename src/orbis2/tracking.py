@@ -17,28 +17,38 @@ stage's wall time (``time/<stage>``) and whatever stages :meth:`StageRun.publish
 there (the report's tables, verdicts and summary, the figures, a rollout gallery).
 The experiment is tagged as a model-development one, so MLflow 3 lists its runs
 rather than its GenAI overview.
+
+A SQLite store records absolute artifact locations (MLflow resolves a relative
+one against the working directory when it creates an experiment), so a project
+folder that moved would lose its artifacts: :func:`relocate_store` re-points them
+at the folder the store now lives in. Every stage does so when it opens the store;
+before ``mlflow server`` on a moved store, run ``python -m orbis2.tracking relocate``.
 """
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import hashlib
 import json
 import os
 import shutil
 import socket
+import sqlite3
 import subprocess
+import sys
 import tempfile
 import time
 import uuid
 import warnings
 from pathlib import Path
 from typing import Any, Iterator
-from urllib.parse import urlparse
+from urllib.parse import unquote, urlparse
 
 from filelock import FileLock
 
 from orbis2.config.params import flatten
+from orbis2.errors import OrbisError
 
 DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
 PIPELINE_ENV = "ORBIS2_PIPELINE_ID"
@@ -91,12 +101,78 @@ def _started(pid: int) -> str:
 
 def store_lock(uri: str) -> FileLock:
     """A lock around store creation: next to a SQLite file, else in the temp folder (per node)."""
-    parsed = urlparse(uri)
-    if parsed.scheme == "sqlite" and parsed.path not in ("", "/:memory:"):
-        path = Path(uri[len("sqlite:///"):] if uri.startswith("sqlite:///") else parsed.path)
+    path = sqlite_path(uri)
+    if path is not None:
         return FileLock(str(path.absolute()) + ".lock")
     digest = hashlib.sha1(uri.encode()).hexdigest()[:16]
     return FileLock(str(Path(tempfile.gettempdir()) / f"orbis2-mlflow-{digest}.lock"))
+
+
+def sqlite_path(uri: str) -> Path | None:
+    """The database file of a ``sqlite:///`` store URI (relative to the working directory, as MLflow reads it);
+    None for any other store, and for an in-memory one."""
+    parsed = urlparse(uri)
+    if parsed.scheme != "sqlite" or parsed.path in ("", "/:memory:"):
+        return None
+    return Path(uri[len("sqlite:///"):] if uri.startswith("sqlite:///") else parsed.path)
+
+
+# Where a SQLite store keeps artifact locations: (table, column, the rows that hold one), for the tables that exist.
+ARTIFACT_COLUMNS = (("experiments", "artifact_location", ""), ("runs", "artifact_uri", ""),
+                    ("logged_models", "artifact_location", ""),
+                    ("trace_tags", "value", "key = 'mlflow.artifactLocation'"),
+                    ("model_versions", "source", ""), ("model_versions", "storage_location", ""))
+
+
+def _local_path(uri: str) -> Path | None:
+    parsed = urlparse(uri)
+    return Path(unquote(parsed.path)) if parsed.scheme == "file" else Path(uri) if parsed.scheme == "" else None
+
+
+def relocate_store(db: Path) -> tuple[str, str] | None:
+    """Re-point a moved SQLite store's local artifact locations at the folder it now lives in.
+
+    MLflow has no relative artifact locations for a SQLite store: an experiment keeps the absolute
+    path (or ``file://`` URI) it was created with (``<project>/mlruns/<id>``), and every run and logged model a
+    path below it. An experiment located outside ``db``'s folder whose location's tail
+    (``mlruns/<id>``, or longer) exists below it says the store moved, or was copied (the original
+    may still exist: the copy must not write into it); the old root is what precedes the longest such
+    tail, and every location under it is rewritten under the new one, in one transaction. Returns
+    (old root, new root), or None when there is nothing to re-point.
+    """
+    root = db.resolve().parent
+    with contextlib.closing(sqlite3.connect(db)) as con:
+        tables = {name for (name,) in con.execute("select name from sqlite_master where type = 'table'")}
+        if "experiments" not in tables:
+            raise OrbisError(f"{db}: not an MLflow store (no experiments table); pass the store's database")
+        old = None
+        for (location,) in con.execute("select artifact_location from experiments"):
+            path = _local_path(location or "")
+            if path is None or not path.is_absolute() or path.is_relative_to(root):
+                continue
+            # At least <artifact root>/<experiment id>, so that a lone id never matches by chance.
+            tail = next((len(path.parts) - k for k in range(1, len(path.parts) - 1)
+                         if root.joinpath(*path.parts[k:]).exists()), None)
+            if tail is not None:
+                old = Path(*path.parts[:len(path.parts) - tail])
+                break
+        if old is None or old == root:
+            return None
+        prefixes = ((old.as_uri(), root.as_uri()), (str(old), str(root)))  # file:// URIs, and plain paths
+
+        def moved(value: str | None) -> str | None:
+            for before, after in prefixes:
+                if value and (value == before or value.startswith(before + "/")):
+                    return after + value[len(before):]
+            return None
+
+        with con:  # one transaction: all re-pointed, or none
+            for table, column, where in ARTIFACT_COLUMNS:
+                if table in tables:
+                    rows = con.execute(f"select rowid, {column} from {table}" + (f" where {where}" if where else ""))
+                    updates = [(new, rowid) for rowid, value in rows.fetchall() if (new := moved(value))]
+                    con.executemany(f"update {table} set {column} = ? where rowid = ?", updates)
+    return str(old), str(root)
 
 
 def provenance(params: dict[str, Any]) -> dict[str, str]:
@@ -245,6 +321,9 @@ def stage_run(stage: str, params: dict[str, Any], pipeline: dict[str, Any] | Non
     uri = os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_TRACKING_URI)
     mlflow.set_tracking_uri(uri)
     with store_lock(uri):  # the first stages of a fresh store would race on its schema migration
+        if (db := sqlite_path(uri)) is not None and db.is_file():
+            with contextlib.suppress(OrbisError):  # not a store yet: MLflow creates or rejects it below
+                relocate_store(db)  # a project folder that moved: its runs' artifacts are where it is now
         experiment = mlflow.set_experiment(os.environ.get("MLFLOW_EXPERIMENT_NAME", "orbis2"))
         client = MlflowClient()
         if experiment.tags.get(KIND_TAG) != EXPERIMENT_KIND:
@@ -359,3 +438,31 @@ def mark_killed_runs(client: Any, experiment_id: str) -> list[str]:
             client.set_terminated(run.info.run_id, status="KILLED")
             killed.append(run.info.run_id)
     return killed
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m orbis2.tracking",
+                                     description="Re-point a moved SQLite MLflow store at its new folder.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    relocate = sub.add_parser("relocate", help="point the store's artifact locations at the folder it now lives in")
+    relocate.add_argument("--store", default=os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_TRACKING_URI),
+                          help="the store's URI (default: $MLFLOW_TRACKING_URI, else sqlite:///mlflow.db)")
+    args = parser.parse_args(argv)
+    db = sqlite_path(args.store)
+    try:
+        if db is None:
+            raise OrbisError(f"--store {args.store}: not a SQLite store; a tracking server's artifacts "
+                             "(mlflow-artifacts:/) do not need re-pointing")
+        if not db.is_file():
+            raise OrbisError(f"{db}: no such store; run from the project folder or pass --store sqlite:///<path>")
+        with store_lock(args.store):
+            moved = relocate_store(db)
+    except OrbisError as err:
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)
+    print(f"{db}: artifacts re-pointed from {moved[0]} to {moved[1]}" if moved else
+          f"{db}: artifact locations already point here")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,87 @@
+"""Reviewing a run with DVC: a Snakemake run leaves dvc.lock in step, and `dvc plots show` needs no network."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import yaml
+
+from orbis2 import dag
+from orbis2.config.params import load_params
+from orbis2.stage import draw_loss_curves
+
+from conftest import ROOT, project_copy, project_env, run
+
+
+def test_config_drift_names_what_dvc_cannot_see():
+    params = load_params(ROOT / "params.yaml")
+    assert dag.config_drift({**params, "train_launcher": "torchrun --nproc_per_node 8"}, ROOT / "params.yaml") == []
+    other = "paper" if params["profile"] != "paper" else "smoke"
+    changed = {**params, "profile": other, "action": {**params["action"], "all": {}}}
+    assert dag.config_drift(changed, ROOT / "params.yaml") == ["action", "profile"]
+
+
+def test_no_commit_when_the_run_differs_from_params_yaml(tmp_path, capfd, monkeypatch):
+    (tmp_path / ".dvc").mkdir()
+    assert not dag.commit_to_dvc(["town", "shards"], ["profile"], tmp_path)
+    assert "dvc.lock not updated" in capfd.readouterr().err and not (tmp_path / "dvc.lock").exists()
+    monkeypatch.setenv(dag.COMMIT_ENV, "0")
+    assert not dag.commit_to_dvc(["town", "shards"], [], tmp_path)
+    assert capfd.readouterr().err == ""
+
+
+def curves(folder: Path, evaluated: bool = True) -> Path:
+    folder.mkdir(parents=True)
+    pd.DataFrame({"step": [1, 2, 3], "loss": [400.0, 380.0, 350.0]}).to_csv(folder / "train.csv", index=False)
+    if evaluated:
+        pd.DataFrame({"step": [3], "val_loss": [1.5]}).to_csv(folder / "eval.csv", index=False)
+    return folder
+
+
+def test_each_loss_is_drawn_on_its_own(tmp_path):
+    drawn = draw_loss_curves(curves(tmp_path / "predictor/curves"), "predictor")
+    assert [p.name for p in drawn] == ["loss.png", "val_loss.png"]
+    assert all(p.read_bytes().startswith(b"\x89PNG") for p in drawn)
+    assert [p.name for p in draw_loss_curves(curves(tmp_path / "tokenizer/curves", False), "tokenizer")] == [
+        "loss.png"]
+
+
+def test_plots_page_needs_no_network(tmp_path):
+    """dvc.yaml's plots are images only: DVC copies them beside its page, which then loads no script."""
+    plots = yaml.safe_load((ROOT / "dvc.yaml").read_text())["plots"]
+    assert all(isinstance(p, str) and p.endswith(".png") for p in plots)
+    assert "data/predictors/action/curves/val_loss.png" in plots and "data/tokenizers/detail/curves/loss.png" in plots
+    (tmp_path / "dvc.yaml").write_text(yaml.safe_dump({"plots": plots}))
+    draw_loss_curves(curves(tmp_path / "data/predictors/action/curves"), "action")
+    draw_loss_curves(curves(tmp_path / "data/tokenizers/detail/curves", False), "tokenizer_detail")
+    for cmd in (["init", "--no-scm", "-q"], ["plots", "show"]):
+        proc = subprocess.run([sys.executable, "-m", "dvc", *cmd], cwd=tmp_path, capture_output=True, text=True,
+                              timeout=300)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+    page = (tmp_path / "dvc_plots/index.html").read_text()
+    assert "<script" not in page and not re.search(r"(src|href)=[\"']?https?:", page)
+    images = re.findall(r"<img src=\"([^\"]+)\"", page)
+    assert len(images) == 3 and all((tmp_path / "dvc_plots" / src).is_file() for src in images)
+
+
+@pytest.mark.slow
+def test_a_snakemake_run_leaves_dvc_up_to_date(tmp_path):
+    """After `snakemake shards` (town and shards at the smoke scale), DVC sees the same run: nothing to redo."""
+    root = project_copy(tmp_path)
+    out = run(["snakemake", "--cores", "2", "shards"], root)
+    assert "dvc.lock records this run (2 stages)" in out
+    status = run(["dvc", "status", "shards"], root)
+    assert "Data and pipelines are up to date." in status
+    assert "Running stage" not in run(["dvc", "repro", "shards"], root)
+
+    params = yaml.safe_load((root / "params.yaml").read_text())
+    params["shards"]["all"]["jpeg_quality"] = 90
+    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    assert "shards:" in run(["dvc", "status", "shards"], root)  # DVC sees an edit made since
+    proc = subprocess.run(["dvc", "status", "town"], cwd=root, env=project_env(root), capture_output=True, text=True)
+    assert "Data and pipelines are up to date." in proc.stdout
