@@ -23,7 +23,7 @@ from orbis2.eval.conditioning import (
     swapped,
     variant_errors,
 )
-from orbis2.models.stdit import translate_columns
+from orbis2.models.deviations import translate_columns
 
 CLIPS, PER_CLIP, N_CONTEXT, N_TARGET, SHAPE = 8, 4, 2, 3, (2, 3, 4)
 

@@ -29,6 +29,7 @@ from orbis2.assets import AssetError, ensure_asset
 from orbis2.config import PROFILES, load_config
 from orbis2.data.datasets import bdd100k, nuplan, opendv, physicalai_av
 from orbis2.data.episodes import read_odometry
+from orbis2.data.images import to_uint8
 from orbis2.data.importer import read_odometry_csv
 from orbis2.data.video import PLAYABLE_SUFFIXES, probe, read_video, resample_stride, write_gif, write_video
 from orbis2.errors import OrbisError
@@ -46,9 +47,8 @@ from orbis2.eval.odometry import get_inverse_dynamics
 from orbis2.io import atomic_file, sha256_file, write_json
 from orbis2.kinematics import integrate_odometry
 from orbis2.latents import encode_frames
+from orbis2.models.files import PredictorFile, TokenizerFile, load_predictor, load_tokenizer
 from orbis2.models.i3d import load_i3d
-from orbis2.models.stdit import PredictorFile, load_predictor
-from orbis2.models.tokenizer import TokenizerFile, load_tokenizer, to_uint8
 from orbis2.registry import layout_path
 from orbis2.rollout import cascaded_rollout, first_context_end, rollout_schedule, steering_sequences
 

@@ -65,7 +65,7 @@ from orbis2.eval.stats import (
 )
 from orbis2.flow import interpolate
 from orbis2.latents import KINDS, LatentCache, LatentWindowDataset
-from orbis2.models.stdit import best_sideways_shift
+from orbis2.models.deviations import best_sideways_shift
 from orbis2.registry import registry
 from orbis2.tasks.predictors import (
     STAGES,
