@@ -49,10 +49,10 @@ from orbis2.kinematics import integrate_odometry
 from orbis2.latents import encode_frames
 from orbis2.models.files import PredictorFile, TokenizerFile, load_predictor, load_tokenizer
 from orbis2.models.i3d import load_i3d
-from orbis2.registry import layout_path
+from orbis2.registry import layout_path, registry
 from orbis2.rollout import cascaded_rollout, first_context_end, rollout_schedule, steering_sequences
 
-DEFAULT_ACTION = layout_path("predictor", "action") / "predictor.pt"
+DEFAULT_ACTION = layout_path("predictor", registry().steered) / "predictor.pt"
 DEFAULT_ABSTRACT_TF = layout_path("predictor", "abstract_tf") / "predictor.pt"
 # Steering inputs are divided by these (m/s, rad/s) unless the predictor's meta["steering"]["scale"] records its own.
 DEFAULT_STEERING_SCALE = (10.0, 0.5)

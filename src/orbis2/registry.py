@@ -118,6 +118,12 @@ class Registry:
         return list(dict.fromkeys(p for name in systems for p in self.systems[name].stages))
 
     @property
+    def steered(self) -> str:
+        """The steered predictor (``steering: true``, unique: checked when parsed): the top predictor that
+        eval_steering cascades into the hierarchy's bottom one."""
+        return next(name for name, spec in self.predictors.items() if spec.steering)
+
+    @property
     def probe_targets(self) -> list[str]:
         return [*self.representations, *(n for n, s in self.predictors.items() if s.probe)]
 
@@ -173,6 +179,10 @@ def parse_registry(raw: dict, where: Path = Path("registry.yaml")) -> Registry:
                                     ("latents", p.latents, tuple(reg.latent_sets))):
             if value not in allowed:
                 problems.append(f"predictors.{name}.{key} = {value!r} must be one of {list(allowed)}")
+    steered = [name for name, p in reg.predictors.items() if p.steering]
+    if len(steered) != 1:
+        problems.append(f"predictors: exactly one needs `steering: true` (the steered top predictor), "
+                        f"found {', '.join(steered) or 'none'}")
     for name, s in [*reg.systems.items(), *reg.speed_systems.items()]:
         problems += [f"systems.{name}: predictor {p!r} is not under `predictors`"
                      for p in s.stages if p not in reg.predictors]
