@@ -33,7 +33,8 @@ from orbis2.data.shards import MANIFEST, WindowDataset, write_shards
 from orbis2.data.video import write_video
 from orbis2.errors import OrbisError
 from orbis2.latents import LatentCache, LatentWindowDataset, build_latent_cache, encode_window, open_cache, sha256_file
-from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer, load_tokenizer, save_tokenizer
+from orbis2.models.files import load_tokenizer, save_tokenizer
+from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer
 
 
 def synthetic_setup(cfg: PipelineConfig, root: Path, episodes: int = 4) -> tuple[Path, Path, Path]:

@@ -3,8 +3,8 @@
 
 from orbis2.eval.conditioning import scope_predictors
 
-# The hierarchy's bottom predictor under the steered top one.
-STEERING_PREDICTORS = ["detail", "action"]
+# The hierarchy's bottom predictor under the steered top one (registry.yaml's `steering: true`).
+STEERING_PREDICTORS = [REG.systems["hierarchical"].bottom, REG.steered]
 # Per report scope (main, all): the suffix of the eval_speed and eval_conditioning rules and records.
 SCOPE_SUFFIX = {"main": "", "all": "_all"}
 

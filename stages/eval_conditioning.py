@@ -28,7 +28,7 @@ from orbis2.eval.conditioning import (
 from orbis2.eval.ego_motion import EGO_MOTION_TARGETS
 from orbis2.io import write_json
 from orbis2.latents import KINDS, open_cache
-from orbis2.models.stdit import load_predictor
+from orbis2.models.files import load_predictor
 from orbis2.registry import SCOPES, layout_path, registry
 from orbis2.stage import add_name_argument, add_predictor_argument, open_stage, predictor_files, stage_parser
 

@@ -24,9 +24,8 @@ from orbis2.eval.probe import (
     tokenizer_features,
 )
 from orbis2.io import write_json
-from orbis2.models.stdit import load_predictor
+from orbis2.models.files import load_predictor, load_tokenizer
 from orbis2.models.teachers import build_teacher
-from orbis2.models.tokenizer import load_tokenizer
 from orbis2.registry import layout_path, registry
 from orbis2.stage import (
     add_name_argument,

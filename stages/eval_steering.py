@@ -53,7 +53,7 @@ from orbis2.eval.systems import (
 from orbis2.io import write_json
 from orbis2.kinematics import integrate_controls
 from orbis2.latents import open_cache
-from orbis2.registry import layout_path
+from orbis2.registry import layout_path, registry
 from orbis2.stage import (
     add_latent_arguments,
     add_predictor_argument,
@@ -63,8 +63,9 @@ from orbis2.stage import (
     stage_parser,
 )
 
-# The hierarchy with the steered top predictor: ``action`` cascaded into ``detail``, on the compressed latents.
-SYSTEM, TOP = "hierarchical", "action"
+# The hierarchy with the steered top predictor (registry.yaml's `steering: true`) cascaded into its bottom one,
+# on the compressed latents.
+SYSTEM, TOP = "hierarchical", registry().steered
 LATENT_SET = "compressed"
 
 

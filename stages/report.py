@@ -17,20 +17,12 @@ from pathlib import Path
 import numpy as np
 
 from orbis2.errors import OrbisError
+from orbis2.eval.claims import check_claims
 from orbis2.eval.figures import save_rollout_grid
-from orbis2.eval.report import (
-    EVAL_KINDS,
-    HEADLINE_JSON,
-    MAIN_CSV,
-    check_claims,
-    compression_from_evals,
-    headline,
-    read_evals,
-    report_setup,
-    write_full_report,
-    write_main_report,
-)
+from orbis2.eval.records import EVAL_KINDS, read_evals
+from orbis2.eval.report import HEADLINE_JSON, MAIN_CSV, headline, report_setup, write_full_report, write_main_report
 from orbis2.eval.systems import SYSTEMS
+from orbis2.eval.tables import TableSettings, compression_from_evals
 from orbis2.io import atomic_dir, write_json
 from orbis2.registry import layout_path, registry
 from orbis2.stage import add_name_argument, add_named_paths, open_stage, stage_parser
@@ -71,15 +63,15 @@ def main(argv: list[str] | None = None) -> None:
         evals = read_evals(given_or_all(args.fvd, "fvd", list(reg.systems), "--fvd"),
                            given_or_all(args.probe, "probe", reg.probe_targets, "--probe"),
                            **{kind: getattr(args, kind) for kind in EVAL_KINDS})
-        setup, rates = report_setup(cfg), {"detail_hz": cfg.data.detail_hz, "abstract_hz": cfg.data.abstract_hz}
+        setup, settings = report_setup(cfg), TableSettings.from_config(cfg)
         if scope == "main":
-            written = write_main_report(evals, args.out or layout_path("reports"), setup, **rates)
+            written = write_main_report(evals, args.out or layout_path("reports"), setup, settings)
         else:
             evals["compression"] = compression_from_evals(evals)
             out = args.out or layout_path("report_all")
             media = given_or_all(args.media, "media", list(SYSTEMS), "--media")
             with atomic_dir(out) as tmp:
-                write_full_report(evals, tmp, setup, **rates)
+                write_full_report(evals, tmp, setup, settings)
                 shutil.copy2(args.strip, tmp / "figures" / "steering_strip.png")
                 grids = [(n, np.load(media[n] / GRID)) for n in SYSTEMS if n in media and (media[n] / GRID).is_file()]
                 if grids:
@@ -101,7 +93,7 @@ def main(argv: list[str] | None = None) -> None:
             run.log_artifact(headline_file)
             run.publish_metrics(metrics)
             run.publish_tags({**verdicts, **{f"claim/{i}": f"{verdict}: {claim}" for i, (claim, verdict, _)
-                                             in enumerate(check_claims(evals), start=1)}})
+                                             in enumerate(check_claims(evals, settings), start=1)}})
             for path in written:
                 run.publish(path, None if path.suffix == ".md" else "tables")
         else:

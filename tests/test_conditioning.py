@@ -19,7 +19,7 @@ from orbis2.eval.conditioning import (
     variant_errors,
 )
 from orbis2.eval.ego_motion import ego_motion_pairs, ego_motion_probe, probe_features, ridge_fit, select_penalty
-from orbis2.models.stdit import translate_columns
+from orbis2.models.deviations import translate_columns
 
 CLIPS, PER_CLIP, N_CONTEXT, N_TARGET, SHAPE = 8, 4, 2, 3, (2, 3, 4)
 

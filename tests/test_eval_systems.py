@@ -17,7 +17,8 @@ from orbis2.eval.systems import (
     load_system,
     rollout_steps,
 )
-from orbis2.models.stdit import PredictorFile, build_stdit
+from orbis2.models.files import PredictorFile
+from orbis2.models.stdit import build_stdit
 
 
 def predictor(level: str, rate: str, condition: bool = False) -> PredictorFile:

@@ -18,18 +18,9 @@ from torch.utils._pytree import tree_flatten
 
 from orbis2.accel import cast_for_inference, compile_predictor
 from orbis2.flow import euler_grid, euler_sample
-from orbis2.models.stdit import (
-    TURN_SEARCH,
-    SteeringShift,
-    best_sideways_shift,
-    build_stdit,
-    modulate,
-    patchify,
-    sinusoidal_embedding,
-    stdit_config,
-    translate_columns,
-    unpatchify,
-)
+from orbis2.models.deviations import TURN_SEARCH, SteeringShift, best_sideways_shift, translate_columns
+from orbis2.models.stdit import build_stdit, stdit_config
+from orbis2.models.stdit_layers import modulate, patchify, sinusoidal_embedding, unpatchify
 from orbis2.models.tokenizer import sincos_pos_embed_2d
 from orbis2.rollout import cascaded_rollout, flat_rollout, sample_frames, target_velocity
 

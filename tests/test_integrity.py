@@ -18,7 +18,8 @@ from test_shards import make_raw
 from orbis2 import dag
 from orbis2.data.shards import ShardError, iter_samples, shard_paths, verify_shards, write_shards
 from orbis2.latents import LatentCacheError, LatentWindowDataset, build_latent_cache, open_cache
-from orbis2.models.tokenizer import build_abstract_tokenizer, save_tokenizer
+from orbis2.models.files import save_tokenizer
+from orbis2.models.tokenizer import build_abstract_tokenizer
 
 from conftest import ROOT
 

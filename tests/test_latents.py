@@ -18,7 +18,8 @@ from orbis2.latents import (
     open_cache,
     sha256_file,
 )
-from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer, load_tokenizer, save_tokenizer
+from orbis2.models.files import load_tokenizer, save_tokenizer
+from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer
 
 DETAIL_SCALE, ABSTRACT_SCALE = 0.8, 1.7
 

@@ -21,8 +21,7 @@ from test_dag import dvc_stages
 from orbis2.config.params import load_config
 from orbis2.data.shards import Clip, iter_samples, load_manifest, shard_paths, verify_shards
 from orbis2.latents import LatentWindowDataset, open_cache
-from orbis2.models.stdit import load_predictor
-from orbis2.models.tokenizer import load_tokenizer
+from orbis2.models.files import load_predictor, load_tokenizer
 from orbis2.tasks.predictors import STAGES as STAGE_SPECS
 
 from conftest import project_copy, run

@@ -12,7 +12,7 @@ from orbis2.errors import OrbisError
 from orbis2.hierarchy import detail_condition, detail_condition_slots, rate_geometry, steering_features
 from orbis2.io import sha256_file
 from orbis2.latents import FORMAT, NORMALIZATION, LatentWindowDataset, open_cache
-from orbis2.models.stdit import best_sideways_shift, translate_columns
+from orbis2.models.deviations import best_sideways_shift, translate_columns
 from orbis2.tasks.predictors import (
     STAGES,
     PredictorTask,

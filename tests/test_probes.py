@@ -38,8 +38,9 @@ from orbis2.eval.probe import (
     teacher_features,
     tokenizer_features,
 )
-from orbis2.models.stdit import build_stdit_from, load_predictor, save_predictor
-from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer, load_tokenizer, save_tokenizer
+from orbis2.models.files import load_predictor, load_tokenizer, save_predictor, save_tokenizer
+from orbis2.models.stdit import build_stdit_from
+from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer
 
 from conftest import moving_pattern
 

@@ -26,6 +26,7 @@ def test_the_project_registry_describes_the_paper_dag():
     assert reg.systems["hierarchical"].stages == ["abstract_tf", "detail"]
     assert "action" not in reg.probe_targets and "teacher" in reg.probe_targets
     assert reg.predictors["action"].steering and reg.predictors["abstract_df"].causal
+    assert reg.steered == "action"
     full_abstract = layout_path("tokenizer", "abstract_full") / "tokenizer.pt"
     assert reg.latent_sets["full"].tokenizer_file("abstract") == full_abstract
     assert reg.target_latents("flat_abstract_full") == "full"
@@ -40,6 +41,8 @@ def test_the_project_registry_describes_the_paper_dag():
     (lambda r: r["main_table"].update(hierarchical="action"), "main_table.hierarchical"),
     (lambda r: r["baselines"].update(flat_video="flat_detail"), "baselines.flat_video"),
     (lambda r: r["baselines"].update(hierarchical="abstract_tf"), "baselines.hierarchical: already a main_table row"),
+    (lambda r: r["predictors"]["detail"].update(steering=True), "exactly one .*found detail, action"),
+    (lambda r: r["predictors"]["action"].update(steering=False), "exactly one .*found none"),
 ])
 def test_a_bad_entry_is_named(edit, message):
     data = raw()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import re
 from pathlib import Path
@@ -11,10 +12,15 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from orbis2.config.params import load_config
 from orbis2.errors import OrbisError
-from orbis2.eval import figures, report
+from orbis2.eval import claims, figures, records, report, tables
+
+from conftest import ROOT
 
 SETUP = {"profile": "smoke", "seed": 7, "fvd_videos": 12}
+# What the smoke profile of params.yaml decides about the tables (FVD splits, steering modes, rates).
+SETTINGS = tables.TableSettings.from_config(load_config(ROOT / "params.yaml", "smoke"))
 
 FVD = {  # model: (parameters, fvd val, heldout, turns, fvd_long, slope)
     "flat_detail": (20_000_000, 170.5, 200.25, 210.0, 300.0, 101.63),
@@ -177,7 +183,7 @@ def write_evals(folder: Path, skip: tuple[str, ...] = ()) -> Path:
 @pytest.fixture
 def evals(tmp_path):
     """Every evaluation, and the compression rows the report stage derives from them."""
-    return report.load_eval(write_evals(tmp_path / "eval")) | {"compression": compression_doc()}
+    return records.load_eval(write_evals(tmp_path / "eval")) | {"compression": compression_doc()}
 
 
 def read_csv(path: Path) -> list[dict[str, str]]:
@@ -186,7 +192,7 @@ def read_csv(path: Path) -> list[dict[str, str]]:
 
 
 def verdicts(evals: dict) -> list[str]:
-    return [verdict for _, verdict, _ in report.check_claims(evals)]
+    return [verdict for _, verdict, _ in claims.check_claims(evals, SETTINGS)]
 
 
 def summary_verdicts(path: Path) -> list[str]:
@@ -195,7 +201,7 @@ def summary_verdicts(path: Path) -> list[str]:
 
 def test_load_eval_reads_every_file(evals):
     assert set(evals["fvd"]) == set(report.FVD_MODELS)
-    assert set(evals["probe"]) == set(report.PROBE_TARGETS)
+    assert set(evals["probe"]) == set(records.PROBE_TARGETS)
     assert {"steering", "speed"} <= set(evals)
 
 
@@ -203,7 +209,7 @@ def test_load_eval_rejects_a_file_under_the_wrong_name(tmp_path):
     folder = write_evals(tmp_path / "eval")
     (folder / "fvd_hierarchical.json").write_text(json.dumps(fvd_doc("flat_detail")))
     with pytest.raises(OrbisError, match="eval_fvd_hierarchical"):
-        report.load_eval(folder)
+        records.load_eval(folder)
 
 
 def test_read_evals_takes_the_files_it_is_given(tmp_path):
@@ -212,22 +218,22 @@ def test_read_evals_takes_the_files_it_is_given(tmp_path):
     moved = tmp_path / "elsewhere" / "hier.json"
     moved.parent.mkdir()
     (folder / "fvd_hierarchical.json").rename(moved)
-    assert set(report.read_evals({"hierarchical": moved}, {})["fvd"]) == {"hierarchical"}
+    assert set(records.read_evals({"hierarchical": moved}, {})["fvd"]) == {"hierarchical"}
     fvd = {m: folder / f"fvd_{m}.json" for m in FVD} | {"hierarchical": moved}
-    evals = report.read_evals(fvd, {t: folder / f"probe_{t}.json" for t in PROBES},
+    evals = records.read_evals(fvd, {t: folder / f"probe_{t}.json" for t in PROBES},
                               steering=folder / "steering.json", speed=tmp_path / "absent.json",
                               conditioning=folder / "conditioning.json")
     assert set(evals["fvd"]) == set(FVD) and evals["fvd"]["hierarchical"]["model"] == "hierarchical"
     assert "steering" in evals and "speed" not in evals
     with pytest.raises(OrbisError, match=r"absent\.json \(written by stage eval_speed\)"):
-        report.write_main_report(evals, tmp_path / "out", SETUP)
+        report.write_main_report(evals, tmp_path / "out", SETUP, SETTINGS)
     with pytest.raises(OrbisError, match="fvd_flat_detail.json says model='flat_detail', expected 'hierarchical'"):
-        report.read_evals({"hierarchical": folder / "fvd_flat_detail.json"}, {})
+        records.read_evals({"hierarchical": folder / "fvd_flat_detail.json"}, {})
 
 
 def test_main_report_tables_round_trip(evals, tmp_path):
     out = tmp_path / "reports"
-    written = report.write_main_report(evals, out, SETUP)
+    written = report.write_main_report(evals, out, SETUP, SETTINGS)
     assert sorted(p.name for p in written) == ["conditioning.csv", "main_table.csv", "speed.csv", "steering.csv",
                                                "summary.md"]
     conditioning = read_csv(out / "conditioning.csv")
@@ -267,7 +273,7 @@ def test_main_report_tables_round_trip(evals, tmp_path):
     assert steering[5]["kind"] == "reference" and steering[5]["ade"] == "NA" and steering[5]["ade_n"] == "20"
     assert steering[-1]["turn_deg_image_low"] == "NA" and float(steering[-2]["turn_deg_image_high"]) == 0.5
     assert float(steering[0]["ade_opencv"]) == 4.2 and float(steering[-2]["ade_opencv"]) == 0.6
-    assert [r["mode"] for r in steering] == [*report.STEERING_MODES, "real_subgoals", "real_videos",
+    assert [r["mode"] for r in steering] == [*SETTINGS.steering_modes, "real_subgoals", "real_videos",
                                              "shuffled_videos"]
     assert float(steering[1]["ade"]) == 2.18 and steering[1]["ade_n"] == "21"
     assert float(steering[-1]["ade"]) == 4.0 and steering[-1]["ade_n"] == "30"
@@ -293,7 +299,7 @@ def test_main_report_tables_round_trip(evals, tmp_path):
 
 def test_main_report_marks_absent_ablations_not_measured(tmp_path):
     folder = write_evals(tmp_path / "eval", skip=("probe_abstract_df",))
-    report.write_main_report(report.load_eval(folder), tmp_path / "out", SETUP)
+    report.write_main_report(records.load_eval(folder), tmp_path / "out", SETUP, SETTINGS)
     assert summary_verdicts(tmp_path / "out" / "summary.md") == [
         "not measured",
         "holds",
@@ -312,22 +318,22 @@ def test_steering_table_without_opencv_on_the_rollouts_keeps_its_real_video_chec
     doc["instruments"] = ["learned"]  # evaluation.opencv_rollouts: false
     for cells in doc["modes"].values():
         del cells["instruments"]["opencv"]
-    rows = report.steering_table({"steering": doc})
-    assert all(r["ade_opencv"] == report.NA and r["turn_deg_opencv"] == report.NA for r in rows[:-2])
+    rows = tables.steering_table({"steering": doc}, SETTINGS)
+    assert all(r["ade_opencv"] == tables.NA and r["turn_deg_opencv"] == tables.NA for r in rows[:-2])
     assert rows[-2]["ade_opencv"] == 0.6 and rows[0]["ade"] == 1.2
 
 
 def test_main_scope_speed_record_leaves_the_flat_comparison_to_the_full_report(evals, tmp_path):
     for name in ("flat_detail", "flat_abstract", "v1_style", "hierarchical_distilled"):  # eval_speed (main)
         del evals["speed"]["models"][name]  # times the main table's hierarchy only
-    report.write_main_report(evals, tmp_path, SETUP)
+    report.write_main_report(evals, tmp_path, SETUP, SETTINGS)
     assert [r["model"] for r in read_csv(tmp_path / "speed.csv")] == ["hierarchical"]
-    assert verdicts(evals)[4] == "not measured" and "eval_speed_all" in report.claim_speed(evals)[1]
+    assert verdicts(evals)[4] == "not measured" and "eval_speed_all" in claims.claim_speed(evals, SETTINGS)[1]
 
 
 def test_full_report_ablations_and_figures(evals, tmp_path):
     out = tmp_path / "reports"
-    written = report.write_full_report(evals, out, SETUP, detail_hz=10, abstract_hz=2)
+    written = report.write_full_report(evals, out, SETUP, SETTINGS)
     names = {p.relative_to(out).as_posix() for p in written}
     assert names == {
         "main_table.csv", "steering.csv", "speed.csv", "summary.md",
@@ -338,13 +344,13 @@ def test_full_report_ablations_and_figures(evals, tmp_path):
     # Table 1 with the flat baselines first (probed at themselves) and every decoder's reference rows.
     main = read_csv(out / "main_table.csv")
     assert [r["model"] for r in main] == ["flat_detail", "flat_abstract", "hierarchical",
-                                          *(name for name, *_ in report.FVD_REFERENCES)]
+                                          *(name for name, *_ in tables.FVD_REFERENCES)]
     assert [r["kind"] for r in main] == ["model"] * 3 + ["reference"] * 5
     assert float(main[1]["miou"]) == PROBES["flat_abstract"][0] and main[1]["probe_target"] == "flat_abstract"
     # Fig. 4's numbers, one FVD column per system, one row per window end.
     chunked = read_csv(out / "fvd_chunked.csv")
     for model in report.FVD_MODELS:
-        chunks = report._get(evals, "fvd", model, "chunked", "chunks")
+        chunks = records.get(evals, "fvd", model, "chunked", "chunks")
         assert [float(r["end_s"]) for r in chunked] == [c["end_s"] for c in chunks]
         assert [float(r[model]) for r in chunked] == pytest.approx([c["fvd"] for c in chunks], rel=1e-5)
 
@@ -359,7 +365,7 @@ def test_full_report_ablations_and_figures(evals, tmp_path):
         ("5", "top", "abstract", 10.0),
         ("5", "bottom", "detail", 10.0),
     ]
-    assert [r["probe_target"] for r in hierarchy] == [row[4] for row in report.HIERARCHY_LAYOUT]
+    assert [r["probe_target"] for r in hierarchy] == [row[4] for row in tables.HIERARCHY_LAYOUT]
     exp4_bottom = hierarchy[5]
     assert float(exp4_bottom["miou"]) == PROBES["detail_on_detail"][0]
     assert float(exp4_bottom["fvd_long"]) == FVD["top_detail"][4] and float(exp4_bottom["fvd_slope"]) == 81.4
@@ -424,7 +430,7 @@ def test_each_claim_flips_with_the_numbers(evals, tmp_path, claim, path, value):
     if path[-1] == "high":  # an interval wholly below the material threshold
         _set(evals, path[:-1] + ("low",), -0.05)
     assert verdicts(evals) == expected
-    report.write_full_report(evals, tmp_path / "out", SETUP)
+    report.write_full_report(evals, tmp_path / "out", SETUP, SETTINGS)
     assert summary_verdicts(tmp_path / "out" / "summary.md") == expected
 
 
@@ -451,24 +457,24 @@ def test_null_compression_slope_is_not_measured(evals):
 )
 def test_missing_input_names_file_and_stage(tmp_path, missing, stage, writer):
     folder = write_evals(tmp_path / "eval", skip=(missing,))
-    evals = report.load_eval(folder)
+    evals = records.load_eval(folder)
     with pytest.raises(OrbisError, match=re.escape(f"{missing}.json (written by stage {stage})")):
-        writer(evals, tmp_path / "out", SETUP)
+        writer(evals, tmp_path / "out", SETUP, SETTINGS)
     assert not (tmp_path / "out").exists()  # checked before anything is written
 
 
 def test_missing_metric_is_an_error_not_a_blank(evals, tmp_path):
     evals["probe"]["flat_detail"]["depth"] = None
     with pytest.raises(OrbisError, match=r"probe_flat_detail\.json .*depth"):
-        report.write_main_report(evals, tmp_path / "out", SETUP)
+        report.write_main_report(evals, tmp_path / "out", SETUP, SETTINGS)
 
 
 def test_full_report_without_compression_drops_that_table(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     (out / "compression_ablation.csv").write_text("stale\n")
-    evals = report.load_eval(write_evals(tmp_path / "eval"))
-    report.write_full_report(evals, out, SETUP)
+    evals = records.load_eval(write_evals(tmp_path / "eval"))
+    report.write_full_report(evals, out, SETUP, SETTINGS)
     assert not (out / "compression_ablation.csv").exists()
     assert summary_verdicts(out / "summary.md")[2] == "not measured"
 
@@ -479,10 +485,11 @@ def test_rollout_grid_and_steering_strip_are_pngs(tmp_path):
     frames = [rng.integers(0, 255, (3, 36, 64, 3), dtype=np.uint8) for _ in range(2)]
     figures.save_rollout_grid(frames, ["Exp. 1", "Exp. 3 (ours)"], times, tmp_path / "grid.png")
     t = np.linspace(0, 6, 13)[:, None]
-    plans = [np.hstack([5 * t, 0.1 * k * t**2]) for k in range(len(report.STEERING_MODES))]
-    modes_frames = [rng.integers(0, 255, (3, 36, 64, 3), dtype=np.uint8) for _ in report.STEERING_MODES]
+    modes = SETTINGS.steering_modes
+    plans = [np.hstack([5 * t, 0.1 * k * t**2]) for k in range(len(modes))]
+    modes_frames = [rng.integers(0, 255, (3, 36, 64, 3), dtype=np.uint8) for _ in modes]
     figures.save_steering_strip(
-        modes_frames, report.STEERING_MODES, times, plans, tmp_path / "strip.png", estimated=[p * 0.9 for p in plans]
+        modes_frames, modes, times, plans, tmp_path / "strip.png", estimated=[p * 0.9 for p in plans]
     )
     for name in ("grid.png", "strip.png"):
         with Image.open(tmp_path / name) as image:
@@ -498,13 +505,13 @@ def test_compression_rows_come_from_the_flat_abstract_models(evals):
     full["chunked"] = {**full["chunked"], "fvd_slope": 99.0}
     evals["fvd"]["flat_abstract"] = evals["fvd"]["flat_abstract"] | {"latent_channels": 16}
     evals["fvd"]["flat_abstract_full"] = full
-    rows = report.compression_from_evals(evals)["rows"]
+    rows = tables.compression_from_evals(evals)["rows"]
     assert [(r["variant"], r["latent_dim"]) for r in rows] == [("compressed", 16), ("full (teacher dim)", 768)]
     assert rows[1]["fvd_slope"] == 99.0 and rows[0]["fvd_slope"] == FVD["flat_abstract"][5]
     assert rows[1]["miou"] == evals["probe"]["flat_abstract_full"]["segmentation"]["miou"]
     del evals["fvd"]["flat_abstract_full"]
     with pytest.raises(OrbisError, match="eval_fvd_flat_abstract_full"):
-        report.compression_from_evals(evals)
+        tables.compression_from_evals(evals)
 
 
 def test_write_csv_known_bytes_and_exact_float_round_trip(tmp_path):
@@ -523,7 +530,7 @@ def test_write_csv_known_bytes_and_exact_float_round_trip(tmp_path):
 
 def test_a_floor_on_too_few_clips_reads_na(evals):
     evals["fvd"]["hierarchical"]["references"]["val"]["real_floor"] = {"fvd": None, "clips": 2, "reason": "few"}
-    floor = report.main_table(evals)[1]
+    floor = tables.main_table(evals, "main", SETTINGS)[1]
     assert floor["fvd_val"] == floor["fvd_val_n"] == "NA" and floor["fvd_heldout"] == 30.0
 
 
@@ -531,7 +538,7 @@ def test_fvd_tables_carry_the_protocol_card(evals, tmp_path):
     card = {"protocol": "orbis2", "fps": 10, "seconds": 2.0, "i3d_frames": 16, "context_frames": 5,
             "i3d_sha256": "ab12", "bootstrap_seed": 31, "source_resolution": [72, 128]}
     evals["fvd"]["hierarchical"]["protocol"] = {"turns": card, "val": {**card, "clips": 2}}
-    report.write_main_report(evals, tmp_path, SETUP)
+    report.write_main_report(evals, tmp_path, SETUP, SETTINGS)
     summary = (tmp_path / "summary.md").read_text()
     main = summary.split("## Main results (Table 1)")[1].split("## ")[0]
     assert "- FVD protocol, turns: protocol=orbis2, fps=10, seconds=2.0, i3d_frames=16, context_frames=5, " \
@@ -554,3 +561,34 @@ def test_headline_names_each_number_by_table_row_and_column(tmp_path):
     assert tags == {"verdict/conditioning/hierarchical/ade/no actions": "used"}
     metrics, _ = headline([tmp_path / "main_table.csv"], {"main_table": ("miou",)})
     assert metrics == {"main_table/hierarchical/miou": 0.31, "main_table/flat/miou": 0.2}
+
+
+def test_fvd_splits_and_steering_modes_follow_the_config(evals, tmp_path, smoke_cfg):
+    """A split renamed and one added in ``evaluation.fvd_splits``, a steering mode renamed in
+    ``evaluation.steering_modes``: the tables and the split-wise claim follow the config, not a fixed list."""
+    ev = dataclasses.replace(smoke_cfg.evaluation, fvd_splits=["val", "night", "turns", "dusk"],
+                             steering_modes={"original": [1.0, 1.0], "yaw_rate_x2": [1.0, 2.0]})
+    settings = tables.TableSettings.from_config(dataclasses.replace(smoke_cfg, evaluation=ev))
+    assert settings.fvd_splits == ("val", "night", "turns", "dusk")
+    assert settings.steering_modes == ("original", "yaw_rate_x2")
+    for record in evals["fvd"].values():
+        for new, like in (("night", "heldout"), ("dusk", "val")):
+            record["fvd"][new] = {**record["fvd"][like], "videos": 7}
+            record["references"][new] = record["references"][like]
+    steering = evals["steering"]
+    steering["modes"]["yaw_rate_x2"] = {**steering["modes"]["yaw_rate_x1.5"], "samples": 9}
+    for reading in ("latent_turn", "image_turn"):
+        steering[reading]["modes"]["yaw_rate_x2"] = {"turn_deg": 99.0, "low": 98.0, "high": 100.0}
+
+    report.write_main_report(evals, tmp_path, SETUP, settings)
+    main = read_csv(tmp_path / "main_table.csv")
+    assert [key for key in main[0] if key.startswith("fvd_") and key.count("_") == 1] == [
+        "fvd_val", "fvd_night", "fvd_turns", "fvd_dusk"]
+    assert "fvd_heldout" not in main[0] and main[0]["fvd_night_n"] == main[0]["fvd_dusk_n"] == "7"
+    rows = read_csv(tmp_path / "steering.csv")
+    assert [r["mode"] for r in rows] == ["original", "yaw_rate_x2", "real_subgoals", "real_videos", "shuffled_videos"]
+    assert rows[1]["ade_n"] == "9" and float(rows[1]["turn_deg_latent"]) == 99.0
+    assert "night" in claims.check_claims(evals, settings)[7][2]  # claim 8 reads every configured split
+    evals["fvd"]["hierarchical"]["fvd"].pop("dusk")  # a configured split the record lacks: named, not skipped
+    with pytest.raises(OrbisError, match=r"fvd_hierarchical\.json .*fvd\.dusk"):
+        tables.main_table(evals, "main", settings)

@@ -13,8 +13,9 @@ from PIL import Image
 from orbis2.cli import main
 from orbis2.config.sections import DataConfig
 from orbis2.data.video import codec_of, read_video
-from orbis2.models.stdit import build_stdit, build_stdit_from, save_predictor
-from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer, save_tokenizer
+from orbis2.models.files import save_predictor, save_tokenizer
+from orbis2.models.stdit import build_stdit, build_stdit_from
+from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer
 from orbis2.rollout import cascaded_rollout, first_context_end, flat_rollout, rollout_schedule, steering_sequences
 
 ROOT = Path(__file__).resolve().parents[1]

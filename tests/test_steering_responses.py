@@ -14,7 +14,7 @@ from orbis2.eval.steering import (
     steering_responses,
     turn_record,
 )
-from orbis2.models.stdit import translate_columns
+from orbis2.models.deviations import translate_columns
 
 
 def scores(turn, path, ade=1.0, n=16):

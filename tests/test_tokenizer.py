@@ -8,7 +8,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from orbis2.data.images import to_uint8
 from orbis2.losses import (
+    adaptive_gan_weight,
     entropy_weight,
     generator_gan_loss,
     hinge_d_loss,
@@ -17,18 +19,15 @@ from orbis2.losses import (
     ssim,
     teacher_alignment_loss,
 )
+from orbis2.models.discriminator import PatchGANDiscriminator, build_discriminator
 from orbis2.models.tokenizer import (
     TOKENIZER_PRESETS,
-    PatchGANDiscriminator,
     VectorQuantizer,
     ViTEncoder,
-    adaptive_gan_weight,
     build_abstract_tokenizer,
     build_detail_tokenizer,
-    build_discriminator,
     codebook_usage,
     load_mae_encoder,
-    to_uint8,
     tokenizer_config,
 )
 

@@ -13,7 +13,8 @@ from torch import nn
 
 from orbis2.data import shards
 from orbis2.data.shards import write_shards
-from orbis2.models.tokenizer import build_detail_tokenizer, load_tokenizer
+from orbis2.models.files import load_tokenizer
+from orbis2.models.tokenizer import build_detail_tokenizer
 from orbis2.tasks.tokenizers import (
     AbstractTokenizerTask,
     DetailTokenizerTask,

@@ -177,7 +177,7 @@ def main(argv: list[str] | None = None) -> None:
     cache = open_cache(args.latents or registry().latent_sets[STAGES[args.stage].latents].root)
     init = None
     if args.init:
-        from orbis2.models.stdit import load_predictor
+        from orbis2.models.files import load_predictor
         init = load_predictor(Path(args.init)).model.state_dict()
     task = CurveTask(args.stage, pc, cfg.data, cache, init, windows=args.windows)
     started = time.perf_counter()

@@ -28,6 +28,7 @@ from orbis2.accel import cast_for_inference, compile_decoder, compile_predictor,
 from orbis2.config.params import PROFILES, load_config
 from orbis2.data.datasets import bdd100k, nuplan, opendv, physicalai_av
 from orbis2.data.episodes import read_odometry
+from orbis2.data.images import to_uint8
 from orbis2.data.importer import read_odometry_csv
 from orbis2.data.video import PLAYABLE_SUFFIXES, probe, read_video, resample_stride, write_gif, write_video
 from orbis2.errors import OrbisError
@@ -37,12 +38,11 @@ from orbis2.eval.inverse_dynamics import WEIGHTS_FILE
 from orbis2.io import atomic_file, write_json
 from orbis2.kinematics import integrate_odometry
 from orbis2.latents import encode_frames
-from orbis2.models.stdit import PredictorFile, load_predictor
-from orbis2.models.tokenizer import TokenizerFile, load_tokenizer, to_uint8
-from orbis2.registry import layout_path
+from orbis2.models.files import PredictorFile, TokenizerFile, load_predictor, load_tokenizer
+from orbis2.registry import layout_path, registry
 from orbis2.rollout import cascaded_rollout, first_context_end, rollout_schedule, steering_sequences
 
-DEFAULT_ACTION = layout_path("predictor", "action") / "predictor.pt"
+DEFAULT_ACTION = layout_path("predictor", registry().steered) / "predictor.pt"
 DEFAULT_ABSTRACT_TF = layout_path("predictor", "abstract_tf") / "predictor.pt"
 
 

@@ -54,7 +54,7 @@ from orbis2.data.shards import (
 )
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_dir, sha256_file, write_json
-from orbis2.models.tokenizer import TokenizerFile, load_tokenizer
+from orbis2.models.files import TokenizerFile, load_tokenizer
 
 FORMAT = 3  # 3: meta.json records every file's SHA-256
 KINDS = ("detail", "abstract")

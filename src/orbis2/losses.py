@@ -25,6 +25,20 @@ def generator_gan_loss(logits_fake: torch.Tensor) -> torch.Tensor:
     return -logits_fake.mean()
 
 
+def adaptive_gan_weight(
+    rec_loss: torch.Tensor, gan_loss: torch.Tensor, last_layer: torch.Tensor, scale: float = 0.1
+) -> torch.Tensor:
+    """Balance the GAN term against reconstruction (taming VQGAN eq. 7).
+
+    weight = ||grad_L rec|| / (||grad_L gan|| + 1e-4) at the decoder's last
+    layer L, clamped to [0, 1e4], detached, times ``scale`` (0.1 in the reference).
+    """
+    rec_grad = torch.autograd.grad(rec_loss, last_layer, retain_graph=True)[0]
+    gan_grad = torch.autograd.grad(gan_loss, last_layer, retain_graph=True)[0]
+    weight = rec_grad.norm() / (gan_grad.norm() + 1e-4)
+    return weight.clamp(0.0, 1e4).detach() * scale
+
+
 def teacher_alignment_loss(pred: torch.Tensor, target: torch.Tensor, kind: str = "l2") -> torch.Tensor:
     """Distance between P(z) [B, C, h, w] and the teacher's patch features [B, C, h', w'].
 

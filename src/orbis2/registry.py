@@ -119,11 +119,9 @@ class Registry:
 
     @property
     def steered(self) -> str:
-        """The steered top predictor (``steering: true``): the one ``eval_steering`` and the CLI drive."""
-        names = [name for name, spec in self.predictors.items() if spec.steering]
-        if len(names) != 1:
-            raise RegistryError(f"{registry_file()}: exactly one predictor must set steering: true, found {names}")
-        return names[0]
+        """The steered predictor (``steering: true``, unique: checked when parsed): the top predictor that
+        eval_steering cascades into the hierarchy's bottom one, and the one the CLI steers."""
+        return next(name for name, spec in self.predictors.items() if spec.steering)
 
     @property
     def probe_targets(self) -> list[str]:
@@ -181,6 +179,10 @@ def parse_registry(raw: dict, where: Path = Path("registry.yaml")) -> Registry:
                                     ("latents", p.latents, tuple(reg.latent_sets))):
             if value not in allowed:
                 problems.append(f"predictors.{name}.{key} = {value!r} must be one of {list(allowed)}")
+    steered = [name for name, p in reg.predictors.items() if p.steering]
+    if len(steered) != 1:
+        problems.append(f"predictors: exactly one needs `steering: true` (the steered top predictor), "
+                        f"found {', '.join(steered) or 'none'}")
     for name, s in [*reg.systems.items(), *reg.speed_systems.items()]:
         problems += [f"systems.{name}: predictor {p!r} is not under `predictors`"
                      for p in s.stages if p not in reg.predictors]

@@ -81,7 +81,7 @@ from orbis2.hierarchy import (
     window_key,
 )
 from orbis2.latents import KINDS, LatentCache, LatentWindowDataset, collate
-from orbis2.models.stdit import best_sideways_shift
+from orbis2.models.deviations import best_sideways_shift
 from orbis2.registry import registry
 
 ModelFn = Callable[..., torch.Tensor]

@@ -30,12 +30,13 @@ import torch.nn.functional as F
 
 from orbis2.accel import conv_layout
 from orbis2.config.sections import InverseDynamicsConfig
+from orbis2.data.images import to_uint8
 from orbis2.data.shards import Clip, iter_samples, shard_paths
 from orbis2.errors import OrbisError
 from orbis2.kinematics import integrate_controls
 from orbis2.latents import encode_frames
+from orbis2.models.files import load_tokenizer
 from orbis2.models.inverse_dynamics import InverseDynamicsNet
-from orbis2.models.tokenizer import load_tokenizer, to_uint8
 
 # The file the ``inverse_dynamics`` stage publishes in its output folder (what ``evaluation.inverse_dynamics:
 # learned`` loads).

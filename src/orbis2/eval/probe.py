@@ -53,9 +53,8 @@ from orbis2.data.probes import (
 )
 from orbis2.errors import OrbisError
 from orbis2.latents import to_model_input
-from orbis2.models.stdit import PredictorFile
+from orbis2.models.files import PredictorFile, TokenizerFile
 from orbis2.models.teachers import DinoV2Teacher
-from orbis2.models.tokenizer import TokenizerFile
 
 FeatureFn = Callable[[torch.Tensor], torch.Tensor]
 

@@ -35,10 +35,10 @@ from tqdm import tqdm
 
 from orbis2.accel import Inference, cast_for_inference, compile_decoder, compile_predictor, inference_autocast, set_tf32
 from orbis2.config.sections import DataConfig, EvaluationConfig
+from orbis2.data.images import to_uint8
 from orbis2.errors import OrbisError
 from orbis2.latents import LatentCache
-from orbis2.models.stdit import PredictorFile, load_predictor
-from orbis2.models.tokenizer import TokenizerFile, load_tokenizer, to_uint8
+from orbis2.models.files import PredictorFile, TokenizerFile, load_predictor, load_tokenizer
 from orbis2.registry import System, registry
 from orbis2.rollout import ScheduleStep, cascaded_rollout, first_context_end, flat_rollout, rollout_schedule
 

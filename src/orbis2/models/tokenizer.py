@@ -1,7 +1,4 @@
-"""First-stage tokenizers of Orbis 2: every block in one file.
-
-Over 600 lines on purpose: both tokenizers share these blocks, their typed sizes and
-their file format; one file shows the whole first stage.
+"""First-stage tokenizers of Orbis 2: their blocks, the two tokenizers and their typed sizes.
 
 Two tokenizers share the blocks below (paper Sec. 3.2 and Appendix "Tokenizer"):
 
@@ -13,7 +10,8 @@ Two tokenizers share the blocks below (paper Sec. 3.2 and Appendix "Tokenizer"):
   eq. 3) and a lightweight decoder D_H as a weak reconstruction regulariser.
 
 The world model consumes the *continuous* normalised latent of ``encode``; the
-quantiser only regularises it (the authors' code, "Tokenizer").
+quantiser only regularises it (the authors' code, "Tokenizer"). The detail tokenizer's GAN
+discriminator is in :mod:`orbis2.models.discriminator`, the checkpoint file in :mod:`orbis2.models.files`.
 """
 
 from __future__ import annotations
@@ -23,15 +21,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from orbis2.accel import conv_layout
-from orbis2.errors import OrbisError
-from orbis2.io import atomic_file, sha256_file
-from orbis2.models import ModelConfig, preset_config, split_build
+from orbis2.models import ModelConfig, preset_config
 
 # --------------------------------------------------------------------------- ViT encoder
 
@@ -425,62 +420,6 @@ class ConvDecoder(nn.Module):
         return self.conv_out(F.silu(self.norm_out(h)))
 
 
-# --------------------------------------------------------------------------- discriminator
-
-
-class PatchGANDiscriminator(nn.Module):
-    """PatchGAN (pix2pix / taming NLayerDiscriminator): 3 layers, 64 filters.
-
-    Taming uses BatchNorm; we default to GroupNorm because our batches are small
-    (8 on CPU) and the real and fake batches are scored in separate calls, where
-    batch statistics differ between the two and leak which is which.
-    """
-
-    def __init__(self, in_channels: int = 3, base_channels: int = 64, n_layers: int = 3, norm: str = "group"):
-        super().__init__()
-        if norm not in ("group", "batch"):
-            raise ValueError(f"norm = {norm!r} must be 'group' or 'batch'")
-
-        def norm_layer(ch: int) -> nn.Module:
-            return group_norm(ch) if norm == "group" else nn.BatchNorm2d(ch)
-
-        layers: list[nn.Module] = [
-            nn.Conv2d(in_channels, base_channels, 4, stride=2, padding=1),
-            nn.LeakyReLU(0.2),
-        ]
-        ch = base_channels
-        for n in range(1, n_layers + 1):
-            out = base_channels * min(2**n, 8)
-            stride = 2 if n < n_layers else 1
-            layers += [nn.Conv2d(ch, out, 4, stride=stride, padding=1, bias=False), norm_layer(out), nn.LeakyReLU(0.2)]
-            ch = out
-        layers.append(nn.Conv2d(ch, 1, 4, stride=1, padding=1))
-        self.main = nn.Sequential(*layers)
-        for module in self.modules():
-            if isinstance(module, nn.Conv2d):
-                nn.init.normal_(module.weight, 0.0, 0.02)
-            elif isinstance(module, (nn.GroupNorm, nn.BatchNorm2d)):
-                nn.init.normal_(module.weight, 1.0, 0.02)
-                nn.init.zeros_(module.bias)
-
-    def forward(self, images: torch.Tensor) -> torch.Tensor:
-        return self.main(images)
-
-
-def adaptive_gan_weight(
-    rec_loss: torch.Tensor, gan_loss: torch.Tensor, last_layer: torch.Tensor, scale: float = 0.1
-) -> torch.Tensor:
-    """Balance the GAN term against reconstruction (taming VQGAN eq. 7).
-
-    weight = ||grad_L rec|| / (||grad_L gan|| + 1e-4) at the decoder's last
-    layer L, clamped to [0, 1e4], detached, times ``scale`` (0.1 in the reference).
-    """
-    rec_grad = torch.autograd.grad(rec_loss, last_layer, retain_graph=True)[0]
-    gan_grad = torch.autograd.grad(gan_loss, last_layer, retain_graph=True)[0]
-    weight = rec_grad.norm() / (gan_grad.norm() + 1e-4)
-    return weight.clamp(0.0, 1e4).detach() * scale
-
-
 # --------------------------------------------------------------------------- tokenizers
 
 
@@ -667,16 +606,6 @@ def _encoder(cfg: TokenizerConfig) -> ViTEncoder:
     )
 
 
-def to_uint8(images: torch.Tensor) -> np.ndarray:
-    """Decoded images ``[B, 3, H, W]`` in [-1, 1] -> RGB uint8 ``[B, H, W, 3]`` (on the CPU).
-
-    Converted on the images' device, so that only bytes leave it; callers decode in chunks and
-    convert each one, which keeps float copies of whole videos out of memory.
-    """
-    pixels = ((images.detach().float().clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8)
-    return pixels.permute(0, 2, 3, 1).cpu().numpy()
-
-
 def build_detail_tokenizer(config: TokenizerConfig | str = "default") -> DetailTokenizer:
     """The detail tokenizer of ``config``'s size (a preset's name stands for ``TOKENIZER_PRESETS[name]``)."""
     cfg = _config(config)
@@ -701,91 +630,3 @@ def build_abstract_tokenizer(
         latent_dim, cfg.abstract_decoder_channels, cfg.abstract_decoder_mult, cfg.abstract_decoder_res_blocks
     )
     return conv_layout(AbstractTokenizer(_encoder(cfg), decoder, teacher_dim, cfg.latent_dim, compress))
-
-
-def build_discriminator(config: TokenizerConfig | str = "default") -> PatchGANDiscriminator:
-    cfg = _config(config)
-    return conv_layout(PatchGANDiscriminator(3, cfg.disc_channels, cfg.disc_layers, cfg.disc_norm))
-
-
-# --------------------------------------------------------------------------- files
-
-
-@dataclass
-class TokenizerFile:
-    """A trained tokenizer as the later stages load it, with the normalisation its latents get.
-
-    The world model sees ``normalize(z) = (z - shift) * scale`` of the tokenizer's latent ``z``:
-    ``shift`` [C, h, w] is the training data's per-position, per-channel mean (zeros for the
-    paper's single global scale) and ``scale`` [C, 1, 1] the inverse standard deviation of what
-    is left, per channel (one value repeated for the global scale). Rollouts are mapped back with
-    ``denormalize`` before decoding. ``checksum`` is the SHA-256 of the file, recorded by caches
-    built from it.
-    """
-
-    kind: str  # "detail" | "abstract"
-    model: nn.Module
-    scale: torch.Tensor  # [C, 1, 1]
-    build: dict  # what rebuilds the architecture: preset (and size overrides), teacher_dim, compress
-    checksum: str
-    shift: torch.Tensor  # [C, h, w]
-
-    def normalize(self, z: torch.Tensor) -> torch.Tensor:
-        """Latent ``[..., C, h, w]`` -> what the predictors train on."""
-        return (z - self.shift.to(z)) * self.scale.to(z)
-
-    def denormalize(self, x: torch.Tensor) -> torch.Tensor:
-        """Inverse of :meth:`normalize`: back to the tokenizer's latent, ready to decode."""
-        return x / self.scale.to(x) + self.shift.to(x)
-
-
-def latent_normalization(scale: float | torch.Tensor, shift: torch.Tensor | None, shape: tuple[int, ...]
-                         ) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(scale [C, 1, 1], shift [C, h, w])`` as float32 from a global float or per-channel values."""
-    c = shape[0]
-    scale = torch.as_tensor(scale, dtype=torch.float32).reshape(-1, 1, 1).expand(c, 1, 1).clone()
-    shift = torch.zeros(shape) if shift is None else torch.as_tensor(shift, dtype=torch.float32).reshape(shape)
-    return scale, shift.clone()
-
-
-def save_tokenizer(path: Path, kind: str, model: nn.Module, scale: float | torch.Tensor, build: dict,
-                   extra: dict | None = None, shift: torch.Tensor | None = None) -> None:
-    """Write ``{kind, build, scale, shift, state_dict, extra}`` atomically; same content, same bytes.
-
-    ``scale`` is a float (the paper's global scale) or per-channel values; ``shift`` the
-    per-position mean [C, h, w] (None: zeros). Both are stored in full ([C, 1, 1], [C, h, w]).
-    """
-    if kind not in ("detail", "abstract"):
-        raise ValueError(f"kind must be 'detail' or 'abstract', got {kind!r}")
-    shape = tuple(shift.shape) if shift is not None else _latent_shape(model)
-    scale_t, shift_t = latent_normalization(scale, shift, shape)
-    blob = {"kind": kind, "build": build, "scale": scale_t, "shift": shift_t, "state_dict": model.state_dict(),
-            "extra": extra or {}}
-    with atomic_file(Path(path)) as tmp, open(tmp, "wb") as handle:
-        torch.save(blob, handle)  # through a handle: the bytes must not depend on the temp file's name
-
-
-@torch.no_grad()
-def _latent_shape(model: nn.Module) -> tuple[int, ...]:
-    """[C, h, w] of the model's latent, from one blank image of its configured size."""
-    height, width = model.encoder.image_size
-    device = next(model.parameters()).device
-    return tuple(model.encode(torch.zeros(1, 3, height, width, device=device)).shape[1:])
-
-
-def load_tokenizer(path: Path, device: str | torch.device = "cpu") -> TokenizerFile:
-    """Rebuild the architecture from the file, load the weights strictly, eval mode, frozen."""
-    path = Path(path)
-    if not path.is_file():
-        raise OrbisError(f"{path}: tokenizer checkpoint not found; run its training stage first")
-    blob = torch.load(path, map_location=device, weights_only=True)
-    cfg, rest = split_build(TOKENIZER_PRESETS, blob["build"])
-    builder = build_detail_tokenizer if blob["kind"] == "detail" else build_abstract_tokenizer
-    model = builder(cfg, **rest)
-    model.load_state_dict(blob["state_dict"])
-    model.to(device).eval().requires_grad_(False)
-    if "shift" not in blob:
-        raise OrbisError(f"{path}: written by an older version without the latent normalisation; "
-                         f"re-run its tokenizer stage")
-    return TokenizerFile(blob["kind"], model, blob["scale"].float(), blob["build"], sha256_file(path),
-                         blob["shift"].float())

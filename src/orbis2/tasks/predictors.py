@@ -76,14 +76,9 @@ from orbis2.hierarchy import (
 )
 from orbis2.io import sha256_file
 from orbis2.latents import LatentCache, LatentWindowDataset, collate
-from orbis2.models.stdit import (
-    TURN_SEARCH,
-    best_sideways_shift,
-    build_stdit_from,
-    load_predictor,
-    save_predictor,
-    translate_columns,
-)
+from orbis2.models.deviations import TURN_SEARCH, best_sideways_shift, translate_columns
+from orbis2.models.files import load_predictor, save_predictor
+from orbis2.models.stdit import build_stdit_from
 from orbis2.registry import PredictorSpec, registry
 from orbis2.train import DataSpec, load_weights, train
 from orbis2.windows import window_indices, window_span

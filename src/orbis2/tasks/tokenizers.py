@@ -37,11 +37,13 @@ from tqdm import tqdm
 from orbis2.assets import TEACHER_ASSETS, asset_path
 from orbis2.config.params import PipelineConfig
 from orbis2.config.training import AbstractTokenizerConfig, DetailTokenizerConfig
+from orbis2.data.images import to_uint8
 from orbis2.data.shards import Clip, FrameDataset, load_manifest
 from orbis2.errors import OrbisError
 from orbis2.eval.fvd import FeatureStats, frechet_distance
 from orbis2.io import atomic_file
 from orbis2.losses import (
+    adaptive_gan_weight,
     entropy_weight,
     generator_gan_loss,
     hinge_d_loss,
@@ -50,16 +52,14 @@ from orbis2.losses import (
     ssim,
     teacher_alignment_loss,
 )
+from orbis2.models.discriminator import build_discriminator
+from orbis2.models.files import save_tokenizer
 from orbis2.models.teachers import build_teacher
 from orbis2.models.tokenizer import (
-    adaptive_gan_weight,
     build_abstract_tokenizer,
     build_detail_tokenizer,
-    build_discriminator,
     codebook_usage,
     load_mae_encoder,
-    save_tokenizer,
-    to_uint8,
     tokenizer_config,
 )
 from orbis2.train import DataSpec, Update, load_weights, train, unwrap

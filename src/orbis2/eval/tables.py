@@ -1,0 +1,283 @@
+"""The paper's tables as rows: pure functions of the evaluation records (:mod:`orbis2.eval.records`).
+
+Every table is a list of ordered rows; the writers (:mod:`orbis2.eval.report`) only serialise
+them. A metric cell always comes with the sample count it was measured on (``<metric>_n``), and a
+metric that an input lacks stops the report with an ``OrbisError`` naming the file and the stage
+that writes it. The only ``NA`` cells are values no stage measures for that row (a reference row's
+probes, a compression-ablation value its inputs report as null). Which systems and probe targets
+fill the rows comes from registry.yaml; which FVD splits, steering modes and frame rates from the
+configuration (:class:`TableSettings`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+from orbis2.config.params import PipelineConfig
+from orbis2.errors import OrbisError
+from orbis2.eval.records import get, where
+from orbis2.registry import SCOPES, registry
+
+# Table 1's rows and the predictor probed for each (the hierarchy at its top one): registry.yaml's main_table,
+# after its flat baselines in the full report.
+TABLE_PROBE = {scope: registry().table(scope) for scope in SCOPES}
+TRAINING_ROWS = (
+    ("abstract tokenizer", "abstract_tokenizer"),
+    ("TF only", "abstract_tf_only"),
+    ("DF only", "abstract_df"),
+    ("DF + TF", "abstract_tf"),
+    ("teacher", "teacher"),
+)
+# Table 3: (exp, branch, abstraction, frame rate, probed target, model whose rollout gives the FVD).
+HIERARCHY_LAYOUT = (
+    (1, "single", "detail", "detail_hz", "flat_detail", "flat_detail"),
+    (2, "single", "abstract", "detail_hz", "flat_abstract", "flat_abstract"),
+    (3, "top", "abstract", "abstract_hz", "abstract_tf", "hierarchical"),
+    (3, "bottom", "detail", "detail_hz", "detail", "hierarchical"),
+    (4, "top", "detail", "abstract_hz", "top_detail", "top_detail"),
+    (4, "bottom", "detail", "detail_hz", "detail_on_detail", "top_detail"),
+    (5, "top", "abstract", "detail_hz", "flat_abstract", "top_abstract_10hz"),
+    (5, "bottom", "detail", "detail_hz", "detail", "top_abstract_10hz"),
+)
+NA = "NA"
+
+Row = dict[str, Any]
+
+
+@dataclass(frozen=True)
+class TableSettings:
+    """What the configuration decides about the tables: Table 1's FVD splits (``evaluation.fvd_splits``) and
+    the split of its FVD-slope (``evaluation.long_split``), Table 2's steering modes (the keys of
+    ``evaluation.steering_modes``, in order) and Table 3's frame rates (``data.detail_hz``, ``abstract_hz``)."""
+
+    fvd_splits: tuple[str, ...]
+    long_split: str
+    steering_modes: tuple[str, ...]
+    detail_hz: int
+    abstract_hz: int
+
+    @classmethod
+    def from_config(cls, cfg: PipelineConfig) -> TableSettings:
+        ev = cfg.evaluation
+        return cls(tuple(ev.fvd_splits), ev.long_split, tuple(ev.steering_modes), cfg.data.detail_hz,
+                   cfg.data.abstract_hz)
+
+
+def probe_cells(evals: Mapping, target: str) -> Row:
+    """A probe target's segmentation mIoU and depth RMSE with their test-frame counts."""
+    return {
+        "probe_target": target,
+        "miou": get(evals, "probe", target, "segmentation", "miou"),
+        "miou_n": get(evals, "probe", target, "segmentation", "test_frames"),
+        "rmse": get(evals, "probe", target, "depth", "rmse"),
+        "rmse_n": get(evals, "probe", target, "depth", "test_frames"),
+    }
+
+
+def _rollout_cells(evals: Mapping, model: str, long_split: str) -> Row:
+    if get(evals, "fvd", model, "chunked", "split") != long_split:
+        raise OrbisError(f"{where(evals, 'fvd', model)}: chunked FVD must be on the {long_split} split "
+                         f"(evaluation.long_split); re-run it")
+    return {
+        "fvd_model": model,
+        "fvd_long": get(evals, "fvd", model, "chunked", "fvd_long"),
+        "fvd_long_n": get(evals, "fvd", model, "chunked", "videos"),
+        "fvd_slope": get(evals, "fvd", model, "chunked", "fvd_slope"),
+        "fvd_slope_n": get(evals, "fvd", model, "chunked", "videos"),
+    }
+
+
+# Reference rows of the FVD table: (row name, system whose record holds it, reference, label).
+FVD_REFERENCES = (
+    ("real_floor", "hierarchical", "real_floor", "reference: real vs real, disjoint halves of the clips"),
+    ("reconstruction_detail", "hierarchical", "reconstruction", "reference: detail tokenizer reconstruction"),
+    ("repeat_last_detail", "hierarchical", "repeat_last", "reference: last context frame held (detail decoder)"),
+    ("reconstruction_abstract", "flat_abstract", "reconstruction", "reference: abstract tokenizer reconstruction"),
+    ("repeat_last_abstract", "flat_abstract", "repeat_last", "reference: last context frame held (abstract decoder)"),
+)
+
+
+def main_table(evals: Mapping, scope: str, settings: TableSettings) -> list[Row]:
+    """Table 1: FVD on each of ``evaluation.fvd_splits`` (clip-bootstrap intervals), FVD-slope on the long split
+    and the linear probes per model of the scope (``all`` adds the flat baselines), then the reference rows
+    (``kind`` = reference) on the same clips and frames, for each decoder one of the scope's models uses."""
+    slope = f"fvd_slope_{settings.long_split}"
+    rows = []
+    probed = TABLE_PROBE[scope]
+    for model in probed:
+        row: Row = {
+            "model": model,
+            "kind": "model",
+            "label": get(evals, "fvd", model, "label"),
+            "parameters": get(evals, "fvd", model, "parameters"),
+        }
+        for split in settings.fvd_splits:
+            for suffix, key in (("", "fvd"), ("_low", "low"), ("_high", "high"), ("_n", "videos")):
+                row[f"fvd_{split}{suffix}"] = get(evals, "fvd", model, "fvd", split, key)
+        rollout = _rollout_cells(evals, model, settings.long_split)
+        row[slope] = rollout["fvd_slope"]
+        row[f"{slope}_low"] = get(evals, "fvd", model, "chunked", "fvd_slope_low")
+        row[f"{slope}_high"] = get(evals, "fvd", model, "chunked", "fvd_slope_high")
+        row[f"{slope}_n"] = rollout["fvd_slope_n"]
+        row.update(probe_cells(evals, probed[model]))
+        rows.append(row)
+    for name, model, ref, label in (r for r in FVD_REFERENCES if r[1] in probed):
+        row = {"model": name, "kind": "reference", "label": label, "parameters": NA}
+        for split in settings.fvd_splits:
+            cells = get(evals, "fvd", model, "references", split, ref)
+            if cells.get("fvd") is None:  # e.g. a real-vs-real floor on fewer than 4 clips: not computable
+                row.update({f"fvd_{split}{suffix}": NA for suffix in ("", "_low", "_high", "_n")})
+                continue
+            row.update({f"fvd_{split}": cells["fvd"], f"fvd_{split}_low": cells["low"],
+                        f"fvd_{split}_high": cells["high"],
+                        f"fvd_{split}_n": cells.get("videos", cells.get("videos_per_half"))})
+        row.update({key: NA for key in rows[0] if key not in row})
+        rows.append(row)
+    return rows
+
+
+def steering_table(evals: Mapping, settings: TableSettings) -> list[Row]:
+    """Table 2: ADE per steering mode of ``evaluation.steering_modes`` (clip-bootstrap interval) by the main
+    instrument, with OpenCV odometry as a second column (NA where ``evaluation.opencv_rollouts`` left it off the
+    generated videos); then the bottom level alone given the real subgoals (its turn readings only: a
+    reference for what the top's predictions cost), and each instrument on real and on shuffled videos as
+    floor and chance."""
+    main = get(evals, "steering", None, "inverse_dynamics")
+    measured = "opencv" in get(evals, "steering", None, "instruments")
+    rows: list[Row] = []
+    for mode in settings.steering_modes:
+        cells = get(evals, "steering", None, "modes", mode)
+        opencv = (get(evals, "steering", None, "modes", mode, "instruments", "opencv") if measured
+                  else {"ade": NA, "turn_deg": NA})
+        rows.append({
+            "mode": mode,
+            "kind": "generated",
+            "instrument": main,
+            "ade": cells["ade"],
+            "ade_low": get(evals, "steering", None, "modes", mode, "ade_low"),
+            "ade_high": get(evals, "steering", None, "modes", mode, "ade_high"),
+            "ade_n": cells["samples"],
+            # How far the video turns (end point, degrees, the clip's turn direction positive) next to the
+            # command: a scale-free check that counterfactuals move the rollout the right way.
+            "turn_deg": cells["turn_deg"],
+            "commanded_turn_deg": cells["commanded_turn_deg"],
+            "ade_opencv": opencv["ade"],
+            "turn_deg_opencv": opencv["turn_deg"],
+            **_turn_cells(evals, "latent", mode),
+            **_turn_cells(evals, "image", mode),
+        })
+    rows.append({**{key: NA for key in rows[0]}, "mode": "real_subgoals", "kind": "reference",
+                 "instrument": main, "ade_n": get(evals, "steering", None, "samples"),
+                 **_turn_cells(evals, "latent", "real_subgoals"), **_turn_cells(evals, "image", "real_subgoals")})
+    videos = get(evals, "steering", None, "odometry_sanity", "videos")
+    for mode, key in (("real_videos", "real"), ("shuffled_videos", "shuffled")):
+        rows.append({
+            "mode": mode,
+            "kind": "odometry_sanity",
+            "instrument": main,
+            "ade": get(evals, "steering", None, "odometry_sanity", f"{key}_ade"),
+            "ade_low": get(evals, "steering", None, "odometry_sanity", f"{key}_low"),
+            "ade_high": get(evals, "steering", None, "odometry_sanity", f"{key}_high"),
+            "ade_n": videos,
+            "turn_deg": NA,
+            "commanded_turn_deg": NA,
+            "ade_opencv": get(evals, "steering", None, "sanity", "opencv", f"{key}_ade"),
+            "turn_deg_opencv": NA,
+            **{k: v if key == "real" else NA for reading in ("latent", "image")
+               for k, v in _turn_cells(evals, reading, "real").items()},
+        })
+    return rows
+
+
+def _turn_cells(evals: Mapping, reading: str, mode: str) -> Row:
+    """The turn of one of ``eval_steering``'s readings (``latent``: the detail latents without decoding;
+    ``image``: the decoded frames' sideways motion; "real": the real continuation, the reading's
+    calibration), with its clip-bootstrap interval."""
+    cell = get(evals, "steering", None, f"{reading}_turn", "modes", mode)
+    return {f"turn_deg_{reading}": cell["turn_deg"], f"turn_deg_{reading}_low": cell["low"],
+            f"turn_deg_{reading}_high": cell["high"]}
+
+
+def speed_table(evals: Mapping) -> list[Row]:
+    """Table 5: frames per second and peak memory per model the record holds, on the device that measured them."""
+    device = get(evals, "speed", None, "device")
+    kind = get(evals, "speed", None, "memory_kind")
+    return [
+        {
+            "model": model,
+            "fps": get(evals, "speed", None, "models", model, "fps"),
+            "fps_n": get(evals, "speed", None, "models", model, "frames"),
+            "peak_memory_mb": get(evals, "speed", None, "models", model, "peak_memory_mb"),
+            "memory_kind": kind,
+            "parameters": get(evals, "speed", None, "models", model, "parameters"),
+            "device": device,
+        }
+        for model in get(evals, "speed", None, "models")
+    ]
+
+
+def hierarchy_table(evals: Mapping, settings: TableSettings) -> list[Row]:
+    """Table 3 (Exps 1-5): each predictor's probes and its system's long-horizon FVD on turns.
+
+    A two-branch experiment has one FVD, that of its cascaded rollout; both of
+    its rows carry it, with ``fvd_model`` naming the rollout it comes from.
+    """
+    rows = []
+    rates = {"detail_hz": settings.detail_hz, "abstract_hz": settings.abstract_hz}
+    for exp, branch, abstraction, rate, target, model in HIERARCHY_LAYOUT:
+        row: Row = {"exp": exp, "branch": branch, "abstraction": abstraction, "frame_rate_hz": rates[rate]}
+        row.update(probe_cells(evals, target))
+        row.update(_rollout_cells(evals, model, settings.long_split))
+        rows.append(row)
+    return rows
+
+
+def training_table(evals: Mapping) -> list[Row]:
+    """Table 4: probes of the abstract branch under each training strategy, against tokenizer and teacher."""
+    rows = []
+    for name, target in TRAINING_ROWS:
+        row: Row = {"model": name}
+        row.update(probe_cells(evals, target))
+        row["val_loss"] = get(evals, "probe", target, "segmentation", "val_loss")
+        rows.append(row)
+    return rows
+
+
+def compression_table(evals: Mapping) -> list[Row]:
+    """Compressed against full-dimension abstract latents; a null the stage reports stays visible as NA."""
+    source = get(evals, "compression", None, "rows")
+    if not isinstance(source, list) or len(source) < 2:
+        raise OrbisError(f"{where(evals, 'compression')} needs at least two rows (compressed and full)")
+    rows = []
+    for i, entry in enumerate(source):
+        row: Row = {}
+        for key in ("variant", "latent_dim"):
+            row[key] = get(evals, "compression", None, "rows", i, key)
+        for metric in ("fvd_long", "fvd_slope", "miou", "rmse"):
+            if metric not in entry:
+                raise OrbisError(f"{where(evals, 'compression')} row {i} has no {metric} (null if not measured)")
+            row[metric] = NA if entry[metric] is None else entry[metric]
+            row[f"{metric}_n"] = entry.get(f"{metric}_n", NA)
+        rows.append(row)
+    return rows
+
+
+def compression_from_evals(evals: Mapping) -> dict:
+    """The compression ablation's rows from the flat abstract models on compressed and on full latents.
+
+    Rollout stability is their FVD over the whole long rollout (``long_seconds``) and FVD-slope on the
+    long split; representation quality the probes of those predictors. Raises like every table when an input is missing.
+    """
+    rows = []
+    for variant, model in (("compressed", "flat_abstract"), ("full (teacher dim)", "flat_abstract_full")):
+        probe = probe_cells(evals, model)
+        rows.append({"variant": variant, "latent_dim": get(evals, "fvd", model, "latent_channels"),
+                     "fvd_long": get(evals, "fvd", model, "chunked", "fvd_long"),
+                     "fvd_long_n": get(evals, "fvd", model, "chunked", "videos"),
+                     "fvd_slope": get(evals, "fvd", model, "chunked", "fvd_slope"),
+                     "fvd_slope_n": get(evals, "fvd", model, "chunked", "videos"),
+                     "miou": probe["miou"], "miou_n": probe["miou_n"], "rmse": probe["rmse"],
+                     "rmse_n": probe["rmse_n"]})
+    return {"rows": rows}
+
