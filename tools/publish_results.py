@@ -28,7 +28,7 @@ from pathlib import Path
 import pandas as pd
 import torch
 
-from orbis2.config.params import PROFILES, load_params, resolve_section
+from orbis2.config.params import PROFILES, as_dict, load_params, parse_config
 from orbis2.io import atomic_file
 
 TABLES = ("main_table.csv", "steering.csv", "speed.csv", "conditioning.csv")
@@ -37,9 +37,9 @@ RESULTS = Path("docs/results")
 
 
 def profile_params(raw: dict, profile: str) -> dict:
-    """Every params.yaml section resolved for ``profile`` (shared bases `_...` are folded into their users)."""
-    sections = [name for name, value in raw.items() if isinstance(value, dict) and not name.startswith("_")]
-    return {name: resolve_section(raw, name, profile) for name in sections}
+    """The typed configuration params.yaml resolves to for ``profile``: every value the stages read, however
+    the file spells it (shared bases `_...` folded in), as JSON-ready values."""
+    return json.loads(json.dumps(as_dict(parse_config({**raw, "profile": profile}, profile)), default=str))
 
 
 def params_digest(params: dict) -> str:
