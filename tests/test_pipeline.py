@@ -159,11 +159,12 @@ def test_snakemake_smoke_dag(smoke_project):
 
 
 def test_dvc_repro_smoke_dag(smoke_project, tmp_path):
-    """DVC takes over a Snakemake run: in a copy of the session's smoke project, `dvc status` is clean (the
-    Snakemake runs recorded their outputs in dvc.lock), and a param edit makes `dvc repro action` run the
-    steered predictor alone, nothing upstream. test_dag proves that both DAGs issue the same commands."""
+    """DVC takes over a Snakemake run: in a copy of the session's smoke project, `dvc status` of the main job
+    is clean (the last Snakemake run, test_snakemake_smoke_dag's rerun of the main job, recorded its outputs
+    in dvc.lock), and a param edit makes `dvc repro action` run the steered predictor alone, nothing
+    upstream. test_dag proves that both DAGs issue the same commands."""
     root = Path(shutil.copytree(smoke_project, tmp_path / "project", symlinks=True))
-    assert "Data and pipelines are up to date." in run(["dvc", "status", "dvc.yaml"], root)
+    assert "Data and pipelines are up to date." in run(["dvc", "status", "--with-deps", "report_main"], root)
     assert "Running stage" not in run(["dvc", "repro", "action"], root)
 
     known = {run_id for run_id, _, _ in mlflow_runs(root / "mlflow.db")}
@@ -178,7 +179,7 @@ def test_dvc_repro_smoke_dag(smoke_project, tmp_path):
     with sqlite3.connect(root / "mlflow.db") as con:  # the copied store writes into the copy, not the original
         uris = [uri for (uri,) in con.execute("select artifact_uri from runs")]
     assert all(uri.startswith((f"{root}/", f"{root.as_uri()}/")) for uri in uris)  # MLflow keeps a path or a URI
-    assert "Data and pipelines are up to date." in run(["dvc", "status", "dvc.yaml"], root)
+    assert "Data and pipelines are up to date." in run(["dvc", "status", "--with-deps", "action"], root)
 
 
 def test_import_source_feeds_the_shards(tmp_path, make_video):
