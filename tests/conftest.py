@@ -1,16 +1,24 @@
 """Shared fixtures: the project root, a config for the smoke profile, tiny synthetic videos, and one
-smoke-profile project run through the main job and `reports/all` for the whole session."""
+smoke-profile project run through the main job and `reports/all` for the whole session.
+
+The smoke project takes most of the suite's time, so it is built in the background (tests/smoke_build.py)
+from the moment a test that needs it is collected, once for all pytest-xdist workers, and the tests that
+read it run last: the other tests run meanwhile."""
 
 from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from filelock import FileLock
 
 from orbis2.config.params import load_config
 from orbis2.config.training import TrainConfig
@@ -74,8 +82,10 @@ def project_copy(dest: Path) -> Path:
 
 
 def project_env(root: Path) -> dict[str, str]:
-    """The environment of a command run in a project copy: its own MLflow store, a new invocation id."""
-    env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{root / 'mlflow.db'}"}
+    """The environment of a command run in a project copy: its own MLflow store, a new invocation id, and one
+    thread per process (tests/smoke_build.py says why; and a command then computes exactly what the smoke
+    project's stages computed, e.g. the I3D features of the same frames)."""
+    env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{root / 'mlflow.db'}", "OMP_NUM_THREADS": "1"}
     env.pop("ORBIS2_PIPELINE_ID", None)
     return env
 
@@ -86,11 +96,59 @@ def run(cmd: list[str], cwd: Path) -> str:
     return proc.stdout + proc.stderr
 
 
+SMOKE = "smoke_project"  # the fixture, and its folder in the session's shared temporary folder
+BUILD_TIMEOUT_S = 3600
+BUILDER = pytest.StashKey[subprocess.Popen]()  # the build, in the process that started it
+
+
+def shared_temp(config: pytest.Config) -> Path:
+    """The session's temporary folder, the same for every xdist worker (each has its own below it)."""
+    base = config._tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
+@pytest.hookimpl(trylast=True)  # after -k / -m deselection
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """The smoke project's readers run last: the other tests run while it is built."""
+    readers = [item for item in items if SMOKE in getattr(item, "fixturenames", ())]
+    items[:] = [item for item in items if item not in readers] + readers
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Start the smoke project's build if a test to run reads it (once per session, whichever xdist worker
+    gets here first)."""
+    config = session.config
+    if config.option.collectonly or not any(SMOKE in getattr(i, "fixturenames", ()) for i in session.items):
+        return
+    folder = shared_temp(config) / SMOKE
+    with FileLock(str(folder) + ".lock"):
+        if folder.exists():
+            return
+        folder.mkdir()
+        with open(folder / "build.log", "w") as log:
+            config.stash[BUILDER] = subprocess.Popen(
+                [sys.executable, str(ROOT / "tests" / "smoke_build.py"), str(folder)], cwd=ROOT, stdout=log,
+                stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """Every test has run: a build still going (an interrupted session) is stopped with its jobs."""
+    proc = config.stash.get(BUILDER, None)
+    if proc is not None and proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGTERM)
+        proc.wait(timeout=60)
+
+
 @pytest.fixture(scope="session")
-def smoke_project(tmp_path_factory) -> Path:
-    """A fresh copy run as the README says, at the smoke scale: the main job, then every ablation.
-    Tests that change it work on their own copy (see test_docs) or run last on it (test_pipeline)."""
-    root = project_copy(tmp_path_factory.mktemp("smoke_project"))
-    run(["snakemake", "--cores", "2"], root)
-    run(["snakemake", "--cores", "2", "reports/all"], root)
-    return root
+def smoke_project(request) -> Path:
+    """A fresh copy run as the README says, at the smoke scale: the main job, then every ablation
+    (tests/smoke_build.py). Tests copy it before they change anything: several workers read it at once."""
+    folder = shared_temp(request.config) / SMOKE
+    started = time.monotonic()
+    while not (folder / "built").exists():
+        if (folder / "failed").exists():
+            pytest.fail(f"the smoke project's build failed:\n{(folder / 'failed').read_text()[-6000:]}")
+        if time.monotonic() - started > BUILD_TIMEOUT_S:
+            pytest.fail(f"the smoke project was not built within {BUILD_TIMEOUT_S} s: {folder / 'build.log'}")
+        time.sleep(2)
+    return folder / "project"

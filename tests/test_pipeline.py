@@ -133,11 +133,12 @@ def set_param(root: Path, section: str, key: str, value) -> None:
     (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
 
 
-def test_snakemake_smoke_dag(smoke_project):
+def test_snakemake_smoke_dag(smoke_project, tmp_path):
     """The session's smoke project: the README's main job (`snakemake --cores 2`, the default target),
-    then `reports/all`. Each invocation is one MLflow parent run; every stage ran once, under one of them."""
-    root = smoke_project
-    check_outputs(root)
+    then `reports/all`. Each invocation is one MLflow parent run; every stage ran once, under one of them.
+    Then, in a copy, a param edit re-runs what depends on it."""
+    check_outputs(smoke_project)
+    root = Path(shutil.copytree(smoke_project, tmp_path / "project", symlinks=True))
     runs = mlflow_runs(root / "mlflow.db")
     parents = {r for r, _, p in runs if p is None}
     assert len(parents) == 2 and sorted(n for _, n, p in runs if p in parents) == STAGES
@@ -160,9 +161,9 @@ def test_snakemake_smoke_dag(smoke_project):
 
 def test_dvc_repro_smoke_dag(smoke_project, tmp_path):
     """DVC takes over a Snakemake run: in a copy of the session's smoke project, `dvc status` of the main job
-    is clean (the last Snakemake run, test_snakemake_smoke_dag's rerun of the main job, recorded its outputs
-    in dvc.lock), and a param edit makes `dvc repro action` run the steered predictor alone, nothing
-    upstream. test_dag proves that both DAGs issue the same commands."""
+    is clean (each Snakemake run recorded its jobs' outputs in dvc.lock), and a param edit makes
+    `dvc repro action` run the steered predictor alone, nothing upstream. test_dag proves that both DAGs
+    issue the same commands."""
     root = Path(shutil.copytree(smoke_project, tmp_path / "project", symlinks=True))
     assert "Data and pipelines are up to date." in run(["dvc", "status", "--with-deps", "report_main"], root)
     assert "Running stage" not in run(["dvc", "repro", "action"], root)
