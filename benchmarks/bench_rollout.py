@@ -50,7 +50,7 @@ from orbis2.accel import (
 )
 from orbis2.models.stdit import STDIT_PRESETS, build_stdit, stdit_config
 from orbis2.models.tokenizer import TOKENIZER_PRESETS, build_detail_tokenizer
-from orbis2.rollout import cascaded_rollout, flat_rollout
+from orbis2.rollout import ABSTRACT_NFE, DETAIL_NFE, cascaded_rollout, flat_rollout
 
 LATENT_CHANNELS = 16
 CONTEXT, PER_STEP = 5, 5
@@ -117,11 +117,11 @@ def rollout_worker(args: argparse.Namespace) -> dict:
         nets = [abstract, detail]
         a_ctx = torch.randn(1, CONTEXT, LATENT_CHANNELS, h, w, device=device)
         steering = torch.randn(1, steps, PER_STEP, 2, device=device)
-        detail_nfe = args.distill_nfe if args.worker == "distilled" else 30
+        detail_nfe = args.distill_nfe if args.worker == "distilled" else DETAIL_NFE
 
         def generate() -> torch.Tensor:
-            return cascaded_rollout(abstract, detail, d_ctx, a_ctx, steps, gen, abstract_nfe=15, detail_nfe=detail_nfe,
-                                    steering=steering, kv_cache=args.kv_cache)[0]
+            return cascaded_rollout(abstract, detail, d_ctx, a_ctx, steps, gen, abstract_nfe=ABSTRACT_NFE,
+                                    detail_nfe=detail_nfe, steering=steering, kv_cache=args.kv_cache)[0]
     else:
         flat = models[0].eval()
         nets = [flat]

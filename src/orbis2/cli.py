@@ -40,7 +40,14 @@ from orbis2.kinematics import integrate_odometry
 from orbis2.latents import encode_frames
 from orbis2.models.files import PredictorFile, TokenizerFile, load_predictor, load_tokenizer
 from orbis2.registry import layout_path, registry
-from orbis2.rollout import cascaded_rollout, first_context_end, rollout_schedule, steering_sequences
+from orbis2.rollout import (
+    ABSTRACT_NFE,
+    DETAIL_NFE,
+    cascaded_rollout,
+    first_context_end,
+    rollout_schedule,
+    steering_sequences,
+)
 
 DEFAULT_ACTION = layout_path("predictor", registry().steered) / "predictor.pt"
 DEFAULT_ABSTRACT_TF = layout_path("predictor", "abstract_tf") / "predictor.pt"
@@ -247,13 +254,11 @@ def rollout_command(args: argparse.Namespace) -> str:
         compile_predictor(abstract_pred.model)
         compile_predictor(detail_pred.model)
         compile_decoder(detail_tok.model)
-    # a distilled detail predictor records its few steps; the others sample with the paper's 30
-    detail_nfe = args.detail_nfe or int(detail_pred.meta.get("sampling", {}).get("nfe", 30))
+    detail_nfe = args.detail_nfe or detail_pred.nfe(DETAIL_NFE)
     with tqdm(total=steps, desc="rollout", unit="step") as bar, inference_autocast(device, args.precision):
         details, _ = cascaded_rollout(
             abstract_pred.model, detail_pred.model, detail_ctx[None].to(device), abstract_ctx[None].to(device),
-            steps, generator, abstract_nfe=args.abstract_nfe,
-            detail_nfe=detail_nfe,
+            steps, generator, abstract_nfe=args.abstract_nfe, detail_nfe=detail_nfe,
             abstract_hz=data.abstract_hz, detail_hz=data.detail_hz, steering=steering,
             on_step=lambda _: bar.update(1), kv_cache=not args.no_kv_cache,
             steering_guidance=args.steering_guidance)
@@ -316,10 +321,11 @@ def add_rollout_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--params", type=Path, default=Path("params.yaml"))
     p.add_argument("--profile", default=None, help="smoke | default | gpu | paper (default: the file's `profile`)")
     p.add_argument("--side-by-side", action="store_true", help="show the real continuation on the left")
-    p.add_argument("--abstract-nfe", type=int, default=15, help="Euler steps per abstract latent")
+    p.add_argument("--abstract-nfe", type=int, default=ABSTRACT_NFE,
+                   help="Euler steps per abstract latent (default: the paper's %(default)s)")
     p.add_argument("--detail-nfe", type=int, default=None,
-                   help="Euler steps per detail window; default: 30, or the steps a distilled detail predictor "
-                        "(detail_distill) records")
+                   help=f"Euler steps per detail window; default: the paper's {DETAIL_NFE}, or the steps a distilled "
+                        "detail predictor (detail_distill) records")
     p.add_argument("--device", default=None, help="default: cuda if available, else cpu")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--precision", choices=("bf16", "fp32"), default="bf16",

@@ -29,6 +29,10 @@ from orbis2.hierarchy import condition_frames, scale_steering, steering_rows
 from orbis2.windows import window_indices
 
 StepCallback = Callable[[int], None]
+# The paper's Euler steps per sample (its inference protocol): a rollout's defaults, unless a predictor
+# records its own (a distilled detail predictor) or the evaluation config sets fewer for the CPU.
+ABSTRACT_NFE = 15
+DETAIL_NFE = 30
 
 
 @dataclass(frozen=True)
@@ -179,8 +183,8 @@ def cascaded_rollout(
     abstract_context: torch.Tensor,
     steps: int,
     generator: torch.Generator,
-    abstract_nfe: int = 15,
-    detail_nfe: int = 30,
+    abstract_nfe: int = ABSTRACT_NFE,
+    detail_nfe: int = DETAIL_NFE,
     frames_per_step: int = 5,
     abstract_hz: float = 2.0,
     detail_hz: float = 10.0,

@@ -86,7 +86,7 @@ class LoadedSystem:
 
     def bottom_nfe(self, default: int) -> int:
         """The bottom predictor's Euler steps: its own (a distilled predictor records them) or ``default``."""
-        return int(self.bottom.meta.get("sampling", {}).get("nfe", default))
+        return self.bottom.nfe(default)
 
     @torch.no_grad()
     def rollout(self, contexts: dict[str, torch.Tensor], steps: int, generator: torch.Generator, top_nfe: int,

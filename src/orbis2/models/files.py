@@ -37,6 +37,10 @@ class PredictorFile:
     meta: dict
     checksum: str
 
+    def nfe(self, default: int) -> int:
+        """Euler steps to sample with: the predictor's own (a distilled predictor records them) or ``default``."""
+        return int(self.meta.get("sampling", {}).get("nfe", default))
+
 
 def save_predictor(path: Path, model: nn.Module, build: dict, meta: dict) -> None:
     """Write ``{build, meta, state_dict}`` atomically; same content, same bytes."""
