@@ -82,10 +82,8 @@ def project_copy(dest: Path) -> Path:
 
 
 def project_env(root: Path) -> dict[str, str]:
-    """The environment of a command run in a project copy: its own MLflow store, a new invocation id, and one
-    thread per process (tests/smoke_build.py says why; and a command then computes exactly what the smoke
-    project's stages computed, e.g. the I3D features of the same frames)."""
-    env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{root / 'mlflow.db'}", "OMP_NUM_THREADS": "1"}
+    """The environment of a command run in a project copy: its own MLflow store, a new invocation id."""
+    env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{root / 'mlflow.db'}"}
     env.pop("ORBIS2_PIPELINE_ID", None)
     return env
 
