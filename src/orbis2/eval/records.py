@@ -35,9 +35,10 @@ T = TypeVar("T")
 
 
 class Record(BaseModel):
-    """Strict: every field required unless it defaults, no unknown key, no coercion (but int for a number)."""
+    """Every field required unless it defaults, no unknown key. A stage building its record may pass a tuple for
+    a list; a record read from a file is checked strictly (:func:`from_json`: JSON types only, no coercion)."""
 
-    model_config = ConfigDict(extra="forbid", strict=True)
+    model_config = ConfigDict(extra="forbid")
 
 
 def _is_none(value: Any) -> bool:
@@ -539,7 +540,7 @@ def from_json(cls: type[R], path: str | Path, stage: str | None = None) -> R:
     if not isinstance(data, dict):
         raise OrbisError(f"{path} holds {type(data).__name__}, expected a JSON object; {rerun}")
     try:
-        return cls.model_validate(data)
+        return cls.model_validate(data, strict=True)
     except ValidationError as err:
         problems = []
         for e in err.errors():
