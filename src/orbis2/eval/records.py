@@ -35,10 +35,10 @@ T = TypeVar("T")
 
 
 class Record(BaseModel):
-    """Every field required unless it defaults, no unknown key. A stage building its record may pass a tuple for
-    a list; a record read from a file is checked strictly (:func:`from_json`: JSON types only, no coercion)."""
+    """Every field required unless it defaults, no unknown key, no coercion (a stage passes lists, ints and
+    floats as it writes them): a value of a type its file would not hold fails where the record is built."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
 
 def _is_none(value: Any) -> bool:
@@ -213,8 +213,10 @@ class DepthProbe(Record):
 
 
 class ProbeData(Record):
-    segmentation: str
-    depth: str
+    """The data set each task was probed on; a task no data set labels is left out."""
+
+    segmentation: str | None = sometimes()
+    depth: str | None = sometimes()
 
 
 class BlockProbe(Record):
@@ -540,7 +542,7 @@ def from_json(cls: type[R], path: str | Path, stage: str | None = None) -> R:
     if not isinstance(data, dict):
         raise OrbisError(f"{path} holds {type(data).__name__}, expected a JSON object; {rerun}")
     try:
-        return cls.model_validate(data, strict=True)
+        return cls.model_validate(data)
     except ValidationError as err:
         problems = []
         for e in err.errors():
