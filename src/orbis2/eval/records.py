@@ -50,9 +50,6 @@ def sometimes() -> Any:
     return Field(default=None, exclude_if=_is_none)
 
 
-# ---------------------------------------------------------------- shared pieces
-
-
 class Nfe(Record):
     top: int
     bottom: int
@@ -69,9 +66,6 @@ class Interval(Record):
     units: int
     reps: int
     seed: int
-
-
-# ---------------------------------------------------------------- eval_fvd_<system>
 
 
 class Bootstrapped(Record):
@@ -190,9 +184,6 @@ class FvdRecord(Record):
     chunked: Chunked | None = sometimes()
 
 
-# ---------------------------------------------------------------- eval_probe_<target>
-
-
 class SegmentationProbe(Record):
     miou: Num
     iou: dict[str, Num]
@@ -236,9 +227,6 @@ class ProbeRecord(Record):
     depth: DepthProbe | None
     data: ProbeData
     per_block: list[BlockProbe] | None = sometimes()
-
-
-# ---------------------------------------------------------------- eval_steering
 
 
 class InstrumentCells(Record):
@@ -341,9 +329,6 @@ class SteeringRecord(Record):
     image_turn: TurnReading
 
 
-# ---------------------------------------------------------------- eval_speed
-
-
 class SpeedRun(Record):
     fps: Num
     peak_memory_mb: Num
@@ -367,9 +352,6 @@ class SpeedRecord(Record):
     precision: str
     compile: bool
     kv_cache: bool
-
-
-# ---------------------------------------------------------------- eval_conditioning
 
 
 class VariantRow(Record):
@@ -489,9 +471,6 @@ class ConditioningRecord(Record):
     steering_response: SteeringResponse | None = sometimes()
 
 
-# ---------------------------------------------------------------- compression rows (built by the report)
-
-
 class CompressionRow(Record):
     """Compressed or full abstract latents; a null metric is one its inputs did not measure."""
 
@@ -511,8 +490,6 @@ class CompressionRecord(Record):
     rows: list[CompressionRow]
 
 
-# ---------------------------------------------------------------- reading and writing
-
 R = TypeVar("R", bound=Record)
 
 
@@ -524,10 +501,6 @@ def to_json(record: Record) -> dict[str, Any]:
 def write_record(path: str | Path, record: Record) -> None:
     """The record at ``path``, atomically, formatted as every record is (:func:`orbis2.io.write_json`)."""
     write_json(Path(path), to_json(record))
-
-
-def _key(loc: tuple) -> str:
-    return ".".join(str(part) for part in loc) or "(top level)"
 
 
 def from_json(cls: type[R], path: str | Path, stage: str | None = None) -> R:
@@ -547,7 +520,7 @@ def from_json(cls: type[R], path: str | Path, stage: str | None = None) -> R:
         problems = []
         for e in err.errors():
             what = {"missing": "missing key", "extra_forbidden": "unknown key"}.get(e["type"], e["msg"])
-            problems.append(f"{_key(e['loc'])}: {what}")
+            problems.append(f"{'.'.join(map(str, e['loc'])) or '(top level)'}: {what}")
         written = f" (written by stage {stage})" if stage else ""
         raise OrbisError(f"{path}{written} is not a {cls.__name__}: {'; '.join(problems)}; {rerun}") from None
 
