@@ -60,9 +60,10 @@ def main(argv: list[str] | None = None) -> None:
             predictor = load_predictor(predictors[name], dev)
             per_seed = [evaluate_predictor(name, predictor, first, second, keys, templates, data, settings, seed, dev)
                         for seed in ev.seeds]
-            rows = predictor_rows(name, per_seed, keys, settings.threshold, settings.bootstrap_reps, ev.seed)
-            variants += rows[0]
-            baselines += rows[1]
+            its_variants, its_baselines = predictor_rows(name, per_seed, keys, settings.threshold,
+                                                         settings.bootstrap_reps, ev.seed)
+            variants += its_variants
+            baselines += its_baselines
             if registry().predictors[name].steering:  # its response inside the model, read by the ego-motion probe
                 readouts = [steering_readouts(name, predictor, first, data, ev.steering_modes, probe, settings, seed,
                                               dev) for seed in ev.seeds]
