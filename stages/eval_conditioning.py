@@ -11,7 +11,6 @@ windows and noise draws, over ``evaluation.seeds``.
 """
 
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -25,9 +24,8 @@ from orbis2.eval.conditioning import (
     steering_readouts,
     val_window_pairs,
 )
-from orbis2.eval.ego_motion import EGO_MOTION_TARGETS
-from orbis2.io import write_json
-from orbis2.latents import KINDS, open_cache
+from orbis2.eval.records import ConditioningRecord, write_record
+from orbis2.latents import open_cache
 from orbis2.models.files import load_predictor
 from orbis2.registry import SCOPES, layout_path, registry
 from orbis2.stage import add_name_argument, add_predictor_argument, open_stage, predictor_files, stage_parser
@@ -57,47 +55,49 @@ def main(argv: list[str] | None = None) -> None:
         first, second, keys = val_window_pairs(cache, data, settings)
         latents, templates, probe = latent_statistics(cache, data, settings, ev.seed)
 
-        record: dict[str, Any] = {"split": "val", "windows": len(keys), "clips": len(set(keys)),
-                                  "draws": settings.draws, "seeds": list(ev.seeds), "threshold": settings.threshold,
-                                  "bootstrap_reps": settings.bootstrap_reps, "variants": [], "baselines": [],
-                                  "latents": latents}
+        variants, baselines, response = [], [], None
         for name in names:
             predictor = load_predictor(predictors[name], dev)
             per_seed = [evaluate_predictor(name, predictor, first, second, keys, templates, data, settings, seed, dev)
                         for seed in ev.seeds]
-            variants, baselines = predictor_rows(name, per_seed, keys, settings.threshold, settings.bootstrap_reps,
-                                                 ev.seed)
-            record["variants"] += variants
-            record["baselines"] += baselines
+            its_variants, its_baselines = predictor_rows(name, per_seed, keys, settings.threshold,
+                                                         settings.bootstrap_reps, ev.seed)
+            variants += its_variants
+            baselines += its_baselines
             if registry().predictors[name].steering:  # its response inside the model, read by the ego-motion probe
                 readouts = [steering_readouts(name, predictor, first, data, ev.steering_modes, probe, settings, seed,
                                               dev) for seed in ev.seeds]
                 mean = {k: np.mean([r[k] for r in readouts], axis=0) for k in readouts[0]}
-                record["steering_response"] = {"model": name, **latent_steering_response(
+                response = {"model": name, **latent_steering_response(
                     mean, ev.steering_modes, keys, settings.bootstrap_reps, ev.seed, settings.response_material)}
             del predictor
+        record = ConditioningRecord(split="val", windows=len(keys), clips=len(set(keys)), draws=settings.draws,
+                                    seeds=list(ev.seeds), threshold=settings.threshold,
+                                    bootstrap_reps=settings.bootstrap_reps, variants=variants, baselines=baselines,
+                                    latents=latents, steering_response=response)
 
-        write_json(out, record)
+        write_record(out, record)
         run.log_artifact(out)
-        run.log_metrics({f"{r['model']}_{r['metric']}_{r['variant']}_effect": r["effect"]
-                         for r in record["variants"] if r["verdict"] != "reference"})
-        run.log_metrics({f"{r['model']}_{r['baseline']}_{r['horizon_s']:g}s_effect": r["effect"]
-                         for r in record["baselines"]})
-        run.log_metrics({f"latents_{level}_{k}": latents[level][k] for level in KINDS
+        run.log_metrics({f"{r.model}_{r.metric}_{r.variant}_effect": r.effect
+                         for r in record.variants if r.verdict != "reference"})
+        run.log_metrics({f"{r.model}_{r.baseline}_{r.horizon_s:g}s_effect": r.effect for r in record.baselines})
+        stats = record.latents
+        run.log_metrics({f"latents_{level}_{k}": getattr(shares, k) for level, shares in
+                         (("abstract", stats.abstract), ("detail", stats.detail))
                          for k in ("varying_share", "within_clip_share", "repeat_last_relative")})
-        probe = latents["ego_motion_probe"]
-        run.log_metrics({f"ego_probe_{name}_r2": probe[name]["r2"] for name in EGO_MOTION_TARGETS
-                         if np.isfinite(probe[name]["r2"])})
-        responses = record.get("steering_response", {}).get("responses", {})
-        run.log_metrics({f"steering_latent_response_{name}": r["relative"] for name, r in responses.items() if r})
-        used = [f"{r['model']}/{r['variant']}" for r in record["variants"]
-                if r["metric"] == "one_step_mse" and r["verdict"] == "used"]
-        used += [f"latent response to {name}" + (" (ordered x0.5 < original < x1.5)" if r.get("ordered") else "")
-                 for name, r in responses.items() if r and r["verdict"] == "used"]
-        stage.summary = (f"{len(keys)} val windows from {record['clips']} clips x {settings.draws} draws x "
+        ego = stats.ego_motion_probe
+        run.log_metrics({f"ego_probe_{name}_r2": fit.r2 for name, fit in (("speed", ego.speed),
+                                                                        ("yaw_rate", ego.yaw_rate))
+                         if np.isfinite(fit.r2)})
+        responses = record.steering_response.responses if record.steering_response is not None else {}
+        run.log_metrics({f"steering_latent_response_{name}": r.relative for name, r in responses.items() if r})
+        used = [f"{r.model}/{r.variant}" for r in record.variants
+                if r.metric == "one_step_mse" and r.verdict == "used"]
+        used += [f"latent response to {name}" + (" (ordered x0.5 < original < x1.5)" if r.ordered else "")
+                 for name, r in responses.items() if r and r.verdict == "used"]
+        stage.summary = (f"{len(keys)} val windows from {record.clips} clips x {settings.draws} draws x "
                          f"{len(ev.seeds)} seeds; inputs used (one-step mean): {', '.join(used) or 'none shown'}; "
-                         f"ego-motion probe R^2 speed {probe['speed']['r2']:.2f}, yaw rate "
-                         f"{probe['yaw_rate']['r2']:.2f}")
+                         f"ego-motion probe R^2 speed {ego.speed.r2:.2f}, yaw rate {ego.yaw_rate.r2:.2f}")
 
 
 if __name__ == "__main__":

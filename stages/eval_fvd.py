@@ -16,14 +16,14 @@ conditional variance).
 
 from contextlib import nullcontext
 from pathlib import Path
-from typing import Any
 
 from orbis2.accel import default_device
 from orbis2.assets import ensure_asset
 from orbis2.data.shards import verify_shards
+from orbis2.eval.records import FvdRecord, Nfe, write_record
 from orbis2.eval.rollout_fvd import split_fvd
 from orbis2.eval.systems import SYSTEMS, inference_settings, load_system
-from orbis2.io import atomic_dir, sha256_file, write_json
+from orbis2.io import atomic_dir, sha256_file
 from orbis2.latents import open_cache
 from orbis2.models.i3d import load_i3d
 from orbis2.registry import layout_path
@@ -71,37 +71,35 @@ def main(argv: list[str] | None = None) -> None:
         i3d = load_i3d(i3d_file).to(dev).eval()
         i3d_sha = sha256_file(i3d_file)
 
-        record: dict[str, Any] = {"model": name, "label": SYSTEMS[name].label, "parameters": system.parameters,
-                                  "latent_channels": system.bottom.model.latent_channels,
-                                  "predictors": SYSTEMS[name].stages,
-                                  "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe},
-                                  "starts_per_clip": ev.starts_per_clip, "fvd_material": ev.fvd_material, "fvd": {},
-                                  "references": {}, "protocol": {}}
+        results = {}
         with atomic_dir(media) as tmp, (atomic_dir(args.rollouts) if args.rollouts else nullcontext()) as rollouts:
             for split in ev.fvd_splits:
-                result = split_fvd(split, system, cache, i3d, tmp, cfg.data, ev, dev, args.shards, args.stats_cache,
-                                   i3d_sha, rollouts)
-                record["fvd"][split] = result["fvd"]
-                record["references"][split] = result["references"]
-                record["protocol"][split] = result["protocol"]
-                if "chunked" in result:
-                    record["chunked"] = result["chunked"]
+                results[split] = split_fvd(split, system, cache, i3d, tmp, cfg.data, ev, dev, args.shards,
+                                           args.stats_cache, i3d_sha, rollouts)
+        chunked = [r["chunked"] for r in results.values() if "chunked" in r]
+        record = FvdRecord(model=name, label=SYSTEMS[name].label, parameters=system.parameters,
+                           latent_channels=system.bottom.model.latent_channels, predictors=SYSTEMS[name].stages,
+                           nfe=Nfe(top=ev.top_nfe, bottom=ev.bottom_nfe), starts_per_clip=ev.starts_per_clip,
+                           fvd_material=ev.fvd_material, fvd={s: r["fvd"] for s, r in results.items()},
+                           references={s: r["references"] for s, r in results.items()},
+                           protocol={s: r["protocol"] for s, r in results.items()},
+                           chunked=chunked[-1] if chunked else None)
 
         for video in sorted(media.glob("*.mp4")):
             run.log_artifact(video, "videos")
         for gif in sorted(media.glob("*.gif")):  # the parent's rollout gallery: one thumbnail per system and split
             run.log_artifact(gif, "videos")
             run.publish(gif, "gallery", f"{name}_{gif.name}")
-        write_json(report, record)
+        write_record(report, record)
         run.log_artifact(report)
-        run.log_metrics({f"fvd_{split}": v["fvd"] for split, v in record["fvd"].items()})
-        run.log_metrics({f"fvd_{split}_{ref}": v["fvd"] for split, refs in record["references"].items()
-                         for ref, v in refs.items() if v["fvd"] is not None})
-        if "chunked" in record:
-            run.log_metrics({"fvd_slope": record["chunked"]["fvd_slope"]})
-        splits = ", ".join(f"{s} {v['fvd']:.1f} [{v['low']:.1f}, {v['high']:.1f}] (n={v['videos']}, "
-                           f"{v['clips']} clips)" for s, v in record["fvd"].items())
-        slope = f"; FVD-slope {record['chunked']['fvd_slope']:.1f}" if "chunked" in record else ""
+        run.log_metrics({f"fvd_{split}": v.fvd for split, v in record.fvd.items()})
+        run.log_metrics({f"fvd_{split}_{ref}": v.fvd for split, refs in record.references.items()
+                         for ref, v in refs if v is not None and v.fvd is not None})
+        if record.chunked is not None:
+            run.log_metrics({"fvd_slope": record.chunked.fvd_slope})
+        splits = ", ".join(f"{s} {v.fvd:.1f} [{v.low:.1f}, {v.high:.1f}] (n={v.videos}, {v.clips} clips)"
+                           for s, v in record.fvd.items())
+        slope = f"; FVD-slope {record.chunked.fvd_slope:.1f}" if record.chunked is not None else ""
         stage.summary = f"{name}: FVD {splits}{slope}"
 
 

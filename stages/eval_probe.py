@@ -10,7 +10,6 @@ details"); the k-th block from the end is clamped to the network's depth.
 """
 
 from pathlib import Path
-from typing import Any
 
 from orbis2.accel import default_device
 from orbis2.assets import TEACHER_ASSETS, asset_path
@@ -23,7 +22,7 @@ from orbis2.eval.probe import (
     teacher_features,
     tokenizer_features,
 )
-from orbis2.io import write_json
+from orbis2.eval.records import BlockProbe, ProbeRecord, write_record
 from orbis2.models.files import load_predictor, load_tokenizer
 from orbis2.models.teachers import build_teacher
 from orbis2.registry import layout_path, registry
@@ -67,11 +66,10 @@ def main(argv: list[str] | None = None) -> None:
         sets = probe_sets(ps, (cfg.data.width, cfg.data.height), args.shards)
         tokenizers = latent_paths(args, reg.target_latents(target)).tokenizers
 
-        record: dict[str, Any] = {"target": target, "block": None}
         representation = reg.representations.get(target)
+        block, per_block = None, None
         if representation is not None and not representation.teacher:
-            latents = representation.latents
-            record["label"] = f"Abstract tokenizer ({latents})"
+            label = f"Abstract tokenizer ({representation.latents})"
             tokenizer = load_tokenizer(tokenizers["abstract"], dev)
             result = probe_all(tokenizer_features(tokenizer), sets, probe_cfg)
         elif representation is not None:
@@ -79,26 +77,25 @@ def main(argv: list[str] | None = None) -> None:
             assets = args.assets or Path(cfg.assets.dir)
             teacher = build_teacher(tc.teacher, asset_path(assets, TEACHER_ASSETS[tc.teacher]),
                                     tc.teacher_layer).to(dev)
-            record["label"] = f"Teacher ({tc.teacher})"
+            label = f"Teacher ({tc.teacher})"
             result = probe_all(teacher_features(teacher), sets, probe_cfg)
         else:
             predictor = load_predictor(predictor_files(args, [target])[target], dev)
             tokenizer = load_tokenizer(tokenizers[predictor.meta["level"]], dev)
             depth = len(predictor.model.blocks)
             wanted = ps.block_main if target in MAIN_PROBES else ps.block_ablation
-            block = min(wanted, depth)
-            record.update(label=target, block=block, depth=depth)
+            label, block = target, min(wanted, depth)
             result = probe_all(predictor_features(predictor, tokenizer, block), sets, probe_cfg)
             if target in PER_BLOCK:
-                record["per_block"] = []
+                per_block = []
                 for k in range(1, depth + 1):
                     r = result if k == block else probe_all(predictor_features(predictor, tokenizer, k), sets,
                                                             probe_cfg)
-                    record["per_block"].append({"block": k, "miou": r["segmentation"]["miou"],
-                                                "rmse": r["depth"]["rmse"]})
-        record.update(segmentation=result["segmentation"], depth=result["depth"], data=result["data"])
+                    per_block.append(BlockProbe(block=k, miou=r["segmentation"]["miou"], rmse=r["depth"]["rmse"]))
+        record = ProbeRecord(target=target, label=label, block=block, segmentation=result["segmentation"],
+                             depth=result["depth"], data=result["data"], per_block=per_block)
 
-        write_json(out, record)
+        write_record(out, record)
         run.log_artifact(out)
         run.log_metrics({"miou": result["segmentation"]["miou"], "depth_rmse": result["depth"]["rmse"]})
         stage.summary = (f"{target}: mIoU {result['segmentation']['miou']:.3f} ({result['data']['segmentation']}), "

@@ -15,6 +15,7 @@ from pathlib import Path
 import torch
 
 from orbis2.accel import default_device
+from orbis2.eval.records import Nfe, SpeedRecord, SpeedRun, write_record
 from orbis2.eval.speed import measure
 from orbis2.eval.systems import (
     SPEED_SYSTEMS,
@@ -25,7 +26,6 @@ from orbis2.eval.systems import (
     load_system,
     rollout_steps,
 )
-from orbis2.io import write_json
 from orbis2.latents import open_cache
 from orbis2.registry import SCOPES, layout_path, registry
 from orbis2.stage import (
@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> None:
         steps = rollout_steps(data, ev.speed_seconds)
         settings = inference_settings(ev)
 
-        models = {}
+        models: dict[str, SpeedRun] = {}
         for name in runs:
             system_name, frames_per_step = SPEED_RUNS[name]
             system = load_system(system_name, predictors, latents.tokenizers, dev, inference=settings)
@@ -93,24 +93,23 @@ def main(argv: list[str] | None = None) -> None:
                 return system.decode(latents).shape[1]
 
             result = measure(one_rollout, warmup=1, repeats=ev.speed_repeats, device=dev)
-            models[name] = {"fps": result["fps"], "peak_memory_mb": result["peak_memory_mb"],
-                            "parameters": system.parameters, "frames": result["frames"],
-                            "memory_kind": result["memory_kind"], "bottom_nfe": bottom_nfe,
-                            "top_nfe": ev.top_nfe if system.top is not None else None,
-                            "frames_per_step": frames_per_step or 5}
+            models[name] = SpeedRun(fps=result["fps"], peak_memory_mb=result["peak_memory_mb"],
+                                    parameters=system.parameters, frames=result["frames"],
+                                    memory_kind=result["memory_kind"], bottom_nfe=bottom_nfe,
+                                    top_nfe=ev.top_nfe if system.top is not None else None,
+                                    frames_per_step=frames_per_step or 5)
             del system, contexts
 
-        record = {"device": torch.cuda.get_device_name() if dev.type == "cuda"
-                  else f"cpu ({torch.get_num_threads()} threads)",
-                  "memory_kind": next(iter(models.values()))["memory_kind"], "batch": 1,
-                  "seconds": steps * 0.5, "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe}, "models": models,
-                  "precision": settings.precision if dev.type == "cuda" else "fp32", "compile": settings.compile,
-                  "kv_cache": settings.kv_cache}
-        write_json(out, record)
+        record = SpeedRecord(device=torch.cuda.get_device_name() if dev.type == "cuda"
+                             else f"cpu ({torch.get_num_threads()} threads)",
+                             memory_kind=next(iter(models.values())).memory_kind, batch=1, seconds=steps * 0.5,
+                             nfe=Nfe(top=ev.top_nfe, bottom=ev.bottom_nfe), models=models,
+                             precision=settings.precision if dev.type == "cuda" else "fp32",
+                             compile=settings.compile, kv_cache=settings.kv_cache)
+        write_record(out, record)
         run.log_artifact(out)
-        run.log_metrics({f"fps_{m}": v["fps"] for m, v in models.items()})
-        stage.summary = ", ".join(f"{m} {v['fps']:.2f} frames/s, {v['peak_memory_mb']:.0f} MB"
-                                  for m, v in models.items())
+        run.log_metrics({f"fps_{m}": v.fps for m, v in models.items()})
+        stage.summary = ", ".join(f"{m} {v.fps:.2f} frames/s, {v.peak_memory_mb:.0f} MB" for m, v in models.items())
 
 
 if __name__ == "__main__":

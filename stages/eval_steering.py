@@ -26,6 +26,7 @@ from orbis2.data.shards import split_clips, verify_shards
 from orbis2.errors import OrbisError
 from orbis2.eval.inverse_dynamics import WEIGHTS_FILE
 from orbis2.eval.odometry import camera_intrinsics, get_inverse_dynamics
+from orbis2.eval.records import Material, Nfe, SteeringRecord, write_record
 from orbis2.eval.steering import (
     image_turns,
     latent_turns,
@@ -50,7 +51,6 @@ from orbis2.eval.systems import (
     rollout_steps,
     sample_clusters,
 )
-from orbis2.io import write_json
 from orbis2.kinematics import integrate_controls
 from orbis2.latents import open_cache
 from orbis2.registry import layout_path, registry
@@ -143,35 +143,36 @@ def main(argv: list[str] | None = None) -> None:
         sanity = {name: odometry_sanity(real_frames, samples, indices, odometry, K, inverse, data, clusters, ev.seed)
                   for name, inverse in instruments.items()}
 
-        record = {"split": split, "seconds": ev.steering_seconds, "samples": len(samples),
-                  "clips": len(set(clusters)), "seed": ev.seed, "inverse_dynamics": ev.inverse_dynamics,
-                  "instruments": list(on_rollouts), "nfe": {"top": ev.top_nfe, "bottom": ev.bottom_nfe},
-                  "modes": modes,
-                  "responses": {name: steering_responses(per_sample, name, clusters, ev.seed) for name in on_rollouts},
-                  "material": {"turn_deg": ev.steering_turn_material_deg,
-                               "path_ratio": ev.steering_path_ratio_material},
-                  "odometry_sanity": sanity[ev.inverse_dynamics], "sanity": sanity,
-                  "latent_turn": turn_record(latent_turn, clusters, ev.seed),
-                  "image_turn": turn_record(image_turn, clusters, ev.seed)}
-        write_json(args.out, record)
+        record = SteeringRecord(
+            split=split, seconds=ev.steering_seconds, samples=len(samples), clips=len(set(clusters)), seed=ev.seed,
+            inverse_dynamics=ev.inverse_dynamics, instruments=list(on_rollouts),
+            nfe=Nfe(top=ev.top_nfe, bottom=ev.bottom_nfe), modes=modes,
+            responses={name: steering_responses(per_sample, name, clusters, ev.seed) for name in on_rollouts},
+            material=Material(turn_deg=ev.steering_turn_material_deg, path_ratio=ev.steering_path_ratio_material),
+            odometry_sanity=sanity[ev.inverse_dynamics], sanity=sanity,
+            latent_turn=turn_record(latent_turn, clusters, ev.seed),
+            image_turn=turn_record(image_turn, clusters, ev.seed))
+        write_record(args.out, record)
         run.log_artifact(args.out)
         save_strip(strip, data.detail_hz, args.strip)
         run.log_artifact(args.strip)
         run.publish(args.strip, "figures")
-        run.log_metrics({f"ade_{m}": v["ade"] for m, v in modes.items()})
-        run.log_metrics({f"{reading}_deg_{m}": v["turn_deg"] for reading in ("latent_turn", "image_turn")
-                         for m, v in record[reading]["modes"].items()})
+        run.log_metrics({f"ade_{m}": v.ade for m, v in record.modes.items()})
+        readings = (("latent_turn", record.latent_turn), ("image_turn", record.image_turn))
+        run.log_metrics({f"{reading}_deg_{m}": v.turn_deg for reading, turns in readings
+                         for m, v in turns.modes.items()})
 
-        response, floor = record["responses"][ev.inverse_dynamics], sanity[ev.inverse_dynamics]
-        stage.summary = ("ADE (turn) " + ", ".join(f"{m} {v['ade']:.2f} m ({v['turn_deg']:.0f} deg)"
-                                                   for m, v in modes.items())
-                         + f" (n={len(samples)}, {ev.inverse_dynamics}); turn response "
-                           f"{response['turn_response_deg']['estimate']:.1f} deg, path ratio x1.5/x0.5 "
-                           f"{response['path_ratio']['estimate']:.2f}; real video ADE {floor['real_ade']:.2f} m, "
-                           f"shuffled {floor['shuffled_ade']:.2f} m; turn read from the latents "
-                           + ", ".join(f"{m} {v['turn_deg']:.0f}" for m, v in record["latent_turn"]["modes"].items())
+        response, floor = record.responses[ev.inverse_dynamics], record.odometry_sanity
+        turn = f"{response.turn_response_deg.estimate:.1f}" if response.turn_response_deg else "n/a"
+        ratio = f"{response.path_ratio.estimate:.2f}" if response.path_ratio else "n/a"
+        stage.summary = ("ADE (turn) " + ", ".join(f"{m} {v.ade:.2f} m ({v.turn_deg:.0f} deg)"
+                                                   for m, v in record.modes.items())
+                         + f" (n={len(samples)}, {ev.inverse_dynamics}); turn response {turn} deg, path ratio "
+                           f"x1.5/x0.5 {ratio}; real video ADE {floor.real_ade:.2f} m, "
+                           f"shuffled {floor.shuffled_ade:.2f} m; turn read from the latents "
+                           + ", ".join(f"{m} {v.turn_deg:.0f}" for m, v in record.latent_turn.modes.items())
                            + " deg; from the image motion "
-                           + ", ".join(f"{m} {v['turn_deg']:.0f}" for m, v in record["image_turn"]["modes"].items())
+                           + ", ".join(f"{m} {v.turn_deg:.0f}" for m, v in record.image_turn.modes.items())
                            + " deg")
 
 

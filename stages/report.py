@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> None:
         if scope == "main":
             written = write_main_report(evals, args.out or layout_path("reports"), setup, settings)
         else:
-            evals["compression"] = compression_from_evals(evals)
+            evals.compression = compression_from_evals(evals)
             out = args.out or layout_path("report_all")
             media = given_or_all(args.media, "media", list(SYSTEMS), "--media")
             with atomic_dir(out) as tmp:

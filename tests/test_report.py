@@ -19,6 +19,7 @@ from orbis2.eval import claims, figures, records, report, tables
 from conftest import ROOT
 
 SETUP = {"profile": "smoke", "seed": 7, "fvd_videos": 12}
+RECORDS = ROOT / "tests" / "fixtures" / "records"  # the records of a finished smoke run, as its stages wrote them
 # What the smoke profile of params.yaml decides about the tables (FVD splits, steering modes, rates).
 SETTINGS = tables.TableSettings.from_config(load_config(ROOT / "params.yaml", "smoke"))
 
@@ -45,29 +46,41 @@ PROBES = {  # target: (miou, val loss, rmse)
 }
 
 
+def real(name: str) -> dict:
+    """A record a smoke run wrote (tests/fixtures/records): every key its stage writes, values replaced below."""
+    return json.loads((RECORDS / f"{name}.json").read_text())
+
+
 def fvd_doc(model: str) -> dict:
     params, val, heldout, turns, fvd16, slope = FVD[model]
+    base = real("fvd_hierarchical")
 
     # Bootstrap draws: the same resamples for every model and reference, so differences are paired.
     wiggle = np.linspace(-3.0, 3.0, 40)
 
     def split(v, n):
-        return {"fvd": v, "low": v * 0.9, "high": v * 1.1, "videos": n, "clips": 8, "frames": 16, "seconds": 6.0,
-                "resolution": [224, 224], "seed": 3, "draws": list(v + wiggle)}
+        return {**base["fvd"]["val"], "fvd": v, "low": v * 0.9, "high": v * 1.1, "videos": n, "clips": 8,
+                "seconds": 6.0, "seed": 3, "draws": list(v + wiggle)}
 
     def reference(v):
-        return {"fvd": v, "low": v - 5.0, "high": v + 5.0, "videos": 40, "draws": list(v + wiggle)}
+        return {**base["references"]["val"]["repeat_last"], "fvd": v, "low": v - 5.0, "high": v + 5.0, "videos": 40,
+                "draws": list(v + wiggle)}
 
-    chunks = [{"start_s": 4.0 * i, "end_s": 4.0 * (i + 1), "fvd": fvd16 / 2 + slope * i} for i in range(4)]
+    floor = {"fvd": 30.0, "low": 25.0, "high": 35.0, "clips": 8, "videos_per_half": 20, "half_splits": 50, "seed": 3,
+             "definition": "FVD between the real continuations of two disjoint random halves of the clips"}
+    chunks = [{"start_s": 4.0 * i, "end_s": 4.0 * (i + 1), "fvd": fvd16 / 2 + slope * i, "low": 0.0, "high": 999.0}
+              for i in range(4)]
     return {
+        **base,
         "model": model,
         "label": model.replace("_", " ").title(),
         "parameters": params,
         "fvd_material": 10.0,
         "fvd": {"val": split(val, 40), "heldout": split(heldout, 41), "turns": split(turns, 42)},
-        "references": {s: {"real_floor": reference(30.0), "reconstruction": reference(60.0),
-                           "repeat_last": reference(900.0)} for s in ("val", "heldout", "turns")},
+        "references": {s: {"real_floor": floor, "reconstruction": reference(60.0), "repeat_last": reference(900.0)}
+                       for s in ("val", "heldout", "turns")},
         "chunked": {
+            **base["chunked"],
             "split": "turns",
             "seconds": 16.0,
             "chunk_seconds": 4.0,
@@ -85,12 +98,15 @@ def fvd_doc(model: str) -> dict:
 
 def probe_doc(target: str) -> dict:
     miou, loss, rmse = PROBES[target]
+    base = real("probe_abstract_tf")
     doc = {
+        **base,
         "target": target,
         "label": target.replace("_", " "),
         "block": 3,
-        "segmentation": {"miou": miou, "val_loss": loss, "test_frames": 50, "train_frames": 200},
-        "depth": {"rmse": rmse, "test_frames": 51},
+        "segmentation": {**base["segmentation"], "miou": miou, "val_loss": loss, "test_frames": 50,
+                         "train_frames": 200},
+        "depth": {**base["depth"], "rmse": rmse, "test_frames": 51},
     }
     if target in ("abstract_df", "abstract_tf_only"):
         doc["per_block"] = [{"block": k, "miou": miou - 3 + k, "rmse": rmse + 1 - 0.2 * k} for k in range(5)]
@@ -98,15 +114,27 @@ def probe_doc(target: str) -> dict:
 
 
 def steering_doc() -> dict:
+    base = real("steering")
     ades = {"original": 1.2, "speed_x0.5": 2.18, "speed_x1.5": 0.53, "yaw_rate_x0.5": 1.65, "yaw_rate_x1.5": 0.73}
     modes = {}
     for i, (mode, ade) in enumerate(ades.items()):
-        cells = {"ade": ade, "ade_low": ade - 0.1, "ade_high": ade + 0.1, "turn_deg": 10.0 + 10 * i}
-        modes[mode] = {**cells, "samples": 20 + i, "commanded_turn_deg": 12.0 + 10 * i,
-                       "instruments": {"learned": cells, "opencv": {**cells, "ade": ade + 3.0}}}
+        cells = {"ade": ade, "ade_low": ade - 0.1, "ade_high": ade + 0.1, "turn_deg": 10.0 + 10 * i, "turn_low": 0.0,
+                 "turn_high": 50.0, "path_length": 20.0}
+        modes[mode] = {**cells, "samples": 20 + i, "commanded_turn_deg": 12.0 + 10 * i, "speed_scale": 1.0,
+                       "yaw_rate_scale": 1.0, "instruments": {"learned": cells, "opencv": {**cells, "ade": ade + 3.0}}}
     sanity = {"real_ade": 0.4, "real_low": 0.3, "real_high": 0.5, "shuffled_ade": 4.0, "shuffled_low": 3.5,
               "shuffled_high": 4.5, "videos": 30}
+    learned = base["responses"]["learned"]
+    interval = learned["turn_response_deg"]
+    step = learned["turn_steps_deg"]["original - yaw_rate_x0.5"]
+
+    def turns(scale: float, spread: float) -> dict:
+        return {**base["latent_turn"], "modes": {m: {"turn_deg": scale * i, "low": scale * i - spread,
+                                                     "high": scale * i + spread, "commanded_turn_deg": 12.0}
+                                                 for i, m in enumerate(["real", *ades, "real_subgoals"])}}
+
     return {
+        **base,
         "split": "turns",
         "seconds": 6.0,
         "samples": 20,
@@ -114,31 +142,33 @@ def steering_doc() -> dict:
         "inverse_dynamics": "learned",
         "instruments": ["learned", "opencv"],
         "modes": modes,
-        "responses": {"learned": {"turn_response_deg": {"estimate": 9.0, "low": 5.0, "high": 13.0},
+        "responses": {"learned": {**learned,
+                                  "turn_response_deg": {**interval, "estimate": 9.0, "low": 5.0, "high": 13.0},
                                   "commanded_turn_response_deg": 12.0,
                                   "turn_steps_deg": {
-                                      "original - yaw_rate_x0.5": {"estimate": 4.0, "low": 2.0, "high": 6.0},
-                                      "yaw_rate_x1.5 - original": {"estimate": 5.0, "low": 3.0, "high": 7.0}},
-                                  "path_ratio": {"estimate": 2.5, "low": 2.0, "high": 3.0}}},
+                                      "original - yaw_rate_x0.5": {**step, "estimate": 4.0, "low": 2.0, "high": 6.0},
+                                      "yaw_rate_x1.5 - original": {**step, "estimate": 5.0, "low": 3.0, "high": 7.0}},
+                                  "path_ratio": {**learned["path_ratio"], "estimate": 2.5, "low": 2.0, "high": 3.0}}},
         "material": {"turn_deg": 2.0, "path_ratio": 1.1},
         "odometry_sanity": sanity,
         "sanity": {"learned": sanity, "opencv": {**sanity, "real_ade": 0.6}},
-        "latent_turn": {"modes": {m: {"turn_deg": 5.0 * i, "low": 5.0 * i - 1, "high": 5.0 * i + 1}
-                                  for i, m in enumerate(["real", *ades, "real_subgoals"])}},
-        "image_turn": {"modes": {m: {"turn_deg": 2.0 * i, "low": 2.0 * i - 0.5, "high": 2.0 * i + 0.5}
-                                 for i, m in enumerate(["real", *ades, "real_subgoals"])}},
+        "latent_turn": turns(5.0, 1.0),
+        "image_turn": turns(2.0, 0.5),
     }
 
 
 def speed_doc() -> dict:
+    base = real("speed")
     models = {"hierarchical": 3.64, "hierarchical_distilled": 9.1, "flat_detail": 0.7, "flat_abstract": 1.5,
               "v1_style": 0.3}
     params = {"hierarchical_distilled": "hierarchical", "v1_style": "flat_detail"}
+    run = base["models"]["hierarchical"]
     return {
+        **base,
         "device": "cpu",
         "memory_kind": "cpu_peak_rss",
         "models": {
-            m: {"fps": fps, "peak_memory_mb": 900.5, "parameters": FVD[params.get(m, m)][0], "frames": 60}
+            m: {**run, "fps": fps, "peak_memory_mb": 900.5, "parameters": FVD[params.get(m, m)][0], "frames": 60}
             for m, fps in models.items()
         },
     }
@@ -164,7 +194,9 @@ def conditioning_doc() -> dict:
                 "baseline_mse": 0.5 * (1 + low + 0.1), "effect": low + 0.1, "low": low, "high": low + 0.2,
                 "verdict": "holds", "windows": 64, "clips": 16}
 
-    return {"threshold": 0.03,
+    base = real("conditioning")
+    del base["steering_response"]  # written only with a steered predictor in the scope
+    return {**base, "threshold": 0.03,
             "variants": [variant("detail", "true", 0.4), variant("detail", "subgoal_other_clip", 0.6, 0.5, 0.3, 0.7,
                                                                   "used")],
             "baselines": [baseline(m, h, 0.2) for m in ("detail", "abstract_tf") for h in (0.5, 1.0)]}
@@ -183,7 +215,9 @@ def write_evals(folder: Path, skip: tuple[str, ...] = ()) -> Path:
 @pytest.fixture
 def evals(tmp_path):
     """Every evaluation, and the compression rows the report stage derives from them."""
-    return records.load_eval(write_evals(tmp_path / "eval")) | {"compression": compression_doc()}
+    evals = records.load_eval(write_evals(tmp_path / "eval"))
+    evals.compression = records.CompressionRecord.model_validate(compression_doc())
+    return evals
 
 
 def read_csv(path: Path) -> list[dict[str, str]]:
@@ -191,7 +225,7 @@ def read_csv(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(handle))
 
 
-def verdicts(evals: dict) -> list[str]:
+def verdicts(evals: records.Evals) -> list[str]:
     return [verdict for _, verdict, _ in claims.check_claims(evals, SETTINGS)]
 
 
@@ -200,9 +234,9 @@ def summary_verdicts(path: Path) -> list[str]:
 
 
 def test_load_eval_reads_every_file(evals):
-    assert set(evals["fvd"]) == set(report.FVD_MODELS)
-    assert set(evals["probe"]) == set(records.PROBE_TARGETS)
-    assert {"steering", "speed"} <= set(evals)
+    assert set(evals.fvd) == set(report.FVD_MODELS)
+    assert set(evals.probe) == set(records.PROBE_TARGETS)
+    assert evals.has("steering") and evals.has("speed") and evals.has("conditioning")
 
 
 def test_load_eval_rejects_a_file_under_the_wrong_name(tmp_path):
@@ -218,13 +252,13 @@ def test_read_evals_takes_the_files_it_is_given(tmp_path):
     moved = tmp_path / "elsewhere" / "hier.json"
     moved.parent.mkdir()
     (folder / "fvd_hierarchical.json").rename(moved)
-    assert set(records.read_evals({"hierarchical": moved}, {})["fvd"]) == {"hierarchical"}
+    assert set(records.read_evals({"hierarchical": moved}, {}).fvd) == {"hierarchical"}
     fvd = {m: folder / f"fvd_{m}.json" for m in FVD} | {"hierarchical": moved}
     evals = records.read_evals(fvd, {t: folder / f"probe_{t}.json" for t in PROBES},
                               steering=folder / "steering.json", speed=tmp_path / "absent.json",
                               conditioning=folder / "conditioning.json")
-    assert set(evals["fvd"]) == set(FVD) and evals["fvd"]["hierarchical"]["model"] == "hierarchical"
-    assert "steering" in evals and "speed" not in evals
+    assert set(evals.fvd) == set(FVD) and evals.fvd["hierarchical"].model == "hierarchical"
+    assert evals.has("steering") and not evals.has("speed")
     with pytest.raises(OrbisError, match=r"absent\.json \(written by stage eval_speed\)"):
         report.write_main_report(evals, tmp_path / "out", SETUP, SETTINGS)
     with pytest.raises(OrbisError, match="fvd_flat_detail.json says model='flat_detail', expected 'hierarchical'"):
@@ -318,14 +352,14 @@ def test_steering_table_without_opencv_on_the_rollouts_keeps_its_real_video_chec
     doc["instruments"] = ["learned"]  # evaluation.opencv_rollouts: false
     for cells in doc["modes"].values():
         del cells["instruments"]["opencv"]
-    rows = tables.steering_table({"steering": doc}, SETTINGS)
+    rows = tables.steering_table(records.Evals(steering=records.SteeringRecord.model_validate(doc)), SETTINGS)
     assert all(r["ade_opencv"] == tables.NA and r["turn_deg_opencv"] == tables.NA for r in rows[:-2])
     assert rows[-2]["ade_opencv"] == 0.6 and rows[0]["ade"] == 1.2
 
 
 def test_main_scope_speed_record_leaves_the_flat_comparison_to_the_full_report(evals, tmp_path):
     for name in ("flat_detail", "flat_abstract", "v1_style", "hierarchical_distilled"):  # eval_speed (main)
-        del evals["speed"]["models"][name]  # times the main table's hierarchy only
+        del evals.speed.models[name]  # times the main table's hierarchy only
     report.write_main_report(evals, tmp_path, SETUP, SETTINGS)
     assert [r["model"] for r in read_csv(tmp_path / "speed.csv")] == ["hierarchical"]
     assert verdicts(evals)[4] == "not measured" and "eval_speed_all" in claims.claim_speed(evals, SETTINGS)[1]
@@ -350,9 +384,9 @@ def test_full_report_ablations_and_figures(evals, tmp_path):
     # Fig. 4's numbers, one FVD column per system, one row per window end.
     chunked = read_csv(out / "fvd_chunked.csv")
     for model in report.FVD_MODELS:
-        chunks = records.get(evals, "fvd", model, "chunked", "chunks")
-        assert [float(r["end_s"]) for r in chunked] == [c["end_s"] for c in chunks]
-        assert [float(r[model]) for r in chunked] == pytest.approx([c["fvd"] for c in chunks], rel=1e-5)
+        chunks = evals.fvd[model].chunked.chunks
+        assert [float(r["end_s"]) for r in chunked] == [c.end_s for c in chunks]
+        assert [float(r[model]) for r in chunked] == pytest.approx([c.fvd for c in chunks], rel=1e-5)
 
     hierarchy = read_csv(out / "hierarchy_ablation.csv")
     assert [(r["exp"], r["branch"], r["abstraction"], float(r["frame_rate_hz"])) for r in hierarchy] == [
@@ -398,11 +432,15 @@ def test_full_report_ablations_and_figures(evals, tmp_path):
     assert summary_verdicts(out / "summary.md") == ["holds"] * 8
 
 
-def _set(evals: dict, path: tuple, value) -> None:
+def _set(evals: records.Evals, path: tuple, value) -> None:
+    """Set the value at ``path`` (attributes of the records, keys of their mappings, indices of their lists)."""
     node = evals
     for key in path[:-1]:
-        node = node[key]
-    node[path[-1]] = value
+        node = node[key] if isinstance(node, (dict, list)) else getattr(node, key)
+    if isinstance(node, (dict, list)):
+        node[path[-1]] = value
+    else:
+        setattr(node, path[-1], value)
 
 
 @pytest.mark.parametrize(
@@ -464,7 +502,7 @@ def test_missing_input_names_file_and_stage(tmp_path, missing, stage, writer):
 
 
 def test_missing_metric_is_an_error_not_a_blank(evals, tmp_path):
-    evals["probe"]["flat_detail"]["depth"] = None
+    evals.probe["flat_detail"].depth = None  # a probe without depth labels
     with pytest.raises(OrbisError, match=r"probe_flat_detail\.json .*depth"):
         report.write_main_report(evals, tmp_path / "out", SETUP, SETTINGS)
 
@@ -500,16 +538,15 @@ def test_rollout_grid_and_steering_strip_are_pngs(tmp_path):
 
 def test_compression_rows_come_from_the_flat_abstract_models(evals):
     """Compressed vs full: each row reads its own flat abstract model's rollouts and probes."""
-    evals = {**evals, "fvd": dict(evals["fvd"]), "probe": dict(evals["probe"])}
     full = fvd_doc("flat_abstract") | {"model": "flat_abstract_full", "latent_channels": 768}
     full["chunked"] = {**full["chunked"], "fvd_slope": 99.0}
-    evals["fvd"]["flat_abstract"] = evals["fvd"]["flat_abstract"] | {"latent_channels": 16}
-    evals["fvd"]["flat_abstract_full"] = full
-    rows = tables.compression_from_evals(evals)["rows"]
-    assert [(r["variant"], r["latent_dim"]) for r in rows] == [("compressed", 16), ("full (teacher dim)", 768)]
-    assert rows[1]["fvd_slope"] == 99.0 and rows[0]["fvd_slope"] == FVD["flat_abstract"][5]
-    assert rows[1]["miou"] == evals["probe"]["flat_abstract_full"]["segmentation"]["miou"]
-    del evals["fvd"]["flat_abstract_full"]
+    evals.fvd["flat_abstract"].latent_channels = 16
+    evals.fvd["flat_abstract_full"] = records.FvdRecord.model_validate(full)
+    rows = tables.compression_from_evals(evals).rows
+    assert [(r.variant, r.latent_dim) for r in rows] == [("compressed", 16), ("full (teacher dim)", 768)]
+    assert rows[1].fvd_slope == 99.0 and rows[0].fvd_slope == FVD["flat_abstract"][5]
+    assert rows[1].miou == evals.probe["flat_abstract_full"].segmentation.miou
+    del evals.fvd["flat_abstract_full"]
     with pytest.raises(OrbisError, match="eval_fvd_flat_abstract_full"):
         tables.compression_from_evals(evals)
 
@@ -529,20 +566,23 @@ def test_write_csv_known_bytes_and_exact_float_round_trip(tmp_path):
 
 
 def test_a_floor_on_too_few_clips_reads_na(evals):
-    evals["fvd"]["hierarchical"]["references"]["val"]["real_floor"] = {"fvd": None, "clips": 2, "reason": "few"}
+    evals.fvd["hierarchical"].references["val"].real_floor = records.RealFloor(fvd=None, clips=2, reason="few")
     floor = tables.main_table(evals, "main", SETTINGS)[1]
     assert floor["fvd_val"] == floor["fvd_val_n"] == "NA" and floor["fvd_heldout"] == 30.0
 
 
 def test_fvd_tables_carry_the_protocol_card(evals, tmp_path):
-    card = {"protocol": "orbis2", "fps": 10, "seconds": 2.0, "i3d_frames": 16, "context_frames": 5,
-            "i3d_sha256": "ab12", "bootstrap_seed": 31, "source_resolution": [72, 128]}
-    evals["fvd"]["hierarchical"]["protocol"] = {"turns": card, "val": {**card, "clips": 2}}
+    card = records.ProtocolCard.model_validate({**real("fvd_hierarchical")["protocol"]["turns"], "fps": 10,
+                                                 "i3d_sha256": "ab12", "bootstrap_seed": 31})
+    for record in evals.fvd.values():  # the card is the same in every system's record
+        record.protocol = {"turns": card, "val": card.model_copy(update={"clips": 2})}
     report.write_main_report(evals, tmp_path, SETUP, SETTINGS)
     summary = (tmp_path / "summary.md").read_text()
     main = summary.split("## Main results (Table 1)")[1].split("## ")[0]
-    assert "- FVD protocol, turns: protocol=orbis2, fps=10, seconds=2.0, i3d_frames=16, context_frames=5, " \
-           "i3d_sha256=ab12, bootstrap_seed=31" in main
+    # the card's entries in the order of its record's file (sorted keys), without the source resolution
+    assert "- FVD protocol, turns: bootstrap_reps=50, bootstrap_seed=31, chunk_seconds=1.6, clips=2, " \
+           "context_frames=5, floor_splits=10, fps=10, frame_selection=" in main
+    assert "i3d_sha256=ab12, long_seconds=3.5, protocol=orbis2, resize=" in main
     assert "FVD protocol, val:" in main and "source_resolution" not in main
     steering = summary.split("## Steering (Table 2)")[1].split("## ")[0]
     assert "FVD protocol" not in steering
@@ -571,14 +611,14 @@ def test_fvd_splits_and_steering_modes_follow_the_config(evals, tmp_path, smoke_
     settings = tables.TableSettings.from_config(dataclasses.replace(smoke_cfg, evaluation=ev))
     assert settings.fvd_splits == ("val", "night", "turns", "dusk")
     assert settings.steering_modes == ("original", "yaw_rate_x2")
-    for record in evals["fvd"].values():
+    for record in evals.fvd.values():
         for new, like in (("night", "heldout"), ("dusk", "val")):
-            record["fvd"][new] = {**record["fvd"][like], "videos": 7}
-            record["references"][new] = record["references"][like]
-    steering = evals["steering"]
-    steering["modes"]["yaw_rate_x2"] = {**steering["modes"]["yaw_rate_x1.5"], "samples": 9}
-    for reading in ("latent_turn", "image_turn"):
-        steering[reading]["modes"]["yaw_rate_x2"] = {"turn_deg": 99.0, "low": 98.0, "high": 100.0}
+            record.fvd[new] = record.fvd[like].model_copy(update={"videos": 7})
+            record.references[new] = record.references[like]
+    steering = evals.steering
+    steering.modes["yaw_rate_x2"] = steering.modes["yaw_rate_x1.5"].model_copy(update={"samples": 9})
+    for reading in (steering.latent_turn, steering.image_turn):
+        reading.modes["yaw_rate_x2"] = records.TurnCells(turn_deg=99.0, low=98.0, high=100.0, commanded_turn_deg=24.0)
 
     report.write_main_report(evals, tmp_path, SETUP, settings)
     main = read_csv(tmp_path / "main_table.csv")
@@ -589,6 +629,6 @@ def test_fvd_splits_and_steering_modes_follow_the_config(evals, tmp_path, smoke_
     assert [r["mode"] for r in rows] == ["original", "yaw_rate_x2", "real_subgoals", "real_videos", "shuffled_videos"]
     assert rows[1]["ade_n"] == "9" and float(rows[1]["turn_deg_latent"]) == 99.0
     assert "night" in claims.check_claims(evals, settings)[7][2]  # claim 8 reads every configured split
-    evals["fvd"]["hierarchical"]["fvd"].pop("dusk")  # a configured split the record lacks: named, not skipped
+    evals.fvd["hierarchical"].fvd.pop("dusk")  # a configured split the record lacks: named, not skipped
     with pytest.raises(OrbisError, match=r"fvd_hierarchical\.json .*fvd\.dusk"):
         tables.main_table(evals, "main", settings)

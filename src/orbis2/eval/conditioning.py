@@ -65,6 +65,7 @@ from orbis2.eval.ego_motion import (
     ridge_predict,
     select_penalty,
 )
+from orbis2.eval.records import ConditioningRecord
 from orbis2.eval.stats import (
     bootstrap_statistic,
     decide,
@@ -520,39 +521,39 @@ def predictor_rows(stage: str, per_seed: list[tuple[dict, dict]], keys, threshol
 # --------------------------------------------------------------------------- report rows
 
 
-def claim_verdict(row: dict, threshold: float) -> str:
-    """The claim reading of a stored row: "holds" / "does not hold" / "not resolved at this sample size"."""
-    if row["low"] > threshold:
+def claim_verdict(low: float, high: float, threshold: float) -> str:
+    """The claim reading of an interval: "holds" / "does not hold" / "not resolved at this sample size"."""
+    if low > threshold:
         return "holds"
-    return "does not hold" if row["high"] < threshold else "not resolved at this sample size"
+    return "does not hold" if high < threshold else "not resolved at this sample size"
 
 
-def conditioning_rows(doc: dict) -> list[dict]:
+def conditioning_rows(record: ConditioningRecord) -> list[dict]:
     """One table of the stage's record: per model and check, the error with the true input (or of the model),
     the alternative's error, effect = (alternative - error) / error with its interval, and the verdict. The
     steering-response rows hold instead the probe-read difference of real drives ("error") and of the model's
     latents ("alternative_error"), and their ratio as the effect."""
     rows = []
-    for r in doc["variants"]:
-        if r["verdict"] == "reference":
+    for r in record.variants:
+        if r.verdict == "reference":
             continue
-        ref = next(x for x in doc["variants"] if x["model"] == r["model"] and x["metric"] == r["metric"]
-                   and x["verdict"] == "reference")
-        rows.append({"model": r["model"], "check": f"input: {r['variant']}", "metric": r["metric"],
-                     "error": ref["error"], "alternative_error": r["error"], "effect": r["effect"], "low": r["low"],
-                     "high": r["high"], "verdict": r["verdict"], "windows": r["windows"], "clips": r["clips"]})
-    for r in doc["baselines"]:
-        rows.append({"model": r["model"], "check": f"beats {r['baseline']} at {r['horizon_s']:g} s",
-                     "metric": "one_step_mse", "error": r["model_mse"], "alternative_error": r["baseline_mse"],
-                     "effect": r["effect"], "low": r["low"], "high": r["high"], "verdict": r["verdict"],
-                     "windows": r["windows"], "clips": r["clips"]})
-    response = doc.get("steering_response", {})
-    for name, r in response.get("responses", {}).items():
-        if r is None:
+        ref = next(x for x in record.variants if x.model == r.model and x.metric == r.metric
+                   and x.verdict == "reference")
+        rows.append({"model": r.model, "check": f"input: {r.variant}", "metric": r.metric,
+                     "error": ref.error, "alternative_error": r.error, "effect": r.effect, "low": r.low,
+                     "high": r.high, "verdict": r.verdict, "windows": r.windows, "clips": r.clips})
+    for b in record.baselines:
+        rows.append({"model": b.model, "check": f"beats {b.baseline} at {b.horizon_s:g} s",
+                     "metric": "one_step_mse", "error": b.model_mse, "alternative_error": b.baseline_mse,
+                     "effect": b.effect, "low": b.low, "high": b.high, "verdict": b.verdict,
+                     "windows": b.windows, "clips": b.clips})
+    response = record.steering_response
+    for name, s in (response.responses.items() if response is not None else ()):
+        if s is None:
             continue
         how = "read from the grid" if name == "sideways_shift" else "probe-read"
-        rows.append({"model": response["model"], "check": f"latents answer {name} x1.5 vs x0.5 ({how})",
-                     "metric": f"{name}_readout", "error": r["real_difference"],
-                     "alternative_error": r["readout_difference"], "effect": r["relative"], "low": r["low"],
-                     "high": r["high"], "verdict": r["verdict"], "windows": r["windows"], "clips": r["clips"]})
+        rows.append({"model": response.model, "check": f"latents answer {name} x1.5 vs x0.5 ({how})",
+                     "metric": f"{name}_readout", "error": s.real_difference,
+                     "alternative_error": s.readout_difference, "effect": s.relative, "low": s.low,
+                     "high": s.high, "verdict": s.verdict, "windows": s.windows, "clips": s.clips})
     return rows

@@ -1,22 +1,532 @@
-"""The evaluation records the report reads: found by name, parsed, and read strictly.
+"""The evaluation records: one typed model per kind, written by the evaluation stages and read strictly by the report.
 
-``read_evals`` and ``load_eval`` return a dict keyed by kind (``fvd`` and ``probe``: name -> record;
-``steering``, ``speed``, ``conditioning``: one record each) with the file each came from. A value
-is read with :func:`get`, which stops with an ``OrbisError`` naming the file and the stage that
-writes it when the value is missing or null, so no table is ever padded with guesses.
+Each ``eval_*`` stage builds its record (:class:`FvdRecord`, :class:`ProbeRecord`, :class:`SteeringRecord`,
+:class:`SpeedRecord`, :class:`ConditioningRecord`) and writes it with :func:`write_record`; the report reads
+them back with :func:`read_evals` / :func:`load_eval` into an :class:`Evals` and by attribute
+(``evals.steering_record().modes[mode].ade_low``). Reading is strict: a missing key, an unknown key or a value of
+the wrong type stops with an ``OrbisError`` naming the file, the key and the stage that writes it, so a renamed
+key fails when its record is read, not in the last table of a long run, and no table is padded with guesses.
+
+A record re-writes byte for byte: numbers keep the type they were written with (an int stays an int where a
+float is allowed), and a key the stage writes only sometimes (``chunked``, ``per_block``, ...) is a field
+that defaults to None and is left out of the file when None. Keys that are data (split names, steering modes,
+instruments, systems) are ``dict`` keys; a lookup the report needs goes through :meth:`Evals.entry`, which names
+the file when the key is absent.
 """
 
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from orbis2.errors import OrbisError
+from orbis2.io import write_json
 from orbis2.registry import registry
 
 PROBE_TARGETS = tuple(registry().probe_targets)  # registry.yaml: every probe target
 EVAL_KINDS = ("steering", "speed", "conditioning")  # one file each, beside the per-system and per-target ones
+
+Num = int | float  # a JSON number as written: an int stays an int, so a record re-writes byte for byte
+T = TypeVar("T")
+
+
+class Record(BaseModel):
+    """Every field required unless it defaults, no unknown key, no coercion (a stage passes lists, ints and
+    floats as it writes them): a value of a type its file would not hold fails where the record is built."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+
+def _is_none(value: Any) -> bool:
+    return value is None
+
+
+def sometimes() -> Any:
+    """A key the stage writes only in some runs: None when absent, and left out of the file when None."""
+    return Field(default=None, exclude_if=_is_none)
+
+
+class Nfe(Record):
+    top: int
+    bottom: int
+
+
+class Interval(Record):
+    """:class:`orbis2.eval.stats.Interval` as stored (a paired difference or a mean with its bootstrap)."""
+
+    estimate: Num
+    low: Num
+    high: Num
+    level: Num
+    clusters: int
+    units: int
+    reps: int
+    seed: int
+
+
+class Bootstrapped(Record):
+    """An FVD with its clip-bootstrap interval and draws (:func:`orbis2.eval.references.fvd_with_interval`)."""
+
+    fvd: Num
+    low: Num
+    high: Num
+    clips: int
+    videos: int
+    bootstrap_reps: int
+    bootstrap_seed: int
+    draws: list[Num]
+
+
+class SplitFvd(Bootstrapped):
+    """A split's FVD over ``seconds`` of rollout (:func:`orbis2.eval.evaluate.score_rollouts`)."""
+
+    frames: int
+    seconds: Num
+    resolution: list[int]
+    seed: int
+    source_resolution: list[int] | None = sometimes()  # eval_fvd's frames; `orbis2 evaluate` states it in its card
+
+
+class RealFloor(Record):
+    """Real vs real on disjoint halves of the clips; ``fvd`` None (with the reason) on fewer than 4 clips."""
+
+    fvd: Num | None
+    clips: int
+    reason: str | None = sometimes()
+    low: Num | None = sometimes()
+    high: Num | None = sometimes()
+    videos_per_half: int | None = sometimes()
+    half_splits: int | None = sometimes()
+    seed: int | None = sometimes()
+    definition: str | None = sometimes()
+
+
+class References(Record):
+    """The reference rows of a split (:mod:`orbis2.eval.references`); `orbis2 evaluate` has no reconstruction."""
+
+    real_floor: RealFloor
+    repeat_last: Bootstrapped
+    reconstruction: Bootstrapped | None = sometimes()
+
+
+class ProtocolCard(Record):
+    """Everything needed to reproduce a table's FVDs (:meth:`orbis2.eval.evaluate.Protocol.card`)."""
+
+    protocol: str
+    fps: Num
+    seconds: Num
+    window_frames: int
+    long_seconds: Num
+    chunk_seconds: Num
+    i3d_frames: int
+    frame_selection: str
+    stride: Num
+    context_frames: int
+    resize: str
+    source_resolution: list[int]
+    clips: int
+    videos: int
+    i3d: str
+    i3d_sha256: str
+    bootstrap_reps: int
+    bootstrap_seed: int
+    floor_splits: int
+
+
+class Chunk(Record):
+    start_s: Num
+    end_s: Num
+    fvd: Num
+    low: Num
+    high: Num
+
+
+class Chunked(Record):
+    """Chunked FVD, FVD over the long span and the FVD-slope (:func:`orbis2.eval.evaluate.chunked_record`)."""
+
+    split: str
+    seconds: Num
+    chunk_seconds: Num
+    videos: int
+    clips: int
+    seed: int
+    chunks: list[Chunk]
+    fvd_long: Num
+    fvd_long_low: Num
+    fvd_long_high: Num
+    fvd_slope: Num
+    fvd_slope_low: Num
+    fvd_slope_high: Num
+    bootstrap_reps: int
+    bootstrap_seed: int
+    fvd_slope_draws: list[Num]
+
+
+class FvdRecord(Record):
+    """``fvd_<system>.json``: per split of ``evaluation.fvd_splits`` its FVD, reference rows and protocol card;
+    the long split's chunked FVD."""
+
+    model: str
+    label: str
+    parameters: int
+    latent_channels: int
+    predictors: list[str]
+    nfe: Nfe
+    starts_per_clip: int
+    fvd_material: Num
+    fvd: dict[str, SplitFvd]
+    references: dict[str, References]
+    protocol: dict[str, ProtocolCard]
+    chunked: Chunked | None = sometimes()
+
+
+class SegmentationProbe(Record):
+    miou: Num
+    iou: dict[str, Num]
+    classes: list[int]
+    val_loss: Num
+    train_frames: int
+    test_frames: int
+    epochs: int
+
+
+class DepthProbe(Record):
+    rmse: Num
+    val_loss: Num
+    train_frames: int
+    test_frames: int
+    scored_frames: int
+    epochs: int
+
+
+class ProbeData(Record):
+    """The data set each task was probed on; a task no data set labels is left out."""
+
+    segmentation: str | None = sometimes()
+    depth: str | None = sometimes()
+
+
+class BlockProbe(Record):
+    block: int
+    miou: Num
+    rmse: Num
+
+
+class ProbeRecord(Record):
+    """``probe_<target>.json``: linear probes of one representation; a task without labels is None
+    (:func:`orbis2.eval.probe.probe_on_features`). ``block`` is None for a tokenizer or the teacher."""
+
+    target: str
+    label: str
+    block: int | None
+    segmentation: SegmentationProbe | None
+    depth: DepthProbe | None
+    data: ProbeData
+    per_block: list[BlockProbe] | None = sometimes()
+
+
+class InstrumentCells(Record):
+    """One mode's figures by one instrument (:func:`orbis2.eval.steering.mode_record`)."""
+
+    ade: Num
+    ade_low: Num
+    ade_high: Num
+    turn_deg: Num
+    turn_low: Num
+    turn_high: Num
+    path_length: Num
+
+
+class SteeringMode(InstrumentCells):
+    """The main instrument's figures on top, every instrument's below."""
+
+    samples: int
+    speed_scale: Num
+    yaw_rate_scale: Num
+    commanded_turn_deg: Num
+    instruments: dict[str, InstrumentCells]
+
+
+class TurnStep(Interval):
+    commanded: Num
+
+
+class PathRatio(Record):
+    estimate: Num
+    low: Num
+    high: Num
+    commanded: Num
+    clusters: int
+    note: str
+
+
+class SteeringResponses(Record):
+    """One instrument's scale-free responses (:func:`orbis2.eval.steering.steering_responses`): the turn ones
+    need the yaw-rate modes, the path ratio the speed modes."""
+
+    turn_response_deg: Interval | None = sometimes()
+    commanded_turn_response_deg: Num | None = sometimes()
+    turn_by_mode_deg: dict[str, Num] | None = sometimes()
+    turn_steps_deg: dict[str, TurnStep] | None = sometimes()
+    path_ratio: PathRatio | None = sometimes()
+
+
+class Material(Record):
+    turn_deg: Num
+    path_ratio: Num
+
+
+class OdometrySanity(Record):
+    """An instrument on the real videos and on shuffled ones (:func:`orbis2.eval.steering.odometry_sanity`)."""
+
+    real_ade: Num
+    real_low: Num
+    real_high: Num
+    shuffled_ade: Num
+    shuffled_low: Num
+    shuffled_high: Num
+    videos: int
+
+
+class TurnCells(Record):
+    turn_deg: Num
+    low: Num
+    high: Num
+    commanded_turn_deg: Num
+
+
+class TurnReading(Record):
+    """A reading of the turn alone (:func:`orbis2.eval.steering.turn_record`)."""
+
+    modes: dict[str, TurnCells]
+    turn_steps_deg: dict[str, TurnStep]
+    turn_response_deg: Interval | None = sometimes()
+    commanded_turn_response_deg: Num | None = sometimes()
+
+
+class SteeringRecord(Record):
+    """``steering.json``: per steering mode ADE and turn by each instrument, responses, sanity checks, and the
+    latent and image readings of the turn."""
+
+    split: str
+    seconds: Num
+    samples: int
+    clips: int
+    seed: int
+    inverse_dynamics: str
+    instruments: list[str]
+    nfe: Nfe
+    modes: dict[str, SteeringMode]
+    responses: dict[str, SteeringResponses]
+    material: Material
+    odometry_sanity: OdometrySanity
+    sanity: dict[str, OdometrySanity]
+    latent_turn: TurnReading
+    image_turn: TurnReading
+
+
+class SpeedRun(Record):
+    fps: Num
+    peak_memory_mb: Num
+    parameters: int
+    frames: int
+    memory_kind: str
+    bottom_nfe: int
+    top_nfe: int | None  # None for a flat system
+    frames_per_step: int
+
+
+class SpeedRecord(Record):
+    """``speed.json`` / ``speed_all.json``: frames per second and peak memory per timed run."""
+
+    device: str
+    memory_kind: str
+    batch: int
+    seconds: Num
+    nfe: Nfe
+    models: dict[str, SpeedRun]
+    precision: str
+    compile: bool
+    kv_cache: bool
+
+
+class VariantRow(Record):
+    """A predictor's error with one conditioning input replaced; the reference row (the true input) has no
+    clip count or per-seed verdicts."""
+
+    model: str
+    metric: str
+    variant: str
+    error: Num
+    effect: Num
+    low: Num
+    high: Num
+    verdict: str
+    windows: int
+    clips: int | None = sometimes()
+    seed_verdicts: list[str] | None = sometimes()
+
+
+class BaselineRow(Record):
+    model: str
+    horizon_s: Num
+    baseline: str
+    model_mse: Num
+    baseline_mse: Num
+    effect: Num
+    low: Num
+    high: Num
+    verdict: str
+    windows: int
+    clips: int
+
+
+class EnergyShares(Record):
+    varying_share: Num
+    within_clip_share: Num
+    repeat_last_relative: Num
+    repeat_last_mse: Num
+    variation_mse: Num
+    frames: int
+
+
+class ProbeFit(Record):
+    r2: Num
+    low: Num
+    high: Num
+    shuffled_r2: Num
+
+
+class EgoMotionProbe(Record):
+    train_pairs: int
+    val_pairs: int
+    speed: ProbeFit
+    yaw_rate: ProbeFit
+    penalty: dict[str, Num]
+    train_cv_r2: dict[str, dict[str, Num]]
+    features: str
+
+
+class LatentStatistics(Record):
+    """Energy shares per latent set and the ego-motion probe (:func:`orbis2.eval.conditioning.latent_statistics`)."""
+
+    step_frames: int
+    step_s: Num
+    abstract: EnergyShares
+    detail: EnergyShares
+    ego_motion_probe: EgoMotionProbe
+
+
+class ResponseStep(Record):
+    relative: Num
+    low: Num
+    high: Num
+    verdict: str
+
+
+class LatentResponse(Record):
+    relative: Num
+    low: Num
+    high: Num
+    readout_difference: Num
+    real_difference: Num
+    windows: int
+    clips: int
+    verdict: str
+    steps: dict[str, ResponseStep] | None = sometimes()  # with the original mode
+    ordered: bool | None = sometimes()
+
+
+class SteeringResponse(Record):
+    """The steered predictor's latents under scaled steering
+    (:func:`orbis2.eval.conditioning.latent_steering_response`); a response is None where its motion has no modes
+    or windows."""
+
+    model: str
+    windows: int
+    material: Num
+    gain: dict[str, Num]
+    modes: dict[str, dict[str, Num | None]]
+    responses: dict[str, LatentResponse | None]
+
+
+class ConditioningRecord(Record):
+    """``conditioning.json`` / ``conditioning_all.json``: variant errors, one-step baselines, latent statistics and
+    (with a steered predictor in the scope) its response inside the model."""
+
+    split: str
+    windows: int
+    clips: int
+    draws: int
+    seeds: list[int]
+    threshold: Num
+    bootstrap_reps: int
+    variants: list[VariantRow]
+    baselines: list[BaselineRow]
+    latents: LatentStatistics
+    steering_response: SteeringResponse | None = sometimes()
+
+
+class CompressionRow(Record):
+    """Compressed or full abstract latents; a null metric is one its inputs did not measure."""
+
+    variant: str
+    latent_dim: int
+    fvd_long: Num | None
+    fvd_slope: Num | None
+    miou: Num | None
+    rmse: Num | None
+    fvd_long_n: int | None = sometimes()
+    fvd_slope_n: int | None = sometimes()
+    miou_n: int | None = sometimes()
+    rmse_n: int | None = sometimes()
+
+
+class CompressionRecord(Record):
+    rows: list[CompressionRow]
+
+
+R = TypeVar("R", bound=Record)
+
+
+def to_json(record: Record) -> dict[str, Any]:
+    """The record as the JSON object its stage writes (keys left out where :func:`sometimes` says so)."""
+    return record.model_dump()
+
+
+def write_record(path: str | Path, record: Record) -> None:
+    """The record at ``path``, atomically, formatted as every record is (:func:`orbis2.io.write_json`)."""
+    write_json(Path(path), to_json(record))
+
+
+def from_json(cls: type[R], path: str | Path, stage: str | None = None) -> R:
+    """The record of type ``cls`` in ``path``; anything else stops with an error naming the file, each key
+    and the stage that writes it (``stage``, e.g. ``eval_fvd_hierarchical``)."""
+    path = Path(path)
+    rerun = f"re-run {stage}" if stage else "re-run the stage that writes it"
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise OrbisError(f"cannot read {path}: {err}; {rerun}") from err
+    if not isinstance(data, dict):
+        raise OrbisError(f"{path} holds {type(data).__name__}, expected a JSON object; {rerun}")
+    try:
+        return cls.model_validate(data)
+    except ValidationError as err:
+        problems = []
+        for e in err.errors():
+            what = {"missing": "missing key", "extra_forbidden": "unknown key"}.get(e["type"], e["msg"])
+            problems.append(f"{'.'.join(map(str, e['loc'])) or '(top level)'}: {what}")
+        written = f" (written by stage {stage})" if stage else ""
+        raise OrbisError(f"{path}{written} is not a {cls.__name__}: {'; '.join(problems)}; {rerun}") from None
+
+
+KIND_TYPES: dict[str, type[Record]] = {"fvd": FvdRecord, "probe": ProbeRecord, "steering": SteeringRecord,
+                                       "speed": SpeedRecord, "conditioning": ConditioningRecord}
 
 
 def _file_and_stage(kind: str, name: str | None) -> tuple[str, str]:
@@ -27,81 +537,107 @@ def _file_and_stage(kind: str, name: str | None) -> tuple[str, str]:
     return f"{kind}.json", f"eval_{kind}"
 
 
+def _stage_of(kind: str, name: str | None, path: Path) -> str:
+    stage = _file_and_stage(kind, name)[1]
+    if name is None and path.stem == f"{kind}_all":  # the full report's speed and conditioning records
+        stage += "_all"
+    return stage
+
+
+@dataclass
+class Evals:
+    """The records the report reads: FVD by system, probes by target, one steering, speed and conditioning
+    record, and the compression rows the full report builds; with the file each came from (or would have)."""
+
+    fvd: dict[str, FvdRecord] = field(default_factory=dict)
+    probe: dict[str, ProbeRecord] = field(default_factory=dict)
+    steering: SteeringRecord | None = None
+    speed: SpeedRecord | None = None
+    conditioning: ConditioningRecord | None = None
+    compression: CompressionRecord | None = None
+    files: dict[str, Any] = field(default_factory=lambda: {"fvd": {}, "probe": {}})
+    folder: Path | None = None
+
+    def where(self, kind: str, name: str | None = None) -> str:
+        """The record's file and the stage that writes it, for messages."""
+        file, _ = _file_and_stage(kind, name)
+        given = self.files.get(kind)
+        given = given.get(name) if isinstance(given, Mapping) else given
+        path = Path(given) if given is not None else (self.folder or Path("reports/eval")) / file
+        return f"{path} (written by stage {_stage_of(kind, name, path)})"
+
+    def has(self, kind: str, name: str | None = None) -> bool:
+        found = getattr(self, kind)
+        return (name in found) if name is not None else found is not None
+
+    def _need(self, found: T | None, kind: str, name: str | None = None) -> T:
+        if found is None:
+            raise OrbisError(f"missing {self.where(kind, name)}: run that stage first")
+        return found
+
+    def fvd_record(self, system: str) -> FvdRecord:
+        return self._need(self.fvd.get(system), "fvd", system)
+
+    def probe_record(self, target: str) -> ProbeRecord:
+        return self._need(self.probe.get(target), "probe", target)
+
+    def steering_record(self) -> SteeringRecord:
+        return self._need(self.steering, "steering")
+
+    def speed_record(self) -> SpeedRecord:
+        return self._need(self.speed, "speed")
+
+    def conditioning_record(self) -> ConditioningRecord:
+        return self._need(self.conditioning, "conditioning")
+
+    def compression_record(self) -> CompressionRecord:
+        return self._need(self.compression, "compression")
+
+    def value(self, found: T | None, kind: str, name: str | None, path: str) -> T:
+        """``found``, a value the report needs that its record may leave out (None): else an error naming the
+        file, the key (``path``) and the stage."""
+        if found is None:
+            raise OrbisError(f"{self.where(kind, name)} has no value for {path}: re-run that stage")
+        return found
+
+    def entry(self, mapping: Mapping[str, T] | None, key: str, kind: str, name: str | None, path: str) -> T:
+        """``mapping[key]`` (a split, mode, instrument or system the configuration asks for), or an error naming
+        the file, ``path.key`` and the stage."""
+        found = mapping.get(key) if mapping is not None else None
+        return self.value(found, kind, name, f"{path}.{key}")
+
+
 def read_evals(fvd: Mapping[str, str | Path], probe: Mapping[str, str | Path], steering: str | Path | None = None,
-               speed: str | Path | None = None, conditioning: str | Path | None = None) -> dict:
-    """The evaluation JSON files given (``fvd``: system -> file, ``probe``: target -> file, and the steering,
-    speed and conditioning files), keyed by kind and name; a file that does not exist is simply absent."""
-    evals: dict = {"fvd": {}, "probe": {}, "files": {"fvd": {}, "probe": {}}}
+               speed: str | Path | None = None, conditioning: str | Path | None = None) -> Evals:
+    """The evaluation records given (``fvd``: system -> file, ``probe``: target -> file, and the steering,
+    speed and conditioning files), each read strictly; a file that does not exist is simply absent."""
+    evals = Evals()
     for kind, files, key in (("fvd", fvd, "model"), ("probe", probe, "target")):
+        found = getattr(evals, kind)
         for name, path in files.items():
             path = Path(path)
-            evals["files"][kind][name] = path
+            evals.files[kind][name] = path
             if path.exists():
-                data = _read_json(path)
-                if data.get(key) != name:
-                    found = data.get(key)
-                    raise OrbisError(f"{path} says {key}={found!r}, expected {name!r}: re-run eval_{kind}_{name}")
-                evals[kind][name] = data
-    for kind, path in (("steering", steering), ("speed", speed), ("conditioning", conditioning)):
-        if path is not None:
-            evals["files"][kind] = Path(path)
-            if Path(path).exists():
-                evals[kind] = _read_json(Path(path))
+                record = from_json(KIND_TYPES[kind], path, _stage_of(kind, name, path))
+                if getattr(record, key) != name:
+                    raise OrbisError(f"{path} says {key}={getattr(record, key)!r}, expected {name!r}: "
+                                     f"re-run eval_{kind}_{name}")
+                found[name] = record
+    for kind, given in (("steering", steering), ("speed", speed), ("conditioning", conditioning)):
+        if given is not None:
+            path = Path(given)
+            evals.files[kind] = path
+            if path.exists():
+                setattr(evals, kind, from_json(KIND_TYPES[kind], path, _stage_of(kind, None, path)))
     return evals
 
 
-def load_eval(folder: str | Path) -> dict:
-    """Every evaluation JSON present in ``folder`` under the names the evaluation stages give them by default
+def load_eval(folder: str | Path) -> Evals:
+    """Every evaluation record present in ``folder`` under the names the evaluation stages give them by default
     (``fvd_<system>.json``, ``probe_<target>.json``, ``steering.json``, ...): :func:`read_evals` of that folder."""
     folder = Path(folder)
     evals = read_evals({name: folder / _file_and_stage("fvd", name)[0] for name in registry().systems},
                        {name: folder / _file_and_stage("probe", name)[0] for name in PROBE_TARGETS},
                        **{kind: folder / f"{kind}.json" for kind in EVAL_KINDS})
-    return evals | {"folder": str(folder)}
-
-
-def _read_json(path: Path) -> dict:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise OrbisError(f"cannot read {path}: {err}; re-run the stage that writes it") from err
-    if not isinstance(data, dict):
-        raise OrbisError(f"{path} holds {type(data).__name__}, expected a JSON object; re-run the stage that writes it")
-    return data
-
-
-def where(evals: Mapping, kind: str, name: str | None = None) -> str:
-    file, stage = _file_and_stage(kind, name)
-    given = evals.get("files", {}).get(kind)
-    given = given.get(name) if isinstance(given, Mapping) else given
-    path = given if given is not None else Path(evals.get("folder", "reports/eval")) / file
-    if name is None and Path(path).stem == f"{kind}_all":  # the full report's speed and conditioning records
-        stage += "_all"
-    return f"{path} (written by stage {stage})"
-
-
-def doc(evals: Mapping, kind: str, name: str | None = None) -> dict:
-    """The parsed file, or an error naming it and the stage that produces it."""
-    found = evals.get(kind, {}).get(name) if name is not None else evals.get(kind)
-    if found is None:
-        raise OrbisError(f"missing {where(evals, kind, name)}: run that stage first")
-    return found
-
-
-def has(evals: Mapping, kind: str, name: str | None = None) -> bool:
-    return (evals.get(kind, {}).get(name) if name is not None else evals.get(kind)) is not None
-
-
-def get(evals: Mapping, kind: str, name: str | None, *keys: str | int) -> Any:
-    """A value deep in a file; missing or null is an error (strict: no blank metric cells)."""
-    value: Any = doc(evals, kind, name)
-    for i, key in enumerate(keys):
-        try:
-            value = value[key]
-        except (KeyError, IndexError, TypeError):
-            value = None
-        if value is None:
-            path = ".".join(str(k) for k in keys[: i + 1])
-            raise OrbisError(f"{where(evals, kind, name)} has no value for {path}: re-run that stage")
-    return value
-
+    evals.folder = folder
+    return evals

@@ -22,13 +22,14 @@ from orbis2.errors import OrbisError
 from orbis2.eval.claims import check_claims, fmt
 from orbis2.eval.conditioning import conditioning_rows
 from orbis2.eval.figures import pyplot, save_figure
-from orbis2.eval.records import PROBE_TARGETS, doc, get, has
+from orbis2.eval.records import PROBE_TARGETS, Evals
 from orbis2.eval.tables import (
     HIERARCHY_LAYOUT,
     NA,
     TRAINING_ROWS,
     Row,
     TableSettings,
+    chunked,
     compression_table,
     hierarchy_table,
     main_table,
@@ -81,19 +82,20 @@ def markdown_table(rows: Sequence[Row]) -> str:
     return "\n".join(lines)
 
 
-def protocol_lines(evals: Mapping) -> list[str]:
-    """The FVD protocol card of each split, from the FVD records that carry one (identical across systems but for
-    their I3D inputs' source resolution), so that a table's FVDs can be reproduced from what is printed beside it."""
+def protocol_lines(evals: Evals) -> list[str]:
+    """The FVD protocol card of each split, from the FVD records (identical across systems but for their I3D
+    inputs' source resolution), so that a table's FVDs can be reproduced from what is printed beside it. Its
+    entries in the order of the record's file (sorted keys, as every record is written)."""
     cards: dict[str, dict] = {}
-    for record in (evals.get("fvd") or {}).values():
-        for split, card in (record or {}).get("protocol", {}).items():
-            cards.setdefault(split, {k: v for k, v in card.items() if k != "source_resolution"})
+    for record in evals.fvd.values():
+        for split, card in record.protocol.items():
+            cards.setdefault(split, dict(sorted(card.model_dump(exclude={"source_resolution"}).items())))
     lines = [f"FVD protocol, {split}: " + ", ".join(f"{k}={v}" for k, v in card.items()) for split, card in
              sorted(cards.items())]
     return [*(f"- {line}" for line in lines), ""] if lines else []
 
 
-def summary_markdown(tables: Sequence[tuple[str, Sequence[Row]]], evals: Mapping, setup: Mapping,
+def summary_markdown(tables: Sequence[tuple[str, Sequence[Row]]], evals: Evals, setup: Mapping,
                      settings: TableSettings) -> str:
     """The tables, the claims checked against them, then the setup that produced them."""
     parts = ["# Orbis 2 evaluation summary", ""]
@@ -111,7 +113,7 @@ def summary_markdown(tables: Sequence[tuple[str, Sequence[Row]]], evals: Mapping
     return "\n".join(parts) + "\n"
 
 
-def _tables(evals: Mapping, full: bool, settings: TableSettings) -> list[tuple[str, str, list[Row]]]:
+def _tables(evals: Evals, full: bool, settings: TableSettings) -> list[tuple[str, str, list[Row]]]:
     """(title, file name, rows) of every table; ``full`` adds the flat baselines to Table 1 and makes the ablations
     required, else they join when present."""
     tables = [
@@ -119,23 +121,23 @@ def _tables(evals: Mapping, full: bool, settings: TableSettings) -> list[tuple[s
         ("Steering (Table 2)", STEERING_CSV, steering_table(evals, settings)),
         ("Speed and memory (Table 5)", SPEED_CSV, speed_table(evals)),
     ]
-    hierarchy_ready = all(has(evals, "fvd", e[5]) and has(evals, "probe", e[4]) for e in HIERARCHY_LAYOUT)
+    hierarchy_ready = all(evals.has("fvd", e[5]) and evals.has("probe", e[4]) for e in HIERARCHY_LAYOUT)
     if full or hierarchy_ready:
         tables.append(("Hierarchy design study (Table 3)", HIERARCHY_CSV, hierarchy_table(evals, settings)))
-    if full or all(has(evals, "probe", t) for _, t in TRAINING_ROWS):
+    if full or all(evals.has("probe", t) for _, t in TRAINING_ROWS):
         tables.append(("Training strategy (Table 4)", TRAINING_CSV, training_table(evals)))
-    if has(evals, "compression"):
+    if evals.has("compression"):
         tables.append(("Latent compression", COMPRESSION_CSV, compression_table(evals)))
-    if has(evals, "conditioning"):
+    if evals.has("conditioning"):
         tables.append(("Conditioning use and one-step baselines", CONDITIONING_CSV,
-                       conditioning_rows(doc(evals, "conditioning"))))
+                       conditioning_rows(evals.conditioning_record())))
     return tables
 
 
 def _write_tables(
     csv_tables: Sequence[tuple[str, str, list[Row]]],
     summary_tables: Sequence[tuple[str, str, list[Row]]],
-    evals: Mapping,
+    evals: Evals,
     out_dir: Path,
     setup: Mapping,
     settings: TableSettings,
@@ -166,7 +168,7 @@ def report_setup(cfg: PipelineConfig) -> dict[str, Any]:
 
 
 def write_main_report(
-    evals: Mapping, out_dir: str | Path, setup: Mapping, settings: TableSettings
+    evals: Evals, out_dir: str | Path, setup: Mapping, settings: TableSettings
 ) -> list[Path]:
     """main_table.csv, steering.csv, speed.csv (conditioning.csv when its record exists) and a summary.md
     of what is available; returns the paths.
@@ -181,11 +183,11 @@ def write_main_report(
 
 
 def write_full_report(
-    evals: Mapping, out_dir: str | Path, setup: Mapping, settings: TableSettings
+    evals: Evals, out_dir: str | Path, setup: Mapping, settings: TableSettings
 ) -> list[Path]:
     """Every table, the ablations and the JSON-driven figures, with a summary covering all of them.
 
-    ``evals["compression"]`` (from :func:`compression_from_evals`) is optional: without it
+    ``evals.compression`` (from :func:`compression_from_evals`) is optional: without it
     compression_ablation.csv is not written (a stale one is removed) and the summary marks
     claim 3 not measured.
     Everything is checked before the first file is written.
@@ -194,7 +196,7 @@ def write_full_report(
     tables = _tables(evals, True, settings)
     _per_block_targets(evals)
     written = _write_tables(tables, tables, evals, out_dir, setup, settings)
-    if not has(evals, "compression"):
+    if not evals.has("compression"):
         (out_dir / COMPRESSION_CSV).unlink(missing_ok=True)
     figures = out_dir / FIGURES
     plot_chunked_fvd(evals, figures / FIG_CHUNKED, settings.long_split)
@@ -253,15 +255,13 @@ def _key(text: str) -> str:
 # ---------------------------------------------------------------- figures
 
 
-def plot_chunked_fvd(evals: Mapping, path: str | Path, split: str, models: Sequence[str] = FVD_MODELS) -> None:
+def plot_chunked_fvd(evals: Evals, path: str | Path, split: str, models: Sequence[str] = FVD_MODELS) -> None:
     """Fig. 4: FVD of each consecutive window of the long rollouts on ``split``, one line per model."""
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(5.5, 3.8))
     for model in models:
-        chunks = get(evals, "fvd", model, "chunked", "chunks")
-        ends = [get(evals, "fvd", model, "chunked", "chunks", i, "end_s") for i in range(len(chunks))]
-        fvds = [get(evals, "fvd", model, "chunked", "chunks", i, "fvd") for i in range(len(chunks))]
-        ax.plot(ends, fvds, marker="o", label=get(evals, "fvd", model, "label"))
+        chunks = chunked(evals, model).chunks
+        ax.plot([c.end_s for c in chunks], [c.fvd for c in chunks], marker="o", label=evals.fvd_record(model).label)
     ax.set_xlabel("end of window (s)")
     ax.set_ylabel("FVD")
     ax.set_title(f"FVD over consecutive windows ({split})")
@@ -270,38 +270,34 @@ def plot_chunked_fvd(evals: Mapping, path: str | Path, split: str, models: Seque
     save_figure(fig, path)
 
 
-def write_chunked_fvd(evals: Mapping, path: str | Path, models: Sequence[str] = FVD_MODELS) -> None:
+def write_chunked_fvd(evals: Evals, path: str | Path, models: Sequence[str] = FVD_MODELS) -> None:
     """Fig. 4's numbers as a table: the end of each window (s) and one FVD column per system."""
-    rows = [{"system": model, "end_s": chunk["end_s"], "fvd": chunk["fvd"]}
-            for model in models for chunk in get(evals, "fvd", model, "chunked", "chunks")]
+    rows = [{"system": model, "end_s": chunk.end_s, "fvd": chunk.fvd}
+            for model in models for chunk in chunked(evals, model).chunks]
     table = pd.DataFrame(rows).pivot(index="end_s", columns="system", values="fvd")[list(models)]
     with atomic_file(Path(path)) as tmp:
         table.reset_index().to_csv(tmp, index=False, lineterminator="\n", float_format="%.6g")
 
 
-def _per_block_targets(evals: Mapping) -> list[str]:
-    targets = [t for t in PROBE_TARGETS if has(evals, "probe", t) and doc(evals, "probe", t).get("per_block")]
+def _per_block_targets(evals: Evals) -> list[str]:
+    targets = [t for t in PROBE_TARGETS if t in evals.probe and evals.probe[t].per_block]
     if not targets:
         raise OrbisError(
-            f"no probe file {'in ' + evals['folder'] if 'folder' in evals else 'given'} has per_block results: "
+            f"no probe file {f'in {evals.folder}' if evals.folder else 'given'} has per_block results: "
             "run an eval_probe_<target> stage with per-block probing"
         )
     return targets
 
 
-def plot_probe_blocks(evals: Mapping, path: str | Path) -> None:
+def plot_probe_blocks(evals: Evals, path: str | Path) -> None:
     """Fig. 5: segmentation mIoU and depth RMSE of a probe on every block, one line per probed model."""
     targets = _per_block_targets(evals)
     plt = pyplot()
     fig, (ax_miou, ax_rmse) = plt.subplots(1, 2, figsize=(9, 3.6))
     for target in targets:
-        blocks = get(evals, "probe", target, "per_block")
-        cells = [
-            tuple(get(evals, "probe", target, "per_block", i, key) for key in ("block", "miou", "rmse"))
-            for i in range(len(blocks))
-        ]
-        cells.sort()
-        label = get(evals, "probe", target, "label")
+        record = evals.probe_record(target)
+        cells = sorted((b.block, b.miou, b.rmse) for b in record.per_block or ())
+        label = record.label
         ax_miou.plot([c[0] for c in cells], [c[1] for c in cells], marker="o", label=label)
         ax_rmse.plot([c[0] for c in cells], [c[2] for c in cells], marker="o", label=label)
     for ax, name in ((ax_miou, "segmentation mIoU (higher is better)"), (ax_rmse, "depth RMSE (lower is better)")):
@@ -312,7 +308,7 @@ def plot_probe_blocks(evals: Mapping, path: str | Path) -> None:
     save_figure(fig, path)
 
 
-def plot_bubble(evals: Mapping, path: str | Path, settings: TableSettings, x_metric: str = "fvd_slope") -> None:
+def plot_bubble(evals: Evals, path: str | Path, settings: TableSettings, x_metric: str = "fvd_slope") -> None:
     """Fig. 2: long-horizon FVD against segmentation mIoU, bubble area proportional to parameters.
 
     ``x_metric`` is ``fvd_slope`` (on the long split) or ``fvd_<split>`` for one of the FVD splits.

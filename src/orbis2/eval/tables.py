@@ -12,11 +12,11 @@ configuration (:class:`TableSettings`).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any
 
 from orbis2.config.params import PipelineConfig
 from orbis2.errors import OrbisError
-from orbis2.eval.records import get, where
+from orbis2.eval.records import Chunked, CompressionRecord, CompressionRow, Evals, RealFloor
 from orbis2.registry import SCOPES, registry
 
 # Table 1's rows and the predictor probed for each (the hierarchy at its top one): registry.yaml's main_table,
@@ -64,31 +64,31 @@ class TableSettings:
                    cfg.data.abstract_hz)
 
 
-def probe_cells(evals: Mapping, target: str) -> Row:
+def probe_cells(evals: Evals, target: str) -> Row:
     """A probe target's segmentation mIoU and depth RMSE with their test-frame counts."""
-    return {
-        "probe_target": target,
-        "miou": get(evals, "probe", target, "segmentation", "miou"),
-        "miou_n": get(evals, "probe", target, "segmentation", "test_frames"),
-        "rmse": get(evals, "probe", target, "depth", "rmse"),
-        "rmse_n": get(evals, "probe", target, "depth", "test_frames"),
-    }
+    record = evals.probe_record(target)
+    seg = evals.value(record.segmentation, "probe", target, "segmentation")
+    depth = evals.value(record.depth, "probe", target, "depth")
+    return {"probe_target": target, "miou": seg.miou, "miou_n": seg.test_frames, "rmse": depth.rmse,
+            "rmse_n": depth.test_frames}
 
 
-def _rollout_cells(evals: Mapping, model: str, long_split: str) -> Row:
-    if get(evals, "fvd", model, "chunked", "split") != long_split:
-        raise OrbisError(f"{where(evals, 'fvd', model)}: chunked FVD must be on the {long_split} split "
+def chunked(evals: Evals, model: str) -> Chunked:
+    """A system's chunked FVD (its record has one when ``evaluation.long_split`` was among its splits)."""
+    return evals.value(evals.fvd_record(model).chunked, "fvd", model, "chunked")
+
+
+def _rollout_cells(evals: Evals, model: str, long_split: str) -> Row:
+    rollout = chunked(evals, model)
+    if rollout.split != long_split:
+        raise OrbisError(f"{evals.where('fvd', model)}: chunked FVD must be on the {long_split} split "
                          f"(evaluation.long_split); re-run it")
-    return {
-        "fvd_model": model,
-        "fvd_long": get(evals, "fvd", model, "chunked", "fvd_long"),
-        "fvd_long_n": get(evals, "fvd", model, "chunked", "videos"),
-        "fvd_slope": get(evals, "fvd", model, "chunked", "fvd_slope"),
-        "fvd_slope_n": get(evals, "fvd", model, "chunked", "videos"),
-    }
+    return {"fvd_model": model, "fvd_long": rollout.fvd_long, "fvd_long_n": rollout.videos,
+            "fvd_slope": rollout.fvd_slope, "fvd_slope_n": rollout.videos}
 
 
-# Reference rows of the FVD table: (row name, system whose record holds it, reference, label).
+# Reference rows of the FVD table: (row name, system whose record holds it, reference, label); the reference is
+# a field of :class:`References`.
 FVD_REFERENCES = (
     ("real_floor", "hierarchical", "real_floor", "reference: real vs real, disjoint halves of the clips"),
     ("reconstruction_detail", "hierarchical", "reconstruction", "reference: detail tokenizer reconstruction"),
@@ -98,7 +98,7 @@ FVD_REFERENCES = (
 )
 
 
-def main_table(evals: Mapping, scope: str, settings: TableSettings) -> list[Row]:
+def main_table(evals: Evals, scope: str, settings: TableSettings) -> list[Row]:
     """Table 1: FVD on each of ``evaluation.fvd_splits`` (clip-bootstrap intervals), FVD-slope on the long split
     and the linear probes per model of the scope (``all`` adds the flat baselines), then the reference rows
     (``kind`` = reference) on the same clips and frames, for each decoder one of the scope's models uses."""
@@ -106,118 +106,112 @@ def main_table(evals: Mapping, scope: str, settings: TableSettings) -> list[Row]
     rows = []
     probed = TABLE_PROBE[scope]
     for model in probed:
-        row: Row = {
-            "model": model,
-            "kind": "model",
-            "label": get(evals, "fvd", model, "label"),
-            "parameters": get(evals, "fvd", model, "parameters"),
-        }
+        record = evals.fvd_record(model)
+        row: Row = {"model": model, "kind": "model", "label": record.label, "parameters": record.parameters}
         for split in settings.fvd_splits:
-            for suffix, key in (("", "fvd"), ("_low", "low"), ("_high", "high"), ("_n", "videos")):
-                row[f"fvd_{split}{suffix}"] = get(evals, "fvd", model, "fvd", split, key)
+            cells = evals.entry(record.fvd, split, "fvd", model, "fvd")
+            row.update({f"fvd_{split}": cells.fvd, f"fvd_{split}_low": cells.low, f"fvd_{split}_high": cells.high,
+                        f"fvd_{split}_n": cells.videos})
         rollout = _rollout_cells(evals, model, settings.long_split)
         row[slope] = rollout["fvd_slope"]
-        row[f"{slope}_low"] = get(evals, "fvd", model, "chunked", "fvd_slope_low")
-        row[f"{slope}_high"] = get(evals, "fvd", model, "chunked", "fvd_slope_high")
+        row[f"{slope}_low"] = chunked(evals, model).fvd_slope_low
+        row[f"{slope}_high"] = chunked(evals, model).fvd_slope_high
         row[f"{slope}_n"] = rollout["fvd_slope_n"]
         row.update(probe_cells(evals, probed[model]))
         rows.append(row)
     for name, model, ref, label in (r for r in FVD_REFERENCES if r[1] in probed):
         row = {"model": name, "kind": "reference", "label": label, "parameters": NA}
         for split in settings.fvd_splits:
-            cells = get(evals, "fvd", model, "references", split, ref)
-            if cells.get("fvd") is None:  # e.g. a real-vs-real floor on fewer than 4 clips: not computable
+            refs = evals.entry(evals.fvd_record(model).references, split, "fvd", model, "references")
+            cells = evals.value(getattr(refs, ref), "fvd", model, f"references.{split}.{ref}")
+            if cells.fvd is None:  # e.g. a real-vs-real floor on fewer than 4 clips: not computable
                 row.update({f"fvd_{split}{suffix}": NA for suffix in ("", "_low", "_high", "_n")})
                 continue
-            row.update({f"fvd_{split}": cells["fvd"], f"fvd_{split}_low": cells["low"],
-                        f"fvd_{split}_high": cells["high"],
-                        f"fvd_{split}_n": cells.get("videos", cells.get("videos_per_half"))})
+            row.update({f"fvd_{split}": cells.fvd, f"fvd_{split}_low": cells.low, f"fvd_{split}_high": cells.high,
+                        f"fvd_{split}_n": cells.videos_per_half if isinstance(cells, RealFloor) else cells.videos})
         row.update({key: NA for key in rows[0] if key not in row})
         rows.append(row)
     return rows
 
 
-def steering_table(evals: Mapping, settings: TableSettings) -> list[Row]:
+def steering_table(evals: Evals, settings: TableSettings) -> list[Row]:
     """Table 2: ADE per steering mode of ``evaluation.steering_modes`` (clip-bootstrap interval) by the main
     instrument, with OpenCV odometry as a second column (NA where ``evaluation.opencv_rollouts`` left it off the
     generated videos); then the bottom level alone given the real subgoals (its turn readings only: a
     reference for what the top's predictions cost), and each instrument on real and on shuffled videos as
     floor and chance."""
-    main = get(evals, "steering", None, "inverse_dynamics")
-    measured = "opencv" in get(evals, "steering", None, "instruments")
+    record = evals.steering_record()
+    main = record.inverse_dynamics
+    measured = "opencv" in record.instruments
     rows: list[Row] = []
     for mode in settings.steering_modes:
-        cells = get(evals, "steering", None, "modes", mode)
-        opencv = (get(evals, "steering", None, "modes", mode, "instruments", "opencv") if measured
-                  else {"ade": NA, "turn_deg": NA})
+        cells = evals.entry(record.modes, mode, "steering", None, "modes")
+        opencv = (evals.entry(cells.instruments, "opencv", "steering", None, f"modes.{mode}.instruments")
+                  if measured else None)
         rows.append({
             "mode": mode,
             "kind": "generated",
             "instrument": main,
-            "ade": cells["ade"],
-            "ade_low": get(evals, "steering", None, "modes", mode, "ade_low"),
-            "ade_high": get(evals, "steering", None, "modes", mode, "ade_high"),
-            "ade_n": cells["samples"],
+            "ade": cells.ade,
+            "ade_low": cells.ade_low,
+            "ade_high": cells.ade_high,
+            "ade_n": cells.samples,
             # How far the video turns (end point, degrees, the clip's turn direction positive) next to the
             # command: a scale-free check that counterfactuals move the rollout the right way.
-            "turn_deg": cells["turn_deg"],
-            "commanded_turn_deg": cells["commanded_turn_deg"],
-            "ade_opencv": opencv["ade"],
-            "turn_deg_opencv": opencv["turn_deg"],
+            "turn_deg": cells.turn_deg,
+            "commanded_turn_deg": cells.commanded_turn_deg,
+            "ade_opencv": opencv.ade if opencv else NA,
+            "turn_deg_opencv": opencv.turn_deg if opencv else NA,
             **_turn_cells(evals, "latent", mode),
             **_turn_cells(evals, "image", mode),
         })
     rows.append({**{key: NA for key in rows[0]}, "mode": "real_subgoals", "kind": "reference",
-                 "instrument": main, "ade_n": get(evals, "steering", None, "samples"),
+                 "instrument": main, "ade_n": record.samples,
                  **_turn_cells(evals, "latent", "real_subgoals"), **_turn_cells(evals, "image", "real_subgoals")})
-    videos = get(evals, "steering", None, "odometry_sanity", "videos")
-    for mode, key in (("real_videos", "real"), ("shuffled_videos", "shuffled")):
+    floor = record.odometry_sanity
+    opencv_floor = evals.entry(record.sanity, "opencv", "steering", None, "sanity")
+    for mode, (ade, low, high, ade_opencv) in (
+            ("real_videos", (floor.real_ade, floor.real_low, floor.real_high, opencv_floor.real_ade)),
+            ("shuffled_videos", (floor.shuffled_ade, floor.shuffled_low, floor.shuffled_high,
+                                 opencv_floor.shuffled_ade))):
         rows.append({
             "mode": mode,
             "kind": "odometry_sanity",
             "instrument": main,
-            "ade": get(evals, "steering", None, "odometry_sanity", f"{key}_ade"),
-            "ade_low": get(evals, "steering", None, "odometry_sanity", f"{key}_low"),
-            "ade_high": get(evals, "steering", None, "odometry_sanity", f"{key}_high"),
-            "ade_n": videos,
+            "ade": ade,
+            "ade_low": low,
+            "ade_high": high,
+            "ade_n": floor.videos,
             "turn_deg": NA,
             "commanded_turn_deg": NA,
-            "ade_opencv": get(evals, "steering", None, "sanity", "opencv", f"{key}_ade"),
+            "ade_opencv": ade_opencv,
             "turn_deg_opencv": NA,
-            **{k: v if key == "real" else NA for reading in ("latent", "image")
+            **{k: v if mode == "real_videos" else NA for reading in ("latent", "image")
                for k, v in _turn_cells(evals, reading, "real").items()},
         })
     return rows
 
 
-def _turn_cells(evals: Mapping, reading: str, mode: str) -> Row:
+def _turn_cells(evals: Evals, reading: str, mode: str) -> Row:
     """The turn of one of ``eval_steering``'s readings (``latent``: the detail latents without decoding;
     ``image``: the decoded frames' sideways motion; "real": the real continuation, the reading's
     calibration), with its clip-bootstrap interval."""
-    cell = get(evals, "steering", None, f"{reading}_turn", "modes", mode)
-    return {f"turn_deg_{reading}": cell["turn_deg"], f"turn_deg_{reading}_low": cell["low"],
-            f"turn_deg_{reading}_high": cell["high"]}
+    record = evals.steering_record()
+    turns = record.latent_turn if reading == "latent" else record.image_turn
+    cell = evals.entry(turns.modes, mode, "steering", None, f"{reading}_turn.modes")
+    return {f"turn_deg_{reading}": cell.turn_deg, f"turn_deg_{reading}_low": cell.low,
+            f"turn_deg_{reading}_high": cell.high}
 
 
-def speed_table(evals: Mapping) -> list[Row]:
+def speed_table(evals: Evals) -> list[Row]:
     """Table 5: frames per second and peak memory per model the record holds, on the device that measured them."""
-    device = get(evals, "speed", None, "device")
-    kind = get(evals, "speed", None, "memory_kind")
-    return [
-        {
-            "model": model,
-            "fps": get(evals, "speed", None, "models", model, "fps"),
-            "fps_n": get(evals, "speed", None, "models", model, "frames"),
-            "peak_memory_mb": get(evals, "speed", None, "models", model, "peak_memory_mb"),
-            "memory_kind": kind,
-            "parameters": get(evals, "speed", None, "models", model, "parameters"),
-            "device": device,
-        }
-        for model in get(evals, "speed", None, "models")
-    ]
+    record = evals.speed_record()
+    return [{"model": model, "fps": run.fps, "fps_n": run.frames, "peak_memory_mb": run.peak_memory_mb,
+             "memory_kind": record.memory_kind, "parameters": run.parameters, "device": record.device}
+            for model, run in record.models.items()]
 
 
-def hierarchy_table(evals: Mapping, settings: TableSettings) -> list[Row]:
+def hierarchy_table(evals: Evals, settings: TableSettings) -> list[Row]:
     """Table 3 (Exps 1-5): each predictor's probes and its system's long-horizon FVD on turns.
 
     A two-branch experiment has one FVD, that of its cascaded rollout; both of
@@ -233,37 +227,35 @@ def hierarchy_table(evals: Mapping, settings: TableSettings) -> list[Row]:
     return rows
 
 
-def training_table(evals: Mapping) -> list[Row]:
+def training_table(evals: Evals) -> list[Row]:
     """Table 4: probes of the abstract branch under each training strategy, against tokenizer and teacher."""
     rows = []
     for name, target in TRAINING_ROWS:
         row: Row = {"model": name}
         row.update(probe_cells(evals, target))
-        row["val_loss"] = get(evals, "probe", target, "segmentation", "val_loss")
+        row["val_loss"] = evals.value(evals.probe_record(target).segmentation, "probe", target,
+                                      "segmentation").val_loss
         rows.append(row)
     return rows
 
 
-def compression_table(evals: Mapping) -> list[Row]:
+def compression_table(evals: Evals) -> list[Row]:
     """Compressed against full-dimension abstract latents; a null the stage reports stays visible as NA."""
-    source = get(evals, "compression", None, "rows")
-    if not isinstance(source, list) or len(source) < 2:
-        raise OrbisError(f"{where(evals, 'compression')} needs at least two rows (compressed and full)")
+    source = evals.compression_record().rows
+    if len(source) < 2:
+        raise OrbisError(f"{evals.where('compression')} needs at least two rows (compressed and full)")
     rows = []
-    for i, entry in enumerate(source):
-        row: Row = {}
-        for key in ("variant", "latent_dim"):
-            row[key] = get(evals, "compression", None, "rows", i, key)
+    for entry in source:
+        row: Row = {"variant": entry.variant, "latent_dim": entry.latent_dim}
         for metric in ("fvd_long", "fvd_slope", "miou", "rmse"):
-            if metric not in entry:
-                raise OrbisError(f"{where(evals, 'compression')} row {i} has no {metric} (null if not measured)")
-            row[metric] = NA if entry[metric] is None else entry[metric]
-            row[f"{metric}_n"] = entry.get(f"{metric}_n", NA)
+            value, n = getattr(entry, metric), getattr(entry, f"{metric}_n")
+            row[metric] = NA if value is None else value
+            row[f"{metric}_n"] = NA if n is None else n
         rows.append(row)
     return rows
 
 
-def compression_from_evals(evals: Mapping) -> dict:
+def compression_from_evals(evals: Evals) -> CompressionRecord:
     """The compression ablation's rows from the flat abstract models on compressed and on full latents.
 
     Rollout stability is their FVD over the whole long rollout (``long_seconds``) and FVD-slope on the
@@ -272,12 +264,10 @@ def compression_from_evals(evals: Mapping) -> dict:
     rows = []
     for variant, model in (("compressed", "flat_abstract"), ("full (teacher dim)", "flat_abstract_full")):
         probe = probe_cells(evals, model)
-        rows.append({"variant": variant, "latent_dim": get(evals, "fvd", model, "latent_channels"),
-                     "fvd_long": get(evals, "fvd", model, "chunked", "fvd_long"),
-                     "fvd_long_n": get(evals, "fvd", model, "chunked", "videos"),
-                     "fvd_slope": get(evals, "fvd", model, "chunked", "fvd_slope"),
-                     "fvd_slope_n": get(evals, "fvd", model, "chunked", "videos"),
-                     "miou": probe["miou"], "miou_n": probe["miou_n"], "rmse": probe["rmse"],
-                     "rmse_n": probe["rmse_n"]})
-    return {"rows": rows}
-
+        rollout = chunked(evals, model)
+        rows.append(CompressionRow(variant=variant, latent_dim=evals.fvd_record(model).latent_channels,
+                                   fvd_long=rollout.fvd_long, fvd_long_n=rollout.videos,
+                                   fvd_slope=rollout.fvd_slope, fvd_slope_n=rollout.videos,
+                                   miou=probe["miou"], miou_n=probe["miou_n"], rmse=probe["rmse"],
+                                   rmse_n=probe["rmse_n"]))
+    return CompressionRecord(rows=rows)
