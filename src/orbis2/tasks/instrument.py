@@ -8,7 +8,9 @@ pairs' mean and std, which the instrument keeps. With the instrument's params
 (fp32 AdamW on every parameter, ``decay_biases_and_norms``; cosine from ``lr`` to 0,
 no warm-up, clipping or EMA) the weights equal, bit for bit on the CPU, those of
 ``AdamW(net.parameters())`` stepped by ``CosineAnnealingLR(opt, steps)`` over the
-same batches (tests/test_inverse_dynamics.py keeps that loop as the reference).
+same batches (tests/test_inverse_dynamics.py keeps that loop as the reference). On
+CUDA the shared loop steps torch's fused AdamW, so GPU weights differ from that
+loop's in round-off only.
 """
 
 from __future__ import annotations
