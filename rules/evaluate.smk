@@ -25,7 +25,7 @@ def instrument_input(wildcards):
     rollouts = rollouts_of(wildcards)
     wanted = rollouts is not None and rollouts.options["instrument"] == "learned" and any(
         p.trajectory for p in rollouts.pairs)
-    return [rules.inverse_dynamics.output.model] if wanted else []
+    return [rules.inverse_dynamics.output.weights] if wanted else []
 
 
 rule evaluate:

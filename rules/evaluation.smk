@@ -83,7 +83,7 @@ rule inverse_dynamics:
         **shard_inputs(),
         tokenizer=P("tokenizer", "detail"),
     output:
-        model=directory(P("inverse_dynamics")),
+        weights=directory(P("inverse_dynamics")),  # trained: its curves/loss.png is one of dvc.yaml's plots
         report=P("report", "inverse_dynamics"),
     params:
         profile=PROFILE,
@@ -93,7 +93,7 @@ rule inverse_dynamics:
     benchmark: bench("inverse_dynamics")
     shell:
         ("python stages/inverse_dynamics.py --profile {params.profile} --shards {input.shards}"
-         " --tokenizer {input.tokenizer} --out {output.model} --report {output.report}" + TEE)
+         " --tokenizer {input.tokenizer} --out {output.weights} --report {output.report}" + TEE)
 
 
 rule eval_steering:
@@ -104,7 +104,7 @@ rule eval_steering:
         **latent_inputs("compressed"),
         **shard_inputs(),
         **predictor_inputs(STEERING_PREDICTORS),
-        inverse_dynamics=rules.inverse_dynamics.output.model,
+        inverse_dynamics=rules.inverse_dynamics.output.weights,
     output:
         steering=P("eval") + "/steering.json",
         strip=P("eval") + "/steering_strip.png",

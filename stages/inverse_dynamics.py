@@ -1,26 +1,23 @@
 """Stage `inverse_dynamics`: the learned instrument that reads speed and yaw rate from consecutive frames
--> data/inverse_dynamics/model.pt, reports/inverse_dynamics.json.
+-> data/inverse_dynamics/model.pt (with curves/), reports/inverse_dynamics.json.
 
-Trains on the train split's frame pairs; val R^2 on real pairs, on the detail
-tokenizer's reconstructions of them and on shuffled pairs (the control); see
-:mod:`orbis2.eval.inverse_dynamics`.
+Trains on the train split's frame pairs with the shared loop; checkpoints live in
+data/runs/ (see `training_dir`): a killed run resumes there. Val R^2 on real
+pairs, on the detail tokenizer's reconstructions of them and on shuffled pairs
+(the control); see :mod:`orbis2.eval.inverse_dynamics`.
 """
 
 from pathlib import Path
 
 from orbis2.accel import default_device
 from orbis2.data.shards import verify_shards
-from orbis2.eval.inverse_dynamics import (
-    WEIGHTS_FILE,
-    evaluate_instrument,
-    load_clips,
-    pair_index,
-    reconstruct,
-    train_instrument,
-)
+from orbis2.eval.inverse_dynamics import WEIGHTS_FILE, evaluate_instrument, load_clips, pair_index, reconstruct
 from orbis2.io import atomic_dir, write_json
 from orbis2.registry import layout_path
-from orbis2.stage import TOKENIZER_FILE, open_stage, stage_parser
+from orbis2.stage import TOKENIZER_FILE, copy_curves, open_stage, stage_parser, training_dir
+from orbis2.tasks.instrument import train_instrument
+
+SECTIONS = ["data", "inverse_dynamics"]
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -33,27 +30,28 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--report", type=Path, default=layout_path("report", "inverse_dynamics"),
                         help="metrics report (default: %(default)s)")
     args = parser.parse_args(argv)
-    with open_stage("inverse_dynamics", args, ["data", "inverse_dynamics"]) as stage:
+    with open_stage("inverse_dynamics", args, SECTIONS) as stage:
         cfg, run = stage.cfg, stage.run
         verify_shards(args.shards)  # before any read; see verify_shards for why
         ic, fps, dev = cfg.inverse_dynamics, float(cfg.data.fps), default_device()
 
+        work = training_dir("inverse_dynamics", cfg, SECTIONS, {"shards": args.shards / "manifest.json"})
         train = load_clips(args.shards, "train", ic.scale, ic.max_train_clips)
-        instrument = train_instrument(train, ic, fps, dev,
-                                      log=lambda step, loss: run.log_metrics({"train_loss": loss}, step=step))
+        instrument = train_instrument(train, ic, fps, work, dev, run)
         val = load_clips(args.shards, "val", ic.scale)
         reconstructed = reconstruct(args.tokenizer / TOKENIZER_FILE, args.shards, "val", val, ic.scale, dev)
-        result = evaluate_instrument(instrument, val, ic.eval_pairs, ic.seed, reconstructed)
+        result = evaluate_instrument(instrument, val, ic.eval_pairs, ic.train.seed, reconstructed)
 
-        record = {"train_clips": len(train.keys), "train_pairs": len(pair_index(train)), "steps": ic.steps,
-                  "fps": fps, "input": list(train.frames[0].shape[1:3]), "seed": ic.seed, "val": result}
+        record = {"train_clips": len(train.keys), "train_pairs": len(pair_index(train)), "steps": ic.train.steps,
+                  "fps": fps, "input": list(train.frames[0].shape[1:3]), "seed": ic.train.seed, "val": result}
         with atomic_dir(args.out) as tmp:
             instrument.save(tmp / WEIGHTS_FILE, record)
+            copy_curves(work, tmp, "inverse_dynamics")
         write_json(args.report, record)
         run.log_artifact(args.report)
         scores = {f"val_{kind}_{k}": v for kind in ("real", "reconstructed", "shuffled")
                   for k, v in result[kind].items() if v is not None}
-        run.log_metrics(scores)
+        run.log_metrics(scores, step=ic.train.steps)
         run.log_model(args.out, scores)  # the steering evaluation's instrument
 
         def pair(kind: str) -> str:

@@ -255,6 +255,14 @@ def draw_loss_curves(curves: Path, title: str) -> list[Path]:
     return drawn
 
 
+def copy_curves(run_dir: Path, dest: Path, title: str) -> None:
+    """A training run's ``curves/`` (if it logged any) into ``dest``, a stage output being written, with a PNG
+    per loss (:func:`draw_loss_curves`)."""
+    if (run_dir / "curves").is_dir():
+        shutil.copytree(run_dir / "curves", dest / "curves")
+        draw_loss_curves(dest / "curves", title)
+
+
 # Training results that are sizes, not scores: logged as params (table columns), not as one-point charts.
 SIZES = {"steps": "trained_steps", "parameters": "model_parameters"}
 
@@ -271,11 +279,9 @@ def publish_training(run_dir: Path, out: Path, files: list[str], report: Path, m
     with atomic_dir(out) as tmp:
         for name in files:
             shutil.copy2(run_dir / name, tmp / name)
-        for folder in ("samples", "curves"):
-            if (run_dir / folder).is_dir():
-                shutil.copytree(run_dir / folder, tmp / folder)
-        if (tmp / "curves").is_dir():
-            draw_loss_curves(tmp / "curves", run.stage or out.name)
+        if (run_dir / "samples").is_dir():
+            shutil.copytree(run_dir / "samples", tmp / "samples")
+        copy_curves(run_dir, tmp, run.stage or out.name)
     for png in sorted((out / "samples").glob("*.png")):
         run.log_artifact(png, "samples")
     write_json(report, metrics)

@@ -519,9 +519,12 @@ class _Meter:
 
 
 def _optimizer(params: Sequence[nn.Parameter], cfg: TrainConfig, device: torch.device) -> torch.optim.Optimizer:
-    """Adam(W) with no weight decay on biases and norm scales (tensors with fewer than 2 dims)."""
+    """Adam(W) with no weight decay on biases and norm scales (tensors with fewer than 2 dims), unless
+    ``cfg.decay_biases_and_norms``; each parameter's update is independent of its group, so one group
+    with the same settings gives the same numbers."""
+    vector_decay = cfg.weight_decay if cfg.decay_biases_and_norms else 0.0
     groups = [{"params": [p for p in params if p.ndim >= 2], "weight_decay": cfg.weight_decay},
-              {"params": [p for p in params if p.ndim < 2], "weight_decay": 0.0}]
+              {"params": [p for p in params if p.ndim < 2], "weight_decay": vector_decay}]
     kind = torch.optim.AdamW if cfg.optimizer == "adamw" else torch.optim.Adam
     return kind([g for g in groups if g["params"]], lr=cfg.lr, betas=cfg.betas, fused=device.type == "cuda")
 

@@ -33,12 +33,16 @@ from orbis2.config.sections import (
     DataConfig,
     EvaluationConfig,
     ImportConfig,
-    InverseDynamicsConfig,
     LatentsConfig,
     ShardsConfig,
     TownConfig,
 )
-from orbis2.config.training import AbstractTokenizerConfig, DetailTokenizerConfig, predictor_config_type
+from orbis2.config.training import (
+    AbstractTokenizerConfig,
+    DetailTokenizerConfig,
+    InverseDynamicsConfig,
+    predictor_config_type,
+)
 from orbis2.errors import ConfigError
 from orbis2.typecheck import MissingKeyError, build
 

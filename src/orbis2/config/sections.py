@@ -219,28 +219,6 @@ class ProbeSettings:
 
 
 @dataclass(frozen=True)
-class InverseDynamicsConfig:
-    """The learned inverse-dynamics instrument (``orbis2.eval.inverse_dynamics``): a CNN of base ``width``
-    trained for ``steps`` AdamW steps on pairs of consecutive train frames (resized by ``scale``, at most
-    ``max_train_clips`` clips) to regress speed and yaw rate; scored on ``eval_pairs`` val pairs."""
-
-    steps: int
-    batch_size: int
-    lr: float
-    weight_decay: float
-    width: int
-    scale: float
-    max_train_clips: int | None
-    eval_pairs: int
-    seed: int
-
-    def validate(self, where: str) -> None:
-        positive(self, where, "steps", "batch_size", "lr", "width", "scale", "eval_pairs")
-        if self.scale > 1:
-            raise ConfigError(f"{where}.scale must be in (0, 1] (frames are only ever shrunk)")
-
-
-@dataclass(frozen=True)
 class ConditioningSettings:
     """The ``eval_conditioning`` stage (``orbis2.eval.conditioning``): does each predictor use its inputs?
 

@@ -1,4 +1,4 @@
-"""The typed sections of the trained stages: optimisation (``train``), tokenizers and predictors.
+"""The typed sections of the trained stages: optimisation (``train``), tokenizers, predictors, the instrument.
 
 Which tokenizer and predictor sections params.yaml has follows registry.yaml
 (``orbis2.config.params.section_types``). No field has a default: params.yaml is
@@ -29,6 +29,10 @@ CHECKPOINT_POLICIES = ("full", "selective")
 class TrainConfig:
     """Optimisation settings of one stage; ``batch_size`` is global (summed over ranks).
 
+    ``weight_decay`` applies to weight matrices and kernels; ``decay_biases_and_norms``
+    extends it to biases and norm scales (tensors under 2 dims), as a plain
+    ``AdamW(model.parameters())`` does.
+
     GPU only: ``mixed_precision`` bf16 autocast, ``tf32`` for the remaining fp32
     matmuls, ``activation_checkpointing`` = how many of the model's first blocks
     recompute their activations in the backward pass (0 off; >= depth all), with
@@ -42,6 +46,7 @@ class TrainConfig:
     batch_size: int
     lr: float
     weight_decay: float
+    decay_biases_and_norms: bool
     betas: tuple[float, float]
     optimizer: str
     warmup_steps: int
@@ -71,6 +76,7 @@ class TrainConfig:
             "mixed_precision": (self.mixed_precision in ("bf16", "none"), "'bf16' or 'none'"),
             "checkpoint_policy": (self.checkpoint_policy in CHECKPOINT_POLICIES, "'full' or 'selective'"),
             "compile": (isinstance(self.compile, bool), "true or false"),
+            "decay_biases_and_norms": (isinstance(self.decay_biases_and_norms, bool), "true or false"),
             **{name: (getattr(self, name) >= 1, ">= 1") for name in ("steps", "batch_size", "log_every",
                                                                      "checkpoint_every")},
             **{name: (getattr(self, name) >= 0, ">= 0") for name in ("weight_decay", "warmup_steps", "eval_every",
@@ -276,6 +282,24 @@ class ActionConfig(TeacherForcingConfig):
         if not 0 <= self.yaw_offset_prob <= 1:
             raise ConfigError(f"{where}.yaw_offset_prob must lie in [0, 1]")
 
+
+
+@dataclass(frozen=True)
+class InverseDynamicsConfig:
+    """The learned inverse-dynamics instrument (``orbis2.eval.inverse_dynamics``): a CNN of base ``width``
+    trained (``train``) on pairs of consecutive train frames (resized by ``scale``, at most ``max_train_clips``
+    clips) to regress speed and yaw rate; scored on ``eval_pairs`` val pairs drawn with ``train.seed``."""
+
+    train: TrainConfig
+    width: int
+    scale: float
+    max_train_clips: int | None
+    eval_pairs: int
+
+    def validate(self, where: str) -> None:
+        positive(self, where, "width", "scale", "eval_pairs")
+        if self.scale > 1:
+            raise ConfigError(f"{where}.scale must be in (0, 1] (frames are only ever shrunk)")
 
 
 def predictor_config_type(spec: Any) -> type:

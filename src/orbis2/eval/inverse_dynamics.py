@@ -7,7 +7,9 @@ tell a steered model from an unsteered one. This instrument is a small CNN
 town's train split to regress the controls over [t, t + 1) from the dense optical
 flow between frames t and t + 1 at the native rate (OpenCV Farneback: a fixed,
 texture-agnostic front end, so a few hundred frames suffice). Horizontal flips
-(with the yaw rate negated) double the data and make left and right symmetric. The stage reports val R^2 on real frames,
+(with the yaw rate negated) double the data and make left and right symmetric;
+:mod:`orbis2.tasks.instrument` trains it with the shared loop (``orbis2.train``),
+resumably. The stage reports val R^2 on real frames,
 on the detail tokenizer's reconstructions of those frames (what the instrument
 sees of a perfect world model), and a shuffled control (frame t paired with a
 random frame of the same clip: no consistent motion, R^2 near zero or below).
@@ -26,10 +28,8 @@ from typing import Any
 import cv2
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from orbis2.accel import conv_layout
-from orbis2.config.sections import InverseDynamicsConfig
 from orbis2.data.images import to_uint8
 from orbis2.data.shards import Clip, iter_samples, shard_paths
 from orbis2.errors import OrbisError
@@ -133,41 +133,6 @@ class Instrument:
         net = conv_layout(InverseDynamicsNet(state["width"])).to(device)
         net.load_state_dict(state["state"])
         return cls(net, np.array(state["mean"]), np.array(state["std"]), state["fps"], state["scale"])
-
-
-def train_instrument(data: ClipFrames, cfg: InverseDynamicsConfig, fps: float, device: torch.device,
-                     log=None) -> Instrument:
-    """AdamW on standardised targets, random pairs with horizontal flips (yaw rate negated); seeded."""
-    index = pair_index(data)
-    if len(index) < cfg.batch_size:
-        raise OrbisError(f"only {len(index)} frame pairs with odometry in the train split; need at least a batch "
-                         f"({cfg.batch_size})")
-    targets = np.stack([data.odometry[c][t] for c, t in index])
-    mean, std = targets.mean(axis=0), targets.std(axis=0) + 1e-6
-    # The flow front end is fixed: compute every pair's flow once, and its mirror image (u negated).
-    flows = pair_flow(np.stack([data.frames[c][t] for c, t in index]),
-                      np.stack([data.frames[c][t + 1] for c, t in index]))
-    mirrored = np.ascontiguousarray(flows[..., ::-1] * np.array([-1.0, 1.0], np.float32)[:, None, None])
-    torch.manual_seed(cfg.seed)
-    net = conv_layout(InverseDynamicsNet(cfg.width)).to(device)
-    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, cfg.steps)
-    rng = np.random.default_rng(cfg.seed)
-    sign = np.array([1.0, -1.0])
-    for step in range(cfg.steps):
-        pick = rng.integers(0, len(index), cfg.batch_size)
-        flip = rng.random(cfg.batch_size) < 0.5
-        x = np.where(flip[:, None, None, None], mirrored[pick], flows[pick])
-        y = np.where(flip[:, None], targets[pick] * sign, targets[pick])
-        target = torch.from_numpy((y - mean) / std).float().to(device)
-        loss = F.mse_loss(net(torch.from_numpy(x).to(device)), target)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        sched.step()
-        if log is not None and (step % 50 == 0 or step == cfg.steps - 1):
-            log(step, loss.item())
-    return Instrument(net.eval(), mean, std, fps, cfg.scale)
 
 
 def r2(y: np.ndarray, pred: np.ndarray) -> list[float | None]:
