@@ -33,7 +33,7 @@ def build(folder: Path) -> None:
     project_copy(root)
     threads = [f"{rule}={2 if rule == TWO_THREADS else 1}" for rule in run(["snakemake", "--list-rules"], root).split()]
     for target in ([], ["reports/all"]):
-        print(run(["snakemake", "--cores", JOBS, "--set-threads", *threads, *target], root), flush=True)
+        print(run(["snakemake", *target, "--cores", JOBS, "--set-threads", *threads], root), flush=True)
 
 
 if __name__ == "__main__":
