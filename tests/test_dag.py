@@ -240,7 +240,7 @@ def test_each_loss_curve_has_its_own_plot():
     losses = [p for p in plots if "/curves/" in p]
     stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
     trained = {stage["outs"][0] for stage in stages.values()  # the stages of the one training loop
-               if re.search(r"stages/(tokenizer_\w+|predictor)\.py", stage["cmd"])}
+               if re.search(r"stages/(tokenizer_\w+|predictor|inverse_dynamics)\.py", stage["cmd"])}
     assert {p.split("/curves/")[0] for p in losses} == trained and len(set(losses)) == len(losses)
 
 
