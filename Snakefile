@@ -74,7 +74,7 @@ def folder_files(stage):
                                     if f.is_file())
 
 
-# The checkpoints' folders: an input of one of them brings its files (folder_files) as input <key>_files.
+# The checkpoints' folders: an input of one of them brings its files (folder_files): shard_files, latent_files.
 CHECKPOINTS = {P("shards"): "shards", **{P("latents", e.stage): e.stage for e in REG.latent_sets.values()}}
 
 
@@ -107,7 +107,7 @@ def inputs(stage, values):
             continue
         out.update({f"{option.key}_{n}": p for n, p in value.items()} if option.named else {option.key: value})
         if not option.named and value in CHECKPOINTS:
-            out[f"{option.key}_files"] = folder_files(CHECKPOINTS[value])
+            out[f"{option.key.removesuffix('s')}_files"] = folder_files(CHECKPOINTS[value])  # shard_files, ...
     return out
 
 
