@@ -140,9 +140,10 @@ def shell_args(stage, values, start=None):
 
 
 def stage_params(stage, values, extra=(), **more):
-    """profile, the sections the stage reads (its declaration's and an entry's ``extra``) and args."""
-    return {"profile": PROFILE, **{name: section(name) for name in stage.sections_with(extra)},
-            "args": shell_args(stage, values), **more}
+    """profile, the sections the stage reads (its declaration's and an entry's ``extra``) and the args its
+    command passes (where it passes some: see _passed_from)."""
+    args = {"args": shell_args(stage, values)} if _passed_from(stage) < len(stage.paths) else {}
+    return {"profile": PROFILE, **{name: section(name) for name in stage.sections_with(extra)}, **args, **more}
 
 
 def command(stage, head="", script=None):

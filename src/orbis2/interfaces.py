@@ -105,7 +105,10 @@ class Interface:
         return "{config[train_launcher]}" if self.resources == TRAIN else "python"
 
     def option(self, key: str) -> PathOption:
-        return next(o for o in self.paths if o.key == key)
+        for option in self.paths:
+            if option.key == key:
+                return option
+        raise KeyError(f"stage {self.kind} declares no path option {key!r} (orbis2.interfaces)")
 
     def sections_with(self, extra: tuple[str, ...] | list[str] = ()) -> list[str]:
         """The sections a stage of the kind reads, with an entry's own (a predictor's section)."""
