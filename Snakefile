@@ -20,6 +20,7 @@ from pathlib import Path
 
 from orbis2.config.params import load_params, parse_config, resolve_section
 from orbis2.dag import code_inputs, commit_to_dvc, config_drift
+from orbis2.interfaces import INTERFACES
 from orbis2.registry import layout_path, registry
 
 configfile: "params.yaml"
@@ -48,16 +49,17 @@ def P(kind, name=None):
     return str(layout_path(kind, name))
 
 
-# Every stage gets its input and output paths as options, from its rule's named inputs and outputs
-# ({input.shards}, {output.report}, ...): the rules decide where files live; a stage run by hand
-# without them falls back on the same layout. The helpers below name the inputs shared by many rules
-# and write the options that pass them.
+# Every stage is declared once (orbis2.interfaces: its script, path options, params sections, machine
+# needs); its rules are made from the declaration with the helpers below, and its script builds its
+# options from the same declaration. A rule passes every input and output path as an option; a stage
+# run by hand without them falls back on the same layout.
 
 
-def tokenizer_inputs(latent_set):
-    """The folders of a latent set's tokenizers: inputs detail_tokenizer, abstract_tokenizer."""
+def latent_paths(latent_set):
+    """A latent set's cache folder and the folders of its tokenizers (path options latents, <level>_tokenizer)."""
     entry = REG.latent_sets[latent_set]
-    return {f"{level}_tokenizer": P("tokenizer", entry.tokenizers[level]) for level in ("detail", "abstract")}
+    return {"latents": P("latents", entry.stage),
+            **{f"{level}_tokenizer": P("tokenizer", entry.tokenizers[level]) for level in ("detail", "abstract")}}
 
 
 def folder_files(stage):
@@ -72,43 +74,89 @@ def folder_files(stage):
                                     if f.is_file())
 
 
-def shard_inputs():
-    """The shards folder (input shards) and every file in it."""
-    return {"shards": P("shards"), "shard_files": folder_files("shards")}
+# The checkpoints' folders: an input of one of them brings its files (folder_files): shard_files, latent_files.
+CHECKPOINTS = {P("shards"): "shards", **{P("latents", e.stage): e.stage for e in REG.latent_sets.values()}}
 
 
-def latent_inputs(latent_set):
-    """A latent set's cache folder (input latents), every file in it, and its tokenizers' folders."""
-    stage = REG.latent_sets[latent_set].stage
-    return {"latents": P("latents", stage), "latent_files": folder_files(stage), **tokenizer_inputs(latent_set)}
+def stage_paths(stage, entry=None, **given):
+    """The paths of one rule of ``stage``: {key: path}, a repeatable option's {name: path}.
+
+    Each is given (a repeatable one as the names of its entries, each at the layout's path), or the
+    layout's for ``entry``; an optional one is passed only when given."""
+    unknown = set(given) - {o.key for o in stage.paths}
+    if unknown:
+        raise ValueError(f"{stage.kind}: no path option {', '.join(sorted(unknown))} (orbis2.interfaces)")
+    values = {}
+    for option in stage.paths:
+        value = given.get(option.key)
+        if option.named:
+            value = {name: str(option.path(name)) for name in dict.fromkeys(value or ())}
+        elif value is None and not option.optional:
+            value = str(option.path(entry))
+        if value:
+            values[option.key] = value
+    return values
 
 
-TOKENIZER_ARGS = " --detail-tokenizer {input.detail_tokenizer} --abstract-tokenizer {input.abstract_tokenizer}"
-LATENT_ARGS = " --latents {input.latents}" + TOKENIZER_ARGS
+def inputs(stage, values):
+    """The rule's named inputs: <key> per input path, <key>_<name> per entry of a repeatable one."""
+    out = {}
+    for option in stage.paths:
+        value = values.get(option.key)
+        if option.output or not value:
+            continue
+        out.update({f"{option.key}_{n}": p for n, p in value.items()} if option.named else {option.key: value})
+        if not option.named and value in CHECKPOINTS:
+            out[f"{option.key.removesuffix('s')}_files"] = folder_files(CHECKPOINTS[value])  # shard_files, ...
+    return out
 
 
-def named_inputs(prefix, kind, names):
-    """Inputs <prefix><name>: the layout path of kind for each name (once each, in order)."""
-    return {f"{prefix}{name}": P(kind, name) for name in dict.fromkeys(names)}
+def outputs(stage, values):
+    """The rule's named outputs, folders as directory()."""
+    return {o.key: directory(values[o.key]) if o.folder else values[o.key] for o in stage.paths
+            if o.output and o.key in values}
 
 
-def named_args(option, kind, names):
-    """` <option> <name>=<path>` for each name: one family's layout paths (the same as named_inputs'),
-    each with its entry's name.
+def _passed_from(stage):
+    """The first path option passed as a concrete path (a repeatable or optional one): it and those after it
+    reach the command through params.args, the others as {input.<key>} / {output.<key>}.
 
-    Concrete paths, not {input...} placeholders: Snakemake evaluates a `shell:` expression again
-    when the job runs, when a loop's variables hold their last values, so a rule made in a loop
-    passes what depends on the loop through `params.args` (set when the rule is defined)."""
-    return "".join(f" {option} {name}={P(kind, name)}" for name in dict.fromkeys(names))
-
-
-def predictor_inputs(names):
-    """Predictor folders: inputs predictor_<name>, passed by predictor_args."""
-    return named_inputs("predictor_", "predictor", names)
+    Snakemake evaluates a `shell:` expression again when the job runs, when a loop's variables hold their
+    last values: what a rule made in a loop passes for its entry goes through params (set when the rule is
+    defined), and the command itself depends on the declaration alone."""
+    return next((i for i, o in enumerate(stage.paths) if o.named or o.optional), len(stage.paths))
 
 
-def predictor_args(names):
-    return named_args("--predictor", "predictor", names)
+def shell_args(stage, values, start=None):
+    """` <option> <path>` (` <option> NAME=PATH` per entry) for the options from ``start`` on."""
+    args = []
+    for option in stage.paths[_passed_from(stage) if start is None else start:]:
+        value = values.get(option.key)
+        if option.named and value:
+            args += [f" {option.option} {name}={path}" for name, path in value.items()]
+        elif value:
+            args.append(f" {option.option} {value}")
+    return "".join(args)
+
+
+def stage_params(stage, values, extra=(), **more):
+    """profile, the sections the stage reads (its declaration's and an entry's ``extra``) and the args its
+    command passes (where it passes some: see _passed_from)."""
+    args = {"args": shell_args(stage, values)} if _passed_from(stage) < len(stage.paths) else {}
+    return {"profile": PROFILE, **{name: section(name) for name in stage.sections_with(extra)}, **args, **more}
+
+
+def command(stage, head="", script=None):
+    """The rule's shell command: launcher, script, ``head`` (the entry: {rule}, {params.scope}), --profile and
+    the path options (see _passed_from); its output goes to the console and the log."""
+    cmd = f"{stage.launcher} {script or stage.script}{head} --profile {{params.profile}}"
+    cut = _passed_from(stage)
+    cmd += "".join(f" {o.option} {{{'output' if o.output else 'input'}.{o.key}}}" for o in stage.paths[:cut])
+    return cmd + ("{params.args}" if cut < len(stage.paths) else "") + " 2>&1 | tee {log}"
+
+
+def resources_of(stage):
+    return stage.resources.scheduler()
 
 
 def log(name):
@@ -117,22 +165,6 @@ def log(name):
 
 def bench(name):
     return f"logs/benchmarks/{name}.tsv"
-
-
-# Shell suffix: the stage's output on the console and in its log.
-TEE = " 2>&1 | tee {log}"
-
-# Machine needs of each kind of rule. threads are capped at --cores, so a rule
-# asking for more than the machine has runs alone; gpu, mem_mb and runtime
-# (minutes) are for schedulers (profiles/slurm) and are the paper profile's needs.
-LIGHT = dict(threads=1, gpu=0, mem_mb=4000, runtime=60)
-CPU = dict(threads=16, gpu=0, mem_mb=32000, runtime=600)
-TRAIN = dict(threads=16, gpu=8, mem_mb=480000, runtime=2880)
-GPU = dict(threads=16, gpu=1, mem_mb=64000, runtime=600)
-
-
-def resources_of(kind):
-    return {k: v for k, v in kind.items() if k != "threads"}
 
 
 # The default target (`snakemake --cores 2`): rules in included files never become it.
@@ -147,6 +179,7 @@ include: "rules/predictors.smk"
 include: "rules/evaluation.smk"
 include: "rules/evaluate.smk"
 include: "rules/reports.smk"
+include: "rules/declared.smk"
 
 
 # A successful run leaves DVC's lock in step (when DVC reads the same config): `dvc status` is clean and

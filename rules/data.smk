@@ -3,77 +3,68 @@
 from orbis2.data.importer import input_files
 
 SOURCE = section("data")["source"]
+TOWN, IMPORT, SHARDS, ASSETS = (INTERFACES[kind] for kind in ("town", "import", "shards", "assets"))
 
 
 rule town:
-    threads: CPU["threads"]  # one process per core
-    resources: **resources_of(CPU)
+    threads: TOWN.resources.threads  # one process per core
+    resources: **resources_of(TOWN)
     input:
-        code_inputs("stages/town.py"),
+        code_inputs(TOWN.script),
     output:
-        raw=directory(P("raw", "town")),
-        sheet="reports/town_contact_sheet.png",
-        preview="reports/town_preview.mp4",
+        **outputs(TOWN, stage_paths(TOWN)),
     params:
-        profile=PROFILE,
-        data=section("data"),
-        town=section("town"),
+        **stage_params(TOWN, stage_paths(TOWN)),
     log: log("town")
     benchmark: bench("town")
     shell:
-        ("python stages/town.py --profile {params.profile} --out {output.raw} --sheet {output.sheet}"
-         " --preview {output.preview}" + TEE)
+        command(TOWN)
 
 
 rule import_videos:
     name: "import"
-    threads: LIGHT["threads"]
-    resources: **resources_of(LIGHT)
+    threads: IMPORT.resources.threads
+    resources: **resources_of(IMPORT)
     input:
-        code_inputs("stages/import.py"),
+        code_inputs(IMPORT.script),
         *input_files(section("import")["videos"]),  # every video file, so a changed one re-imports
     output:
-        raw=directory(P("raw", "import")),
+        **outputs(IMPORT, stage_paths(IMPORT)),
     params:
-        profile=PROFILE,
-        data=section("data"),
-        **{"import": section("import")},
+        **stage_params(IMPORT, stage_paths(IMPORT)),
     log: log("import")
     benchmark: bench("import")
     shell:
-        "python stages/import.py --profile {params.profile} --out {output.raw}" + TEE
+        command(IMPORT)
 
 
 # A checkpoint: the rules that read the shards list its files once it has run (folder_files).
 checkpoint shards:
-    threads: CPU["threads"]
-    resources: **resources_of(CPU)
+    threads: SHARDS.resources.threads
+    resources: **resources_of(SHARDS)
     input:
-        code_inputs("stages/shards.py"),
-        raw=P("raw", SOURCE),
+        code_inputs(SHARDS.script),
+        **inputs(SHARDS, stage_paths(SHARDS, SOURCE)),  # the configured source's raw folder
     output:
-        shards=directory(P("shards")),
+        **outputs(SHARDS, stage_paths(SHARDS, SOURCE)),
     params:
-        profile=PROFILE,
-        data=section("data"),
-        shards=section("shards"),
+        **stage_params(SHARDS, stage_paths(SHARDS, SOURCE)),
     log: log("shards")
     benchmark: bench("shards")
     shell:
-        "python stages/shards.py --profile {params.profile} --raw {input.raw} --out {output.shards}" + TEE
+        command(SHARDS)
 
 
 rule assets:
-    threads: LIGHT["threads"]
-    resources: **resources_of(LIGHT)
+    threads: ASSETS.resources.threads
+    resources: **resources_of(ASSETS)
     input:
-        code_inputs("stages/assets.py"),
+        code_inputs(ASSETS.script),
     output:
-        assets=directory(P("assets")),
+        **outputs(ASSETS, stage_paths(ASSETS)),
     params:
-        profile=PROFILE,
-        assets=section("assets"),
+        **stage_params(ASSETS, stage_paths(ASSETS)),
     log: log("assets")
     benchmark: bench("assets")
     shell:
-        "python stages/assets.py --profile {params.profile} --out {output.assets}" + TEE
+        command(ASSETS)

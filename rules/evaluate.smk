@@ -28,29 +28,31 @@ def instrument_input(wildcards):
     return [rules.inverse_dynamics.output.weights] if wanted else []
 
 
+EVALUATE = INTERFACES["evaluate"]
+EVALUATE_PATHS = stage_paths(EVALUATE, "{name}")
+
+
+def evaluate_args(wildcards, input, output):
+    """The options from --instrument on (the instrument only when the rollouts need it)."""
+    return shell_args(EVALUATE, {"instrument": str(input.instrument) if input.instrument else None,
+                                 **{key: getattr(output, key) for key in ("fvd", "table", "figure")}})
+
+
 rule evaluate:
-    threads: GPU["threads"]
-    resources: **resources_of(GPU)
+    threads: EVALUATE.resources.threads
+    resources: **resources_of(EVALUATE)
     wildcard_constraints:
         name=r"[^/]+",
     input:
-        code_inputs("stages/evaluate.py"),
-        rollouts=P("rollouts", "{name}"),
+        code_inputs(EVALUATE.script),
+        **inputs(EVALUATE, EVALUATE_PATHS),
         rollout_files=rollout_files,
-        assets=rules.assets.output.assets,
         instrument=instrument_input,
     output:
-        fvd=f"{P('evaluate', '{name}')}/fvd.json",
-        table=f"{P('evaluate', '{name}')}/table.txt",
-        figure=f"{P('evaluate', '{name}')}/fvd.png",
+        **outputs(EVALUATE, EVALUATE_PATHS),
     params:
-        profile=PROFILE,
-        assets=section("assets"),
-        evaluation=section("evaluation"),
-        town=section("town"),
-        args=lambda wildcards, input: f" --instrument {input.instrument}" if input.instrument else "",
+        **stage_params(EVALUATE, EVALUATE_PATHS, args=evaluate_args),
     log: log("evaluate_{name}")
     benchmark: bench("evaluate_{name}")
     shell:
-        ("python stages/evaluate.py --profile {params.profile} --rollouts {input.rollouts} --assets {input.assets}"
-         "{params.args} --fvd {output.fvd} --table {output.table} --figure {output.figure}" + TEE)
+        command(EVALUATE)

@@ -3,6 +3,8 @@
 
 from orbis2.eval.conditioning import scope_predictors
 
+EVAL_FVD, EVAL_PROBE, INVERSE_DYNAMICS, EVAL_STEERING, EVAL_SPEED, EVAL_CONDITIONING = (INTERFACES[kind] for kind in (
+    "eval_fvd", "eval_probe", "inverse_dynamics", "eval_steering", "eval_speed", "eval_conditioning"))
 # The hierarchy's bottom predictor under the steered top one (registry.yaml's `steering: true`).
 STEERING_PREDICTORS = [REG.systems["hierarchical"].bottom, REG.steered]
 # Per report scope (main, all): the suffix of the eval_speed and eval_conditioning rules and records.
@@ -15,152 +17,121 @@ def speed_predictors(scope):
     return sorted({p for system in systems for p in system.stages})
 
 for system_name, system in REG.systems.items():
+    paths = stage_paths(EVAL_FVD, system_name, **latent_paths(system.latents), predictor=system.stages)
 
     rule:
         name: f"eval_fvd_{system_name}"
-        threads: GPU["threads"]
-        resources: **resources_of(GPU)
+        threads: EVAL_FVD.resources.threads
+        resources: **resources_of(EVAL_FVD)
         input:
-            code_inputs("stages/eval_fvd.py"),
-            **latent_inputs(system.latents),
-            **shard_inputs(),
-            assets=rules.assets.output.assets,
-            **predictor_inputs(system.stages),
+            code_inputs(EVAL_FVD.script),
+            **inputs(EVAL_FVD, paths),
         output:
-            fvd=P("fvd", system_name),
-            media=directory(P("media", system_name)),
+            **outputs(EVAL_FVD, paths),
         params:
-            profile=PROFILE,
-            data=section("data"),
-            assets=section("assets"),
-            evaluation=section("evaluation"),
-            args=predictor_args(system.stages),  # see named_args
+            **stage_params(EVAL_FVD, paths),
         log: log(f"eval_fvd_{system_name}")
         benchmark: bench(f"eval_fvd_{system_name}")
         shell:
-            ("python stages/eval_fvd.py {rule} --profile {params.profile}" + LATENT_ARGS
-             + " --shards {input.shards} --assets {input.assets}{params.args}"
-             + " --fvd {output.fvd} --media {output.media}" + TEE)
+            command(EVAL_FVD, head=" {rule}")
 
 
 for target in REG.probe_targets:
     representation = REG.representations.get(target)
     teacher = representation is not None and representation.teacher
-    own_predictor = [target] if representation is None else []  # a predictor target: its own folder
+    tokenizers = {k: v for k, v in latent_paths(REG.target_latents(target)).items() if k != "latents"}
+    paths = stage_paths(EVAL_PROBE, target, **tokenizers, assets=P("assets") if teacher else None,
+                        predictor=[target] if representation is None else [])  # a predictor target: its own folder
 
     rule:
         name: f"eval_probe_{target}"
-        # A frozen network's features and small heads: little memory, but every core. The main target's
-        # single probe would otherwise run last and alone on one thread (1.8x slower on 2 cores);
-        # reports/all's probes queue instead of sharing, at the same throughput.
-        threads: CPU["threads"]
-        resources: **resources_of(LIGHT)
+        threads: EVAL_PROBE.resources.threads
+        resources: **resources_of(EVAL_PROBE)
         input:
-            code_inputs("stages/eval_probe.py"),
-            **shard_inputs(),
-            **tokenizer_inputs(REG.target_latents(target)),
-            **({"assets": rules.assets.output.assets} if teacher else {}),
-            **predictor_inputs(own_predictor),
+            code_inputs(EVAL_PROBE.script),
+            **inputs(EVAL_PROBE, paths),
         output:
-            probe=P("probe", target),
+            **outputs(EVAL_PROBE, paths),
         params:
-            profile=PROFILE,
-            data=section("data"),
-            evaluation=section("evaluation"),
-            args=(f" --assets {rules.assets.output.assets}" if teacher else "") + predictor_args(own_predictor),
+            **stage_params(EVAL_PROBE, paths),
         log: log(f"eval_probe_{target}")
         benchmark: bench(f"eval_probe_{target}")
         shell:
-            ("python stages/eval_probe.py {rule} --profile {params.profile} --shards {input.shards}" + TOKENIZER_ARGS
-             + "{params.args} --out {output.probe}" + TEE)
+            command(EVAL_PROBE, head=" {rule}")
 
 
 rule inverse_dynamics:
-    threads: GPU["threads"]  # trains a CNN on dense optical flow
-    resources: **resources_of(GPU)
+    threads: INVERSE_DYNAMICS.resources.threads  # trains a CNN on dense optical flow
+    resources: **resources_of(INVERSE_DYNAMICS)
     input:
-        code_inputs("stages/inverse_dynamics.py"),
-        **shard_inputs(),
-        tokenizer=P("tokenizer", "detail"),
-    output:
-        weights=directory(P("inverse_dynamics")),  # trained: its curves/loss.png is one of dvc.yaml's plots
-        report=P("report", "inverse_dynamics"),
+        code_inputs(INVERSE_DYNAMICS.script),
+        **inputs(INVERSE_DYNAMICS, stage_paths(INVERSE_DYNAMICS)),
+    output:  # trained: weights/curves/loss.png is one of dvc.yaml's plots
+        **outputs(INVERSE_DYNAMICS, stage_paths(INVERSE_DYNAMICS)),
     params:
-        profile=PROFILE,
-        data=section("data"),
-        inverse_dynamics=section("inverse_dynamics"),
+        **stage_params(INVERSE_DYNAMICS, stage_paths(INVERSE_DYNAMICS)),
     log: log("inverse_dynamics")
     benchmark: bench("inverse_dynamics")
     shell:
-        ("python stages/inverse_dynamics.py --profile {params.profile} --shards {input.shards}"
-         " --tokenizer {input.tokenizer} --out {output.weights} --report {output.report}" + TEE)
+        command(INVERSE_DYNAMICS)
+
+
+STEERING_PATHS = stage_paths(EVAL_STEERING, **latent_paths("compressed"), predictor=STEERING_PREDICTORS)
 
 
 rule eval_steering:
-    threads: GPU["threads"]
-    resources: **resources_of(GPU)
+    threads: EVAL_STEERING.resources.threads
+    resources: **resources_of(EVAL_STEERING)
     input:
-        code_inputs("stages/eval_steering.py"),
-        **latent_inputs("compressed"),
-        **shard_inputs(),
-        **predictor_inputs(STEERING_PREDICTORS),
-        inverse_dynamics=rules.inverse_dynamics.output.weights,
+        code_inputs(EVAL_STEERING.script),
+        **inputs(EVAL_STEERING, STEERING_PATHS),
     output:
-        steering=P("eval") + "/steering.json",
-        strip=P("eval") + "/steering_strip.png",
+        **outputs(EVAL_STEERING, STEERING_PATHS),
     params:
-        profile=PROFILE,
-        data=section("data"),
-        town=section("town"),
-        evaluation=section("evaluation"),
+        **stage_params(EVAL_STEERING, STEERING_PATHS),
     log: log("eval_steering")
     benchmark: bench("eval_steering")
     shell:
-        ("python stages/eval_steering.py --profile {params.profile}" + LATENT_ARGS + " --shards {input.shards}"
-         + predictor_args(STEERING_PREDICTORS) + " --inverse-dynamics {input.inverse_dynamics}"
-         " --out {output.steering} --strip {output.strip}" + TEE)
+        command(EVAL_STEERING)
 
 
 for scope, suffix in SCOPE_SUFFIX.items():
+    speed = stage_paths(EVAL_SPEED, **latent_paths("compressed"), predictor=speed_predictors(scope),
+                        speed=P("eval") + f"/speed{suffix}.json")
+    conditioning = stage_paths(EVAL_CONDITIONING, latents=latent_paths("compressed")["latents"],
+                               predictor=scope_predictors(scope),
+                               conditioning=P("eval") + f"/conditioning{suffix}.json")
 
     rule:
         name: f"eval_speed{suffix}"
-        threads: GPU["threads"]  # timings need the machine to themselves
-        resources: **resources_of(GPU)
+        threads: EVAL_SPEED.resources.threads  # timings need the machine to themselves
+        resources: **resources_of(EVAL_SPEED)
         input:
-            code_inputs("stages/eval_speed.py"),
-            **latent_inputs("compressed"),
-            **predictor_inputs(speed_predictors(scope)),
+            code_inputs(EVAL_SPEED.script),
+            **inputs(EVAL_SPEED, speed),
         output:
-            speed=P("eval") + f"/speed{suffix}.json",
+            **outputs(EVAL_SPEED, speed),
         params:
-            profile=PROFILE,
-            data=section("data"),
-            evaluation=section("evaluation"),
-            args=scope + predictor_args(speed_predictors(scope)),  # set now: the shell runs after the loop
+            **stage_params(EVAL_SPEED, speed, scope=scope),
         log: log(f"eval_speed{suffix}")
         benchmark: bench(f"eval_speed{suffix}")
         shell:
-            ("python stages/eval_speed.py {params.args} --profile {params.profile}" + LATENT_ARGS
-             + " --out {output.speed}" + TEE)
+            command(EVAL_SPEED, head=" {params.scope}")
 
     rule:
         name: f"eval_conditioning{suffix}"
-        threads: GPU["threads"]  # batched forward passes of every predictor of the scope
-        resources: **resources_of(GPU)
+        threads: EVAL_CONDITIONING.resources.threads  # batched forward passes of every predictor of the scope
+        resources: **resources_of(EVAL_CONDITIONING)
         input:
-            code_inputs("stages/eval_conditioning.py"),
-            **latent_inputs("compressed"),  # the cache's tokenizers: a retrained one re-runs the stage
-            **predictor_inputs(scope_predictors(scope)),
+            code_inputs(EVAL_CONDITIONING.script),
+            **inputs(EVAL_CONDITIONING, conditioning),
+            # the cache's tokenizers, not read by the stage: a retrained one re-runs it
+            **{k: v for k, v in latent_paths("compressed").items() if k != "latents"},
         output:
-            conditioning=P("eval") + f"/conditioning{suffix}.json",
+            **outputs(EVAL_CONDITIONING, conditioning),
         params:
-            profile=PROFILE,
-            data=section("data"),
-            evaluation=section("evaluation"),
-            args=scope + predictor_args(scope_predictors(scope)),  # set now: the shell runs after the loop
+            **stage_params(EVAL_CONDITIONING, conditioning, scope=scope),
         log: log(f"eval_conditioning{suffix}")
         benchmark: bench(f"eval_conditioning{suffix}")
         shell:
-            ("python stages/eval_conditioning.py {params.args} --profile {params.profile} --latents {input.latents}"
-             + " --out {output.conditioning}" + TEE)
+            command(EVAL_CONDITIONING, head=" {params.scope}")

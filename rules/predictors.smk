@@ -2,29 +2,26 @@
 # the predictor's name and its params.yaml section; its init_from adds the weights
 # it starts from as an input.
 
+PREDICTOR = INTERFACES["predictor"]
+
 for predictor, spec in REG.predictors.items():
     init_from = section(predictor).get("init_from")
+    paths = stage_paths(PREDICTOR, predictor, **latent_paths(spec.latents),
+                        init=P("predictor", init_from) if init_from else None)
 
     rule:
         name: predictor
-        threads: TRAIN["threads"]
-        resources: **resources_of(TRAIN)
+        threads: PREDICTOR.resources.threads
+        resources: **resources_of(PREDICTOR)
         input:
-            code_inputs("stages/predictor.py"),
-            **latent_inputs(spec.latents),
-            **({"init": P("predictor", init_from)} if init_from else {}),
+            code_inputs(PREDICTOR.script),
+            **inputs(PREDICTOR, paths),
         output:
-            weights=directory(P("predictor", predictor)),
-            report=P("report", predictor),
+            **outputs(PREDICTOR, paths),
         params:
-            profile=PROFILE,
-            data=section("data"),
-            **{predictor: section(predictor)},
-            spec=dataclasses.asdict(spec),  # registry.yaml's entry: a changed spec re-runs the predictor
-            args=f" --init {P('predictor', init_from)}" if init_from else "",  # see named_args
+            # spec: registry.yaml's entry, so that a changed spec re-runs the predictor
+            **stage_params(PREDICTOR, paths, [predictor], spec=dataclasses.asdict(spec)),
         log: log(predictor)
         benchmark: bench(predictor)
         shell:
-            ("{config[train_launcher]} stages/predictor.py {rule} --profile {params.profile}" + LATENT_ARGS
-             + "{params.args} --out {output.weights} --report {output.report}"
-             + TEE)
+            command(PREDICTOR, head=" {rule}")

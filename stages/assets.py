@@ -9,14 +9,14 @@ from pathlib import Path
 
 from orbis2.assets import AssetError, ensure_asset
 from orbis2.errors import OrbisError
+from orbis2.interfaces import INTERFACES
 from orbis2.stage import open_stage, stage_parser
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = stage_parser("assets.py", __doc__)
-    parser.add_argument("--out", type=Path, default=None, help="assets folder (default: assets.dir)")
+    parser = stage_parser(INTERFACES["assets"], __doc__)
     args = parser.parse_args(argv)
-    with open_stage("assets", args, ["assets"]) as stage:
+    with open_stage("assets", args, INTERFACES["assets"]) as stage:
         cfg, run = stage.cfg, stage.run
         names = ["i3d_kinetics400", "inception_v3"]
         if cfg.assets.local.get("dinov2_vitb14"):

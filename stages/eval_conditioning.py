@@ -10,7 +10,6 @@ latent statistics and the steered predictor's response inside the model
 windows and noise draws, over ``evaluation.seeds``.
 """
 
-from pathlib import Path
 
 import numpy as np
 
@@ -25,33 +24,28 @@ from orbis2.eval.conditioning import (
     val_window_pairs,
 )
 from orbis2.eval.records import ConditioningRecord, write_record
+from orbis2.interfaces import INTERFACES
 from orbis2.latents import open_cache
 from orbis2.models.files import load_predictor
 from orbis2.registry import SCOPES, layout_path, registry
-from orbis2.stage import add_name_argument, add_predictor_argument, open_stage, predictor_files, stage_parser
+from orbis2.stage import add_name_argument, open_stage, predictor_files, stage_parser
 
 LATENT_SET = "compressed"
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = stage_parser("eval_conditioning.py", __doc__)
+    parser = stage_parser(INTERFACES["eval_conditioning"], __doc__)
     add_name_argument(parser, SCOPES, default="main")
-    parser.add_argument("--latents", type=Path, default=registry().latent_sets[LATENT_SET].root, metavar="DIR",
-                        help="the latent cache (default: %(default)s)")
-    add_predictor_argument(parser)
-    parser.add_argument("--out", type=Path, default=None,
-                        help=f"the record (default: main {layout_path('eval') / 'conditioning.json'}, "
-                             f"all {layout_path('eval') / 'conditioning_all.json'})")
     args = parser.parse_args(argv)
     stage_name = "eval_conditioning" + ("_all" if args.name == "all" else "")
     out = args.out or layout_path("eval") / f"{stage_name.removeprefix('eval_')}.json"
-    with open_stage(stage_name, args, ["data", "evaluation"]) as stage:
+    with open_stage(stage_name, args, INTERFACES["eval_conditioning"]) as stage:
         cfg, run = stage.cfg, stage.run
         ev, data, settings = cfg.evaluation, cfg.data, cfg.evaluation.conditioning
         dev = default_device()
         names = scope_predictors(args.name)
         predictors = predictor_files(args, names)
-        cache = open_cache(args.latents)
+        cache = open_cache(args.latents or registry().latent_sets[LATENT_SET].root)
         first, second, keys = val_window_pairs(cache, data, settings)
         latents, templates, probe = latent_statistics(cache, data, settings, ev.seed)
 

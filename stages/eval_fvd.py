@@ -23,41 +23,36 @@ from orbis2.data.shards import verify_shards
 from orbis2.eval.records import FvdRecord, Nfe, write_record
 from orbis2.eval.rollout_fvd import split_fvd
 from orbis2.eval.systems import SYSTEMS, inference_settings, load_system
+from orbis2.interfaces import INTERFACES
 from orbis2.io import atomic_dir, sha256_file
 from orbis2.latents import open_cache
 from orbis2.models.i3d import load_i3d
 from orbis2.registry import layout_path
 from orbis2.stage import (
-    add_latent_arguments,
     add_name_argument,
-    add_predictor_argument,
     latent_paths,
     open_stage,
     predictor_files,
     stage_parser,
 )
 
+INTERFACE = INTERFACES["eval_fvd"]
+
 
 def main(argv: list[str] | None = None) -> None:
-    parser = stage_parser("eval_fvd.py", __doc__)
+    parser = stage_parser(INTERFACE, __doc__)  # --assets: I3D
     add_name_argument(parser, SYSTEMS, prefix="eval_fvd_")
-    add_latent_arguments(parser)
-    add_predictor_argument(parser)
-    parser.add_argument("--shards", type=Path, default=layout_path("shards"), help="shards (default: %(default)s)")
-    parser.add_argument("--assets", type=Path, default=None, help="pretrained assets, I3D (default: assets.dir)")
     # Real-data I3D statistics, keyed by the shards' hashes; outside every stage's outputs so they survive re-runs.
     parser.add_argument("--stats-cache", type=Path, default=layout_path("eval_cache"),
                         help="cache of real-data I3D statistics, not a DAG output (default: %(default)s)")
-    parser.add_argument("--fvd", type=Path, default=None, help=f"the record (default: {layout_path('fvd', '<name>')})")
-    parser.add_argument("--media", type=Path, default=None,
-                        help=f"sample videos and grid frames (default: {layout_path('media', '<name>')})")
     parser.add_argument("--rollouts", type=Path, default=None,
                         help="also write every rollout, its real video and a manifest per split here, losslessly, "
                              "for `orbis2 evaluate` (decodes every frame: slower)")
     args = parser.parse_args(argv)
     name = args.name
-    report, media = args.fvd or layout_path("fvd", name), args.media or layout_path("media", name)
-    with open_stage(f"eval_fvd_{name}", args, ["data", "assets", "evaluation"]) as stage:
+    report = args.fvd or INTERFACE.option("fvd").path(name)
+    media = args.media or INTERFACE.option("media").path(name)
+    with open_stage(f"eval_fvd_{name}", args, INTERFACE) as stage:
         cfg, run = stage.cfg, stage.run
         verify_shards(args.shards)  # before any read; see verify_shards for why
         ev, dev = cfg.evaluation, default_device()

@@ -23,13 +23,12 @@ from orbis2.eval.probe import (
     tokenizer_features,
 )
 from orbis2.eval.records import BlockProbe, ProbeRecord, write_record
+from orbis2.interfaces import INTERFACES
 from orbis2.models.files import load_predictor, load_tokenizer
 from orbis2.models.teachers import build_teacher
-from orbis2.registry import layout_path, registry
+from orbis2.registry import registry
 from orbis2.stage import (
     add_name_argument,
-    add_predictor_argument,
-    add_tokenizer_arguments,
     latent_paths,
     open_stage,
     predictor_files,
@@ -42,23 +41,17 @@ from orbis2.stage import (
 MAIN_PROBES = ("abstract_tf", "detail")
 PER_BLOCK = ("abstract_df", "abstract_tf_only")
 
+INTERFACE = INTERFACES["eval_probe"]
+
 
 def main(argv: list[str] | None = None) -> None:
     reg = registry()
-    parser = stage_parser("eval_probe.py", __doc__)
+    parser = stage_parser(INTERFACE, __doc__)  # --shards: its probe split
     add_name_argument(parser, reg.probe_targets, prefix="eval_probe_")
-    parser.add_argument("--shards", type=Path, default=layout_path("shards"),
-                        help="shards, the probe split (default: %(default)s)")
-    add_tokenizer_arguments(parser)
-    parser.add_argument("--assets", type=Path, default=None, help="pretrained assets, the teacher (default: "
-                                                                  "assets.dir)")
-    add_predictor_argument(parser)
-    parser.add_argument("--out", type=Path, default=None,
-                        help=f"the record (default: {layout_path('probe', '<target>')})")
     args = parser.parse_args(argv)
     target = args.name
-    out = args.out or layout_path("probe", target)
-    with open_stage(f"eval_probe_{target}", args, ["data", "evaluation"]) as stage:
+    out = args.out or INTERFACE.option("probe").path(target)
+    with open_stage(f"eval_probe_{target}", args, INTERFACE) as stage:
         cfg, run = stage.cfg, stage.run
         verify_shards(args.shards)  # before any read; see verify_shards for why
         ps, dev = cfg.evaluation.probe, default_device()

@@ -10,7 +10,6 @@ batch 1, ``speed_seconds`` of rollout from a val context with the evaluation's N
 (generation as a user sees it); bf16 / compile / KV cache per ``evaluation``.
 """
 
-from pathlib import Path
 
 import torch
 
@@ -26,12 +25,11 @@ from orbis2.eval.systems import (
     load_system,
     rollout_steps,
 )
+from orbis2.interfaces import INTERFACES
 from orbis2.latents import open_cache
 from orbis2.registry import SCOPES, layout_path, registry
 from orbis2.stage import (
-    add_latent_arguments,
     add_name_argument,
-    add_predictor_argument,
     latent_paths,
     open_stage,
     predictor_files,
@@ -57,18 +55,13 @@ def scope_runs(scope: str) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = stage_parser("eval_speed.py", __doc__)
+    parser = stage_parser(INTERFACES["eval_speed"], __doc__)
     add_name_argument(parser, SCOPES, default="main")
-    add_latent_arguments(parser)
-    add_predictor_argument(parser)
-    parser.add_argument("--out", type=Path, default=None,
-                        help=f"the record (default: main {layout_path('eval') / 'speed.json'}, "
-                             f"all {layout_path('eval') / 'speed_all.json'})")
     args = parser.parse_args(argv)
     stage_name = "eval_speed" + ("_all" if args.name == "all" else "")
     out = args.out or layout_path("eval") / f"{stage_name.removeprefix('eval_')}.json"
     runs = scope_runs(args.name)
-    with open_stage(stage_name, args, ["data", "evaluation"]) as stage:
+    with open_stage(stage_name, args, INTERFACES["eval_speed"]) as stage:
         cfg, run = stage.cfg, stage.run
         ev, data = cfg.evaluation, cfg.data
         dev = default_device()

@@ -16,7 +16,6 @@ abstract latents) with no steering, which tells the turn lost by the bottom leve
 the turn the top's predictions lose.
 """
 
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -51,12 +50,11 @@ from orbis2.eval.systems import (
     rollout_steps,
     sample_clusters,
 )
+from orbis2.interfaces import INTERFACES
 from orbis2.kinematics import integrate_controls
 from orbis2.latents import open_cache
-from orbis2.registry import layout_path, registry
+from orbis2.registry import registry
 from orbis2.stage import (
-    add_latent_arguments,
-    add_predictor_argument,
     latent_paths,
     open_stage,
     predictor_files,
@@ -70,18 +68,9 @@ LATENT_SET = "compressed"
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = stage_parser("eval_steering.py", __doc__)
-    add_latent_arguments(parser)
-    add_predictor_argument(parser)
-    parser.add_argument("--shards", type=Path, default=layout_path("shards"), help="shards (default: %(default)s)")
-    parser.add_argument("--inverse-dynamics", type=Path, default=layout_path("inverse_dynamics"), metavar="DIR",
-                        help=f"the learned instrument's folder (its {WEIGHTS_FILE}; default: %(default)s)")
-    parser.add_argument("--out", type=Path, default=layout_path("eval") / "steering.json",
-                        help="the record (default: %(default)s)")
-    parser.add_argument("--strip", type=Path, default=layout_path("eval") / "steering_strip.png",
-                        help="the figure of one rollout per mode (default: %(default)s)")
+    parser = stage_parser(INTERFACES["eval_steering"], __doc__)
     args = parser.parse_args(argv)
-    with open_stage("eval_steering", args, ["data", "town", "evaluation"]) as stage:
+    with open_stage("eval_steering", args, INTERFACES["eval_steering"]) as stage:
         cfg, run = stage.cfg, stage.run
         verify_shards(args.shards)  # before any read; see verify_shards for why
         ev, data = cfg.evaluation, cfg.data

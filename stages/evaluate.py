@@ -16,30 +16,20 @@ from pathlib import Path
 from orbis2.eval.evaluate import format_table
 from orbis2.eval.evaluate_videos import evaluate_videos, plot_record, read_rollout_folder
 from orbis2.eval.inverse_dynamics import WEIGHTS_FILE
+from orbis2.interfaces import INTERFACES
 from orbis2.io import atomic_file, write_json
-from orbis2.registry import layout_path
 from orbis2.stage import open_stage, stage_parser
 
-RECORD, TABLE, FIGURE = "fvd.json", "table.txt", "fvd.png"
+INTERFACE = INTERFACES["evaluate"]
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = stage_parser("evaluate.py", __doc__)
-    parser.add_argument("--rollouts", type=Path, required=True, help="the folder of rollouts (data/rollouts/<name>)")
-    parser.add_argument("--assets", type=Path, default=None, help="pretrained assets, I3D (default: assets.dir)")
+    parser = stage_parser(INTERFACE, __doc__)  # --assets: I3D; <name>: the rollout folder's
     parser.add_argument("--i3d", type=Path, default=None, help="I3D weights (default: the assets' i3d_kinetics400.pt)")
-    parser.add_argument("--instrument", type=Path, default=layout_path("inverse_dynamics"),
-                        help="the learned steering instrument's folder, read when the rollouts have trajectories "
-                             "(default: %(default)s)")
-    for option, file, what in (("--fvd", RECORD, "the record"), ("--table", TABLE, "the table and its card"),
-                               ("--figure", FIGURE, "the figure")):
-        parser.add_argument(option, type=Path, default=None,
-                            help=f"{what} (default: {layout_path('evaluate', '<name>') / file}, <name> the folder's)")
     args = parser.parse_args(argv)
     name = args.rollouts.name
-    out = {key: getattr(args, key) or layout_path("evaluate", name) / file
-           for key, file in (("fvd", RECORD), ("table", TABLE), ("figure", FIGURE))}
-    with open_stage(f"evaluate_{name}", args, ["assets", "evaluation", "town"]) as stage:
+    out = {key: getattr(args, key) or INTERFACE.option(key).path(name) for key in ("fvd", "table", "figure")}
+    with open_stage(f"evaluate_{name}", args, INTERFACE) as stage:
         cfg, run = stage.cfg, stage.run
         folder = read_rollout_folder(args.rollouts)
         opts = folder.options

@@ -9,20 +9,18 @@ from dataclasses import asdict
 from pathlib import Path
 
 from orbis2.data.importer import check_outside, import_videos
+from orbis2.interfaces import INTERFACES
 from orbis2.io import atomic_dir
-from orbis2.registry import layout_path
 from orbis2.stage import open_stage, stage_parser
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = stage_parser("import.py", __doc__)
+    parser = stage_parser(INTERFACES["import"], __doc__)
     parser.add_argument("--videos", type=Path, default=None, help="input folder (default: import.videos)")
-    parser.add_argument("--out", type=Path, default=layout_path("raw", "import"),
-                        help="raw episodes folder (default: %(default)s)")
     parser.add_argument("--skip-bad", action="store_true", default=None,
                         help="skip unusable videos and list them in <out>/skipped.json")
     args = parser.parse_args(argv)
-    with open_stage("import", args, ["data", "import"]) as stage:
+    with open_stage("import", args, INTERFACES["import"]) as stage:
         cfg, run = stage.cfg, stage.run
         folder = args.videos or Path(cfg.import_.videos)
         check_outside(folder, args.out)

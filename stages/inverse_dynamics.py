@@ -7,30 +7,23 @@ pairs, on the detail tokenizer's reconstructions of them and on shuffled pairs
 (the control); see :mod:`orbis2.eval.inverse_dynamics`.
 """
 
-from pathlib import Path
 
 from orbis2.accel import default_device
 from orbis2.data.shards import verify_shards
 from orbis2.eval.inverse_dynamics import WEIGHTS_FILE, evaluate_instrument, load_clips, pair_index, reconstruct
+from orbis2.interfaces import INTERFACES
 from orbis2.io import atomic_dir, write_json
-from orbis2.registry import layout_path
 from orbis2.stage import TOKENIZER_FILE, copy_curves, open_stage, stage_parser, training_dir
 from orbis2.tasks.instrument import train_instrument
 
-SECTIONS = ["data", "inverse_dynamics"]
+INTERFACE = INTERFACES["inverse_dynamics"]
+SECTIONS = INTERFACE.sections_with()
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = stage_parser("inverse_dynamics.py", __doc__)
-    parser.add_argument("--shards", type=Path, default=layout_path("shards"), help="shards (default: %(default)s)")
-    parser.add_argument("--tokenizer", type=Path, default=layout_path("tokenizer", "detail"), metavar="DIR",
-                        help="the detail tokenizer's folder, for the reconstructions (default: %(default)s)")
-    parser.add_argument("--out", type=Path, default=layout_path("inverse_dynamics"),
-                        help=f"output folder (its {WEIGHTS_FILE}; default: %(default)s)")
-    parser.add_argument("--report", type=Path, default=layout_path("report", "inverse_dynamics"),
-                        help="metrics report (default: %(default)s)")
+    parser = stage_parser(INTERFACE, __doc__)
     args = parser.parse_args(argv)
-    with open_stage("inverse_dynamics", args, SECTIONS) as stage:
+    with open_stage("inverse_dynamics", args, INTERFACE) as stage:
         cfg, run = stage.cfg, stage.run
         verify_shards(args.shards)  # before any read; see verify_shards for why
         ic, fps, dev = cfg.inverse_dynamics, float(cfg.data.fps), default_device()

@@ -7,27 +7,23 @@ The uncompressed cache (compression ablation) skips the probe split, which only
 the tokenizers' probes read, from the frames.
 """
 
-from pathlib import Path
 
 from orbis2.data.shards import load_manifest, verify_shards
+from orbis2.interfaces import INTERFACES
 from orbis2.latents import build_latent_cache
-from orbis2.registry import layout_path, registry
-from orbis2.stage import add_name_argument, add_tokenizer_arguments, latent_paths, open_stage, stage_parser
+from orbis2.registry import registry
+from orbis2.stage import add_name_argument, latent_paths, open_stage, stage_parser
 
 # Stage name -> latent set (registry.yaml, latent_sets).
 VARIANTS = {entry.stage: name for name, entry in registry().latent_sets.items()}
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = stage_parser("latents.py", __doc__)
+    parser = stage_parser(INTERFACES["latents"], __doc__)
     add_name_argument(parser, VARIANTS, default="latents")
-    parser.add_argument("--shards", type=Path, default=layout_path("shards"), help="shards (default: %(default)s)")
-    add_tokenizer_arguments(parser)
-    parser.add_argument("--out", type=Path, default=None,
-                        help=f"the latent cache (default: {layout_path('latents', '<name>')})")
     args = parser.parse_args(argv)
     name = args.name
-    with open_stage(name, args, ["data", "latents"]) as stage:
+    with open_stage(name, args, INTERFACES["latents"]) as stage:
         cfg, run = stage.cfg, stage.run
         verify_shards(args.shards)  # before any read; see verify_shards for why
         paths = latent_paths(args, VARIANTS[name])

@@ -14,14 +14,12 @@ retrained upstream starts a fresh run instead of resuming one that trained on
 other inputs. predictor.pt and the report are published atomically at the end.
 """
 
-from pathlib import Path
 
 from orbis2.errors import OrbisError
+from orbis2.interfaces import INTERFACES
 from orbis2.latents import open_cache
-from orbis2.registry import layout_path
 from orbis2.stage import (
     PREDICTOR_FILE,
-    add_latent_arguments,
     add_name_argument,
     latent_paths,
     open_stage,
@@ -31,23 +29,18 @@ from orbis2.stage import (
 )
 from orbis2.tasks.predictors import STAGES, tokenizer_checksums, train_predictor
 
+INTERFACE = INTERFACES["predictor"]
+
 
 def main(argv: list[str] | None = None) -> None:
-    parser = stage_parser("predictor.py", __doc__)
+    parser = stage_parser(INTERFACE, __doc__)
     add_name_argument(parser, STAGES)
-    add_latent_arguments(parser)
-    parser.add_argument("--init", type=Path, default=None, metavar="DIR",
-                        help=f"the init_from predictor's folder (default: {layout_path('predictor', '<init_from>')})")
-    parser.add_argument("--out", type=Path, default=None,
-                        help=f"output folder (default: {layout_path('predictor', '<name>')})")
-    parser.add_argument("--report", type=Path, default=None,
-                        help=f"metrics report (default: {layout_path('report', '<name>')})")
     args = parser.parse_args(argv)
     name = args.name
-    out = args.out or layout_path("predictor", name)
-    report = args.report or layout_path("report", name)
-    sections = ["data", name]
-    with open_stage(name, args, sections) as stage:
+    out = args.out or INTERFACE.option("weights").path(name)
+    report = args.report or INTERFACE.option("report").path(name)
+    sections = INTERFACE.sections_with([name])  # the entry's own section
+    with open_stage(name, args, INTERFACE, sections) as stage:
         cfg, run = stage.cfg, stage.run
         pc = cfg.section(name)
         latents = latent_paths(args, STAGES[name].latents)
@@ -58,7 +51,7 @@ def main(argv: list[str] | None = None) -> None:
         if pc.init_from is None and args.init is not None:
             raise OrbisError(f"--init {args.init}: `{name}` has no init_from in params.yaml")
         if pc.init_from is not None:
-            init_file = (args.init or layout_path("predictor", pc.init_from)) / PREDICTOR_FILE
+            init_file = (args.init or INTERFACE.option("init").path(pc.init_from)) / PREDICTOR_FILE
             if not init_file.is_file():
                 raise OrbisError(f"{init_file}: not found; `{name}` starts from it (init_from), run "
                                  f"`{pc.init_from}` first")

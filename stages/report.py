@@ -23,9 +23,10 @@ from orbis2.eval.records import EVAL_KINDS, read_evals
 from orbis2.eval.report import HEADLINE_JSON, MAIN_CSV, headline, report_setup, write_full_report, write_main_report
 from orbis2.eval.systems import SYSTEMS
 from orbis2.eval.tables import TableSettings, compression_from_evals
+from orbis2.interfaces import INTERFACES
 from orbis2.io import atomic_dir, write_json
 from orbis2.registry import layout_path, registry
-from orbis2.stage import add_name_argument, add_named_paths, open_stage, stage_parser
+from orbis2.stage import add_name_argument, open_stage, stage_parser
 
 GRID = "grid.npz"  # the frames of the qualitative grid in an FVD stage's media folder
 INTERVAL_SUFFIXES = ("_low", "_high", "_n")  # Table 1's interval bounds and sample counts
@@ -42,22 +43,11 @@ def given_or_all(given: list[tuple[str, Path]], kind: str, names: list[str], opt
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = stage_parser("report.py", __doc__)
+    parser = stage_parser(INTERFACES["report"], __doc__)
     add_name_argument(parser, ["main", "all"], prefix="report_")
-    add_named_paths(parser, "--fvd", "a system's FVD record", f"every system's {layout_path('fvd', 'NAME')}")
-    add_named_paths(parser, "--probe", "a probe target's record", f"every target's {layout_path('probe', 'NAME')}")
-    for kind in EVAL_KINDS:
-        parser.add_argument(f"--{kind}", type=Path, default=layout_path("eval") / f"{kind}.json",
-                            help=f"the {kind} record (default: %(default)s)")
-    add_named_paths(parser, "--media", "a system's media folder (all: the rollout grid)",
-                    f"every system's {layout_path('media', 'NAME')}")
-    parser.add_argument("--strip", type=Path, default=layout_path("eval") / "steering_strip.png",
-                        help="the steering strip (all; default: %(default)s)")
-    parser.add_argument("--out", type=Path, default=None,
-                        help=f"output folder (default: main {layout_path('reports')}, all {layout_path('report_all')})")
     args = parser.parse_args(argv)
     scope = args.name
-    with open_stage(f"report_{scope}", args, ["data", "evaluation"]) as stage:
+    with open_stage(f"report_{scope}", args, INTERFACES["report"]) as stage:
         cfg, run = stage.cfg, stage.run
         reg = registry()
         evals = read_evals(given_or_all(args.fvd, "fvd", list(reg.systems), "--fvd"),

@@ -3,21 +3,18 @@
 One WebDataset sample per clip, per split, with a manifest of counts and hashes.
 """
 
-from pathlib import Path
 
 from orbis2.data.shards import write_shards
+from orbis2.interfaces import INTERFACES
 from orbis2.io import atomic_dir
 from orbis2.registry import layout_path
 from orbis2.stage import open_stage, stage_parser
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = stage_parser("shards.py", __doc__)
-    parser.add_argument("--raw", type=Path, default=None,
-                        help=f"raw episodes folder (default: {layout_path('raw', '<data.source>')})")
-    parser.add_argument("--out", type=Path, default=layout_path("shards"), help="shards folder (default: %(default)s)")
+    parser = stage_parser(INTERFACES["shards"], __doc__)  # --raw: default the raw folder of data.source
     args = parser.parse_args(argv)
-    with open_stage("shards", args, ["data", "shards"]) as stage:
+    with open_stage("shards", args, INTERFACES["shards"]) as stage:
         cfg, run = stage.cfg, stage.run
         raw = args.raw or layout_path("raw", cfg.data.source)
         with atomic_dir(args.out) as tmp:

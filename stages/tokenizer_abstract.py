@@ -13,7 +13,8 @@ from pathlib import Path
 
 from orbis2.assets import TEACHER_ASSETS, asset_path
 from orbis2.data.shards import verify_shards
-from orbis2.registry import layout_path, registry
+from orbis2.interfaces import INTERFACES
+from orbis2.registry import registry
 from orbis2.stage import (
     TOKENIZER_FILE,
     add_name_argument,
@@ -25,25 +26,19 @@ from orbis2.stage import (
 from orbis2.tasks.tokenizers import train_abstract_tokenizer
 
 # Stage name -> registry.yaml entry, for every abstract tokenizer.
+INTERFACE = INTERFACES["tokenizer_abstract"]
 VARIANTS = {f"tokenizer_{name}": name for name, kind in registry().tokenizers.items() if kind == "abstract"}
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = stage_parser("tokenizer_abstract.py", __doc__)
+    parser = stage_parser(INTERFACE, __doc__)  # --assets: the teacher
     add_name_argument(parser, VARIANTS, default="tokenizer_abstract")
-    parser.add_argument("--shards", type=Path, default=layout_path("shards"), help="shards (default: %(default)s)")
-    parser.add_argument("--assets", type=Path, default=None, help="pretrained assets, the teacher "
-                                                                  "(default: assets.dir)")
-    parser.add_argument("--out", type=Path, default=None,
-                        help=f"output folder (default: {layout_path('tokenizer', '<entry>')})")
-    parser.add_argument("--report", type=Path, default=None,
-                        help=f"metrics report (default: {layout_path('report', '<name>')})")
     args = parser.parse_args(argv)
     name = args.name
-    out = args.out or layout_path("tokenizer", VARIANTS[name])
-    report = args.report or layout_path("report", name)
-    sections = ["data", name]
-    with open_stage(name, args, sections) as stage:
+    out = args.out or INTERFACE.option("weights").path(VARIANTS[name])
+    report = args.report or INTERFACE.option("report").path(VARIANTS[name])
+    sections = INTERFACE.sections_with([name])  # the entry's own section
+    with open_stage(name, args, INTERFACE, sections) as stage:
         cfg, run = stage.cfg, stage.run
         verify_shards(args.shards)  # before any read; see verify_shards for why
         assets = args.assets or Path(cfg.assets.dir)

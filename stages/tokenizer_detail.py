@@ -9,7 +9,7 @@ at the end.
 from pathlib import Path
 
 from orbis2.data.shards import verify_shards
-from orbis2.registry import layout_path
+from orbis2.interfaces import INTERFACES
 from orbis2.stage import (
     TOKENIZER_FILE,
     add_name_argument,
@@ -20,21 +20,18 @@ from orbis2.stage import (
 )
 from orbis2.tasks.tokenizers import train_detail_tokenizer
 
-SECTIONS = ["data", "tokenizer_detail"]
+INTERFACE = INTERFACES["tokenizer_detail"]
+ENTRY = "detail"  # registry.yaml's tokenizer of this kind
+SECTIONS = INTERFACE.sections_with([f"tokenizer_{ENTRY}"])
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = stage_parser("tokenizer_detail.py", __doc__)
+    parser = stage_parser(INTERFACE, __doc__)  # --assets: InceptionV3 for rFID
     add_name_argument(parser, ["tokenizer_detail"], default="tokenizer_detail")  # the DAG names the stage
-    parser.add_argument("--shards", type=Path, default=layout_path("shards"), help="shards (default: %(default)s)")
-    parser.add_argument("--assets", type=Path, default=None, help="pretrained assets, InceptionV3 for rFID "
-                                                                  "(default: assets.dir)")
-    parser.add_argument("--out", type=Path, default=layout_path("tokenizer", "detail"),
-                        help="output folder (default: %(default)s)")
-    parser.add_argument("--report", type=Path, default=layout_path("report", "tokenizer_detail"),
-                        help="metrics report (default: %(default)s)")
     args = parser.parse_args(argv)
-    with open_stage("tokenizer_detail", args, SECTIONS) as stage:
+    out = args.out or INTERFACE.option("weights").path(ENTRY)
+    report = args.report or INTERFACE.option("report").path(ENTRY)
+    with open_stage("tokenizer_detail", args, INTERFACE, SECTIONS) as stage:
         cfg, run = stage.cfg, stage.run
         verify_shards(args.shards)  # before any read; see verify_shards for why
         assets = args.assets or Path(cfg.assets.dir)
@@ -44,11 +41,11 @@ def main(argv: list[str] | None = None) -> None:
             stage.summary = "training rank done; rank 0 writes the outputs"
             return
 
-        publish_training(work, args.out, [TOKENIZER_FILE], args.report, metrics, run)
+        publish_training(work, out, [TOKENIZER_FILE], report, metrics, run)
         stage.summary = (f"{metrics['steps']} steps, PSNR {metrics['val_psnr']:.2f} dB, SSIM "
                          f"{metrics['val_ssim']:.3f}, rFID {metrics['rfid']:.1f}, codebook perplexity "
                          f"{metrics['val_perplexity']:.0f}, latent scale {metrics['latent_scale']:.2f} -> "
-                         f"{args.out / TOKENIZER_FILE}")
+                         f"{out / TOKENIZER_FILE}")
 
 
 if __name__ == "__main__":

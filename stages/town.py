@@ -4,24 +4,17 @@ Every split of the procedural town: videos, odometry, depth and semantic labels,
 with the motion statistics of each split and a contact sheet and preview video.
 """
 
-from pathlib import Path
 
 from orbis2.data.town_dataset import build_town_dataset, split_motion_statistics, write_previews
+from orbis2.interfaces import INTERFACES
 from orbis2.io import atomic_dir, write_json
-from orbis2.registry import layout_path
 from orbis2.stage import open_stage, stage_parser
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = stage_parser("town.py", __doc__)
-    parser.add_argument("--out", type=Path, default=layout_path("raw", "town"),
-                        help="raw episodes folder (default: %(default)s)")
-    parser.add_argument("--sheet", type=Path, default=Path("reports/town_contact_sheet.png"),
-                        help="contact sheet (default: %(default)s)")
-    parser.add_argument("--preview", type=Path, default=Path("reports/town_preview.mp4"),
-                        help="preview video (default: %(default)s)")
+    parser = stage_parser(INTERFACES["town"], __doc__)
     args = parser.parse_args(argv)
-    with open_stage("town", args, ["data", "town"]) as stage:
+    with open_stage("town", args, INTERFACES["town"]) as stage:
         cfg, run = stage.cfg, stage.run
         with atomic_dir(args.out) as tmp:
             index = build_town_dataset(tmp, cfg.data, cfg.town)

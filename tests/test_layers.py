@@ -17,7 +17,7 @@ LAYERS = (
     ("orbis2.errors", "orbis2.typecheck", "orbis2.io", "orbis2.flow", "orbis2.losses", "orbis2.kinematics",
      "orbis2.accel", "orbis2.models"),  # typecheck: the one type checker of params sections and model sizes
     ("orbis2.sim",),  # the driving simulator: numpy/numba/cv2 and orbis2.kinematics only
-    ("orbis2.registry", "orbis2.config"),  # config checks model presets; both read registry.yaml
+    ("orbis2.registry", "orbis2.config", "orbis2.interfaces"),  # config checks model presets; all read registry.yaml
     ("orbis2.windows", "orbis2.hierarchy", "orbis2.data"),  # hierarchy: what each predictor sees
     ("orbis2.latents", "orbis2.rollout", "orbis2.train", "orbis2.assets"),
     ("orbis2.eval",),  # evaluation never imports training tasks: a change in training must not re-run it

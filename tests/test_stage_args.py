@@ -6,20 +6,16 @@ from pathlib import Path
 import pytest
 
 from orbis2.errors import OrbisError
+from orbis2.interfaces import INTERFACES
 from orbis2.registry import layout_path
-from orbis2.stage import (
-    add_latent_arguments,
-    add_predictor_argument,
-    latent_paths,
-    named_path,
-    predictor_files,
-)
+from orbis2.stage import add_path_options, latent_paths, named_path, predictor_files
 
 
 def parser() -> argparse.ArgumentParser:
+    """The latent cache, tokenizer and predictor options, as the steering stage declares them."""
     p = argparse.ArgumentParser()
-    add_latent_arguments(p)
-    add_predictor_argument(p)
+    add_path_options(p, [o for o in INTERFACES["eval_steering"].paths
+                         if o.key in ("latents", "detail_tokenizer", "abstract_tokenizer", "predictor")])
     return p
 
 

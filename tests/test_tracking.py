@@ -161,8 +161,9 @@ def test_stage_times_reach_the_parent(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(SRC), "ORBIS2_PIPELINE_ID": "inv", "ORBIS2_SYSTEM_METRICS": "0",
            "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}
     (tmp_path / "params.yaml").write_text((Path(__file__).resolve().parents[1] / "params.yaml").read_text())
-    code = ("import argparse\nfrom orbis2.stage import open_stage\n"
-            "with open_stage('timed', argparse.Namespace(params='params.yaml', profile='smoke'), ['data']) as s:\n"
+    code = ("import argparse\nfrom orbis2.interfaces import INTERFACES\nfrom orbis2.stage import open_stage\n"
+            "with open_stage('timed', argparse.Namespace(params='params.yaml', profile='smoke'), "
+            "INTERFACES['shards']) as s:\n"
             "    s.summary = 'ok'\n")
     proc = sp.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]

@@ -89,7 +89,9 @@ SLURM_BASE = {"executor": "slurm", "jobs": 50,
 # so that `dvc metrics show` and `dvc exp show` stay readable; the evaluation records are plain outputs.
 METRICS = re.compile(r"reports/[^/]+\.json")
 # Rule params that are not params.yaml sections.
-NOT_SECTIONS = ("profile", "spec", "script", "args")
+# Those set when the rule is defined and passed in its command (see the Snakefile's _passed_from).
+PASSED = ("script", "scope", "args")
+NOT_SECTIONS = ("profile", "spec", *PASSED)
 
 
 # --------------------------------------------------------------------------- code inputs
@@ -168,7 +170,7 @@ def dvc_command(rule, dep=lambda path: path) -> str:
     the stage's deps write in its place, e.g. the raw folder of the configured source).
     """
     cmd = rule.shellcmd.split(" 2>&1 | tee")[0].strip()
-    for name in ("script", "args"):  # values set when the rule was defined (see the Snakefile's named_args)
+    for name in PASSED:  # values set when the rule was defined
         if name in rule.params.keys():
             cmd = cmd.replace(f"{{params.{name}}}", rule.params[name])
 

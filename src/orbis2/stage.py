@@ -2,17 +2,18 @@
 
 A stage script's ``main()`` reads top to bottom::
 
-    parser = stage_parser("town.py", __doc__)
-    parser.add_argument("--out", type=Path, default=layout_path("raw", "town"))
+    parser = stage_parser(INTERFACES["town"], __doc__)   # --params, --profile and its path options
     args = parser.parse_args(argv)
-    with open_stage("town", args, ["data", "town"]) as stage:
+    with open_stage("town", args, INTERFACES["town"]) as stage:
         cfg, run = stage.cfg, stage.run
         ...                      # load inputs, call the library, save outputs, log to ``run``
         stage.summary = "..."    # the line printed when the stage ends
 
-The DAG (the rules in ``rules/*.smk``, and dvc.yaml generated from them) passes every
-input and output path as an option; a stage run by hand without them falls back on
-registry.yaml's ``layout`` (the helpers below), so the library only ever receives paths.
+The stage's declaration (:mod:`orbis2.interfaces`) names its path options and the
+params sections it reads; the DAG (the rules in ``rules/*.smk``, and dvc.yaml
+generated from them) is made from the same declaration and passes every input and
+output path as an option; a stage run by hand without them falls back on
+registry.yaml's ``layout``, so the library only ever receives paths.
 """
 
 from __future__ import annotations
@@ -33,18 +34,34 @@ import orbis2
 from orbis2.config.params import PipelineConfig, as_dict, load_config
 from orbis2.config.training import BOOKKEEPING_FIELDS
 from orbis2.errors import OrbisError
+from orbis2.interfaces import Interface, PathOption
 from orbis2.io import atomic_dir, sha256_file, write_json
 from orbis2.registry import layout_path, registry
 from orbis2.tracking import StageRun, stage_run
 
 
-def stage_parser(script: str, description: str | None = None) -> argparse.ArgumentParser:
-    """The arguments every stage takes: ``--params`` and ``--profile``."""
-    parser = argparse.ArgumentParser(prog=f"stages/{script}", description=description,
+def stage_parser(interface: Interface, description: str | None = None) -> argparse.ArgumentParser:
+    """The arguments every stage takes (``--params``, ``--profile``) and the path options of its declaration."""
+    parser = argparse.ArgumentParser(prog=interface.script, description=description,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--params", default="params.yaml", help="params file (default: params.yaml)")
     parser.add_argument("--profile", default=None, help="smoke | default | gpu | paper (default: the file's `profile`)")
+    add_path_options(parser, interface.paths)
     return parser
+
+
+def add_path_options(parser: argparse.ArgumentParser, options: Iterable[PathOption]) -> None:
+    """One option per declared path: a repeatable ``NAME=PATH`` one for a family, else a path whose default is
+    the layout's where it is the same for every entry (else None: the script works it out from its entry)."""
+    for option in options:
+        if option.named:
+            add_named_paths(parser, option.option, option.what, f"every NAME's {option.describe_default()}")
+            continue
+        default = option.default()
+        parser.add_argument(option.option, type=Path, default=default, required=option.required,
+                            metavar="DIR" if option.folder else "FILE",
+                            help=f"{option.what} (default: {option.describe_default()})" if not option.required
+                            else f"{option.what} ({option.describe_default()})")
 
 
 def add_name_argument(parser: argparse.ArgumentParser, names: Sequence[str], prefix: str = "",
@@ -97,31 +114,10 @@ def named_paths(given: Iterable[tuple[str, Path]], names: Iterable[str], default
     return {name: Path(given[name]) if name in given else Path(default(name)) for name in names}
 
 
-def add_predictor_argument(parser: argparse.ArgumentParser) -> None:
-    """``--predictor NAME=DIR``: where predictor NAME's stage output folder is."""
-    add_named_paths(parser, "--predictor", "a predictor's folder (its predictor.pt)",
-                    str(layout_path("predictor", "NAME")))
-
-
 def predictor_files(args: argparse.Namespace, names: Iterable[str]) -> dict[str, Path]:
     """``{predictor: its predictor.pt}`` for ``names``, from ``--predictor`` or registry.yaml's layout."""
     folders = named_paths(args.predictor, dict.fromkeys(names), lambda n: layout_path("predictor", n), "--predictor")
     return {name: folder / PREDICTOR_FILE for name, folder in folders.items()}
-
-
-def add_tokenizer_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--detail-tokenizer DIR`` and ``--abstract-tokenizer DIR``: the tokenizer stages' output folders."""
-    for level in LEVELS:
-        parser.add_argument(f"--{level}-tokenizer", type=Path, default=None, metavar="DIR",
-                            help=f"the {level} tokenizer's folder (its {TOKENIZER_FILE}; default: the latent "
-                                 f"set's, registry.yaml)")
-
-
-def add_latent_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--latents DIR`` (a latent cache) and the two tokenizers it was encoded with."""
-    parser.add_argument("--latents", type=Path, default=None, metavar="DIR",
-                        help="the latent cache (default: the latent set's folder, registry.yaml layout)")
-    add_tokenizer_arguments(parser)
 
 
 @dataclass(frozen=True)
@@ -133,7 +129,7 @@ class LatentPaths:
 
 
 def latent_paths(args: argparse.Namespace, latent_set: str) -> LatentPaths:
-    """The paths of ``args`` (:func:`add_latent_arguments`), else those of registry.yaml's ``latent_set``."""
+    """The paths of ``args`` (``--latents``, ``--<level>-tokenizer``), else those of registry.yaml's ``latent_set``."""
     entry = registry().latent_sets[latent_set]
     given = {level: getattr(args, f"{level}_tokenizer", None) for level in LEVELS}
     tokenizers = {level: (Path(given[level]) / TOKENIZER_FILE if given[level] is not None
@@ -153,19 +149,19 @@ class Stage:
 
 
 @contextlib.contextmanager
-def open_stage(name: str, args: argparse.Namespace, sections: list[str]) -> Iterator[Stage]:
+def open_stage(name: str, args: argparse.Namespace, interface: Interface,
+               extra: Sequence[str] = ()) -> Iterator[Stage]:
     """Load the config of ``args.params``/``args.profile`` and open the stage's MLflow run for the block.
 
-    ``sections`` are the params.yaml sections the stage reads; they are logged as the
-    run's parameters. On leaving the block the wall time is logged (on the parent run
-    too, as ``time/<name>``) and
-    ``[<name>] <summary> (<s> s, profile <p>)`` printed. A user-fixable problem
-    (:class:`OrbisError`) prints ``[<name>] error: ...`` and exits with status 2.
+    The params.yaml sections the stage reads are its declaration's, with ``extra`` (an entry's own section,
+    as its rule passes it); they are logged as the run's parameters. On leaving the block the wall time is
+    logged (on the parent run too, as ``time/<name>``) and ``[<name>] <summary> (<s> s, profile <p>)``
+    printed. A user-fixable problem (:class:`OrbisError`) prints ``[<name>] error: ...`` and exits with status 2.
     """
     started = time.perf_counter()
     try:
         cfg = load_config(args.params, args.profile)
-        params = {"profile": cfg.profile, **{s: as_dict(cfg.section(s)) for s in sections}}
+        params = {"profile": cfg.profile, **{s: as_dict(cfg.section(s)) for s in interface.sections_with(extra)}}
         with stage_run(name, params, as_dict(cfg)) as run:
             stage = Stage(name, cfg, run)
             yield stage
