@@ -283,6 +283,52 @@ def config_drift(config: dict[str, Any], params_file: Path | str = "params.yaml"
     return sorted(key for key in keys if config.get(key) != raw.get(key))
 
 
+def _stage_paths(stage: dict[str, Any], keys: tuple[str, ...]) -> list[str]:
+    """The paths a dvc.yaml stage lists under ``keys`` (each entry a path, or a path with its options)."""
+    return [next(iter(entry)) if isinstance(entry, dict) else entry for key in keys for entry in stage.get(key, [])]
+
+
+def commit_sinks(targets: list[str], root: Path | str = ".") -> list[str] | None:
+    """The targets that no other target reads, when committing them with their dependencies commits exactly
+    ``targets``; None otherwise (then each target is committed by name).
+
+    ``dvc commit`` parses and rewrites dvc.lock once per target: about 3 s per stage at 45 stages, 2.5 CPU
+    minutes for ``reports/all``. ``--with-deps`` on the few sinks does it once per sink. A Snakemake run's
+    jobs include every job they read from, so its sinks' dependencies are the run itself; the check below
+    keeps that true for any run (``--until``, ``--omit-from``).
+    """
+    root = Path(root)
+    stages = yaml.safe_load((root / "dvc.yaml").read_text())["stages"]
+    stages[IMPORT_STAGE] = yaml.safe_load((root / "pipelines/import/dvc.yaml").read_text())["stages"]["import"]
+    outs = {name: _stage_paths(stage, ("outs", "metrics", "plots")) for name, stage in stages.items()}
+    params = load_params(root / "params.yaml")
+
+    def value(match: re.Match) -> str:  # dvc.yaml's ${data.all.source}
+        found: Any = params
+        for key in match.group(1).split("."):
+            found = found[key]
+        return str(found)
+
+    deps = {name: [re.sub(r"\$\{([\w.]+)\}", value, d) for d in _stage_paths(stage, ("deps",))]
+            for name, stage in stages.items()}
+
+    def reads(reader: str, writer: str) -> bool:
+        return any(d == o or d.startswith(o + "/") or o.startswith(d + "/") for d in deps[reader] for o in outs[writer])
+
+    def upstream(name: str) -> set[str]:
+        seen, todo = {name}, [name]
+        while todo:
+            reader = todo.pop()
+            found = [other for other in stages if other not in seen and reads(reader, other)]
+            seen.update(found)
+            todo += found
+        return seen
+
+    sinks = [t for t in targets if not any(reads(other, t) for other in targets if other != t)]
+    closure = set().union(*(upstream(t) for t in sinks)) if sinks else set()
+    return sinks if closure == set(targets) else None
+
+
 def commit_to_dvc(rules: list[str], drift: list[str], root: Path | str = ".") -> bool:
     """Record the outputs of a successful Snakemake run's ``rules`` in dvc.lock (``dvc commit --force``), so that
     ``dvc status`` is clean and ``dvc repro`` re-runs only what changes afterwards; True when it did.
@@ -304,7 +350,9 @@ def commit_to_dvc(rules: list[str], drift: list[str], root: Path | str = ".") ->
     targets += [IMPORT_STAGE] if "import" in rules else []
     if not targets:
         return False
-    proc = subprocess.run([sys.executable, "-m", "dvc", "commit", "--force", "--quiet", *targets], cwd=root,
+    sinks = commit_sinks(targets, root)
+    command = ["--with-deps", *sinks] if sinks else targets
+    proc = subprocess.run([sys.executable, "-m", "dvc", "commit", "--force", "--quiet", *command], cwd=root,
                           capture_output=True, text=True)
     if proc.returncode != 0:
         print(f"dvc.lock not updated: `dvc commit --force {' '.join(targets)}` failed:\n{proc.stderr.strip()}",
