@@ -35,7 +35,8 @@ from orbis2.errors import OrbisError
 from orbis2.eval.evaluate import format_table, pairs_from_folders, pairs_from_manifest
 from orbis2.eval.evaluate_videos import evaluate_videos
 from orbis2.eval.inverse_dynamics import WEIGHTS_FILE
-from orbis2.io import atomic_file, write_json
+from orbis2.eval.records import write_record
+from orbis2.io import atomic_file
 from orbis2.kinematics import integrate_odometry
 from orbis2.latents import encode_frames
 from orbis2.models.files import PredictorFile, TokenizerFile, load_predictor, load_tokenizer
@@ -353,7 +354,7 @@ def evaluate_command(args: argparse.Namespace) -> str:
                              instrument=args.instrument, instrument_weights=args.instrument_weights,
                              hfov_deg=args.hfov_deg, device=args.device)
     if args.out is not None:
-        write_json(args.out, record)
+        write_record(args.out, record)
     return format_table(record)
 
 

@@ -490,6 +490,21 @@ class CompressionRecord(Record):
     rows: list[CompressionRow]
 
 
+class GuidanceSelection(Record):
+    """``selection.json`` of tools/select_guidance.py (:func:`orbis2.eval.steering.choose_guidance`); written in
+    field order by :meth:`text`, not sorted like the stages' records."""
+
+    chosen: Num
+    resolved: bool
+    instrument: str
+    material_deg: Num
+    smaller_step_low_deg: dict[str, Num]  # by scale, written as a float ("2.0")
+    split: str
+
+    def text(self) -> str:
+        return json.dumps(to_json(self), indent=2) + "\n"
+
+
 R = TypeVar("R", bound=Record)
 
 
