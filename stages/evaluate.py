@@ -7,15 +7,15 @@
 The folder holds manifest.csv, or generated/ and real/ matched by file name, and
 optionally evaluate.yaml with the options `orbis2 evaluate` would take
 (``context_frames``, ``generated_has_context``, ``protocol``, ``instrument``,
-``hfov_deg``, ``split``; :mod:`orbis2.eval.evaluate_videos`). A rule with a
+``hfov_deg``, ``split``; :mod:`orbis2.eval.protocols.evaluate_videos`). A rule with a
 wildcard, so Snakemake only: dvc.yaml's stages are fixed.
 """
 
 from pathlib import Path
 
-from orbis2.eval.evaluate import format_table, reference_rows
-from orbis2.eval.evaluate_videos import evaluate_videos, plot_record, read_rollout_folder
-from orbis2.eval.inverse_dynamics import WEIGHTS_FILE
+from orbis2.eval.metrics.inverse_dynamics import WEIGHTS_FILE
+from orbis2.eval.protocols.evaluate import format_table, reference_rows
+from orbis2.eval.protocols.evaluate_videos import evaluate_videos, plot_record, read_rollout_folder
 from orbis2.eval.records import write_record
 from orbis2.interfaces import INTERFACES
 from orbis2.io import atomic_file

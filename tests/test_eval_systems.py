@@ -8,7 +8,7 @@ import torch
 from test_predictors import SPAN, C, write_cache
 
 from orbis2.errors import OrbisError
-from orbis2.eval.systems import (
+from orbis2.eval.protocols.systems import (
     SYSTEMS,
     LoadedSystem,
     contexts_for,

@@ -15,7 +15,8 @@ from orbis2.config.params import load_config
 from orbis2.data.video import read_video, write_video
 from orbis2.errors import OrbisError
 from orbis2.eval import records
-from orbis2.eval.evaluate import (
+from orbis2.eval.evaluate_records import EvaluateRecord
+from orbis2.eval.protocols.evaluate import (
     EvaluateError,
     Protocol,
     context_frames,
@@ -25,9 +26,8 @@ from orbis2.eval.evaluate import (
     pairs_from_manifest,
     protocol,
 )
-from orbis2.eval.evaluate_records import EvaluateRecord
-from orbis2.eval.evaluate_steering import add_steering
-from orbis2.eval.evaluate_videos import read_rollout_folder
+from orbis2.eval.protocols.evaluate_steering import add_steering
+from orbis2.eval.protocols.evaluate_videos import read_rollout_folder
 from orbis2.kinematics import integrate_controls
 
 from conftest import ROOT, run
@@ -39,7 +39,7 @@ PROTO = Protocol("test", seconds=1.6, long_seconds=3.2, chunk_seconds=1.6, boots
 @pytest.fixture(autouse=True)
 def small_i3d_input(monkeypatch):
     """Resize to 32x32 instead of 224x224 for the stand-in below: the same code path, a fiftieth of the work."""
-    monkeypatch.setattr("orbis2.eval.fvd.I3D_SIZE", 32)
+    monkeypatch.setattr("orbis2.eval.metrics.fvd.I3D_SIZE", 32)
 
 
 class PooledPixels(nn.Module):
@@ -205,7 +205,7 @@ def test_a_written_record_reads_back_and_rewrites_byte_for_byte(tmp_path, monkey
     steered = add_steering(evaluate_pairs(pairs, CONTEXT, PROTO, PooledPixels(), "sha"), pairs, PROTO, False,
                            LeftArc(), "left-arc", 90.0)
     records.write_record(tmp_path / "steered.json", steered)
-    monkeypatch.setattr("orbis2.eval.evaluate_videos.load_i3d", lambda path: PooledPixels())
+    monkeypatch.setattr("orbis2.eval.protocols.evaluate_videos.load_i3d", lambda path: PooledPixels())
     (tmp_path / "i3d.pt").write_bytes(b"stand-in")
     main(["evaluate", "--generated", str(tmp_path / "set/generated"), "--real", str(tmp_path / "set/real"),
           "--context-frames", str(CONTEXT), "--i3d", str(tmp_path / "i3d.pt"), "--params", str(ROOT / "params.yaml"),
@@ -228,7 +228,7 @@ def run_stage(argv, monkeypatch, tmp_path):
     """stages/evaluate.py's main in this process (so the stand-in I3D is used), tracked in a store under tmp_path."""
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
     monkeypatch.delenv("ORBIS2_PIPELINE_ID", raising=False)
-    monkeypatch.setattr("orbis2.eval.evaluate_videos.load_i3d", lambda path: PooledPixels())
+    monkeypatch.setattr("orbis2.eval.protocols.evaluate_videos.load_i3d", lambda path: PooledPixels())
     monkeypatch.chdir(tmp_path)
     (tmp_path / "i3d.pt").write_bytes(b"stand-in")
     stage = runpy.run_path(str(ROOT / "stages/evaluate.py"), run_name="evaluate_stage")

@@ -9,8 +9,9 @@ import pytest
 from pydantic import ValidationError
 
 from orbis2.errors import OrbisError
-from orbis2.eval import records, tables
+from orbis2.eval import records
 from orbis2.eval.evaluate_records import EvaluateRecord
+from orbis2.eval.report import tables
 
 from conftest import ROOT
 

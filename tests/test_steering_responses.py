@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from orbis2.eval.records import SteeringRecord
-from orbis2.eval.steering import (
+from orbis2.eval.protocols.steering import (
     choose_guidance,
     image_turns,
     latent_turns,
@@ -17,6 +16,7 @@ from orbis2.eval.steering import (
     steering_responses,
     turn_record,
 )
+from orbis2.eval.records import SteeringRecord
 from orbis2.models.deviations import translate_columns
 
 from conftest import ROOT

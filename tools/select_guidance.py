@@ -6,7 +6,7 @@
 Runs the `eval_steering` stage once per scale on the trained models of the workspace, with
 `evaluation.steering_split` set to ``--split`` (default `val`: drives disjoint from the `turns`
 drives the stage reports on) and everything else from the params file, then applies
-:func:`orbis2.eval.steering.choose_guidance`: the smallest scale whose two ordering steps by
+:func:`orbis2.eval.protocols.steering.choose_guidance`: the smallest scale whose two ordering steps by
 `evaluation.inverse_dynamics` (original - yaw x0.5, yaw x1.5 - original) both have a
 clip-bootstrap lower bound above `evaluation.steering_turn_material_deg`. Writes each scale's
 record and strip, and ``selection.json``, under ``--out``; put the chosen scale in params.yaml
@@ -23,8 +23,8 @@ from pathlib import Path
 import yaml
 
 from orbis2.config.params import load_config, load_params
+from orbis2.eval.protocols.steering import choose_guidance
 from orbis2.eval.records import SteeringRecord, from_json
-from orbis2.eval.steering import choose_guidance
 from orbis2.io import atomic_file
 
 STAGE = Path(__file__).resolve().parents[1] / "stages" / "eval_steering.py"

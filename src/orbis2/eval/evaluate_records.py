@@ -1,8 +1,8 @@
 """The record of ``orbis2 evaluate`` and of the ``evaluate_<name>`` stage (``fvd.json``), typed like
 :mod:`orbis2.eval.records`' and built from the same parts as the ``eval_fvd`` stages' records.
 
-:func:`orbis2.eval.evaluate.evaluate_pairs` builds an :class:`EvaluateRecord`,
-:func:`orbis2.eval.evaluate_steering.add_steering` adds its :class:`SteeringScores`, and the command
+:func:`orbis2.eval.protocols.evaluate.evaluate_pairs` builds an :class:`EvaluateRecord`,
+:func:`orbis2.eval.protocols.evaluate_steering.add_steering` adds its :class:`SteeringScores`, and the command
 and the stage write it with :func:`orbis2.eval.records.write_record`; anything reading a written one
 goes through :func:`orbis2.eval.records.from_json`. Strict like every record: an unknown key, a missing
 one or a value of the wrong type fails where the record is built or read.
@@ -14,7 +14,7 @@ from orbis2.eval.records import Chunked, Interval, Num, ProtocolCard, Record, Re
 
 
 class Pairing(Record):
-    """How many rollouts start closest to their own clip (:func:`orbis2.eval.evaluate.pairing_check`)."""
+    """How many rollouts start closest to their own clip (:func:`orbis2.eval.protocols.evaluate.pairing_check`)."""
 
     matched: int
     videos: int
@@ -23,7 +23,7 @@ class Pairing(Record):
 
 
 class RolloutVideo(Record):
-    """One scored rollout as :class:`orbis2.eval.evaluate.Pair` names it; paths as given."""
+    """One scored rollout as :class:`orbis2.eval.protocols.evaluate.Pair` names it; paths as given."""
 
     name: str
     generated: str
@@ -35,7 +35,7 @@ class RolloutVideo(Record):
 
 class SteeringScores(Record):
     """Steering ADE and the signed turn of rollouts with trajectories
-    (:func:`orbis2.eval.evaluate_steering.steering_record`)."""
+    (:func:`orbis2.eval.protocols.evaluate_steering.steering_record`)."""
 
     instrument: str
     hfov_deg: Num

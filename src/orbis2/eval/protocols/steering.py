@@ -3,7 +3,7 @@
 Rollouts of the hierarchical model with the steered top predictor run under each
 mode's scaling of the clip's own speed and yaw rate (:func:`steering_inputs`).
 Each video's trajectory is recovered by an inverse-dynamics instrument
-(:mod:`orbis2.eval.odometry`) and compared with the commanded one: ADE in metres
+(:mod:`orbis2.eval.metrics.odometry`) and compared with the commanded one: ADE in metres
 after least-squares scale alignment (:func:`score_videos`). Scale-free responses,
 paired per start (:func:`steering_responses`): the recovered turn (end-point
 angle, the clip's own turn direction positive) under yaw rate x1.5 minus under
@@ -25,12 +25,12 @@ import torch.nn.functional as F
 
 from orbis2.config.sections import DataConfig
 from orbis2.data.shards import Clip
-from orbis2.eval.conditioning import sideways_shift
 from orbis2.eval.figures import save_steering_strip
-from orbis2.eval.odometry import endpoint_angle, path_length, trajectory_ade
+from orbis2.eval.metrics.odometry import endpoint_angle, path_length, trajectory_ade
+from orbis2.eval.metrics.stats import mean_interval, paired_difference
+from orbis2.eval.protocols.conditioning import sideways_shift
+from orbis2.eval.protocols.systems import Sample
 from orbis2.eval.records import GuidanceSelection, SteeringRecord
-from orbis2.eval.stats import mean_interval, paired_difference
-from orbis2.eval.systems import Sample
 from orbis2.rollout import rollout_schedule, steering_sequences
 
 # Times (s) of the frames shown in the steering strip (those the rollout reaches).

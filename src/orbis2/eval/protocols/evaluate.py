@@ -3,7 +3,7 @@
 One code path for every FVD the project reports: :func:`score_rollouts` takes the
 I3D features of the real and generated frames of each window and returns the
 records; the ``eval_fvd_<system>`` stage feeds it the frames its rollouts decode,
-``orbis2 evaluate`` (:mod:`orbis2.eval.evaluate_videos`) the frames of video files another
+``orbis2 evaluate`` (:mod:`orbis2.eval.protocols.evaluate_videos`) the frames of video files another
 model wrote. Each record carries its :class:`Protocol` card (frames, rate,
 windows, context, resize, clips and videos, the I3D weights' checksum, seeds), so
 a number can be reproduced from what is printed beside it.
@@ -38,9 +38,9 @@ import numpy as np
 from orbis2.data.video import VIDEO_SUFFIXES, iter_frames, probe, resample_stride
 from orbis2.errors import OrbisError
 from orbis2.eval.evaluate_records import EvaluateRecord
-from orbis2.eval.fvd import CLIP_FRAMES, I3D_SIZE, chunk_windows, even_frame_indices, i3d_features
-from orbis2.eval.references import fvd_with_interval, real_floor
-from orbis2.eval.stats import fvd_slope_interval
+from orbis2.eval.metrics.fvd import CLIP_FRAMES, I3D_SIZE, chunk_windows, even_frame_indices, i3d_features
+from orbis2.eval.metrics.stats import fvd_slope_interval
+from orbis2.eval.protocols.references import fvd_with_interval, real_floor
 
 Features = Callable[[slice], np.ndarray]  # I3D features [N, 400] of the videos' frames in a window
 I3D_FEATURES = 400  # Kinetics-400 logits: below this many videos the covariance is rank-deficient
@@ -290,7 +290,7 @@ def evaluate_pairs(pairs: list[Pair], context_frames: int, proto: Protocol, i3d,
 
     Returns the record: the FVD and chunked records of :func:`score_rollouts`, the real-vs-real floor
     and the repeat-last row (the real last context frame held still), the warnings and the card
-    (steering scores are added by :mod:`orbis2.eval.evaluate_steering`).
+    (steering scores are added by :mod:`orbis2.eval.protocols.evaluate_steering`).
     """
     if context_frames < 1:
         raise EvaluateError(f"--context-frames {context_frames}: a rollout continues at least one real frame")

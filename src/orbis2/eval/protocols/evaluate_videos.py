@@ -1,7 +1,7 @@
 """What ``orbis2 evaluate`` does, for the command and the DAG's ``evaluate_<name>`` rule alike.
 
 :func:`evaluate_videos` loads I3D (and the steering instrument when the rollouts
-have trajectories) and scores the pairs through :func:`orbis2.eval.evaluate.evaluate_pairs`,
+have trajectories) and scores the pairs through :func:`orbis2.eval.protocols.evaluate.evaluate_pairs`,
 the code of the ``eval_fvd`` stages. :func:`read_rollout_folder` reads a folder of
 ``data/rollouts/<name>/`` (a manifest, or generated/ and real/, plus the options
 file that stands in for the command's options), and :func:`plot_record` draws a
@@ -18,7 +18,10 @@ import torch
 import yaml
 
 from orbis2.assets import AssetError, ensure_asset
-from orbis2.eval.evaluate import (
+from orbis2.eval.evaluate_records import EvaluateRecord
+from orbis2.eval.figures import pyplot, save_figure
+from orbis2.eval.metrics.odometry import get_inverse_dynamics
+from orbis2.eval.protocols.evaluate import (
     EvaluateError,
     Pair,
     context_frames,
@@ -28,10 +31,7 @@ from orbis2.eval.evaluate import (
     protocol,
     reference_rows,
 )
-from orbis2.eval.evaluate_records import EvaluateRecord
-from orbis2.eval.evaluate_steering import add_steering
-from orbis2.eval.figures import pyplot, save_figure
-from orbis2.eval.odometry import get_inverse_dynamics
+from orbis2.eval.protocols.evaluate_steering import add_steering
 from orbis2.io import sha256_file
 from orbis2.models.i3d import load_i3d
 

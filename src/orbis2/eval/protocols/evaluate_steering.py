@@ -1,6 +1,6 @@
 """Steering scores of any model's rollouts that come with their commanded trajectories (``orbis2 evaluate``).
 
-Kept apart from :mod:`orbis2.eval.evaluate`, which the ``eval_fvd`` stages import: the
+Kept apart from :mod:`orbis2.eval.protocols.evaluate`, which the ``eval_fvd`` stages import: the
 steering instrument's code is no input of the FVD stages.
 """
 
@@ -13,18 +13,19 @@ import numpy as np
 
 from orbis2.data.importer import read_odometry_csv
 from orbis2.data.video import iter_frames
-from orbis2.eval.evaluate import EvaluateError, Pair, Protocol
 from orbis2.eval.evaluate_records import EvaluateRecord, SteeringScores
-from orbis2.eval.odometry import camera_intrinsics
-from orbis2.eval.stats import mean_interval
-from orbis2.eval.steering import score_videos
+from orbis2.eval.metrics.odometry import camera_intrinsics
+from orbis2.eval.metrics.stats import mean_interval
+from orbis2.eval.protocols.evaluate import EvaluateError, Pair, Protocol
+from orbis2.eval.protocols.steering import score_videos
 
 
 def steering_record(pairs: list[Pair], fps: float, window: slice, offset: int, clusters: list[str],
                     proto: Protocol, instrument: Callable, instrument_name: str, hfov_deg: float) -> SteeringScores:
     """Steering ADE (metres, after scale alignment) and the signed turn response (degrees, the commanded turn's
-    direction positive) of each rollout's first ``window``, read by ``instrument`` (:mod:`orbis2.eval.steering`,
-    the code of the ``eval_steering`` stage), with clip-bootstrap intervals."""
+    direction positive) of each rollout's first ``window``, read by ``instrument``
+    (:mod:`orbis2.eval.protocols.steering`, the code of the ``eval_steering`` stage), with clip-bootstrap
+    intervals."""
     missing = [p for p in pairs if p.trajectory is None]
     if missing:
         raise EvaluateError(f"{missing[0].generated}: no trajectory (and {len(missing) - 1} more); give every "
