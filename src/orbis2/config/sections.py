@@ -183,7 +183,7 @@ class ProbeSettings:
     the paper), ``block_ablation`` the one for ablation models (2nd); both are clamped
     to the network's depth. ``test_fraction`` of the probe episodes are held out for
     the metrics. ``standardize`` fixes per-channel feature statistics from the train
-    frames before the head (still a linear probe; see ``orbis2.eval.protocols.probe``).
+    frames before the head (still a linear probe; see ``orbis2.eval.metrics.probe_heads``).
 
     Default data: the town's labelled ``probe`` split for both tasks. The paper's:
     ``cityscapes`` (root of leftImg8bit/ and gtFine/; train -> val) for segmentation
