@@ -1,11 +1,12 @@
 """The evaluation records: one typed model per kind, written by the evaluation stages and read strictly by the report.
 
 Each ``eval_*`` stage builds its record (:class:`FvdRecord`, :class:`ProbeRecord`, :class:`SteeringRecord`,
-:class:`SpeedRecord`, :class:`ConditioningRecord`) and writes it with :func:`write_record`; the report reads
-them back with :func:`read_evals` / :func:`load_eval` into an :class:`Evals` and by attribute
-(``evals.steering_record().modes[mode].ade_low``). Reading is strict: a missing key, an unknown key or a value of
-the wrong type stops with an ``OrbisError`` naming the file, the key and the stage that writes it, so a renamed
-key fails when its record is read, not in the last table of a long run, and no table is padded with guesses.
+:class:`SpeedRecord`, :class:`ConditioningRecord`; ``orbis2 evaluate``'s in :mod:`orbis2.eval.evaluate_records`) and
+writes it with :func:`write_record`; the report reads them back with :func:`read_evals` / :func:`load_eval` into
+an :class:`Evals` and by attribute (``evals.steering_record().modes[mode].ade_low``). Reading is strict: a
+missing key, an unknown key or a value of the wrong type stops with an ``OrbisError`` naming the file, the key
+and the stage that writes it, so a renamed key fails when its record is read, not in the last table of a long
+run, and no table is padded with guesses.
 
 A record re-writes byte for byte: numbers keep the type they were written with (an int stays an int where a
 float is allowed), and a key the stage writes only sometimes (``chunked``, ``per_block``, ...) is a field
