@@ -35,9 +35,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from orbis2.eval.fvd import even_frame_indices, frechet_distance
-from orbis2.eval.rollout_fvd import PickedFrames
-from orbis2.eval.stats import cluster_weights, fvd_statistic, weighted_moments
+from orbis2.eval.metrics.fvd import even_frame_indices, frechet_distance
+from orbis2.eval.metrics.stats import cluster_weights, fvd_statistic, weighted_moments
+from orbis2.eval.protocols.rollout_fvd import PickedFrames
 from orbis2.models import i3d
 from orbis2.models.tokenizer import build_detail_tokenizer
 

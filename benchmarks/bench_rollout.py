@@ -48,12 +48,14 @@ from orbis2.accel import (
     inference_autocast,
     set_tf32,
 )
+from orbis2.config.params import load_config
 from orbis2.models.stdit import STDIT_PRESETS, build_stdit, stdit_config
 from orbis2.models.tokenizer import TOKENIZER_PRESETS, build_detail_tokenizer
-from orbis2.rollout import ABSTRACT_NFE, DETAIL_NFE, cascaded_rollout, flat_rollout
+from orbis2.rollout import ABSTRACT_NFE, DETAIL_NFE, cascaded_rollout, detail_frames_per_step, flat_rollout
 
 LATENT_CHANNELS = 16
-CONTEXT, PER_STEP = 5, 5
+DATA = load_config(Path(__file__).resolve().parents[1] / "params.yaml").data  # the rates: one for every profile
+CONTEXT, PER_STEP = 5, detail_frames_per_step(DATA.detail_hz, DATA.abstract_hz)
 SYSTEMS = ("hierarchical", "distilled", "flat_detail", "v1_style")
 
 
@@ -105,7 +107,7 @@ def rollout_worker(args: argparse.Namespace) -> dict:
     device = torch.device(args.device)
     h, w = args.grid
     gen = torch.Generator(device=device).manual_seed(0)
-    steps = max(1, round(args.seconds * 2))
+    steps = max(1, round(args.seconds * DATA.abstract_hz))
     d_ctx = torch.randn(1, CONTEXT, LATENT_CHANNELS, h, w, device=device)
     with torch.device(device):  # initialise on the device: fast even at the paper's sizes
         tokenizer = decoder(args.preset).eval()
@@ -121,14 +123,15 @@ def rollout_worker(args: argparse.Namespace) -> dict:
 
         def generate() -> torch.Tensor:
             return cascaded_rollout(abstract, detail, d_ctx, a_ctx, steps, gen, abstract_nfe=ABSTRACT_NFE,
-                                    detail_nfe=detail_nfe, steering=steering, kv_cache=args.kv_cache)[0]
+                                    detail_nfe=detail_nfe, abstract_hz=DATA.abstract_hz, detail_hz=DATA.detail_hz,
+                                    steering=steering, kv_cache=args.kv_cache)[0]
     else:
         flat = models[0].eval()
         nets = [flat]
         per_step = PER_STEP if args.worker == "flat_detail" else 1
 
         def generate() -> torch.Tensor:
-            return flat_rollout(flat, d_ctx, steps * PER_STEP // per_step, per_step, 30, 10.0, gen)
+            return flat_rollout(flat, d_ctx, steps * PER_STEP // per_step, per_step, 30, DATA.detail_hz, gen)
     _perturb_outputs(*nets)
     for net in nets:
         net.requires_grad_(False)

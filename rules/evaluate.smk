@@ -3,7 +3,7 @@
 # A rule with a wildcard, so Snakemake only: dvc.yaml's stages are fixed (orbis2.dag leaves it out).
 
 from orbis2.errors import OrbisError
-from orbis2.eval.evaluate_videos import read_rollout_folder
+from orbis2.eval.protocols.evaluate_videos import read_rollout_folder
 
 
 def rollouts_of(wildcards):

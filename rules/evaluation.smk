@@ -1,7 +1,7 @@
 # Evaluation: FVD of every system, linear probes of every probe target, the inverse-dynamics
 # instrument, steering, speed, conditioning diagnostics.
 
-from orbis2.eval.conditioning import scope_predictors
+from orbis2.eval.protocols.conditioning import scope_predictors
 
 EVAL_FVD, EVAL_PROBE, INVERSE_DYNAMICS, EVAL_STEERING, EVAL_SPEED, EVAL_CONDITIONING = (INTERFACES[kind] for kind in (
     "eval_fvd", "eval_probe", "inverse_dynamics", "eval_steering", "eval_speed", "eval_conditioning"))

@@ -6,7 +6,7 @@ trivial predictions? -> reports/eval/conditioning.json / conditioning_all.json.
 
 Paired variant errors on val windows, one-step conditional means vs baselines,
 latent statistics and the steered predictor's response inside the model
-(:mod:`orbis2.eval.conditioning`): every predictor of the scope on the same val
+(:mod:`orbis2.eval.protocols.conditioning`): every predictor of the scope on the same val
 windows and noise draws, over ``evaluation.seeds``.
 """
 
@@ -14,7 +14,7 @@ windows and noise draws, over ``evaluation.seeds``.
 import numpy as np
 
 from orbis2.accel import default_device
-from orbis2.eval.conditioning import (
+from orbis2.eval.protocols.conditioning import (
     evaluate_predictor,
     latent_statistics,
     latent_steering_response,

@@ -3,12 +3,12 @@
 
     python stages/eval_fvd.py hierarchical --profile default
 
-Systems (``orbis2.eval.systems.SYSTEMS``): flat_detail, flat_abstract, hierarchical
+Systems (``orbis2.eval.protocols.systems.SYSTEMS``): flat_detail, flat_abstract, hierarchical
 (the main table), top_detail and top_abstract_10hz (hierarchy Exps. 4 and 5).
 
 Each split gets FVD over ``seconds`` with a clip-bootstrap interval beside the
-reference rows of :mod:`orbis2.eval.references`; ``long_split`` also chunked FVD and
-the FVD-slope over ``long_seconds`` (:mod:`orbis2.eval.rollout_fvd`). Whether a
+reference rows of :mod:`orbis2.eval.protocols.references`; ``long_split`` also chunked FVD and
+the FVD-slope over ``long_seconds`` (:mod:`orbis2.eval.protocols.rollout_fvd`). Whether a
 rollout beats repeating the last frame in latent space is the ``eval_conditioning``
 stage's unbiased one-step comparison, not a sample's MSE (which pays twice the
 conditional variance).
@@ -20,9 +20,9 @@ from pathlib import Path
 from orbis2.accel import default_device
 from orbis2.assets import ensure_asset
 from orbis2.data.shards import verify_shards
+from orbis2.eval.protocols.rollout_fvd import split_fvd
+from orbis2.eval.protocols.systems import SYSTEMS, inference_settings, load_system
 from orbis2.eval.records import FvdRecord, Nfe, write_record
-from orbis2.eval.rollout_fvd import split_fvd
-from orbis2.eval.systems import SYSTEMS, inference_settings, load_system
 from orbis2.interfaces import INTERFACES
 from orbis2.io import atomic_dir, sha256_file
 from orbis2.latents import open_cache

@@ -5,7 +5,7 @@
 
 Targets (registry.yaml, ``probe_targets``): abstract_tokenizer, teacher, and every
 predictor stage but action. Predictors follow the null-context protocol of
-:func:`orbis2.eval.probe.predictor_features` (paper appendix "Linear probing
+:func:`orbis2.eval.protocols.probe.predictor_features` (paper appendix "Linear probing
 details"); the k-th block from the end is clamped to the network's depth.
 """
 
@@ -14,7 +14,7 @@ from pathlib import Path
 from orbis2.accel import default_device
 from orbis2.assets import TEACHER_ASSETS, asset_path
 from orbis2.data.shards import verify_shards
-from orbis2.eval.probe import (
+from orbis2.eval.protocols.probe import (
     predictor_features,
     probe_all,
     probe_config,

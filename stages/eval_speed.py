@@ -14,9 +14,8 @@ batch 1, ``speed_seconds`` of rollout from a val context with the evaluation's N
 import torch
 
 from orbis2.accel import default_device
-from orbis2.eval.records import Nfe, SpeedRecord, SpeedRun, write_record
-from orbis2.eval.speed import measure
-from orbis2.eval.systems import (
+from orbis2.eval.protocols.speed import measure
+from orbis2.eval.protocols.systems import (
     SPEED_SYSTEMS,
     SYSTEMS,
     contexts_for,
@@ -25,6 +24,7 @@ from orbis2.eval.systems import (
     load_system,
     rollout_steps,
 )
+from orbis2.eval.records import Nfe, SpeedRecord, SpeedRun, write_record
 from orbis2.interfaces import INTERFACES
 from orbis2.latents import open_cache
 from orbis2.registry import SCOPES, layout_path, registry

@@ -8,7 +8,7 @@ learned instrument by default) and, with ``evaluation.opencv_rollouts``, by Open
 visual odometry (second column; always on the real videos); ADE in
 metres after least-squares scale alignment to the commanded trajectory, scale-free
 turn and path-length responses, and each instrument on the real videos as a sanity
-check (:mod:`orbis2.eval.steering`). Two readings of the turn alone, each with the real
+check (:mod:`orbis2.eval.protocols.steering`). Two readings of the turn alone, each with the real
 continuation as its calibration: the rollout's detail latents (their sideways shift, no
 decoding) and the decoded frames' sideways motion (no learning). Both readings also
 score a reference rollout: the bottom predictor alone, given the real subgoals (the real
@@ -23,10 +23,9 @@ import numpy as np
 from orbis2.accel import default_device
 from orbis2.data.shards import split_clips, verify_shards
 from orbis2.errors import OrbisError
-from orbis2.eval.inverse_dynamics import WEIGHTS_FILE
-from orbis2.eval.odometry import camera_intrinsics, get_inverse_dynamics
-from orbis2.eval.records import Material, Nfe, SteeringRecord, write_record
-from orbis2.eval.steering import (
+from orbis2.eval.metrics.inverse_dynamics import WEIGHTS_FILE
+from orbis2.eval.metrics.odometry import camera_intrinsics, get_inverse_dynamics
+from orbis2.eval.protocols.steering import (
     image_turns,
     latent_turns,
     mode_record,
@@ -38,7 +37,7 @@ from orbis2.eval.steering import (
     steering_responses,
     turn_record,
 )
-from orbis2.eval.systems import (
+from orbis2.eval.protocols.systems import (
     SYSTEMS,
     cache_latents,
     eval_samples,
@@ -50,6 +49,7 @@ from orbis2.eval.systems import (
     rollout_steps,
     sample_clusters,
 )
+from orbis2.eval.records import Material, Nfe, SteeringRecord, write_record
 from orbis2.interfaces import INTERFACES
 from orbis2.kinematics import integrate_controls
 from orbis2.latents import open_cache

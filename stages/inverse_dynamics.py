@@ -4,13 +4,13 @@
 Trains on the train split's frame pairs with the shared loop; checkpoints live in
 data/runs/ (see `training_dir`): a killed run resumes there. Val R^2 on real
 pairs, on the detail tokenizer's reconstructions of them and on shuffled pairs
-(the control); see :mod:`orbis2.eval.inverse_dynamics`.
+(the control); see :mod:`orbis2.eval.metrics.inverse_dynamics`.
 """
 
 
 from orbis2.accel import default_device
 from orbis2.data.shards import verify_shards
-from orbis2.eval.inverse_dynamics import WEIGHTS_FILE, evaluate_instrument, load_clips, pair_index, reconstruct
+from orbis2.eval.metrics.inverse_dynamics import WEIGHTS_FILE, evaluate_instrument, load_clips, pair_index, reconstruct
 from orbis2.interfaces import INTERFACES
 from orbis2.io import atomic_dir, write_json
 from orbis2.stage import TOKENIZER_FILE, copy_curves, open_stage, stage_parser, training_dir

@@ -17,12 +17,19 @@ from pathlib import Path
 import numpy as np
 
 from orbis2.errors import OrbisError
-from orbis2.eval.claims import check_claims
 from orbis2.eval.figures import save_rollout_grid
+from orbis2.eval.protocols.systems import SYSTEMS
 from orbis2.eval.records import EVAL_KINDS, read_evals
-from orbis2.eval.report import HEADLINE_JSON, MAIN_CSV, headline, report_setup, write_full_report, write_main_report
-from orbis2.eval.systems import SYSTEMS
-from orbis2.eval.tables import TableSettings, compression_from_evals
+from orbis2.eval.report.claims import check_claims
+from orbis2.eval.report.report import (
+    HEADLINE_JSON,
+    MAIN_CSV,
+    headline,
+    report_setup,
+    write_full_report,
+    write_main_report,
+)
+from orbis2.eval.report.tables import TableSettings, compression_from_evals
 from orbis2.interfaces import INTERFACES
 from orbis2.io import atomic_dir, write_json
 from orbis2.registry import layout_path, registry

@@ -5,9 +5,15 @@ from __future__ import annotations
 import pytest
 import torch
 
+from orbis2.config.params import load_config
 from orbis2.flow import euler_sample
 from orbis2.models.stdit import build_stdit, stdit_config
 from orbis2.rollout import cascaded_rollout, flat_rollout, sample_frames
+
+from conftest import ROOT
+
+DATA = load_config(ROOT / "params.yaml", "smoke").data
+RATES = {"abstract_hz": DATA.abstract_hz, "detail_hz": DATA.detail_hz}  # the rollout's: params.yaml's data section
 
 
 def _abstract(steering: bool = False, **overrides) -> torch.nn.Module:
@@ -63,7 +69,8 @@ def test_cached_and_uncached_rollouts_agree():
     top, bottom = _abstract(), _detail()
     detail_ctx, abstract_ctx = torch.randn(1, 5, 4, 3, 5), torch.randn(1, 5, 4, 3, 5)
     runs = [cascaded_rollout(top, bottom, detail_ctx, abstract_ctx, 3, torch.Generator().manual_seed(5),
-                             abstract_nfe=4, detail_nfe=3, kv_cache=cache) for cache in (False, True)]
+                             abstract_nfe=4, detail_nfe=3, **RATES, kv_cache=cache)
+            for cache in (False, True)]
     for plain, cached in zip(*runs):
         torch.testing.assert_close(cached, plain, rtol=1e-4, atol=1e-4)
     flats = [flat_rollout(top, abstract_ctx, 2, 1, 4, 2.0,

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from orbis2.eval.conditioning import (
+from orbis2.eval.metrics.ego_motion import ego_motion_pairs, ego_motion_probe, probe_features, ridge_fit, select_penalty
+from orbis2.eval.protocols.conditioning import (
     effect_rows,
     energy_shares,
     flow_loss,
@@ -18,7 +19,6 @@ from orbis2.eval.conditioning import (
     swapped,
     variant_errors,
 )
-from orbis2.eval.ego_motion import ego_motion_pairs, ego_motion_probe, probe_features, ridge_fit, select_penalty
 from orbis2.models.deviations import translate_columns
 
 CLIPS, PER_CLIP, N_CONTEXT, N_TARGET, SHAPE = 8, 4, 2, 3, (2, 3, 4)

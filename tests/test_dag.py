@@ -155,7 +155,7 @@ def test_code_inputs_follow_the_import_graph():
     code = dag.code_inputs("stages/predictor.py")
     assert {"stages/predictor.py", "src/orbis2/tasks/predictors.py", "src/orbis2/models/stdit.py",
             "src/orbis2/flow.py", "src/orbis2/train.py"} <= set(code)
-    assert "src/orbis2/eval/report.py" not in code  # training does not import the report
+    assert "src/orbis2/eval/report/report.py" not in code  # training does not import the report
 
 
 def test_evaluation_stages_depend_on_no_training_code():

@@ -8,7 +8,7 @@ import torch
 from test_predictors import SPAN, C, write_cache
 
 from orbis2.errors import OrbisError
-from orbis2.eval.systems import (
+from orbis2.eval.protocols.systems import (
     SYSTEMS,
     LoadedSystem,
     contexts_for,
@@ -78,3 +78,17 @@ def test_every_system_rolls_out_from_cache_contexts(name, tmp_path, smoke_cfg):
     assert out.shape == (2, 15, C, 3, 4) and torch.isfinite(out).all()
     again = loaded.rollout(contexts, 3, torch.Generator().manual_seed(1), top_nfe=2, bottom_nfe=2)
     assert torch.equal(out, again)
+
+
+def test_a_pair_whose_rates_do_not_fill_the_step_is_refused(tmp_path, smoke_cfg):
+    """The detail frames per step follow from the rates: a top recorded at 5 Hz over a 10-Hz bottom of 5 frames
+    per step would place its subgoal mid-step, so the rollout stops naming the system."""
+    cache = write_cache(tmp_path, {"val": [60, 60]})
+    top = predictor("abstract", "slow")
+    top.meta["frame_rate"] = 5.0
+    loaded = LoadedSystem("hierarchical", SYSTEMS["hierarchical"], predictor("detail", "fast", True), top, {})
+    samples = eval_samples(cache, "val", smoke_cfg.data, steps=1, starts_per_clip=1)
+    contexts = contexts_for(loaded, cache, "val", smoke_cfg.data, samples)
+    with pytest.raises(OrbisError, match="hierarchical: the bottom predictor adds 5 frames per step, but its 10 Hz "
+                                         "under a 5 Hz top gives 2"):
+        loaded.rollout(contexts, 1, torch.Generator().manual_seed(1), top_nfe=1, bottom_nfe=1)

@@ -13,7 +13,10 @@ from torch import nn
 from orbis2.cli import main
 from orbis2.config.params import load_config
 from orbis2.data.video import read_video, write_video
-from orbis2.eval.evaluate import (
+from orbis2.errors import OrbisError
+from orbis2.eval import records
+from orbis2.eval.evaluate_records import EvaluateRecord
+from orbis2.eval.protocols.evaluate import (
     EvaluateError,
     Protocol,
     context_frames,
@@ -23,8 +26,8 @@ from orbis2.eval.evaluate import (
     pairs_from_manifest,
     protocol,
 )
-from orbis2.eval.evaluate_steering import add_steering
-from orbis2.eval.evaluate_videos import read_rollout_folder
+from orbis2.eval.protocols.evaluate_steering import add_steering
+from orbis2.eval.protocols.evaluate_videos import read_rollout_folder
 from orbis2.kinematics import integrate_controls
 
 from conftest import ROOT, run
@@ -36,7 +39,7 @@ PROTO = Protocol("test", seconds=1.6, long_seconds=3.2, chunk_seconds=1.6, boots
 @pytest.fixture(autouse=True)
 def small_i3d_input(monkeypatch):
     """Resize to 32x32 instead of 224x224 for the stand-in below: the same code path, a fiftieth of the work."""
-    monkeypatch.setattr("orbis2.eval.fvd.I3D_SIZE", 32)
+    monkeypatch.setattr("orbis2.eval.metrics.fvd.I3D_SIZE", 32)
 
 
 class PooledPixels(nn.Module):
@@ -86,27 +89,27 @@ def test_lossless_videos_read_back_bit_for_bit(tmp_path):
 
 def test_identical_folders_score_zero_beside_a_positive_floor(tmp_path):
     record = evaluate_pairs(write_set(tmp_path), CONTEXT, PROTO, PooledPixels(), "sha")
-    assert abs(record["fvd"]["fvd"]) < 1e-6
-    assert record["fvd"]["low"] == pytest.approx(0, abs=1e-6) and record["fvd"]["high"] == pytest.approx(0, abs=1e-6)
-    floor = record["references"]["real_floor"]
-    assert floor["fvd"] > 1.0 and floor["half_splits"] == 5
-    assert record["references"]["repeat_last"]["fvd"] > 0.1  # a still frame is not the continuation
-    assert [c["fvd"] for c in record["chunked"]["chunks"]] == pytest.approx([0, 0], abs=1e-6)
-    assert record["pairing"]["matched"] == 8
-    assert not any("shuffled" in w for w in record["warnings"])
-    assert any("rank-deficient" in w for w in record["warnings"])  # 8 videos cannot resolve much
-    card = record["protocol"]
-    assert (card["fps"], card["context_frames"], card["videos"], card["clips"], card["i3d_frames"]) == (10, 3, 8, 8, 16)
+    assert abs(record.fvd.fvd) < 1e-6
+    assert record.fvd.low == pytest.approx(0, abs=1e-6) and record.fvd.high == pytest.approx(0, abs=1e-6)
+    floor = record.references.real_floor
+    assert floor.fvd > 1.0 and floor.half_splits == 5
+    assert record.references.repeat_last.fvd > 0.1  # a still frame is not the continuation
+    assert [c.fvd for c in record.chunked.chunks] == pytest.approx([0, 0], abs=1e-6)
+    assert record.pairing.matched == 8
+    assert not any("shuffled" in w for w in record.warnings)
+    assert any("rank-deficient" in w for w in record.warnings)  # 8 videos cannot resolve much
+    card = record.protocol
+    assert (card.fps, card.context_frames, card.videos, card.clips, card.i3d_frames) == (10, 3, 8, 8, 16)
     assert "protocol:" in format_table(record)
 
 
 def test_noisy_rollouts_score_above_zero_and_shuffled_pairs_are_detected(tmp_path):
     noisy = evaluate_pairs(write_set(tmp_path / "noisy", noise=20), CONTEXT, PROTO, PooledPixels(), "sha")
-    assert noisy["fvd"]["fvd"] > 1e-3 and noisy["pairing"]["matched"] == 8
+    assert noisy.fvd.fvd > 1e-3 and noisy.pairing.matched == 8
     shuffled = evaluate_pairs(write_set(tmp_path / "shuffled", shuffle=True), CONTEXT, PROTO, PooledPixels(), "sha")
-    assert abs(shuffled["fvd"]["fvd"]) < 1e-6  # FVD compares sets: the same set in any order scores the same
-    assert shuffled["pairing"]["matched"] <= 2
-    assert "look shuffled" in shuffled["warnings"][0]
+    assert abs(shuffled.fvd.fvd) < 1e-6  # FVD compares sets: the same set in any order scores the same
+    assert shuffled.pairing.matched <= 2
+    assert "look shuffled" in shuffled.warnings[0]
 
 
 def test_manifest_groups_rows_by_clip_and_context_frames_can_lead_the_rollouts(tmp_path):
@@ -123,12 +126,12 @@ def test_manifest_groups_rows_by_clip_and_context_frames_can_lead_the_rollouts(t
     with pytest.raises(EvaluateError, match="pass --context-frames"):
         context_frames(pairs, None, None)
     record = evaluate_pairs(from_manifest, CONTEXT, PROTO, PooledPixels(), "sha", generated_has_context=True)
-    assert abs(record["fvd"]["fvd"]) < 1e-6
-    assert (record["fvd"]["clips"], record["fvd"]["videos"], record["protocol"]["clips"]) == (4, 8, 4)
-    assert record["pairing"]["matched"] == 8
+    assert abs(record.fvd.fvd) < 1e-6
+    assert (record.fvd.clips, record.fvd.videos, record.protocol.clips) == (4, 8, 4)
+    assert record.pairing.matched == 8
     # without the flag the context frames are scored as if generated: the first frames no longer match
     shifted = evaluate_pairs(from_manifest, CONTEXT, PROTO, PooledPixels(), "sha")
-    assert shifted["fvd"]["fvd"] > 1e-3
+    assert shifted.fvd.fvd > 1e-3
 
 
 def test_paper_protocol_needs_its_six_seconds(tmp_path):
@@ -140,7 +143,7 @@ def test_paper_protocol_needs_its_six_seconds(tmp_path):
     assert len(paper.chunks(10)[0]) == 4
     short = Protocol("short", 1.6, 6.4, 1.6, 20, 0, 5)
     assert "no chunked FVD" in evaluate_pairs(write_set(tmp_path / "s"), CONTEXT, short, PooledPixels(),
-                                              "sha")["warnings"][-1]
+                                              "sha").warnings[-1]
     with pytest.raises(EvaluateError, match="6 s = 60 frames"):
         evaluate_pairs(write_set(tmp_path), CONTEXT, paper, PooledPixels(), "sha")
 
@@ -179,23 +182,53 @@ def test_trajectories_give_steering_ade_and_the_signed_turn(tmp_path):
     pairs = pairs_from_folders(tmp_path / "generated", tmp_path / "real")
     assert all(p.trajectory is not None for p in pairs)
     record = evaluate_pairs(pairs, CONTEXT, PROTO, PooledPixels(), "sha")
-    add_steering(record, pairs, PROTO, False, LeftArc(), "left-arc", 90.0)
-    steering = record["steering"]
+    record = add_steering(record, pairs, PROTO, False, LeftArc(), "left-arc", 90.0)
+    steering = record.steering
     commanded = np.degrees(0.3 * 15 / FPS) / 2  # end-point angle of the 1.5-s arc: half its heading change
-    assert steering["commanded_turn_deg"]["estimate"] == pytest.approx(commanded, rel=1e-6)
-    assert steering["turn_deg"]["estimate"] == pytest.approx(0.0, abs=1e-6)  # +turn for half, -turn for the rest
-    assert steering["ade_m"]["estimate"] > 0.5 and steering["ade_m"]["low"] <= steering["ade_m"]["high"]
+    assert steering.commanded_turn_deg.estimate == pytest.approx(commanded, rel=1e-6)
+    assert steering.turn_deg.estimate == pytest.approx(0.0, abs=1e-6)  # +turn for half, -turn for the rest
+    assert steering.ade_m.estimate > 0.5 and steering.ade_m.low <= steering.ade_m.high
     assert "steering (left-arc)" in format_table(record)
     pairs[0].trajectory.write_text("timestamp,speed,yaw_rate\n0,10,0.3\n0.5,10,0.3\n")
     with pytest.raises(EvaluateError, match="00.csv: covers 0-0.5 s, but the scored window needs 0-1.5 s"):
         add_steering(record, pairs, PROTO, False, LeftArc(), "left-arc", 90.0)
 
 
+def test_a_written_record_reads_back_and_rewrites_byte_for_byte(tmp_path, monkeypatch):
+    """The record `orbis2 evaluate --out` writes (here with steering scores and trajectories) validates strictly and
+    dumps to the same bytes, so a published record keeps its hash; a renamed key stops the read naming it."""
+    pairs = write_set(tmp_path / "set")
+    for pair in pairs:
+        pair.generated.with_suffix(".csv").write_text(
+            "timestamp,speed,yaw_rate\n" + "".join(f"{t / FPS:.2f},10.0,0.3\n" for t in range(FRAMES)))
+    pairs = pairs_from_folders(tmp_path / "set/generated", tmp_path / "set/real")
+    steered = add_steering(evaluate_pairs(pairs, CONTEXT, PROTO, PooledPixels(), "sha"), pairs, PROTO, False,
+                           LeftArc(), "left-arc", 90.0)
+    records.write_record(tmp_path / "steered.json", steered)
+    monkeypatch.setattr("orbis2.eval.protocols.evaluate_videos.load_i3d", lambda path: PooledPixels())
+    (tmp_path / "i3d.pt").write_bytes(b"stand-in")
+    main(["evaluate", "--generated", str(tmp_path / "set/generated"), "--real", str(tmp_path / "set/real"),
+          "--context-frames", str(CONTEXT), "--i3d", str(tmp_path / "i3d.pt"), "--params", str(ROOT / "params.yaml"),
+          "--profile", "smoke", "--instrument", "opencv", "--out", str(tmp_path / "cli.json")])
+    for name in ("steered.json", "cli.json"):
+        written = (tmp_path / name).read_text()
+        record = EvaluateRecord.model_validate_json(written)
+        records.write_record(tmp_path / f"again_{name}", record)
+        assert (tmp_path / f"again_{name}").read_text() == written
+    assert steered.steering is not None and steered.videos[0].trajectory.endswith("00.csv")
+    doc = json.loads((tmp_path / "cli.json").read_text())
+    doc["pairing"]["matches"] = doc["pairing"].pop("matched")
+    (tmp_path / "renamed.json").write_text(json.dumps(doc))
+    with pytest.raises(OrbisError, match=r"renamed.json \(written by stage evaluate\) is not a EvaluateRecord: "
+                                         r"pairing.matched: missing key; pairing.matches: unknown key"):
+        records.from_json(EvaluateRecord, tmp_path / "renamed.json", "evaluate")
+
+
 def run_stage(argv, monkeypatch, tmp_path):
     """stages/evaluate.py's main in this process (so the stand-in I3D is used), tracked in a store under tmp_path."""
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
     monkeypatch.delenv("ORBIS2_PIPELINE_ID", raising=False)
-    monkeypatch.setattr("orbis2.eval.evaluate_videos.load_i3d", lambda path: PooledPixels())
+    monkeypatch.setattr("orbis2.eval.protocols.evaluate_videos.load_i3d", lambda path: PooledPixels())
     monkeypatch.chdir(tmp_path)
     (tmp_path / "i3d.pt").write_bytes(b"stand-in")
     stage = runpy.run_path(str(ROOT / "stages/evaluate.py"), run_name="evaluate_stage")
@@ -209,19 +242,19 @@ def test_the_evaluate_stage_scores_a_rollout_folder_and_logs_one_run(tmp_path, m
     (folder / "evaluate.yaml").write_text(f"context_frames: {CONTEXT}\nsplit: turns\n")
     run_stage(["--rollouts", "data/rollouts/mine"], monkeypatch, tmp_path)
     out = tmp_path / "reports/evaluate/mine"
-    record = json.loads((out / "fvd.json").read_text())
+    record = records.from_json(EvaluateRecord, out / "fvd.json", "evaluate_mine")
     smoke = protocol("orbis2", load_config(ROOT / "params.yaml", "smoke").evaluation)
-    assert (record["protocol"]["seconds"], record["protocol"]["context_frames"]) == (smoke.seconds, CONTEXT)
-    expected = evaluate_pairs(pairs, CONTEXT, smoke, PooledPixels(), record["protocol"]["i3d_sha256"], split="turns")
-    assert record["fvd"]["fvd"] == pytest.approx(expected["fvd"]["fvd"]) and record["fvd"]["fvd"] > 1e-3
-    assert record["fvd"]["draws"] == pytest.approx(expected["fvd"]["draws"])
+    assert (record.protocol.seconds, record.protocol.context_frames) == (smoke.seconds, CONTEXT)
+    expected = evaluate_pairs(pairs, CONTEXT, smoke, PooledPixels(), record.protocol.i3d_sha256, split="turns")
+    assert record.fvd.fvd == pytest.approx(expected.fvd.fvd) and record.fvd.fvd > 1e-3
+    assert record.fvd.draws == pytest.approx(expected.fvd.draws)
     table = (out / "table.txt").read_text()
     assert table.splitlines()[0] == format_table(record).splitlines()[0] and "protocol: protocol=orbis2" in table
     assert (out / "fvd.png").read_bytes()[:4] == b"\x89PNG"
     with sqlite3.connect(tmp_path / "mlflow.db") as con:
         runs = dict(con.execute("select name, run_uuid from runs where name like 'evaluate_%'"))
         metrics = dict(con.execute("select key, value from metrics where run_uuid = ?", (runs["evaluate_mine"],)))
-    assert list(runs) == ["evaluate_mine"] and metrics["fvd"] == pytest.approx(record["fvd"]["fvd"])
+    assert list(runs) == ["evaluate_mine"] and metrics["fvd"] == pytest.approx(record.fvd.fvd)
 
     (folder / "evaluate.yaml").write_text("context_frame: 3\n")
     with pytest.raises(SystemExit) as exit_info:

@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from orbis2.assets import ASSETS, ensure_asset
-from orbis2.eval.fvd import (
+from orbis2.eval.metrics.fvd import (
     FeatureStats,
     cached_stats,
     chunk_windows,
@@ -27,7 +27,7 @@ from orbis2.eval.fvd import (
     i3d_features,
     video_fvd,
 )
-from orbis2.eval.rollout_fvd import PickedFrames, i3d_picks
+from orbis2.eval.protocols.rollout_fvd import PickedFrames, i3d_picks
 from orbis2.models.i3d import Unit3D, _max_pool_same, _same_pad, load_i3d
 
 from conftest import ROOT, moving_pattern

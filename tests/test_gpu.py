@@ -7,9 +7,15 @@ import torch
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from orbis2.accel import compile_predictor, inference_autocast, set_tf32
+from orbis2.config.params import load_config
 from orbis2.flow import teacher_forcing_loss
 from orbis2.models.stdit import build_stdit, stdit_config
 from orbis2.rollout import cascaded_rollout
+
+from conftest import ROOT
+
+DATA = load_config(ROOT / "params.yaml", "smoke").data
+RATES = {"abstract_hz": DATA.abstract_hz, "detail_hz": DATA.detail_hz}  # the rollout's: params.yaml's data section
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 DEVICE = torch.device("cuda")
@@ -30,7 +36,8 @@ def _rollout(top, bottom, precision: str, kv_cache: bool = True) -> torch.Tensor
     d_ctx, a_ctx = torch.randn(1, 5, 16, 9, 16, device=DEVICE), torch.randn(1, 5, 16, 9, 16, device=DEVICE)
     gen = torch.Generator(DEVICE).manual_seed(2)
     with inference_autocast(DEVICE, precision):
-        return cascaded_rollout(top, bottom, d_ctx, a_ctx, 2, gen, abstract_nfe=4, detail_nfe=4, kv_cache=kv_cache)[0]
+        return cascaded_rollout(top, bottom, d_ctx, a_ctx, 2, gen, abstract_nfe=4, detail_nfe=4, **RATES,
+                                kv_cache=kv_cache)[0]
 
 
 def test_bf16_rollout_tracks_fp32():

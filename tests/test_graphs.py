@@ -17,12 +17,18 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_flatten
 
 from orbis2.accel import cast_for_inference, compile_predictor
+from orbis2.config.params import load_config
 from orbis2.flow import euler_grid, euler_sample
 from orbis2.models.deviations import TURN_SEARCH, SteeringShift, best_sideways_shift, translate_columns
 from orbis2.models.stdit import build_stdit, stdit_config
 from orbis2.models.stdit_layers import modulate, patchify, sinusoidal_embedding, unpatchify
 from orbis2.models.tokenizer import sincos_pos_embed_2d
 from orbis2.rollout import cascaded_rollout, flat_rollout, sample_frames, target_velocity
+
+from conftest import ROOT
+
+DATA = load_config(ROOT / "params.yaml", "smoke").data
+RATES = {"abstract_hz": DATA.abstract_hz, "detail_hz": DATA.detail_hz}  # the rollout's: params.yaml's data section
 
 C, C_A = 4, 3
 # The default profile's predictor options (params.yaml `_predictor.default.model`, `detail`, `action`).
@@ -430,7 +436,8 @@ def test_rollouts_equal_the_sampler_that_recomputes_everything(kv_cache):
     assert torch.equal(new, torch.cat(expected, 1))
     # The whole hierarchy, its detail modulations computed once per rollout.
     details, tops = cascaded_rollout(top, bottom, x[:, :5], xa[:, :5], 2, torch.Generator().manual_seed(3),
-                                     abstract_nfe=3, detail_nfe=2, steering=steering[:, None].expand(1, 2, 5, 2),
+                                     abstract_nfe=3, detail_nfe=2, **RATES,
+                                     steering=steering[:, None].expand(1, 2, 5, 2),
                                      kv_cache=kv_cache)
     gen, d_ctx, a_ctx = torch.Generator().manual_seed(3), x[:, :5], xa[:, :5]
     for k in range(2):
@@ -488,7 +495,7 @@ def test_weights_cast_once_give_autocasts_arithmetic():
             assert a.frame_embed.dtype == torch.float32 and d.blocks[0].cross_gate.dtype == torch.float32
         with torch.autocast("cpu", dtype=torch.bfloat16):
             runs.append(cascaded_rollout(a, d, x[:, :5], xa[:, :5], 1, torch.Generator().manual_seed(6), 2, 2,
-                                         steering=steering[:, None]))
+                                         **RATES, steering=steering[:, None]))
     for plain, cast in zip(*runs):
         assert torch.equal(plain, cast)
     assert cast_for_inference(copy.deepcopy(top), "cpu").blocks[0].adaLN_modulation[1].weight.dtype == torch.float32

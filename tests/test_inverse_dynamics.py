@@ -12,8 +12,8 @@ import torch.nn.functional as F
 
 from orbis2.accel import conv_layout
 from orbis2.config.training import InverseDynamicsConfig
-from orbis2.eval.inverse_dynamics import ClipFrames, Instrument, evaluate_instrument, pair_flow, pair_index
-from orbis2.eval.odometry import camera_intrinsics, trajectory_ade
+from orbis2.eval.metrics.inverse_dynamics import ClipFrames, Instrument, evaluate_instrument, pair_flow, pair_index
+from orbis2.eval.metrics.odometry import camera_intrinsics, trajectory_ade
 from orbis2.models.inverse_dynamics import InverseDynamicsNet
 from orbis2.sim import Camera, Town, render_episode, simulate_ego
 from orbis2.tasks.instrument import InstrumentTask, train_instrument

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from orbis2.errors import OrbisError
-from orbis2.eval.odometry import (
+from orbis2.eval.metrics.odometry import (
     InverseDynamics,
     OpenCVOdometry,
     ade,

@@ -22,7 +22,7 @@ from orbis2.data.probes import (
 from orbis2.data.shards import write_shards
 from orbis2.data.video import write_video
 from orbis2.errors import OrbisError
-from orbis2.eval.probe import (
+from orbis2.eval.metrics.probe_heads import (
     ProbeConfig,
     bin_centres,
     binned_depth_loss,
@@ -32,6 +32,8 @@ from orbis2.eval.probe import (
     depth_to_bin,
     iou_per_class,
     mean_iou,
+)
+from orbis2.eval.protocols.probe import (
     predictor_features,
     probe_on_features,
     run_probe,

@@ -9,7 +9,9 @@ import pytest
 from pydantic import ValidationError
 
 from orbis2.errors import OrbisError
-from orbis2.eval import records, tables
+from orbis2.eval import records
+from orbis2.eval.evaluate_records import EvaluateRecord
+from orbis2.eval.report import tables
 
 from conftest import ROOT
 
@@ -93,3 +95,28 @@ def test_an_unreadable_record_names_its_file(tmp_path):
 
 def test_the_reference_rows_are_fields_of_the_record():
     assert {ref for _, _, ref, _ in tables.FVD_REFERENCES} <= set(records.References.model_fields)
+
+
+@pytest.mark.parametrize("split", ["heldout", "turns", "val"])
+def test_a_published_evaluate_record_rewrites_byte_for_byte(tmp_path, split):
+    """The records `orbis2 evaluate --out` wrote for the default run validate strictly and re-write to the same
+    bytes (tests/test_evaluate.py checks one with steering scores and trajectories)."""
+    source = ROOT / "docs" / "results" / "default" / "evaluate" / f"evaluate_{split}.json"
+    record = EvaluateRecord.model_validate_json(source.read_text())
+    records.write_record(tmp_path / source.name, record)
+    assert (tmp_path / source.name).read_bytes() == source.read_bytes()
+    assert record.references.real_floor.fvd is not None and record.steering is None
+
+
+def test_the_guidance_selection_rewrites_byte_for_byte(tmp_path):
+    """selection.json (tools/select_guidance.py, not key-sorted) validates strictly and dumps to the same bytes; a
+    scale keyed as a number or a renamed key fails."""
+    written = (ROOT / "docs" / "guidance_selection" / "selection.json").read_text()
+    selection = records.GuidanceSelection.model_validate_json(written)
+    assert selection.text() == written and selection.smaller_step_low_deg[f"{selection.chosen}"] > 0
+    doc = json.loads(written)
+    with pytest.raises(ValidationError, match="chosen_scale"):
+        records.GuidanceSelection.model_validate_json(json.dumps({**doc, "chosen_scale": doc.pop("chosen")}))
+    (tmp_path / "selection.json").write_text(json.dumps({**json.loads(written), "resolved": "yes"}))
+    with pytest.raises(OrbisError, match=r"selection\.json .*resolved.*re-run tools/select_guidance"):
+        records.from_json(records.GuidanceSelection, tmp_path / "selection.json", "tools/select_guidance.py")

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from orbis2.eval.references import fvd_with_interval, real_floor, reference_rows
-from orbis2.eval.stats import paired_draws_interval
+from orbis2.eval.metrics.stats import paired_draws_interval
+from orbis2.eval.protocols.references import fvd_with_interval, real_floor, reference_rows
 
 
 def features(rng, n=64, d=6, shift=0.0):

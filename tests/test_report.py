@@ -14,7 +14,8 @@ from PIL import Image
 
 from orbis2.config.params import load_config
 from orbis2.errors import OrbisError
-from orbis2.eval import claims, figures, records, report, tables
+from orbis2.eval import figures, records
+from orbis2.eval.report import claims, report, tables
 
 from conftest import ROOT
 
@@ -554,7 +555,7 @@ def test_compression_rows_come_from_the_flat_abstract_models(evals):
 def test_write_csv_known_bytes_and_exact_float_round_trip(tmp_path):
     import pandas as pd
 
-    from orbis2.eval.report import write_csv
+    from orbis2.eval.report.report import write_csv
 
     rows = [{"model": "a, b", "fvd": 12.345678901234567, "n": 3, "note": None, "slope": float("nan")},
             {"model": 'say "x"', "fvd": 1e-09, "n": 4, "note": "ok", "slope": -0.1}]
@@ -589,7 +590,7 @@ def test_fvd_tables_carry_the_protocol_card(evals, tmp_path):
 
 
 def test_headline_names_each_number_by_table_row_and_column(tmp_path):
-    from orbis2.eval.report import headline
+    from orbis2.eval.report.report import headline
 
     (tmp_path / "main_table.csv").write_text("model,kind,label,fvd_heldout,miou\n"
                                              "hierarchical,model,Orbis 2,120.5,0.31\nflat,model,Flat,NA,0.2\n")

@@ -11,14 +11,24 @@ import torch
 from PIL import Image
 
 from orbis2.cli import main
+from orbis2.config.params import load_config
 from orbis2.config.sections import DataConfig
 from orbis2.data.video import codec_of, read_video
 from orbis2.models.files import save_predictor, save_tokenizer
 from orbis2.models.stdit import build_stdit, build_stdit_from
 from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer
-from orbis2.rollout import cascaded_rollout, first_context_end, flat_rollout, rollout_schedule, steering_sequences
+from orbis2.rollout import (
+    cascaded_rollout,
+    detail_frames_per_step,
+    first_context_end,
+    flat_rollout,
+    rollout_schedule,
+    steering_sequences,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
+DATA = load_config(ROOT / "params.yaml", "smoke").data
+RATES = {"abstract_hz": DATA.abstract_hz, "detail_hz": DATA.detail_hz}  # the rollout's: params.yaml's data section
 
 # (detail context, detail target, abstract context, abstract target, steering), worked out by hand.
 TABLE_10HZ = [  # fps 10: detail stride 1, abstract stride 5, last context frame 20
@@ -121,7 +131,8 @@ def test_cascaded_rollout_pushes_subgoals_and_places_conditioning():
     steering = torch.randn(1, steps, 5, 2)
     seen = []
     details, subgoals = cascaded_rollout(abstract, detail, _ramp(5) + 100, _ramp(5), steps, torch.Generator(),
-                                         abstract_nfe=nfe, detail_nfe=nfe, steering=steering, on_step=seen.append)
+                                         abstract_nfe=nfe, detail_nfe=nfe, **RATES, steering=steering,
+                                         on_step=seen.append)
     assert seen == [0, 1, 2]
     assert details.shape == (1, 15, 2, 3, 4) and subgoals.shape == (1, 3, 2, 3, 4)
     # Subgoal k = last abstract context + 1, and it becomes context: 5, 6, 7 (not 5, 5, 5).
@@ -141,11 +152,22 @@ def test_cascaded_rollout_pushes_subgoals_and_places_conditioning():
     torch.testing.assert_close(detail.calls[nfe]["context"], details[:, :5])
 
 
+def test_the_detail_frames_per_step_follow_from_the_rates():
+    """params.yaml's rates give the detail predictor's new frames; Exp. 5's 10-Hz top of 5 frames gives the same."""
+    assert detail_frames_per_step(DATA.detail_hz, DATA.abstract_hz) == DATA.detail_window - DATA.detail_context == 5
+    assert detail_frames_per_step(10.0, 10.0, 5) == 5 and detail_frames_per_step(10, 5) == 2
+    with pytest.raises(ValueError, match="is 2.5 detail frames per step"):
+        detail_frames_per_step(10, 4)
+    with pytest.raises(ValueError, match="is 2.5 detail frames per step"):
+        cascaded_rollout(AbstractStub(), DetailStub(), _ramp(5), _ramp(5), 1, torch.Generator(), abstract_hz=4,
+                         detail_hz=10)
+
+
 def test_cascaded_rollout_with_given_subgoals_skips_the_top_and_conditions_on_them():
     abstract, detail = AbstractStub(), DetailStub()
     given = torch.tensor([40.0, 50.0, 60.0])[None, :, None, None, None].expand(1, 3, 2, 3, 4)
     details, tops = cascaded_rollout(abstract, detail, _ramp(5) + 100, _ramp(5), 3, torch.Generator(),
-                                     abstract_nfe=2, detail_nfe=2, subgoals=given)
+                                     abstract_nfe=2, detail_nfe=2, **RATES, subgoals=given)
     assert abstract.calls == []  # the top predictor never runs
     torch.testing.assert_close(tops, given)
     for k in range(3):
@@ -153,7 +175,8 @@ def test_cascaded_rollout_with_given_subgoals_skips_the_top_and_conditions_on_th
         assert (cond[4], cond[9]) == ((4.0, 40.0, 50.0)[k], (40.0, 50.0, 60.0)[k])  # given subgoals become context
         torch.testing.assert_close(details[0, 5 * k: 5 * k + 5, 0, 0, 0], given[0, k, 0, 0, 0] + torch.arange(5.0))
     with pytest.raises(ValueError, match="subgoals must hold 3 frames"):
-        cascaded_rollout(abstract, detail, _ramp(5), _ramp(5), 3, torch.Generator(), subgoals=given[:, :2])
+        cascaded_rollout(abstract, detail, _ramp(5), _ramp(5), 3, torch.Generator(), **RATES,
+                         subgoals=given[:, :2])
 
 
 def test_flat_rollout_slides_the_same_window():
@@ -177,7 +200,7 @@ def test_cascaded_rollout_smoke_models_shapes_and_determinism():
 
     def run(seed):
         return cascaded_rollout(abstract, detail, d_ctx, a_ctx, 2, torch.Generator().manual_seed(seed),
-                                abstract_nfe=2, detail_nfe=2, steering=steering)
+                                abstract_nfe=2, detail_nfe=2, **RATES, steering=steering)
 
     (d1, a1), (d2, a2), (d3, _) = run(0), run(0), run(1)
     assert d1.shape == (2, 10, 6, 4, 5) and a1.shape == (2, 2, 4, 2, 3)
@@ -185,7 +208,7 @@ def test_cascaded_rollout_smoke_models_shapes_and_determinism():
     assert not torch.equal(d1, d3)
     with pytest.raises(ValueError, match="steering must be"):
         cascaded_rollout(abstract, detail, d_ctx, a_ctx, 3, torch.Generator(), abstract_nfe=1, detail_nfe=1,
-                         steering=steering)
+                         **RATES, steering=steering)
 
 
 class SteeredStub:
@@ -203,7 +226,7 @@ def test_steering_guidance_extrapolates_the_steered_prediction(guidance):
     last + 1 + 0.5 w (the velocities are exact, so Euler reaches the guided target)."""
     steering = torch.full((1, 2, 5, 2), 0.5)
     _, tops = cascaded_rollout(SteeredStub(), DetailStub(), _ramp(5) + 100, _ramp(5), 2, torch.Generator(),
-                               abstract_nfe=3, detail_nfe=2, steering=steering, steering_guidance=guidance)
+                               abstract_nfe=3, detail_nfe=2, **RATES, steering=steering, steering_guidance=guidance)
     step = 1 + 0.5 * guidance
     torch.testing.assert_close(tops[0, :, 0, 0, 0], torch.tensor([4 + step, 4 + 2 * step]))
 
@@ -221,7 +244,8 @@ def test_steering_guidance_on_a_steered_predictor_one_is_plain_and_zero_is_unste
 
     def run(guidance, steer=steering, kv_cache=True):
         return cascaded_rollout(abstract, detail, d_ctx, a_ctx, 2, torch.Generator().manual_seed(0), abstract_nfe=2,
-                                detail_nfe=2, steering=steer, steering_guidance=guidance, kv_cache=kv_cache)[1]
+                                detail_nfe=2, **RATES, steering=steer, steering_guidance=guidance,
+                                kv_cache=kv_cache)[1]
 
     plain, free = run(1.0), run(1.0, steer=None)
     assert torch.equal(run(1.0), plain) and not torch.allclose(plain, free)

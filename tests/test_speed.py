@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from orbis2.eval import speed
+from orbis2.eval.protocols import speed
 
 ALLOC_BYTES = 300 * 2**20
 

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from orbis2.eval.fvd import frechet_distance
-from orbis2.eval.stats import (
+from orbis2.eval.metrics.fvd import frechet_distance
+from orbis2.eval.metrics.stats import (
     Interval,
     check_cross_clip,
     cluster_ids,

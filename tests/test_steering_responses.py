@@ -1,11 +1,13 @@
 """Scale-free steering responses: paired per start, intervals over clips, known answers."""
 
+import json
+
 import cv2
 import numpy as np
 import pytest
 import torch
 
-from orbis2.eval.steering import (
+from orbis2.eval.protocols.steering import (
     choose_guidance,
     image_turns,
     latent_turns,
@@ -14,7 +16,10 @@ from orbis2.eval.steering import (
     steering_responses,
     turn_record,
 )
+from orbis2.eval.records import SteeringRecord
 from orbis2.models.deviations import translate_columns
+
+from conftest import ROOT
 
 
 def scores(turn, path, ade=1.0, n=16):
@@ -114,16 +119,22 @@ def test_image_turns_read_a_known_pan():
 
 
 def test_choose_guidance_takes_the_smallest_scale_that_resolves_both_steps():
+    written = json.loads((ROOT / "tests/fixtures/records/steering.json").read_text())
+
     def record(low_lower, low_upper):
-        steps = {"original - yaw_rate_x0.5": {"low": low_lower}, "yaw_rate_x1.5 - original": {"low": low_upper}}
-        return {"responses": {"learned": {"turn_steps_deg": steps}}}
+        doc = json.loads(json.dumps(written))
+        steps = doc["responses"]["learned"]["turn_steps_deg"]
+        steps["original - yaw_rate_x0.5"]["low"], steps["yaw_rate_x1.5 - original"]["low"] = low_lower, low_upper
+        return SteeringRecord.model_validate(doc)
 
     records = {1.0: record(5.0, -0.9), 2.0: record(8.5, 3.3), 3.0: record(9.0, 4.0)}
-    result = choose_guidance(records, "learned", material=2.0)
-    assert result["chosen"] == 2.0 and result["resolved"]
-    assert result["smaller_step_low_deg"] == {1.0: -0.9, 2.0: 3.3, 3.0: 4.0}
+    result = choose_guidance(records, "learned", material=2.0, split="val")
+    assert result.chosen == 2.0 and result.resolved and result.split == "val"
+    assert result.smaller_step_low_deg == {"1.0": -0.9, "2.0": 3.3, "3.0": 4.0}
     # None resolves: the scale with the largest smaller lower bound, flagged unresolved.
-    result = choose_guidance(records, "learned", material=5.0)
-    assert result["chosen"] == 3.0 and not result["resolved"]
+    result = choose_guidance(records, "learned", material=5.0, split="val")
+    assert result.chosen == 3.0 and not result.resolved
+    without = json.loads(json.dumps(written))
+    without["responses"]["learned"].pop("turn_steps_deg")
     with pytest.raises(ValueError, match="lacks the yaw-rate modes"):
-        choose_guidance({1.0: {"responses": {"learned": {"turn_steps_deg": {}}}}}, "learned", 2.0)
+        choose_guidance({1.0: SteeringRecord.model_validate(without)}, "learned", 2.0, "val")

@@ -36,8 +36,8 @@ import numpy as np
 import torch
 
 from orbis2.config.params import load_config
-from orbis2.eval.conditioning import flow_loss, one_step_mean, per_window_mse
 from orbis2.eval.figures import pyplot, save_figure
+from orbis2.eval.protocols.conditioning import flow_loss, one_step_mean, per_window_mse
 from orbis2.hierarchy import detail_condition, rate_geometry, steering_features, window_key
 from orbis2.latents import collate, open_cache
 from orbis2.registry import registry

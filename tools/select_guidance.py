@@ -6,7 +6,7 @@
 Runs the `eval_steering` stage once per scale on the trained models of the workspace, with
 `evaluation.steering_split` set to ``--split`` (default `val`: drives disjoint from the `turns`
 drives the stage reports on) and everything else from the params file, then applies
-:func:`orbis2.eval.steering.choose_guidance`: the smallest scale whose two ordering steps by
+:func:`orbis2.eval.protocols.steering.choose_guidance`: the smallest scale whose two ordering steps by
 `evaluation.inverse_dynamics` (original - yaw x0.5, yaw x1.5 - original) both have a
 clip-bootstrap lower bound above `evaluation.steering_turn_material_deg`. Writes each scale's
 record and strip, and ``selection.json``, under ``--out``; put the chosen scale in params.yaml
@@ -16,7 +16,6 @@ record and strip, and ``selection.json``, under ``--out``; put the chosen scale 
 from __future__ import annotations
 
 import argparse
-import json
 import subprocess
 import sys
 from pathlib import Path
@@ -24,7 +23,9 @@ from pathlib import Path
 import yaml
 
 from orbis2.config.params import load_config, load_params
-from orbis2.eval.steering import choose_guidance
+from orbis2.eval.protocols.steering import choose_guidance
+from orbis2.eval.records import SteeringRecord, from_json
+from orbis2.io import atomic_file
 
 STAGE = Path(__file__).resolve().parents[1] / "stages" / "eval_steering.py"
 
@@ -54,17 +55,17 @@ def main() -> None:
         record = args.out / f"steering_g{scale:g}.json"
         subprocess.run([sys.executable, str(STAGE), "--params", str(scaled), "--profile", cfg.profile,
                         "--out", str(record), "--strip", str(args.out / f"strip_g{scale:g}.png")], check=True)
-        records[scale] = json.loads(record.read_text())
+        records[scale] = from_json(SteeringRecord, record, "eval_steering")
 
-    result = choose_guidance(records, ev.inverse_dynamics, ev.steering_turn_material_deg)
-    result["split"] = args.split
-    (args.out / "selection.json").write_text(json.dumps(result, indent=2) + "\n")
+    result = choose_guidance(records, ev.inverse_dynamics, ev.steering_turn_material_deg, args.split)
+    with atomic_file(args.out / "selection.json") as tmp:
+        tmp.write_text(result.text())
     for scale, record in records.items():
-        steps = record["responses"][ev.inverse_dynamics]["turn_steps_deg"]
-        print(f"guidance {scale:g}: " + ", ".join(f"{name} {s['estimate']:+.1f} [{s['low']:+.1f}, {s['high']:+.1f}]"
+        steps = record.responses[ev.inverse_dynamics].turn_steps_deg or {}
+        print(f"guidance {scale:g}: " + ", ".join(f"{name} {s.estimate:+.1f} [{s.low:+.1f}, {s.high:+.1f}]"
                                                   for name, s in steps.items()))
-    print(f"chosen on {args.split}: {result['chosen']:g} "
-          f"({'both steps' if result['resolved'] else 'NOT both steps'} above {result['material_deg']:g} deg)")
+    print(f"chosen on {args.split}: {result.chosen:g} "
+          f"({'both steps' if result.resolved else 'NOT both steps'} above {result.material_deg:g} deg)")
 
 
 if __name__ == "__main__":

@@ -3,7 +3,7 @@
 ``orbis2 rollout`` reads the context from any video, rolls the hierarchical
 model forward and writes an mp4 and a GIF. ``orbis2 evaluate`` scores any
 model's rollouts against the real videos they continue, through the code the
-``eval_fvd`` stages run (:mod:`orbis2.eval.evaluate`). ``orbis2 convert``
+``eval_fvd`` stages run (:mod:`orbis2.eval.protocols.evaluate`). ``orbis2 convert``
 turns nuPlan, PhysicalAI-AV, BDD100K or OpenDV-YouTube into the import layout
 (:mod:`orbis2.data.datasets`). User-fixable problems (short video,
 bad trajectory CSV, missing or mismatched checkpoints) print one message naming
@@ -32,10 +32,11 @@ from orbis2.data.images import to_uint8
 from orbis2.data.importer import read_odometry_csv
 from orbis2.data.video import PLAYABLE_SUFFIXES, probe, read_video, resample_stride, write_gif, write_video
 from orbis2.errors import OrbisError
-from orbis2.eval.evaluate import format_table, pairs_from_folders, pairs_from_manifest
-from orbis2.eval.evaluate_videos import evaluate_videos
-from orbis2.eval.inverse_dynamics import WEIGHTS_FILE
-from orbis2.io import atomic_file, write_json
+from orbis2.eval.metrics.inverse_dynamics import WEIGHTS_FILE
+from orbis2.eval.protocols.evaluate import format_table, pairs_from_folders, pairs_from_manifest
+from orbis2.eval.protocols.evaluate_videos import evaluate_videos
+from orbis2.eval.records import write_record
+from orbis2.io import atomic_file
 from orbis2.kinematics import integrate_odometry
 from orbis2.latents import encode_frames
 from orbis2.models.files import PredictorFile, TokenizerFile, load_predictor, load_tokenizer
@@ -353,7 +354,7 @@ def evaluate_command(args: argparse.Namespace) -> str:
                              instrument=args.instrument, instrument_weights=args.instrument_weights,
                              hfov_deg=args.hfov_deg, device=args.device)
     if args.out is not None:
-        write_json(args.out, record)
+        write_record(args.out, record)
     return format_table(record)
 
 

@@ -175,6 +175,16 @@ def _step_steering(steering: torch.Tensor | None, k: int, batch: int, steps: int
     return {"steering": steering[:, k]}
 
 
+def detail_frames_per_step(detail_hz: float, abstract_hz: float, top_frames_per_step: int = 1) -> int:
+    """Detail frames one cascaded step adds: the bottom fills the top's step (``top_frames_per_step`` frames at
+    ``abstract_hz``) at ``detail_hz``."""
+    frames = detail_hz * top_frames_per_step / abstract_hz
+    if frames < 1 or frames != int(frames):
+        raise ValueError(f"detail_hz = {detail_hz:g} over {top_frames_per_step} top frame(s) at abstract_hz = "
+                         f"{abstract_hz:g} is {frames:g} detail frames per step; the rates must give a whole number")
+    return int(frames)
+
+
 @torch.no_grad()
 def cascaded_rollout(
     abstract_model: ModelFn,
@@ -185,9 +195,9 @@ def cascaded_rollout(
     generator: torch.Generator,
     abstract_nfe: int = ABSTRACT_NFE,
     detail_nfe: int = DETAIL_NFE,
-    frames_per_step: int = 5,
-    abstract_hz: float = 2.0,
-    detail_hz: float = 10.0,
+    *,
+    abstract_hz: float,
+    detail_hz: float,
     steering: torch.Tensor | None = None,
     on_step: StepCallback | None = None,
     top_frames_per_step: int = 1,
@@ -197,6 +207,10 @@ def cascaded_rollout(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Hierarchical rollout; returns detail latents [B, frames_per_step * steps, ...] and the top
     predictor's frames [B, top_frames_per_step * steps, ...].
+
+    The rates are the caller's: params.yaml's ``data`` section (``data.abstract_hz``, ``data.detail_hz``)
+    or the rates the predictors were trained at; the detail frames per step follow from them
+    (:func:`detail_frames_per_step`: 5 at the paper's 10 and 2 Hz).
 
     ``detail_context`` [B, 5, C, h, w] and ``abstract_context`` [B, 5, C_a, h_a, w_a]
     are scaled latents whose last frames show the same instant. ``steering``
@@ -214,6 +228,7 @@ def cascaded_rollout(
     """
     b = detail_context.shape[0]
     n_context = detail_context.shape[1]
+    frames_per_step = detail_frames_per_step(detail_hz, abstract_hz, top_frames_per_step)
     if subgoals is not None and subgoals.shape[1] != top_frames_per_step * steps:
         raise ValueError(f"subgoals must hold {top_frames_per_step * steps} frames, got {subgoals.shape[1]}")
     details, tops = [], []

@@ -183,7 +183,7 @@ class ProbeSettings:
     the paper), ``block_ablation`` the one for ablation models (2nd); both are clamped
     to the network's depth. ``test_fraction`` of the probe episodes are held out for
     the metrics. ``standardize`` fixes per-channel feature statistics from the train
-    frames before the head (still a linear probe; see ``orbis2.eval.probe``).
+    frames before the head (still a linear probe; see ``orbis2.eval.metrics.probe_heads``).
 
     Default data: the town's labelled ``probe`` split for both tasks. The paper's:
     ``cityscapes`` (root of leftImg8bit/ and gtFine/; train -> val) for segmentation
@@ -220,7 +220,7 @@ class ProbeSettings:
 
 @dataclass(frozen=True)
 class ConditioningSettings:
-    """The ``eval_conditioning`` stage (``orbis2.eval.conditioning``): does each predictor use its inputs?
+    """The ``eval_conditioning`` stage (``orbis2.eval.protocols.conditioning``): does each predictor use its inputs?
 
     Val windows every ``anchor_stride`` native frames (at most ``max_windows``, evenly
     spread), ``draws`` noise draws per window shared by every variant. An input is

@@ -286,7 +286,7 @@ class ActionConfig(TeacherForcingConfig):
 
 @dataclass(frozen=True)
 class InverseDynamicsConfig:
-    """The learned inverse-dynamics instrument (``orbis2.eval.inverse_dynamics``): a CNN of base ``width``
+    """The learned inverse-dynamics instrument (``orbis2.eval.metrics.inverse_dynamics``): a CNN of base ``width``
     trained (``train``) on pairs of consecutive train frames (resized by ``scale``, at most ``max_train_clips``
     clips) to regress speed and yaw rate; scored on ``eval_pairs`` val pairs drawn with ``train.seed``."""
 

@@ -1,6 +1,6 @@
 """Figures of frames: rollout grids and counterfactual steering strips, and the PNG writer every figure uses.
 
-Separate from :mod:`orbis2.eval.report` (the tables, claims and the figures of the records) so that evaluation
+Separate from :mod:`orbis2.eval.report.report` (the tables, claims and the figures of the records) so that evaluation
 stages draw their figures without importing the report.
 """
 

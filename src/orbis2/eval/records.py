@@ -1,11 +1,12 @@
 """The evaluation records: one typed model per kind, written by the evaluation stages and read strictly by the report.
 
 Each ``eval_*`` stage builds its record (:class:`FvdRecord`, :class:`ProbeRecord`, :class:`SteeringRecord`,
-:class:`SpeedRecord`, :class:`ConditioningRecord`) and writes it with :func:`write_record`; the report reads
-them back with :func:`read_evals` / :func:`load_eval` into an :class:`Evals` and by attribute
-(``evals.steering_record().modes[mode].ade_low``). Reading is strict: a missing key, an unknown key or a value of
-the wrong type stops with an ``OrbisError`` naming the file, the key and the stage that writes it, so a renamed
-key fails when its record is read, not in the last table of a long run, and no table is padded with guesses.
+:class:`SpeedRecord`, :class:`ConditioningRecord`; ``orbis2 evaluate``'s in :mod:`orbis2.eval.evaluate_records`) and
+writes it with :func:`write_record`; the report reads them back with :func:`read_evals` / :func:`load_eval` into
+an :class:`Evals` and by attribute (``evals.steering_record().modes[mode].ade_low``). Reading is strict: a
+missing key, an unknown key or a value of the wrong type stops with an ``OrbisError`` naming the file, the key
+and the stage that writes it, so a renamed key fails when its record is read, not in the last table of a long
+run, and no table is padded with guesses.
 
 A record re-writes byte for byte: numbers keep the type they were written with (an int stays an int where a
 float is allowed), and a key the stage writes only sometimes (``chunked``, ``per_block``, ...) is a field
@@ -56,7 +57,7 @@ class Nfe(Record):
 
 
 class Interval(Record):
-    """:class:`orbis2.eval.stats.Interval` as stored (a paired difference or a mean with its bootstrap)."""
+    """:class:`orbis2.eval.metrics.stats.Interval` as stored (a paired difference or a mean with its bootstrap)."""
 
     estimate: Num
     low: Num
@@ -69,7 +70,8 @@ class Interval(Record):
 
 
 class Bootstrapped(Record):
-    """An FVD with its clip-bootstrap interval and draws (:func:`orbis2.eval.references.fvd_with_interval`)."""
+    """An FVD with its clip-bootstrap interval and draws
+    (:func:`orbis2.eval.protocols.references.fvd_with_interval`)."""
 
     fvd: Num
     low: Num
@@ -82,7 +84,7 @@ class Bootstrapped(Record):
 
 
 class SplitFvd(Bootstrapped):
-    """A split's FVD over ``seconds`` of rollout (:func:`orbis2.eval.evaluate.score_rollouts`)."""
+    """A split's FVD over ``seconds`` of rollout (:func:`orbis2.eval.protocols.evaluate.score_rollouts`)."""
 
     frames: int
     seconds: Num
@@ -106,7 +108,8 @@ class RealFloor(Record):
 
 
 class References(Record):
-    """The reference rows of a split (:mod:`orbis2.eval.references`); `orbis2 evaluate` has no reconstruction."""
+    """The reference rows of a split (:mod:`orbis2.eval.protocols.references`); `orbis2 evaluate` has no
+    reconstruction."""
 
     real_floor: RealFloor
     repeat_last: Bootstrapped
@@ -114,7 +117,7 @@ class References(Record):
 
 
 class ProtocolCard(Record):
-    """Everything needed to reproduce a table's FVDs (:meth:`orbis2.eval.evaluate.Protocol.card`)."""
+    """Everything needed to reproduce a table's FVDs (:meth:`orbis2.eval.protocols.evaluate.Protocol.card`)."""
 
     protocol: str
     fps: Num
@@ -146,7 +149,7 @@ class Chunk(Record):
 
 
 class Chunked(Record):
-    """Chunked FVD, FVD over the long span and the FVD-slope (:func:`orbis2.eval.evaluate.chunked_record`)."""
+    """Chunked FVD, FVD over the long span and the FVD-slope (:func:`orbis2.eval.protocols.evaluate.chunked_record`)."""
 
     split: str
     seconds: Num
@@ -218,7 +221,7 @@ class BlockProbe(Record):
 
 class ProbeRecord(Record):
     """``probe_<target>.json``: linear probes of one representation; a task without labels is None
-    (:func:`orbis2.eval.probe.probe_on_features`). ``block`` is None for a tokenizer or the teacher."""
+    (:func:`orbis2.eval.protocols.probe.probe_on_features`). ``block`` is None for a tokenizer or the teacher."""
 
     target: str
     label: str
@@ -230,7 +233,7 @@ class ProbeRecord(Record):
 
 
 class InstrumentCells(Record):
-    """One mode's figures by one instrument (:func:`orbis2.eval.steering.mode_record`)."""
+    """One mode's figures by one instrument (:func:`orbis2.eval.protocols.steering.mode_record`)."""
 
     ade: Num
     ade_low: Num
@@ -265,7 +268,7 @@ class PathRatio(Record):
 
 
 class SteeringResponses(Record):
-    """One instrument's scale-free responses (:func:`orbis2.eval.steering.steering_responses`): the turn ones
+    """One instrument's scale-free responses (:func:`orbis2.eval.protocols.steering.steering_responses`): the turn ones
     need the yaw-rate modes, the path ratio the speed modes."""
 
     turn_response_deg: Interval | None = sometimes()
@@ -281,7 +284,8 @@ class Material(Record):
 
 
 class OdometrySanity(Record):
-    """An instrument on the real videos and on shuffled ones (:func:`orbis2.eval.steering.odometry_sanity`)."""
+    """An instrument on the real videos and on shuffled ones
+    (:func:`orbis2.eval.protocols.steering.odometry_sanity`)."""
 
     real_ade: Num
     real_low: Num
@@ -300,7 +304,7 @@ class TurnCells(Record):
 
 
 class TurnReading(Record):
-    """A reading of the turn alone (:func:`orbis2.eval.steering.turn_record`)."""
+    """A reading of the turn alone (:func:`orbis2.eval.protocols.steering.turn_record`)."""
 
     modes: dict[str, TurnCells]
     turn_steps_deg: dict[str, TurnStep]
@@ -412,7 +416,8 @@ class EgoMotionProbe(Record):
 
 
 class LatentStatistics(Record):
-    """Energy shares per latent set and the ego-motion probe (:func:`orbis2.eval.conditioning.latent_statistics`)."""
+    """Energy shares per latent set and the ego-motion probe
+    (:func:`orbis2.eval.protocols.conditioning.latent_statistics`)."""
 
     step_frames: int
     step_s: Num
@@ -443,8 +448,8 @@ class LatentResponse(Record):
 
 class SteeringResponse(Record):
     """The steered predictor's latents under scaled steering
-    (:func:`orbis2.eval.conditioning.latent_steering_response`); a response is None where its motion has no modes
-    or windows."""
+    (:func:`orbis2.eval.protocols.conditioning.latent_steering_response`); a response is None where its motion
+    has no modes or windows."""
 
     model: str
     windows: int
@@ -488,6 +493,21 @@ class CompressionRow(Record):
 
 class CompressionRecord(Record):
     rows: list[CompressionRow]
+
+
+class GuidanceSelection(Record):
+    """``selection.json`` of tools/select_guidance.py (:func:`orbis2.eval.protocols.steering.choose_guidance`);
+    written in field order by :meth:`text`, not sorted like the stages' records."""
+
+    chosen: Num
+    resolved: bool
+    instrument: str
+    material_deg: Num
+    smaller_step_low_deg: dict[str, Num]  # by scale, written as a float ("2.0")
+    split: str
+
+    def text(self) -> str:
+        return json.dumps(to_json(self), indent=2) + "\n"
 
 
 R = TypeVar("R", bound=Record)

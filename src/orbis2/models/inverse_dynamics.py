@@ -1,7 +1,7 @@
 """A small CNN that reads ego-motion from the dense optical flow between two frames (the learned instrument).
 
 Input: the flow field from frame t to t + 1 ([B, 2, H, W], pixels per frame, from
-``orbis2.eval.inverse_dynamics.pair_flow``); output: the controls over [t, t + 1),
+``orbis2.eval.metrics.inverse_dynamics.pair_flow``); output: the controls over [t, t + 1),
 speed and yaw rate, in the standardised units the checkpoint records. Reading flow
 rather than raw pixels is what lets a network trained on a few hundred town frames
 generalise to unseen scenes: yaw is a near-uniform horizontal flow, speed an

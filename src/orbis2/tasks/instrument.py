@@ -1,4 +1,4 @@
-"""Training the learned inverse-dynamics instrument (:mod:`orbis2.eval.inverse_dynamics`) with the shared loop.
+"""Training the learned inverse-dynamics instrument (:mod:`orbis2.eval.metrics.inverse_dynamics`) with the shared loop.
 
 The flow front end is fixed, so every train pair's Farneback flow, and its mirror
 image (horizontal flow negated), is computed once. Each step draws ``batch_size``
@@ -27,7 +27,7 @@ from torch import nn
 from orbis2.accel import conv_layout
 from orbis2.config.training import InverseDynamicsConfig
 from orbis2.errors import OrbisError
-from orbis2.eval.inverse_dynamics import ClipFrames, Instrument, pair_flow, pair_index
+from orbis2.eval.metrics.inverse_dynamics import ClipFrames, Instrument, pair_flow, pair_index
 from orbis2.models.inverse_dynamics import InverseDynamicsNet
 from orbis2.train import DataSpec, LossOutput, load_weights, train
 

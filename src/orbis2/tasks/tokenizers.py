@@ -40,7 +40,7 @@ from orbis2.config.training import AbstractTokenizerConfig, DetailTokenizerConfi
 from orbis2.data.images import to_uint8
 from orbis2.data.shards import Clip, FrameDataset, load_manifest
 from orbis2.errors import OrbisError
-from orbis2.eval.fvd import FeatureStats, frechet_distance
+from orbis2.eval.metrics.fvd import FeatureStats, frechet_distance
 from orbis2.io import atomic_file
 from orbis2.losses import (
     adaptive_gan_weight,
@@ -447,7 +447,7 @@ def reconstruction_fid(model: nn.Module, inception_path: Path, val_frames: Itera
     """FID between image batches and their quantised-path reconstructions (eval mode).
 
     Features are the 2048-d pool features of the FID InceptionV3; statistics and the
-    distance are those of :mod:`orbis2.eval.fvd`.
+    distance are those of :mod:`orbis2.eval.metrics.fvd`.
     """
     model.eval()
     device = next(model.parameters()).device

@@ -3,7 +3,7 @@
 Rollouts of the hierarchical model with the steered top predictor run under each
 mode's scaling of the clip's own speed and yaw rate (:func:`steering_inputs`).
 Each video's trajectory is recovered by an inverse-dynamics instrument
-(:mod:`orbis2.eval.odometry`) and compared with the commanded one: ADE in metres
+(:mod:`orbis2.eval.metrics.odometry`) and compared with the commanded one: ADE in metres
 after least-squares scale alignment (:func:`score_videos`). Scale-free responses,
 paired per start (:func:`steering_responses`): the recovered turn (end-point
 angle, the clip's own turn direction positive) under yaw rate x1.5 minus under
@@ -25,11 +25,12 @@ import torch.nn.functional as F
 
 from orbis2.config.sections import DataConfig
 from orbis2.data.shards import Clip
-from orbis2.eval.conditioning import sideways_shift
 from orbis2.eval.figures import save_steering_strip
-from orbis2.eval.odometry import endpoint_angle, path_length, trajectory_ade
-from orbis2.eval.stats import mean_interval, paired_difference
-from orbis2.eval.systems import Sample
+from orbis2.eval.metrics.odometry import endpoint_angle, path_length, trajectory_ade
+from orbis2.eval.metrics.stats import mean_interval, paired_difference
+from orbis2.eval.protocols.conditioning import sideways_shift
+from orbis2.eval.protocols.systems import Sample
+from orbis2.eval.records import GuidanceSelection, SteeringRecord
 from orbis2.rollout import rollout_schedule, steering_sequences
 
 # Times (s) of the frames shown in the steering strip (those the rollout reaches).
@@ -210,8 +211,10 @@ def steering_responses(per_sample: dict, name: str, clusters: list[str], seed: i
     return out
 
 
-def choose_guidance(records: dict[float, dict[str, Any]], instrument: str, material: float) -> dict[str, Any]:
-    """The steering-guidance scale a selection split supports, from ``eval_steering`` records keyed by scale.
+def choose_guidance(records: dict[float, SteeringRecord], instrument: str, material: float,
+                    split: str) -> GuidanceSelection:
+    """The steering-guidance scale a selection split (``split``) supports, from ``eval_steering`` records keyed by
+    scale.
 
     The smallest scale whose two ordering steps (original - yaw x0.5, yaw x1.5 - original) read by
     ``instrument`` both have an interval lower bound above ``material`` degrees; if none does, the scale
@@ -222,14 +225,15 @@ def choose_guidance(records: dict[float, dict[str, Any]], instrument: str, mater
         raise ValueError("choose_guidance needs at least one record")
     lows = {}
     for scale, record in records.items():
-        steps = record["responses"][instrument]["turn_steps_deg"]
+        responses = record.responses.get(instrument)
+        steps = (responses.turn_steps_deg if responses is not None else None) or {}
         if len(steps) != 2:
             raise ValueError(f"the record of guidance {scale:g} lacks the yaw-rate modes {YAW_ORDER}")
-        lows[float(scale)] = min(step["low"] for step in steps.values())
+        lows[float(scale)] = min(step.low for step in steps.values())
     passing = sorted(scale for scale, low in lows.items() if low > material)
     chosen = passing[0] if passing else max(lows, key=lows.get)
-    return {"chosen": chosen, "resolved": bool(passing), "instrument": instrument, "material_deg": material,
-            "smaller_step_low_deg": lows}
+    return GuidanceSelection(chosen=chosen, resolved=bool(passing), instrument=instrument, material_deg=material,
+                             smaller_step_low_deg={str(scale): low for scale, low in lows.items()}, split=split)
 
 
 def real_videos(clips: dict[str, Clip], samples: list[Sample], indices: list[np.ndarray]) -> list[np.ndarray]:

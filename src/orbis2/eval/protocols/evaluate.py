@@ -3,7 +3,7 @@
 One code path for every FVD the project reports: :func:`score_rollouts` takes the
 I3D features of the real and generated frames of each window and returns the
 records; the ``eval_fvd_<system>`` stage feeds it the frames its rollouts decode,
-``orbis2 evaluate`` (:mod:`orbis2.eval.evaluate_videos`) the frames of video files another
+``orbis2 evaluate`` (:mod:`orbis2.eval.protocols.evaluate_videos`) the frames of video files another
 model wrote. Each record carries its :class:`Protocol` card (frames, rate,
 windows, context, resize, clips and videos, the I3D weights' checksum, seeds), so
 a number can be reproduced from what is printed beside it.
@@ -37,9 +37,10 @@ import numpy as np
 
 from orbis2.data.video import VIDEO_SUFFIXES, iter_frames, probe, resample_stride
 from orbis2.errors import OrbisError
-from orbis2.eval.fvd import CLIP_FRAMES, I3D_SIZE, chunk_windows, even_frame_indices, i3d_features
-from orbis2.eval.references import fvd_with_interval, real_floor
-from orbis2.eval.stats import fvd_slope_interval
+from orbis2.eval.evaluate_records import EvaluateRecord
+from orbis2.eval.metrics.fvd import CLIP_FRAMES, I3D_SIZE, chunk_windows, even_frame_indices, i3d_features
+from orbis2.eval.metrics.stats import fvd_slope_interval
+from orbis2.eval.protocols.references import fvd_with_interval, real_floor
 
 Features = Callable[[slice], np.ndarray]  # I3D features [N, 400] of the videos' frames in a window
 I3D_FEATURES = 400  # Kinetics-400 logits: below this many videos the covariance is rank-deficient
@@ -283,13 +284,13 @@ def context_frames(pairs: list[Pair], given: int | None, where: Path | None) -> 
 
 
 def evaluate_pairs(pairs: list[Pair], context_frames: int, proto: Protocol, i3d, i3d_sha256: str,
-                   generated_has_context: bool = False, split: str = "videos") -> dict[str, Any]:
+                   generated_has_context: bool = False, split: str = "videos") -> EvaluateRecord:
     """Score rollouts on disk: the generated videos' frame rate sets the windows; the real videos (the same rate or
     an integer multiple) hold ``context_frames`` context frames, then the continuation.
 
-    Returns the FVD and chunked records of :func:`score_rollouts`, the real-vs-real floor and
-    the repeat-last row (the real last context frame held still), the warnings and the card
-    (steering scores are added by :mod:`orbis2.eval.evaluate_steering`).
+    Returns the record: the FVD and chunked records of :func:`score_rollouts`, the real-vs-real floor
+    and the repeat-last row (the real last context frame held still), the warnings and the card
+    (steering scores are added by :mod:`orbis2.eval.protocols.evaluate_steering`).
     """
     if context_frames < 1:
         raise EvaluateError(f"--context-frames {context_frames}: a rollout continues at least one real frame")
@@ -345,30 +346,37 @@ def evaluate_pairs(pairs: list[Pair], context_frames: int, proto: Protocol, i3d,
                                   f"own real video: the pairs look shuffled (check the names or the manifest), or "
                                   f"the rollouts do not continue their context")
     out["protocol"] = proto.card(fps, context_frames, clips, len(pairs), i3d_sha256, gen.frames.shape[2:4])
-    out["videos"] = [asdict(p) | {"generated": str(p.generated), "real": str(p.real)} for p in pairs]
-    return out
+    out["videos"] = [{**asdict(p), "generated": str(p.generated), "real": str(p.real),
+                      "trajectory": None if p.trajectory is None else str(p.trajectory)} for p in pairs]
+    return EvaluateRecord.model_validate(out)
 
 
-def format_table(record: dict[str, Any]) -> str:
+def format_table(record: EvaluateRecord) -> str:
     """The figures with their intervals, the reference rows, the warnings and the protocol card, as text."""
-    fvd = record["fvd"]
-    lines = [f"FVD ({fvd['seconds']:g} s)   {fvd['fvd']:.1f} [{fvd['low']:.1f}, {fvd['high']:.1f}]  "
-             f"({fvd['videos']} videos, {fvd['clips']} clips)"]
-    for name, row in record["references"].items():
-        value = "n/a (" + row["reason"] + ")" if row["fvd"] is None else f"{row['fvd']:.1f} [{row['low']:.1f}, " \
-                                                                          f"{row['high']:.1f}]"
+    fvd = record.fvd
+    lines = [f"FVD ({fvd.seconds:g} s)   {fvd.fvd:.1f} [{fvd.low:.1f}, {fvd.high:.1f}]  "
+             f"({fvd.videos} videos, {fvd.clips} clips)"]
+    for name, row in reference_rows(record):
+        value = f"n/a ({row.reason})" if row.fvd is None else f"{row.fvd:.1f} [{row.low:.1f}, {row.high:.1f}]"
         lines.append(f"  {name:<14}{value}")
-    if "chunked" in record:
-        ch = record["chunked"]
-        lines.append("chunked FVD   " + "  ".join(f"{c['start_s']:g}-{c['end_s']:g} s {c['fvd']:.1f} "
-                                                  f"[{c['low']:.1f}, {c['high']:.1f}]" for c in ch["chunks"]))
-        lines.append(f"FVD-slope     {ch['fvd_slope']:.1f} [{ch['fvd_slope_low']:.1f}, {ch['fvd_slope_high']:.1f}]")
-    if "steering" in record:
-        st = record["steering"]
-        ade, turn = st["ade_m"], st["turn_deg"]
-        lines.append(f"steering ({st['instrument']})  ADE {ade['estimate']:.2f} m [{ade['low']:.2f}, "
-                     f"{ade['high']:.2f}], turn {turn['estimate']:.1f} deg [{turn['low']:.1f}, {turn['high']:.1f}] of "
-                     f"{st['commanded_turn_deg']['estimate']:.1f} commanded")
-    lines += [f"warning: {w}" for w in record["warnings"]]
-    lines.append("protocol: " + ", ".join(f"{k}={v}" for k, v in record["protocol"].items()))
+    if record.chunked is not None:
+        ch = record.chunked
+        lines.append("chunked FVD   " + "  ".join(f"{c.start_s:g}-{c.end_s:g} s {c.fvd:.1f} [{c.low:.1f}, {c.high:.1f}]"
+                                                  for c in ch.chunks))
+        lines.append(f"FVD-slope     {ch.fvd_slope:.1f} [{ch.fvd_slope_low:.1f}, {ch.fvd_slope_high:.1f}]")
+    if record.steering is not None:
+        st = record.steering
+        ade, turn = st.ade_m, st.turn_deg
+        lines.append(f"steering ({st.instrument})  ADE {ade.estimate:.2f} m [{ade.low:.2f}, {ade.high:.2f}], turn "
+                     f"{turn.estimate:.1f} deg [{turn.low:.1f}, {turn.high:.1f}] of "
+                     f"{st.commanded_turn_deg.estimate:.1f} commanded")
+    lines += [f"warning: {w}" for w in record.warnings]
+    lines.append("protocol: " + ", ".join(f"{k}={v}" for k, v in record.protocol.model_dump().items()))
     return "\n".join(lines)
+
+
+def reference_rows(record: EvaluateRecord) -> list[tuple[str, Any]]:
+    """The record's reference rows by name, in the order they are written (real floor, repeat-last)."""
+    refs = record.references
+    rows = [(name, getattr(refs, name)) for name in type(refs).model_fields]
+    return [(name, row) for name, row in rows if row is not None]

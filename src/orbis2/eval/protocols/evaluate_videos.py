@@ -1,7 +1,7 @@
 """What ``orbis2 evaluate`` does, for the command and the DAG's ``evaluate_<name>`` rule alike.
 
 :func:`evaluate_videos` loads I3D (and the steering instrument when the rollouts
-have trajectories) and scores the pairs through :func:`orbis2.eval.evaluate.evaluate_pairs`,
+have trajectories) and scores the pairs through :func:`orbis2.eval.protocols.evaluate.evaluate_pairs`,
 the code of the ``eval_fvd`` stages. :func:`read_rollout_folder` reads a folder of
 ``data/rollouts/<name>/`` (a manifest, or generated/ and real/, plus the options
 file that stands in for the command's options), and :func:`plot_record` draws a
@@ -18,7 +18,10 @@ import torch
 import yaml
 
 from orbis2.assets import AssetError, ensure_asset
-from orbis2.eval.evaluate import (
+from orbis2.eval.evaluate_records import EvaluateRecord
+from orbis2.eval.figures import pyplot, save_figure
+from orbis2.eval.metrics.odometry import get_inverse_dynamics
+from orbis2.eval.protocols.evaluate import (
     EvaluateError,
     Pair,
     context_frames,
@@ -26,10 +29,9 @@ from orbis2.eval.evaluate import (
     pairs_from_folders,
     pairs_from_manifest,
     protocol,
+    reference_rows,
 )
-from orbis2.eval.evaluate_steering import add_steering
-from orbis2.eval.figures import pyplot, save_figure
-from orbis2.eval.odometry import get_inverse_dynamics
+from orbis2.eval.protocols.evaluate_steering import add_steering
 from orbis2.io import sha256_file
 from orbis2.models.i3d import load_i3d
 
@@ -102,7 +104,7 @@ def evaluate_videos(pairs: list[Pair], cfg, *, context: int | None = None, where
                     protocol_name: str = "orbis2", generated_has_context: bool = False, split: str = "videos",
                     i3d: Path | None = None, assets: Path | None = None, instrument: str = "learned",
                     instrument_weights: Path | None = None, hfov_deg: float | None = None,
-                    device: str | None = None) -> dict[str, Any]:
+                    device: str | None = None) -> EvaluateRecord:
     """The record of ``orbis2 evaluate``: FVD, chunked FVD, references, warnings and card of ``pairs`` under the
     protocol named for ``cfg``'s evaluation section; steering scores too when the rollouts have trajectories.
     ``where`` (the manifest) is named when the context length is missing; I3D is ``i3d``, else the assets'."""
@@ -114,31 +116,31 @@ def evaluate_videos(pairs: list[Pair], cfg, *, context: int | None = None, where
     reader = get_inverse_dynamics(instrument, instrument_weights) if any(p.trajectory for p in pairs) else None
     record = evaluate_pairs(pairs, stated, proto, network, sha256_file(weights), generated_has_context, split)
     if reader is not None:
-        add_steering(record, pairs, proto, generated_has_context, reader, instrument,
-                     hfov_deg if hfov_deg is not None else cfg.town.hfov_deg)
+        record = add_steering(record, pairs, proto, generated_has_context, reader, instrument,
+                              hfov_deg if hfov_deg is not None else cfg.town.hfov_deg)
     return record
 
 
-def plot_record(record: dict[str, Any], path: Path) -> None:
+def plot_record(record: EvaluateRecord, path: Path) -> None:
     """FVD over the protocol's window and over each chunk, with their bootstrap intervals, against the end of the
     window (s); the reference rows as horizontal lines."""
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(5.5, 3.8))
-    fvd, card = record["fvd"], record["protocol"]
-    ax.errorbar([fvd["seconds"]], [fvd["fvd"]], yerr=[[fvd["fvd"] - fvd["low"]], [fvd["high"] - fvd["fvd"]]],
-                fmt="s", capsize=4, label=f"FVD (0-{fvd['seconds']:g} s)")
-    if "chunked" in record:
-        chunks = record["chunked"]["chunks"]
-        ax.errorbar([c["end_s"] for c in chunks], [c["fvd"] for c in chunks],
-                    yerr=[[c["fvd"] - c["low"] for c in chunks], [c["high"] - c["fvd"] for c in chunks]],
-                    fmt="o-", capsize=4, label=f"chunked FVD ({record['chunked']['chunk_seconds']:g}-s windows)")
-    for (name, row), style in zip(record["references"].items(), ("--", ":", "-.")):
-        if row.get("fvd") is not None:
-            ax.axhline(row["fvd"], linestyle=style, color="grey", label=name)
+    fvd, card = record.fvd, record.protocol
+    ax.errorbar([fvd.seconds], [fvd.fvd], yerr=[[fvd.fvd - fvd.low], [fvd.high - fvd.fvd]],
+                fmt="s", capsize=4, label=f"FVD (0-{fvd.seconds:g} s)")
+    if record.chunked is not None:
+        chunks = record.chunked.chunks
+        ax.errorbar([c.end_s for c in chunks], [c.fvd for c in chunks],
+                    yerr=[[c.fvd - c.low for c in chunks], [c.high - c.fvd for c in chunks]],
+                    fmt="o-", capsize=4, label=f"chunked FVD ({record.chunked.chunk_seconds:g}-s windows)")
+    for (name, row), style in zip(reference_rows(record), ("--", ":", "-.")):
+        if row.fvd is not None:
+            ax.axhline(row.fvd, linestyle=style, color="grey", label=name)
     ax.set_xlabel("end of window (s after the context)")
     ax.set_ylabel("FVD")
-    ax.set_title(f"protocol {card['protocol']}: {card['videos']} videos, {card['clips']} clips, "
-                 f"{card['context_frames']} context frames", fontsize=9)
+    ax.set_title(f"protocol {card.protocol}: {card.videos} videos, {card.clips} clips, "
+                 f"{card.context_frames} context frames", fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     save_figure(fig, path)

@@ -10,7 +10,7 @@ windows, as the predictors see them (scaled cached latents):
   null steering, another clip's steering, yaw rate negated, speed halved. Two
   errors per window: the flow-matching loss (eq. 1 with the window's tau) and
   the error of the one-step conditional mean. Swaps always come from another
-  clip (:func:`orbis2.eval.stats.other_clip_donors`): windows of the same clip a
+  clip (:func:`orbis2.eval.metrics.stats.other_clip_donors`): windows of the same clip a
   fraction of a second apart carry nearly the same subgoal.
 - **One-step conditional mean.** At tau = 1 the input is pure noise, so a
   perfect velocity field gives ``eps - v(eps, 1) = E[x | context, conditioning]``;
@@ -57,7 +57,7 @@ import torch
 from orbis2.config.sections import DataConfig
 from orbis2.data.motion import TURN_THRESHOLD
 from orbis2.errors import OrbisError
-from orbis2.eval.ego_motion import (
+from orbis2.eval.metrics.ego_motion import (
     EGO_MOTION_TARGETS,
     ego_motion_pairs,
     ego_motion_probe,
@@ -65,13 +65,13 @@ from orbis2.eval.ego_motion import (
     ridge_predict,
     select_penalty,
 )
-from orbis2.eval.records import ConditioningRecord
-from orbis2.eval.stats import (
+from orbis2.eval.metrics.stats import (
     bootstrap_statistic,
     decide,
     other_clip_donors,
     relative_difference,
 )
+from orbis2.eval.records import ConditioningRecord
 from orbis2.flow import interpolate
 from orbis2.hierarchy import (
     detail_condition,

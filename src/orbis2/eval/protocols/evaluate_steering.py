@@ -1,6 +1,6 @@
 """Steering scores of any model's rollouts that come with their commanded trajectories (``orbis2 evaluate``).
 
-Kept apart from :mod:`orbis2.eval.evaluate`, which the ``eval_fvd`` stages import: the
+Kept apart from :mod:`orbis2.eval.protocols.evaluate`, which the ``eval_fvd`` stages import: the
 steering instrument's code is no input of the FVD stages.
 """
 
@@ -8,23 +8,24 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from itertools import islice
-from typing import Any
 
 import numpy as np
 
 from orbis2.data.importer import read_odometry_csv
 from orbis2.data.video import iter_frames
-from orbis2.eval.evaluate import EvaluateError, Pair, Protocol
-from orbis2.eval.odometry import camera_intrinsics
-from orbis2.eval.stats import mean_interval
-from orbis2.eval.steering import score_videos
+from orbis2.eval.evaluate_records import EvaluateRecord, SteeringScores
+from orbis2.eval.metrics.odometry import camera_intrinsics
+from orbis2.eval.metrics.stats import mean_interval
+from orbis2.eval.protocols.evaluate import EvaluateError, Pair, Protocol
+from orbis2.eval.protocols.steering import score_videos
 
 
 def steering_record(pairs: list[Pair], fps: float, window: slice, offset: int, clusters: list[str],
-                    proto: Protocol, instrument: Callable, instrument_name: str, hfov_deg: float) -> dict[str, Any]:
+                    proto: Protocol, instrument: Callable, instrument_name: str, hfov_deg: float) -> SteeringScores:
     """Steering ADE (metres, after scale alignment) and the signed turn response (degrees, the commanded turn's
-    direction positive) of each rollout's first ``window``, read by ``instrument`` (:mod:`orbis2.eval.steering`,
-    the code of the ``eval_steering`` stage), with clip-bootstrap intervals."""
+    direction positive) of each rollout's first ``window``, read by ``instrument``
+    (:mod:`orbis2.eval.protocols.steering`, the code of the ``eval_steering`` stage), with clip-bootstrap
+    intervals."""
     missing = [p for p in pairs if p.trajectory is None]
     if missing:
         raise EvaluateError(f"{missing[0].generated}: no trajectory (and {len(missing) - 1} more); give every "
@@ -44,21 +45,23 @@ def steering_record(pairs: list[Pair], fps: float, window: slice, offset: int, c
     scores = score_videos(videos, controls, instrument, camera_intrinsics(first.shape[2], first.shape[1], hfov_deg),
                           fps)
 
-    def interval(values: np.ndarray) -> dict[str, Any]:
+    def interval(values: np.ndarray) -> dict:
         return mean_interval(values, clusters, proto.bootstrap_reps, seed=proto.seed).to_dict()
 
-    return {"instrument": instrument_name, "hfov_deg": hfov_deg, "seconds": window.stop / fps,
-            "ade_m": interval(scores["ade"]), "turn_deg": interval(scores["turn_deg"]),
-            "commanded_turn_deg": interval(scores["commanded_turn_deg"])}
+    return SteeringScores.model_validate(
+        {"instrument": instrument_name, "hfov_deg": hfov_deg, "seconds": window.stop / fps,
+         "ade_m": interval(scores["ade"]), "turn_deg": interval(scores["turn_deg"]),
+         "commanded_turn_deg": interval(scores["commanded_turn_deg"])})
 
 
-def add_steering(record: dict[str, Any], pairs: list[Pair], proto: Protocol, generated_has_context: bool,
-                 instrument: Callable, instrument_name: str, hfov_deg: float) -> None:
-    """Add ``record["steering"]`` (:func:`steering_record` over the record's FVD window) when the rollouts have
-    trajectories."""
+def add_steering(record: EvaluateRecord, pairs: list[Pair], proto: Protocol, generated_has_context: bool,
+                 instrument: Callable, instrument_name: str, hfov_deg: float) -> EvaluateRecord:
+    """``record`` with its ``steering`` scores (:func:`steering_record` over the record's FVD window) when the
+    rollouts have trajectories; else ``record`` as it is."""
     if not any(p.trajectory for p in pairs):
-        return
-    card = record["protocol"]
-    record["steering"] = steering_record(pairs, card["fps"], slice(0, card["window_frames"]),
-                                         card["context_frames"] if generated_has_context else 0,
-                                         [p.clip for p in pairs], proto, instrument, instrument_name, hfov_deg)
+        return record
+    card = record.protocol
+    steering = steering_record(pairs, card.fps, slice(0, card.window_frames),
+                               card.context_frames if generated_has_context else 0,
+                               [p.clip for p in pairs], proto, instrument, instrument_name, hfov_deg)
+    return record.model_copy(update={"steering": steering})

@@ -40,7 +40,14 @@ from orbis2.errors import OrbisError
 from orbis2.latents import LatentCache
 from orbis2.models.files import PredictorFile, TokenizerFile, load_predictor, load_tokenizer
 from orbis2.registry import System, registry
-from orbis2.rollout import ScheduleStep, cascaded_rollout, first_context_end, flat_rollout, rollout_schedule
+from orbis2.rollout import (
+    ScheduleStep,
+    cascaded_rollout,
+    detail_frames_per_step,
+    first_context_end,
+    flat_rollout,
+    rollout_schedule,
+)
 
 # The systems and the main table's rows: registry.yaml (``systems``, ``main_table``).
 SYSTEMS: dict[str, System] = registry().systems
@@ -115,11 +122,16 @@ class LoadedSystem:
             if self.top is None:
                 return flat_rollout(self.bottom.model, contexts["bottom"], steps, self.step_frames(self.bottom),
                                     bottom_nfe, bottom_rate, generator, kv_cache=self.inference.kv_cache)
+            top_rate = float(self.top.meta["frame_rate"])
+            per_step = detail_frames_per_step(bottom_rate, top_rate, self.step_frames(self.top))
+            if per_step != self.step_frames(self.bottom):
+                raise OrbisError(f"{self.name}: the bottom predictor adds {self.step_frames(self.bottom)} frames per "
+                                 f"step, but its {bottom_rate:g} Hz under a {top_rate:g} Hz top gives {per_step}; "
+                                 f"retrain the pair on one params.yaml data section")
             details, _ = cascaded_rollout(
                 self.top.model, self.bottom.model, contexts["bottom"], contexts["top"], steps, generator,
-                abstract_nfe=top_nfe, detail_nfe=bottom_nfe, frames_per_step=self.step_frames(self.bottom),
-                abstract_hz=float(self.top.meta["frame_rate"]), detail_hz=bottom_rate, steering=steering,
-                top_frames_per_step=self.step_frames(self.top), kv_cache=self.inference.kv_cache,
+                abstract_nfe=top_nfe, detail_nfe=bottom_nfe, abstract_hz=top_rate, detail_hz=bottom_rate,
+                steering=steering, top_frames_per_step=self.step_frames(self.top), kv_cache=self.inference.kv_cache,
                 subgoals=subgoals, steering_guidance=self.inference.steering_guidance)
         return details
 

@@ -15,7 +15,7 @@ sees of a perfect world model), and a shuffled control (frame t paired with a
 random frame of the same clip: no consistent motion, R^2 near zero or below).
 
 Registered as ``evaluation.inverse_dynamics: learned``
-(:data:`orbis2.eval.odometry.INVERSE_DYNAMICS`): a video's per-step predictions are
+(:data:`orbis2.eval.metrics.odometry.INVERSE_DYNAMICS`): a video's per-step predictions are
 integrated into a planar trajectory in metres.
 """
 
@@ -114,7 +114,8 @@ class Instrument:
         return np.concatenate(out) * self.std + self.mean
 
     def __call__(self, frames: np.ndarray, K: np.ndarray) -> np.ndarray:
-        """The :class:`orbis2.eval.odometry.InverseDynamics` interface: a video [T, H, W, 3] -> positions [T, 2]."""
+        """The :class:`orbis2.eval.metrics.odometry.InverseDynamics` interface: a video [T, H, W, 3] -> positions
+        [T, 2]."""
         small = resize(np.asarray(frames), self.scale)
         controls = self.predict(small[:-1], small[1:])
         return integrate_controls(controls[:, 0], controls[:, 1], 1.0 / self.fps)

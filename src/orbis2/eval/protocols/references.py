@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from orbis2.eval.fvd import FeatureStats, fvd
-from orbis2.eval.stats import bootstrap_draws, fvd_statistic, interval_from_draws
+from orbis2.eval.metrics.fvd import FeatureStats, fvd
+from orbis2.eval.metrics.stats import bootstrap_draws, fvd_statistic, interval_from_draws
 
 
 def fvd_with_interval(real: np.ndarray, fake: np.ndarray, clusters: Sequence, reps: int, seed: int) -> dict[str, Any]:

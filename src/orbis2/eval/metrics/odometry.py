@@ -335,7 +335,7 @@ def _step_lengths(motions: list, cfg: OpenCVOdometry) -> np.ndarray:
 
 def _learned(weights: Path | None = None) -> InverseDynamics:
     """The CNN the ``inverse_dynamics`` stage trains on the town (imported here: it needs torch)."""
-    from orbis2.eval.inverse_dynamics import Instrument
+    from orbis2.eval.metrics.inverse_dynamics import Instrument
 
     if weights is None:
         raise OrbisError("the learned inverse-dynamics instrument needs its weights: pass the `inverse_dynamics` "
@@ -375,7 +375,7 @@ def get_inverse_dynamics(name: str, weights: Path | None = None) -> InverseDynam
             "Learned models (e.g. VGGT) need their own weights: wrap the model in a callable "
             "model(frames [T,H,W,3] uint8, K 3x3) -> [T,2] planar trajectory (x forward, y left, "
             "frame 0 at the origin, any scale), then register a factory(weights) -> model with "
-            "orbis2.eval.odometry.INVERSE_DYNAMICS[name] = factory, or pass it as `model` to trajectory_ade")
+            "orbis2.eval.metrics.odometry.INVERSE_DYNAMICS[name] = factory, or pass it as `model` to trajectory_ade")
     return factory(weights)
 
 

@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from orbis2.eval.fvd import frechet_distance, frechet_distance_of_rows
+from orbis2.eval.metrics.fvd import frechet_distance, frechet_distance_of_rows
 
 DEFAULT_REPS = 1000
 DEFAULT_LEVEL = 0.95
@@ -171,7 +171,7 @@ def fvd_statistic(real: np.ndarray, fake: np.ndarray) -> Callable[[np.ndarray], 
     source of variation at tens of videos. FVD is biased upwards at small sample
     sizes, so intervals of different sample sizes are not comparable. With fewer
     videos than features the covariances are passed as rows (exact, and much
-    cheaper: :func:`~orbis2.eval.fvd.frechet_distance_of_rows`).
+    cheaper: :func:`~orbis2.eval.metrics.fvd.frechet_distance_of_rows`).
     """
     real, fake = np.asarray(real, np.float64), np.asarray(fake, np.float64)
     if real.shape != fake.shape:

@@ -2,7 +2,7 @@
 
 One split's figures (the ``eval_fvd_<system>`` stage collects them into
 ``reports/eval/fvd_<system>.json``): FVD over ``evaluation.seconds`` with a
-clip-bootstrap interval, the reference rows of :mod:`orbis2.eval.references` on
+clip-bootstrap interval, the reference rows of :mod:`orbis2.eval.protocols.references` on
 the same clips and frames, and on ``long_split`` chunked FVD and the FVD-slope over
 ``long_seconds``. The long split's FVD uses the first ``seconds`` of its long
 rollouts (same contexts, same distribution as separate short rollouts).
@@ -12,7 +12,7 @@ I3D features of real videos (and of the references, which only depend on the
 decoding tokenizer) are cached in a folder keyed by the split's shard digest and a
 description of the videos, so that systems evaluated on the same clips share them.
 
-I3D sees 16 evenly spaced frames of each window (``orbis2.eval.fvd.even_frame_indices``), and the
+I3D sees 16 evenly spaced frames of each window (``orbis2.eval.metrics.fvd.even_frame_indices``), and the
 tokenizers decode frame by frame, so only those frames are decoded (and read from
 the shards): the frames of decoding every frame (up to float round-off, at most a
 grey level), at a fraction of the decoding that dominates this stage on a CPU
@@ -31,10 +31,10 @@ import torch
 from orbis2.config.sections import DataConfig, EvaluationConfig
 from orbis2.data.shards import Clip, split_clips, split_digest
 from orbis2.data.video import write_gif, write_video
-from orbis2.eval.evaluate import i3d_picks, protocol, score_rollouts
-from orbis2.eval.fvd import CLIP_FRAMES, cached_features, i3d_features
-from orbis2.eval.references import reference_rows
-from orbis2.eval.systems import (
+from orbis2.eval.metrics.fvd import CLIP_FRAMES, cached_features, i3d_features
+from orbis2.eval.protocols.evaluate import i3d_picks, protocol, score_rollouts
+from orbis2.eval.protocols.references import reference_rows
+from orbis2.eval.protocols.systems import (
     LoadedSystem,
     Sample,
     cache_latents,
@@ -77,7 +77,7 @@ def split_fvd(split: str, system: LoadedSystem, cache: LatentCache, i3d, media: 
               ev: EvaluationConfig, device: torch.device, shards: Path, stats_cache: Path, i3d_sha256: str = "",
               rollouts: Path | None = None) -> dict[str, Any]:
     """Roll out one split: ``{"fvd": ..., "references": ..., "protocol": ...}``, plus ``"chunked"`` on the long
-    split, scored by :func:`orbis2.eval.evaluate.score_rollouts` (the code ``orbis2 evaluate`` runs).
+    split, scored by :func:`orbis2.eval.protocols.evaluate.score_rollouts` (the code ``orbis2 evaluate`` runs).
 
     Writes a sample video (``media/<split>.mp4``, VP9, and a GIF thumbnail ``media/<split>.gif``)
     and, on the long split, the frames of

@@ -1,6 +1,6 @@
 """Ridge probes of ego-motion read from latents: speed and yaw rate over 0.5 s from two latents 0.5 s apart.
 
-The ``eval_conditioning`` stage (``orbis2.eval.conditioning``) fits one on real latent pairs to measure how
+The ``eval_conditioning`` stage (``orbis2.eval.protocols.conditioning``) fits one on real latent pairs to measure how
 much ego-motion a latent set keeps, then reads the steered predictor's predictions with it. Ridge on
 standardised features, its penalty chosen per target on held-out train clips, R^2 with clip-bootstrap
 intervals on val.
@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from orbis2.eval.stats import bootstrap_statistic
+from orbis2.eval.metrics.stats import bootstrap_statistic
 
 EGO_MOTION_TARGETS = ("speed", "yaw_rate")  # the probe's target columns, in odometry order
 

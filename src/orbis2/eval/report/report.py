@@ -1,6 +1,6 @@
 """The report: the paper's tables as CSV, a summary with the claims, the headline metrics and the figures.
 
-The rows come from :mod:`orbis2.eval.tables` and the verdicts from :mod:`orbis2.eval.claims`, both
+The rows come from :mod:`orbis2.eval.report.tables` and the verdicts from :mod:`orbis2.eval.report.claims`, both
 pure functions of the records :mod:`orbis2.eval.records` reads; this module only serialises and
 draws them (figures of frames, which evaluation stages draw too, are in :mod:`orbis2.eval.figures`).
 Everything a writer needs is checked before its first file is written.
@@ -19,11 +19,11 @@ import pandas as pd
 
 from orbis2.config.params import PipelineConfig
 from orbis2.errors import OrbisError
-from orbis2.eval.claims import check_claims, fmt
-from orbis2.eval.conditioning import conditioning_rows
 from orbis2.eval.figures import pyplot, save_figure
+from orbis2.eval.protocols.conditioning import conditioning_rows
 from orbis2.eval.records import PROBE_TARGETS, Evals
-from orbis2.eval.tables import (
+from orbis2.eval.report.claims import check_claims, fmt
+from orbis2.eval.report.tables import (
     HIERARCHY_LAYOUT,
     NA,
     TRAINING_ROWS,

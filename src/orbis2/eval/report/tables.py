@@ -1,6 +1,6 @@
 """The paper's tables as rows: pure functions of the evaluation records (:mod:`orbis2.eval.records`).
 
-Every table is a list of ordered rows; the writers (:mod:`orbis2.eval.report`) only serialise
+Every table is a list of ordered rows; the writers (:mod:`orbis2.eval.report.report`) only serialise
 them. A metric cell always comes with the sample count it was measured on (``<metric>_n``), and a
 metric that an input lacks stops the report with an ``OrbisError`` naming the file and the stage
 that writes it. The only ``NA`` cells are values no stage measures for that row (a reference row's

@@ -11,10 +11,10 @@ import math
 from typing import Any, Callable, Sequence
 
 from orbis2.errors import OrbisError
-from orbis2.eval.conditioning import claim_verdict
+from orbis2.eval.metrics.stats import paired_draws_interval
+from orbis2.eval.protocols.conditioning import claim_verdict
 from orbis2.eval.records import Evals, Interval, PathRatio, VariantRow
-from orbis2.eval.stats import paired_draws_interval
-from orbis2.eval.tables import NA, TABLE_PROBE, TableSettings, chunked, compression_table, probe_cells
+from orbis2.eval.report.tables import NA, TABLE_PROBE, TableSettings, chunked, compression_table, probe_cells
 
 HOLDS, FAILS, UNMEASURED = "holds", "does not hold", "not measured"
 UNRESOLVED = "not resolved at this sample size"
