@@ -19,8 +19,9 @@ import numpy as np
 from orbis2.errors import OrbisError
 from orbis2.eval.figures import save_rollout_grid
 from orbis2.eval.protocols.systems import SYSTEMS
-from orbis2.eval.records import EVAL_KINDS, read_evals
+from orbis2.eval.records import EVAL_KINDS
 from orbis2.eval.report.claims import check_claims
+from orbis2.eval.report.evals import read_evals
 from orbis2.eval.report.report import (
     HEADLINE_JSON,
     MAIN_CSV,

@@ -12,6 +12,7 @@ from orbis2.errors import OrbisError
 from orbis2.eval import records
 from orbis2.eval.evaluate_records import EvaluateRecord
 from orbis2.eval.report import tables
+from orbis2.eval.report.evals import Evals, load_eval, read_evals
 
 from conftest import ROOT
 
@@ -51,7 +52,7 @@ def test_a_stage_building_its_record_gets_no_coercion():
                                           "predictors": ("abstract_tf", "detail")})
 
 
-def _load_with(tmp_path, name: str, edit) -> records.Evals:
+def _load_with(tmp_path, name: str, edit) -> Evals:
     folder = tmp_path / "eval"
     folder.mkdir()
     for file in RECORDS.glob("*.json"):
@@ -59,7 +60,7 @@ def _load_with(tmp_path, name: str, edit) -> records.Evals:
     doc = json.loads((folder / f"{name}.json").read_text())
     edit(doc)
     (folder / f"{name}.json").write_text(json.dumps(doc))
-    return records.load_eval(folder)
+    return load_eval(folder)
 
 
 def test_a_renamed_key_stops_the_read_naming_file_key_and_stage(tmp_path):
@@ -90,7 +91,7 @@ def test_every_kind_is_read_strictly(tmp_path, name, edit, expected):
 def test_an_unreadable_record_names_its_file(tmp_path):
     (tmp_path / "speed_all.json").write_text("{")
     with pytest.raises(OrbisError, match=r"cannot read .*speed_all\.json.*re-run eval_speed_all"):
-        records.read_evals({}, {}, speed=tmp_path / "speed_all.json")
+        read_evals({}, {}, speed=tmp_path / "speed_all.json")
 
 
 def test_the_reference_rows_are_fields_of_the_record():

@@ -16,6 +16,7 @@ from orbis2.config.params import load_config
 from orbis2.errors import OrbisError
 from orbis2.eval import figures, records
 from orbis2.eval.report import claims, report, tables
+from orbis2.eval.report.evals import Evals, load_eval, read_evals
 
 from conftest import ROOT
 
@@ -216,7 +217,7 @@ def write_evals(folder: Path, skip: tuple[str, ...] = ()) -> Path:
 @pytest.fixture
 def evals(tmp_path):
     """Every evaluation, and the compression rows the report stage derives from them."""
-    evals = records.load_eval(write_evals(tmp_path / "eval"))
+    evals = load_eval(write_evals(tmp_path / "eval"))
     evals.compression = records.CompressionRecord.model_validate(compression_doc())
     return evals
 
@@ -226,7 +227,7 @@ def read_csv(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(handle))
 
 
-def verdicts(evals: records.Evals) -> list[str]:
+def verdicts(evals: Evals) -> list[str]:
     return [verdict for _, verdict, _ in claims.check_claims(evals, SETTINGS)]
 
 
@@ -244,7 +245,7 @@ def test_load_eval_rejects_a_file_under_the_wrong_name(tmp_path):
     folder = write_evals(tmp_path / "eval")
     (folder / "fvd_hierarchical.json").write_text(json.dumps(fvd_doc("flat_detail")))
     with pytest.raises(OrbisError, match="eval_fvd_hierarchical"):
-        records.load_eval(folder)
+        load_eval(folder)
 
 
 def test_read_evals_takes_the_files_it_is_given(tmp_path):
@@ -253,9 +254,9 @@ def test_read_evals_takes_the_files_it_is_given(tmp_path):
     moved = tmp_path / "elsewhere" / "hier.json"
     moved.parent.mkdir()
     (folder / "fvd_hierarchical.json").rename(moved)
-    assert set(records.read_evals({"hierarchical": moved}, {}).fvd) == {"hierarchical"}
+    assert set(read_evals({"hierarchical": moved}, {}).fvd) == {"hierarchical"}
     fvd = {m: folder / f"fvd_{m}.json" for m in FVD} | {"hierarchical": moved}
-    evals = records.read_evals(fvd, {t: folder / f"probe_{t}.json" for t in PROBES},
+    evals = read_evals(fvd, {t: folder / f"probe_{t}.json" for t in PROBES},
                               steering=folder / "steering.json", speed=tmp_path / "absent.json",
                               conditioning=folder / "conditioning.json")
     assert set(evals.fvd) == set(FVD) and evals.fvd["hierarchical"].model == "hierarchical"
@@ -263,7 +264,7 @@ def test_read_evals_takes_the_files_it_is_given(tmp_path):
     with pytest.raises(OrbisError, match=r"absent\.json \(written by stage eval_speed\)"):
         report.write_main_report(evals, tmp_path / "out", SETUP, SETTINGS)
     with pytest.raises(OrbisError, match="fvd_flat_detail.json says model='flat_detail', expected 'hierarchical'"):
-        records.read_evals({"hierarchical": folder / "fvd_flat_detail.json"}, {})
+        read_evals({"hierarchical": folder / "fvd_flat_detail.json"}, {})
 
 
 def test_main_report_tables_round_trip(evals, tmp_path):
@@ -334,7 +335,7 @@ def test_main_report_tables_round_trip(evals, tmp_path):
 
 def test_main_report_marks_absent_ablations_not_measured(tmp_path):
     folder = write_evals(tmp_path / "eval", skip=("probe_abstract_df",))
-    report.write_main_report(records.load_eval(folder), tmp_path / "out", SETUP, SETTINGS)
+    report.write_main_report(load_eval(folder), tmp_path / "out", SETUP, SETTINGS)
     assert summary_verdicts(tmp_path / "out" / "summary.md") == [
         "not measured",
         "holds",
@@ -353,7 +354,7 @@ def test_steering_table_without_opencv_on_the_rollouts_keeps_its_real_video_chec
     doc["instruments"] = ["learned"]  # evaluation.opencv_rollouts: false
     for cells in doc["modes"].values():
         del cells["instruments"]["opencv"]
-    rows = tables.steering_table(records.Evals(steering=records.SteeringRecord.model_validate(doc)), SETTINGS)
+    rows = tables.steering_table(Evals(steering=records.SteeringRecord.model_validate(doc)), SETTINGS)
     assert all(r["ade_opencv"] == tables.NA and r["turn_deg_opencv"] == tables.NA for r in rows[:-2])
     assert rows[-2]["ade_opencv"] == 0.6 and rows[0]["ade"] == 1.2
 
@@ -433,7 +434,7 @@ def test_full_report_ablations_and_figures(evals, tmp_path):
     assert summary_verdicts(out / "summary.md") == ["holds"] * 8
 
 
-def _set(evals: records.Evals, path: tuple, value) -> None:
+def _set(evals: Evals, path: tuple, value) -> None:
     """Set the value at ``path`` (attributes of the records, keys of their mappings, indices of their lists)."""
     node = evals
     for key in path[:-1]:
@@ -496,7 +497,7 @@ def test_null_compression_slope_is_not_measured(evals):
 )
 def test_missing_input_names_file_and_stage(tmp_path, missing, stage, writer):
     folder = write_evals(tmp_path / "eval", skip=(missing,))
-    evals = records.load_eval(folder)
+    evals = load_eval(folder)
     with pytest.raises(OrbisError, match=re.escape(f"{missing}.json (written by stage {stage})")):
         writer(evals, tmp_path / "out", SETUP, SETTINGS)
     assert not (tmp_path / "out").exists()  # checked before anything is written
@@ -512,7 +513,7 @@ def test_full_report_without_compression_drops_that_table(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     (out / "compression_ablation.csv").write_text("stale\n")
-    evals = records.load_eval(write_evals(tmp_path / "eval"))
+    evals = load_eval(write_evals(tmp_path / "eval"))
     report.write_full_report(evals, out, SETUP, SETTINGS)
     assert not (out / "compression_ablation.csv").exists()
     assert summary_verdicts(out / "summary.md")[2] == "not measured"

@@ -13,7 +13,8 @@ from typing import Any, Callable, Sequence
 from orbis2.errors import OrbisError
 from orbis2.eval.metrics.stats import paired_draws_interval
 from orbis2.eval.protocols.conditioning import claim_verdict
-from orbis2.eval.records import Evals, Interval, PathRatio, VariantRow
+from orbis2.eval.records import Interval, PathRatio, VariantRow
+from orbis2.eval.report.evals import Evals
 from orbis2.eval.report.tables import NA, TABLE_PROBE, TableSettings, chunked, compression_table, probe_cells
 
 HOLDS, FAILS, UNMEASURED = "holds", "does not hold", "not measured"

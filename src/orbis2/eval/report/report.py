@@ -21,8 +21,9 @@ from orbis2.config.params import PipelineConfig
 from orbis2.errors import OrbisError
 from orbis2.eval.figures import pyplot, save_figure
 from orbis2.eval.protocols.conditioning import conditioning_rows
-from orbis2.eval.records import PROBE_TARGETS, Evals
+from orbis2.eval.records import PROBE_TARGETS
 from orbis2.eval.report.claims import check_claims, fmt
+from orbis2.eval.report.evals import Evals
 from orbis2.eval.report.tables import (
     HIERARCHY_LAYOUT,
     NA,

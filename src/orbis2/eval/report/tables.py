@@ -16,7 +16,8 @@ from typing import Any
 
 from orbis2.config.params import PipelineConfig
 from orbis2.errors import OrbisError
-from orbis2.eval.records import Chunked, CompressionRecord, CompressionRow, Evals, RealFloor
+from orbis2.eval.records import Chunked, CompressionRecord, CompressionRow, RealFloor
+from orbis2.eval.report.evals import Evals
 from orbis2.registry import SCOPES, registry
 
 # Table 1's rows and the predictor probed for each (the hierarchy at its top one): registry.yaml's main_table,
