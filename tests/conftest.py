@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import yaml
 from filelock import FileLock
 
@@ -25,6 +26,12 @@ from orbis2.config.training import TrainConfig
 from orbis2.data.video import write_video
 
 ROOT = Path(__file__).resolve().parents[1]
+
+# One compute thread per pytest-xdist worker and per command a test starts (Snakemake still gives each
+# smoke-build job its rule's threads): the workers and the build already keep every core busy, and more
+# threads only contend, costing about a tenth more CPU time on two cores.
+os.environ["OMP_NUM_THREADS"] = "1"
+torch.set_num_threads(1)
 
 
 @pytest.fixture(scope="session")

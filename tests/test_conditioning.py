@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 import torch
 
-from orbis2.eval.metrics.ego_motion import ego_motion_pairs, ego_motion_probe, probe_features, ridge_fit, select_penalty
+from orbis2.eval.metrics.ego_motion import (
+    ego_motion_pairs,
+    ego_motion_probe,
+    probe_features,
+    ridge_fit,
+    ridge_path,
+    select_penalty,
+)
 from orbis2.eval.protocols.conditioning import (
     effect_rows,
     energy_shares,
@@ -215,6 +222,22 @@ def test_the_probe_penalty_is_chosen_on_held_out_train_clips():
         assert target[1e-3] < 0 and abs(target[1e7]) < 0.05 and target[300.0] < target[10.0]
     with pytest.raises(ValueError, match="needs >= 4 train clips"):
         select_penalty(x, y, np.repeat(np.arange(3), 134)[:400], [1.0], folds=4, seed=0)
+
+
+@pytest.mark.parametrize("pairs, features", [(60, 200), (200, 60)])  # fewer pairs than features, and more
+def test_the_ridge_path_solves_the_normal_equations(pairs, features):
+    """The SVD path gives the weights of (z^T z + p I) w = z^T (y - mean y), z the standardised features."""
+    rng = np.random.default_rng(5)
+    x, y = rng.normal(2.0, 3.0, size=(pairs, features)), rng.normal(size=(pairs, 2))
+    z = (x - x.mean(axis=0)) / (x.std(axis=0) + 1e-8)
+    for penalty, (mean, scale, weights, bias) in zip((0.1, 10.0, 1e4), ridge_path(x, y, (0.1, 10.0, 1e4))):
+        np.testing.assert_allclose(mean, x.mean(axis=0))
+        np.testing.assert_allclose(scale, x.std(axis=0) + 1e-8)
+        expected = np.linalg.solve(z.T @ z + penalty * np.eye(features), z.T @ (y - y.mean(axis=0)))
+        np.testing.assert_allclose(weights, expected, rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(bias, y.mean(axis=0))
+    with pytest.raises(ValueError, match="must be > 0"):
+        ridge_path(x, y, [0.0])
 
 
 def test_each_probe_target_gets_its_own_penalty():

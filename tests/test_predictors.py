@@ -9,7 +9,14 @@ import pytest
 import torch
 
 from orbis2.errors import OrbisError
-from orbis2.hierarchy import detail_condition, detail_condition_slots, rate_geometry, steering_features
+from orbis2.hierarchy import (
+    detail_condition,
+    detail_condition_slots,
+    rate_geometry,
+    steering_features,
+    window_indices,
+    window_span,
+)
 from orbis2.io import sha256_file
 from orbis2.latents import FORMAT, NORMALIZATION, LatentWindowDataset, open_cache
 from orbis2.models.deviations import best_sideways_shift, translate_columns
@@ -22,7 +29,6 @@ from orbis2.tasks.predictors import (
     window_batches,
 )
 from orbis2.train import DataSpec, load_weights, spawn_cpu_processes, train
-from orbis2.windows import window_indices, window_span
 
 from conftest import train_config
 

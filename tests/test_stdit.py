@@ -16,15 +16,6 @@ from orbis2.models.stdit_layers import SteeringEmbedder, patchify, unpatchify
 C, H, W = 4, 3, 5  # latent channels and a small latent grid for the fast tests
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny tensors: one thread avoids contention on a shared CPU and is several times faster."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def n_params(module: torch.nn.Module) -> int:
     return sum(p.numel() for p in module.parameters())
 

@@ -29,15 +29,6 @@ from orbis2.train import DataSpec, TrainConfig, load_weights, train
 from conftest import train_config
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny models run fastest on one thread; more threads only contend on a busy CI machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 @pytest.fixture(scope="module")
 def shard_root(tmp_path_factory, smoke_cfg):
     """Three 30-frame train clips and one val clip at the smoke resolution."""

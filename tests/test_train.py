@@ -29,15 +29,6 @@ from conftest import train_config
 DIM = 6
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny models run fastest on one thread; more threads only contend on a busy CI machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 class Killed(RuntimeError):
     """Stands in for the process being killed mid-run."""
 

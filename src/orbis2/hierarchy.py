@@ -19,16 +19,37 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 
 from orbis2.config.sections import DataConfig
 from orbis2.errors import OrbisError
-from orbis2.windows import window_indices, window_span
 
 STEERING_FEATURES = ("speed", "yaw_rate")
 
 
 # --------------------------------------------------------------------------- windows
+
+
+def window_indices(data: DataConfig, anchor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Native frame indices of the detail and abstract windows around ``anchor``."""
+    detail = anchor + data.detail_stride * (np.arange(data.detail_window) - (data.detail_context - 1))
+    abstract = anchor + data.abstract_stride * (np.arange(data.abstract_window) - (data.abstract_context - 1))
+    return detail, abstract
+
+
+def window_span(detail: np.ndarray, abstract: np.ndarray) -> np.ndarray:
+    """Every native frame from the first to the last frame of the two windows."""
+    return np.arange(min(detail.min(), abstract.min()), max(detail.max(), abstract.max()) + 1)
+
+
+def anchor_range(data: DataConfig, n_frames: int) -> range:
+    """Anchors whose two windows both fit inside a clip of ``n_frames``."""
+    detail, abstract = window_indices(data, 0)
+    first = -min(detail.min(), abstract.min())
+    last = n_frames - 1 - max(detail.max(), abstract.max())
+    return range(first, last + 1)
+
 
 
 def window_key(level: str, rate: str) -> str:

@@ -43,16 +43,9 @@ from torch.utils.data import Dataset
 from tqdm import tqdm
 
 from orbis2.config.sections import DataConfig
-from orbis2.data.shards import (
-    MANIFEST,
-    Clip,
-    anchor_range,
-    load_manifest,
-    read_clips,
-    window_indices,
-    window_span,
-)
+from orbis2.data.shards import MANIFEST, Clip, load_manifest, read_clips
 from orbis2.errors import OrbisError
+from orbis2.hierarchy import anchor_range, window_indices, window_span
 from orbis2.io import atomic_dir, sha256_file, write_json
 from orbis2.models.files import TokenizerFile, load_tokenizer
 

@@ -25,8 +25,7 @@ import torch
 
 from orbis2.config.sections import DataConfig
 from orbis2.flow import ModelFn, euler_grid, euler_sample, guided_velocity
-from orbis2.hierarchy import condition_frames, scale_steering, steering_rows
-from orbis2.windows import window_indices
+from orbis2.hierarchy import condition_frames, scale_steering, steering_rows, window_indices
 
 StepCallback = Callable[[int], None]
 # The paper's Euler steps per sample (its inference protocol): a rollout's defaults, unless a predictor

@@ -43,8 +43,8 @@ from orbis2.config.sections import SPLITS, DataConfig, ShardsConfig
 from orbis2.data.episodes import RawIndex, read_odometry
 from orbis2.data.video import read_video
 from orbis2.errors import OrbisError
+from orbis2.hierarchy import anchor_range, window_indices, window_span
 from orbis2.io import load_npy, load_npz, npy_bytes, npz_bytes, sha256_file, write_json
-from orbis2.windows import window_indices, window_span
 
 MANIFEST = "manifest.json"
 
@@ -298,14 +298,6 @@ def split_digest(root: Path, split: str) -> str:
     """A digest of a split's shards (their SHA-256 from the manifest), e.g. to key statistics cached from them."""
     shards = load_manifest(root)["splits"][split]["shards"]
     return hashlib.sha256("".join(s["sha256"] for s in shards).encode()).hexdigest()[:16]
-
-
-def anchor_range(data: DataConfig, n_frames: int) -> range:
-    """Anchors whose two windows both fit inside a clip of ``n_frames``."""
-    detail, abstract = window_indices(data, 0)
-    first = -min(detail.min(), abstract.min())
-    last = n_frames - 1 - max(detail.max(), abstract.max())
-    return range(first, last + 1)
 
 
 def clip_window(clip: Clip, data: DataConfig, anchor: int) -> dict[str, Any]:

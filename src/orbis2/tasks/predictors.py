@@ -72,7 +72,9 @@ from orbis2.hierarchy import (
     rate_geometry,
     steering_features,
     steering_interval,
+    window_indices,
     window_key,
+    window_span,
 )
 from orbis2.io import sha256_file
 from orbis2.latents import LatentCache, LatentWindowDataset, collate
@@ -81,7 +83,6 @@ from orbis2.models.files import load_predictor, save_predictor
 from orbis2.models.stdit import build_stdit_from
 from orbis2.registry import PredictorSpec, registry
 from orbis2.train import DataSpec, load_weights, train
-from orbis2.windows import window_indices, window_span
 
 # Offset of the validation generator's seed from the training seed: a different stream, fixed across steps.
 VAL_SEED_OFFSET = 7919
