@@ -27,9 +27,11 @@ from orbis2.data.video import write_video
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# One compute thread per pytest-xdist worker and per command a test starts (Snakemake still gives each
-# smoke-build job its rule's threads): the workers and the build already keep every core busy, and more
-# threads only contend, costing about a tenth more CPU time on two cores.
+# One compute thread per pytest-xdist worker and per process a unit test starts: the workers and the smoke
+# build already keep every core busy, and more threads only contend, costing about a tenth more CPU time on
+# two cores. Commands run in a project copy (project_env) get the user's setting back: they run as documented,
+# and the smoke build's jobs get their rule's threads from Snakemake.
+USER_THREADS = os.environ.get("OMP_NUM_THREADS")
 os.environ["OMP_NUM_THREADS"] = "1"
 torch.set_num_threads(1)
 
@@ -89,9 +91,13 @@ def project_copy(dest: Path) -> Path:
 
 
 def project_env(root: Path) -> dict[str, str]:
-    """The environment of a command run in a project copy: its own MLflow store, a new invocation id."""
+    """The environment of a command run in a project copy: its own MLflow store, a new invocation id, the
+    user's threads."""
     env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{root / 'mlflow.db'}"}
     env.pop("ORBIS2_PIPELINE_ID", None)
+    env.pop("OMP_NUM_THREADS")
+    if USER_THREADS is not None:
+        env["OMP_NUM_THREADS"] = USER_THREADS
     return env
 
 
