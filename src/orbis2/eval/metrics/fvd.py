@@ -18,7 +18,6 @@ to I3D; real and generated videos always go through the same selection.
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import os
 import re
@@ -31,7 +30,7 @@ from typing import Callable, Iterator, Sequence
 import numpy as np
 import torch
 import torch.nn.functional as F
-from threadpoolctl import ThreadpoolController
+from threadpoolctl import threadpool_limits
 from torch import nn
 
 CLIP_FRAMES = 16
@@ -61,12 +60,6 @@ def _drop_round_off(eigval: np.ndarray) -> np.ndarray:
     return np.where(eigval > floor, eigval, 0.0)
 
 
-@functools.cache
-def _blas() -> ThreadpoolController:
-    """The BLAS libraries, found once: finding them takes milliseconds, once per bootstrap resample otherwise."""
-    return ThreadpoolController()
-
-
 def frechet_distance(mu1, sigma1, mu2, sigma2) -> float:
     """Frechet distance between N(mu1, sigma1) and N(mu2, sigma2), computed in float64.
 
@@ -93,7 +86,7 @@ def frechet_distance(mu1, sigma1, mu2, sigma2) -> float:
     _check_covariance("sigma1", sigma1, dim)
     _check_covariance("sigma2", sigma2, dim)
 
-    with _blas().limit(limits=1, user_api="blas"):
+    with threadpool_limits(limits=1, user_api="blas"):
         eigval, eigvec = np.linalg.eigh(sigma1)
         root1 = (eigvec * np.sqrt(_drop_round_off(eigval))) @ eigvec.T
         inner = root1 @ sigma2 @ root1
@@ -122,7 +115,7 @@ def frechet_distance_of_rows(mu1, rows1, mu2, rows2) -> float:
                          f"{rows2.shape}")
     if not all(np.all(np.isfinite(x)) for x in (mu1, mu2, rows1, rows2)):
         raise ValueError("the means or covariance rows have non-finite entries")
-    with _blas().limit(limits=1, user_api="blas"):
+    with threadpool_limits(limits=1, user_api="blas"):
         trace_sqrt = np.linalg.svd(rows1 @ rows2.T, compute_uv=False).sum()
     diff = mu1 - mu2
     return float(diff @ diff + np.sum(rows1 * rows1) + np.sum(rows2 * rows2) - 2.0 * trace_sqrt)
