@@ -30,8 +30,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # One compute thread per pytest-xdist worker and per process a unit test starts: the workers and the smoke
 # build already keep every core busy, and more threads only contend, costing about a tenth more CPU time on
 # two cores. Commands run in a project copy (project_env) get the user's setting back: they run as documented,
-# and the smoke build's jobs get their rule's threads from Snakemake.
-# The user's setting is kept in the environment, where the xdist workers (started after this) find it.
+# and the smoke build's jobs get their rule's threads from Snakemake. The setting is kept in the environment,
+# where the xdist workers (started after this runs in the main process) find it.
 os.environ.setdefault("ORBIS2_USER_OMP_THREADS", os.environ.get("OMP_NUM_THREADS", ""))
 USER_THREADS = os.environ["ORBIS2_USER_OMP_THREADS"] or None
 os.environ["OMP_NUM_THREADS"] = "1"

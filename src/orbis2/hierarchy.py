@@ -51,7 +51,6 @@ def anchor_range(data: DataConfig, n_frames: int) -> range:
     return range(first, last + 1)
 
 
-
 def window_key(level: str, rate: str) -> str:
     """The :class:`~orbis2.latents.LatentWindowDataset` item key of ``level`` latents in the ``rate`` window."""
     return {("detail", "fast"): "detail", ("abstract", "slow"): "abstract",
