@@ -33,7 +33,8 @@ from torch import nn
 from orbis2.models.discriminator import build_discriminator
 from orbis2.models.i3d import InceptionI3d
 from orbis2.models.inverse_dynamics import IN_CHANNELS, InverseDynamicsNet
-from orbis2.models.tokenizer import TOKENIZER_PRESETS, build_abstract_tokenizer, build_detail_tokenizer
+from orbis2.models.sizes import TOKENIZER_PRESETS
+from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer
 
 FRAME = {"smoke": (72, 128), "default": (160, 256)}  # the profiles' frame sizes (height, width)
 

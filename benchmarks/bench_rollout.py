@@ -49,8 +49,9 @@ from orbis2.accel import (
     set_tf32,
 )
 from orbis2.config.params import load_config
-from orbis2.models.stdit import STDIT_PRESETS, build_stdit, stdit_config
-from orbis2.models.tokenizer import TOKENIZER_PRESETS, build_detail_tokenizer
+from orbis2.models.sizes import STDIT_PRESETS, TOKENIZER_PRESETS, stdit_config
+from orbis2.models.stdit import build_stdit
+from orbis2.models.tokenizer import build_detail_tokenizer
 from orbis2.rollout import ABSTRACT_NFE, DETAIL_NFE, cascaded_rollout, detail_frames_per_step, flat_rollout
 
 LATENT_CHANNELS = 16

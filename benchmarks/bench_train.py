@@ -35,7 +35,8 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from orbis2.accel import set_tf32
 from orbis2.flow import teacher_forcing_loss
-from orbis2.models.stdit import STDIT_PRESETS, build_stdit
+from orbis2.models.sizes import STDIT_PRESETS
+from orbis2.models.stdit import build_stdit
 from orbis2.train import set_checkpointing
 
 LATENT_CHANNELS = 16

@@ -3,11 +3,12 @@
 # A rule with a wildcard, so Snakemake only: dvc.yaml's stages are fixed (orbis2.dag leaves it out).
 
 from orbis2.errors import OrbisError
-from orbis2.eval.protocols.evaluate_videos import read_rollout_folder
 
 
 def rollouts_of(wildcards):
     """The folder read as the stage reads it; None when the stage will say what is wrong with it."""
+    from orbis2.eval.protocols.evaluate_videos import read_rollout_folder  # imports torch: only for these targets
+
     try:
         return read_rollout_folder(Path(P("rollouts", wildcards.name)))
     except OrbisError:

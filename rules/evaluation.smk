@@ -1,7 +1,6 @@
 # Evaluation: FVD of every system, linear probes of every probe target, the inverse-dynamics
 # instrument, steering, speed, conditioning diagnostics.
 
-from orbis2.eval.protocols.conditioning import scope_predictors
 
 EVAL_FVD, EVAL_PROBE, INVERSE_DYNAMICS, EVAL_STEERING, EVAL_SPEED, EVAL_CONDITIONING = (INTERFACES[kind] for kind in (
     "eval_fvd", "eval_probe", "inverse_dynamics", "eval_steering", "eval_speed", "eval_conditioning"))
@@ -99,7 +98,7 @@ for scope, suffix in SCOPE_SUFFIX.items():
     speed = stage_paths(EVAL_SPEED, **latent_paths("compressed"), predictor=speed_predictors(scope),
                         speed=P("eval") + f"/speed{suffix}.json")
     conditioning = stage_paths(EVAL_CONDITIONING, latents=latent_paths("compressed")["latents"],
-                               predictor=scope_predictors(scope),
+                               predictor=REG.conditioning_predictors(scope),
                                conditioning=P("eval") + f"/conditioning{suffix}.json")
 
     rule:

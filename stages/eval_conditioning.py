@@ -19,7 +19,6 @@ from orbis2.eval.protocols.conditioning import (
     latent_statistics,
     latent_steering_response,
     predictor_rows,
-    scope_predictors,
     steering_readouts,
     val_window_pairs,
 )
@@ -43,7 +42,7 @@ def main(argv: list[str] | None = None) -> None:
         cfg, run = stage.cfg, stage.run
         ev, data, settings = cfg.evaluation, cfg.data, cfg.evaluation.conditioning
         dev = default_device()
-        names = scope_predictors(args.name)
+        names = registry().conditioning_predictors(args.name)
         predictors = predictor_files(args, names)
         cache = open_cache(args.latents or registry().latent_sets[LATENT_SET].root)
         first, second, keys = val_window_pairs(cache, data, settings)

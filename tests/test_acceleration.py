@@ -7,7 +7,8 @@ import torch
 
 from orbis2.config.params import load_config
 from orbis2.flow import euler_sample
-from orbis2.models.stdit import build_stdit, stdit_config
+from orbis2.models.sizes import stdit_config
+from orbis2.models.stdit import build_stdit
 from orbis2.rollout import cascaded_rollout, flat_rollout, sample_frames
 
 from conftest import ROOT

@@ -2,6 +2,9 @@
 
 import copy
 import dataclasses
+import re
+import subprocess
+import sys
 import typing
 
 import pytest
@@ -149,3 +152,17 @@ def test_a_key_missing_from_params_yaml_is_an_error_naming_section_key_and_file(
     nested = write_params(tmp_path, lambda r: r["_predictor"]["all"]["train"].pop("min_lr_ratio"))
     with pytest.raises(ConfigError, match=r"section 'abstract_df' has no value for \['train.min_lr_ratio'\]"):
         load_config(nested, "smoke")
+
+
+def test_reading_the_dag_needs_no_torch():
+    """Every Snakemake invocation reads params.yaml (each stage's preset and size overrides are checked) and
+    the modules the Snakefile and rules import at the top: none of that imports torch (1.2-1.8 s a process)."""
+    sources = [ROOT / "Snakefile", *sorted((ROOT / "rules").glob("*.smk"))]
+    modules = sorted({m for f in sources for m in re.findall(r"^from (orbis2[\w.]*) import", f.read_text(), re.M)})
+    assert "orbis2.config.params" in modules
+    code = (f"import sys, {', '.join(modules)}\n"
+            "from orbis2.config.params import PROFILES, load_config\n"
+            "for profile in PROFILES: load_config('params.yaml', profile)\n"
+            "print(sorted(m for m in sys.modules if m == 'torch' or m.startswith('torch.')))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]", f"reading the DAG imported torch: {out[:300]}"

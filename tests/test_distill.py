@@ -8,7 +8,8 @@ import dataclasses
 import torch
 
 from orbis2.flow import euler_sample, reflow_loss
-from orbis2.models.stdit import build_stdit, stdit_config
+from orbis2.models.sizes import stdit_config
+from orbis2.models.stdit import build_stdit
 
 TEACHER_NFE, FEW = 6, 1
 GRID = (2, 3)

@@ -113,9 +113,10 @@ def free_port() -> int:
 
 
 def serve(text: str, cwd: Path) -> str:
-    """Start a documented server on a free port, wait for its page, stop it; '' when it answered."""
+    """Start a documented server on a free port, wait for its page, stop it; '' when it answered. One worker
+    process, not MLflow's four: each imports the whole server, and one answers the page as well."""
     port = free_port()
-    proc = subprocess.Popen(shlex.split(text) + ["--host", "127.0.0.1", "--port", str(port)], cwd=cwd,
+    proc = subprocess.Popen(shlex.split(text) + ["--host", "127.0.0.1", "--port", str(port), "--workers", "1"], cwd=cwd,
                             env=project_env(cwd), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         for _ in range(120):

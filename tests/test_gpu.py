@@ -9,7 +9,8 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 from orbis2.accel import compile_predictor, inference_autocast, set_tf32
 from orbis2.config.params import load_config
 from orbis2.flow import teacher_forcing_loss
-from orbis2.models.stdit import build_stdit, stdit_config
+from orbis2.models.sizes import stdit_config
+from orbis2.models.stdit import build_stdit
 from orbis2.rollout import cascaded_rollout
 
 from conftest import ROOT

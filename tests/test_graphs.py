@@ -20,7 +20,8 @@ from orbis2.accel import cast_for_inference, compile_predictor
 from orbis2.config.params import load_config
 from orbis2.flow import euler_grid, euler_sample
 from orbis2.models.deviations import TURN_SEARCH, SteeringShift, best_sideways_shift, translate_columns
-from orbis2.models.stdit import build_stdit, stdit_config
+from orbis2.models.sizes import stdit_config
+from orbis2.models.stdit import build_stdit
 from orbis2.models.stdit_layers import modulate, patchify, sinusoidal_embedding, unpatchify
 from orbis2.models.tokenizer import sincos_pos_embed_2d
 from orbis2.rollout import cascaded_rollout, flat_rollout, sample_frames, target_velocity

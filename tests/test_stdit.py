@@ -10,7 +10,8 @@ import torch
 from orbis2.flow import teacher_forcing_loss
 from orbis2.models.deviations import SteeringShift, SubgoalShift, translate_columns
 from orbis2.models.files import load_predictor, save_predictor
-from orbis2.models.stdit import STDIT_PRESETS, STDiTConfig, build_stdit, build_stdit_from, stdit_config
+from orbis2.models.sizes import STDIT_PRESETS, STDiTConfig, stdit_config
+from orbis2.models.stdit import build_stdit, build_stdit_from
 from orbis2.models.stdit_layers import SteeringEmbedder, patchify, unpatchify
 
 C, H, W = 4, 3, 5  # latent channels and a small latent grid for the fast tests

@@ -20,15 +20,14 @@ from orbis2.losses import (
     teacher_alignment_loss,
 )
 from orbis2.models.discriminator import PatchGANDiscriminator, build_discriminator
+from orbis2.models.sizes import TOKENIZER_PRESETS, tokenizer_config
 from orbis2.models.tokenizer import (
-    TOKENIZER_PRESETS,
     VectorQuantizer,
     ViTEncoder,
     build_abstract_tokenizer,
     build_detail_tokenizer,
     codebook_usage,
     load_mae_encoder,
-    tokenizer_config,
 )
 
 

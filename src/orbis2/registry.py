@@ -117,6 +117,11 @@ class Registry:
         systems = [*self.main_table, *(self.baselines if scope == "all" else {})]
         return list(dict.fromkeys(p for name in systems for p in self.systems[name].stages))
 
+    def conditioning_predictors(self, scope: str) -> list[str]:
+        """What ``eval_conditioning`` (scope ``main``) or ``eval_conditioning_all`` reads: the predictors of the
+        scope's Table 1 systems and the steered top one, main ones first."""
+        return list(dict.fromkeys([*self.table_predictors("main"), self.steered, *self.table_predictors(scope)]))
+
     @property
     def steered(self) -> str:
         """The steered predictor (``steering: true``, unique: checked when parsed): the top predictor that

@@ -153,7 +153,7 @@ class AbstractTokenizerConfig:
 
 
 def _tokenizer_common(cfg: Any, where: str) -> None:
-    from orbis2.models.tokenizer import TOKENIZER_PRESETS
+    from orbis2.models.sizes import TOKENIZER_PRESETS
 
     _model_size(TOKENIZER_PRESETS, cfg.preset, {}, where)
     positive(cfg, where, "frames_per_clip", "eval_images", "scale_images")
@@ -188,7 +188,7 @@ class PredictorConfig:
     INIT_SOURCES: typing.ClassVar[tuple[str, ...]] = ()
 
     def validate(self, where: str) -> None:
-        from orbis2.models.stdit import STDIT_PRESETS
+        from orbis2.models.sizes import STDIT_PRESETS
 
         _model_size(STDIT_PRESETS, self.preset, self.model, where)
         if self.init_from is not None and self.init_from not in self.INIT_SOURCES:

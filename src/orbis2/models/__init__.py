@@ -1,4 +1,4 @@
-"""Networks, one file per model with all of its blocks; each family's sizes are a typed config beside it."""
+"""Networks, one file per model with all of its blocks; each family's sizes are a typed config in ``sizes``."""
 
 from __future__ import annotations
 

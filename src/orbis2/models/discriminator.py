@@ -10,7 +10,8 @@ import torch
 from torch import nn
 
 from orbis2.accel import conv_layout
-from orbis2.models.tokenizer import TokenizerConfig, group_norm, tokenizer_config
+from orbis2.models.sizes import TokenizerConfig, tokenizer_config
+from orbis2.models.tokenizer import group_norm
 
 
 class PatchGANDiscriminator(nn.Module):

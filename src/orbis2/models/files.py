@@ -16,8 +16,9 @@ from torch import nn
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file, sha256_file
 from orbis2.models import split_build
+from orbis2.models.sizes import TOKENIZER_PRESETS
 from orbis2.models.stdit import STDiT, build_stdit_from
-from orbis2.models.tokenizer import TOKENIZER_PRESETS, build_abstract_tokenizer, build_detail_tokenizer
+from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer
 
 # --------------------------------------------------------------------------- predictors
 

@@ -31,14 +31,15 @@ path and the cross-attention fit that budget. The layers below the blocks are in
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 
 import torch
 from torch import nn
 from torch.utils.checkpoint import checkpoint
 
-from orbis2.models import ModelConfig, preset_config, split_build
+from orbis2.models import split_build
 from orbis2.models.deviations import SteeringShift, SubgoalShift
+from orbis2.models.sizes import STDIT_PRESETS, STDiTConfig, stdit_config
 from orbis2.models.stdit_layers import (
     AbstractConditioner,
     Attention,
@@ -550,51 +551,6 @@ class STDiT(nn.Module):
             tokens = block(tokens, modulation, self.causal, cond)
         out = self.final_layer(tokens, modulations[-1])
         return unpatchify(out, self.patch_size, self.latent_channels, h, w).to(window.dtype)[:, plan.context.shape[1]:]
-
-
-# --------------------------------------------------------------------------- sizes
-
-
-@dataclass(frozen=True)
-class STDiTConfig(ModelConfig):
-    """An ST-DiT's size: what :func:`build_stdit` needs besides the latents and the level's wiring."""
-
-    KIND = "ST-DiT"
-
-    hidden_size: int
-    depth: int
-    num_heads: int
-    cond_dim: int  # width of the abstract conditioning tokens (the detail predictor's adaLN and cross-attention)
-    mlp_ratio: float = 4.0
-    patch_size: int = 1
-    max_frames: int = 16
-    steering_features: int = 2
-    steering_len: int = 16
-    steering_shift: bool = False  # steered predictor only: SteeringShift (a deviation from the paper)
-    subgoal_shift: bool = False  # detail predictor only: SubgoalShift (a deviation from the paper)
-
-    def check(self) -> None:
-        self.positive("hidden_size", "depth", "num_heads", "cond_dim", "mlp_ratio", "patch_size", "max_frames",
-                      "steering_features", "steering_len")
-        for name in ("hidden_size", "cond_dim"):
-            self.divisible(name, "num_heads")
-            self.divisible(name, 4)  # 2-D sin-cos positions
-
-
-STDIT_PRESETS: dict[str, STDiTConfig] = {
-    # Tests and CI: a CPU step in tens of milliseconds.
-    "smoke": STDiTConfig(hidden_size=64, depth=2, num_heads=2, cond_dim=32),
-    # Laptop scale. The default profile reads its 16x10 latent grid in 2x2 patches (params.yaml
-    # `_predictor.default.model`: patch_size 2); the gpu profile widens this preset to 384 x 8 blocks.
-    "default": STDiTConfig(hidden_size=128, depth=4, num_heads=4, cond_dim=64),
-    # Paper: 32x18 latents of 16 channels; 512M (abstract) and 555M (detail) parameters.
-    "paper": STDiTConfig(hidden_size=768, depth=24, num_heads=16, cond_dim=384),
-}
-
-
-def stdit_config(preset: str, **overrides) -> STDiTConfig:
-    """A preset's size with ``overrides``; an unknown preset or key, a wrong type or an impossible size raises."""
-    return preset_config(STDIT_PRESETS, preset, overrides)
 
 
 def build_stdit(

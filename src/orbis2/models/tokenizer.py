@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from orbis2.accel import conv_layout
-from orbis2.models import ModelConfig, preset_config
+from orbis2.models.sizes import TokenizerConfig, tokenizer_config
 
 # --------------------------------------------------------------------------- ViT encoder
 
@@ -505,89 +505,6 @@ class AbstractTokenizer(nn.Module):
         """(z, P(z), unclamped D_H(z))."""
         z = self.encode(images)
         return z, self.predict_teacher(z), self.decoder(z)
-
-
-# --------------------------------------------------------------------------- sizes
-
-
-@dataclass(frozen=True)
-class TokenizerConfig(ModelConfig):
-    """A tokenizer's size: ViT encoder, quantiser, both decoders and the discriminator.
-
-    The defaults are the reference values every preset shares (the authors' code, "Tokenizer").
-    """
-
-    KIND = "tokenizer"
-
-    image_size: tuple[int, int]  # (height, width)
-    patch_size: int
-    embed_dim: int
-    depth: int
-    num_heads: int
-    codebook_size: int
-    decoder_channels: int
-    decoder_mult: tuple[int, ...]  # one channel multiplier per resolution: 2 ** (len - 1) = patch_size
-    decoder_res_blocks: int
-    abstract_decoder_channels: int
-    abstract_decoder_mult: tuple[int, ...]
-    abstract_decoder_res_blocks: int
-    latent_dim: int = 16
-    beta: float = 0.25
-    bypass_prob: float = 0.5
-    entropy_temperature: float = 0.01
-    mlp_ratio: float = 4.0
-    learn_pos_embed: bool = False
-    disc_channels: int = 64
-    disc_layers: int = 3
-    disc_norm: str = "group"
-
-    def check(self) -> None:
-        self.positive("patch_size", "embed_dim", "depth", "num_heads", "codebook_size", "decoder_channels",
-                      "abstract_decoder_channels", "latent_dim", "mlp_ratio", "disc_channels", "disc_layers")
-        height, width = self.image_size
-        if height % self.patch_size or width % self.patch_size:
-            self.fail(f"image_size = {self.image_size} is not divisible by patch_size = {self.patch_size}")
-        self.divisible("embed_dim", "num_heads")
-        self.divisible("embed_dim", 4)  # 2-D sin-cos positions
-        for name in ("decoder_mult", "abstract_decoder_mult"):
-            upscale = 2 ** (len(getattr(self, name)) - 1)
-            if upscale != self.patch_size:
-                self.fail(f"{name}: the decoder upsamples x{upscale} but the patch size is {self.patch_size}: "
-                          f"use {int(math.log2(self.patch_size)) + 1} channel multipliers")
-        if not 0 <= self.bypass_prob <= 1:
-            self.fail(f"bypass_prob = {self.bypass_prob} must lie in [0, 1]")
-        if self.disc_norm not in ("group", "batch"):
-            self.fail(f"disc_norm = {self.disc_norm!r} must be 'group' or 'batch'")
-
-
-TOKENIZER_PRESETS: dict[str, TokenizerConfig] = {
-    # Tests and CI: 128x72, patch 8 -> 9x16 grid, a CPU step in a few tens of ms.
-    "smoke": TokenizerConfig(
-        image_size=(72, 128), patch_size=8, embed_dim=64, depth=2, num_heads=2, codebook_size=512,
-        decoder_channels=16, decoder_mult=(1, 1, 2, 4), decoder_res_blocks=1,
-        abstract_decoder_channels=16, abstract_decoder_mult=(1, 1, 2, 2), abstract_decoder_res_blocks=1,
-        disc_channels=16,
-    ),
-    # Laptop run: 256x160, patch 16 -> 10x16 grid, hundreds of steps on 2 CPU cores.
-    "default": TokenizerConfig(
-        image_size=(160, 256), patch_size=16, embed_dim=192, depth=4, num_heads=3, codebook_size=1024,
-        decoder_channels=16, decoder_mult=(1, 1, 2, 2, 4), decoder_res_blocks=1,
-        abstract_decoder_channels=16, abstract_decoder_mult=(1, 1, 1, 2, 2), abstract_decoder_res_blocks=1,
-        disc_channels=16,
-    ),
-    # Paper: 512x288, ViT-B/16 encoder (86M, MAE-initialisable) and a taming
-    # decoder whose width is set so that it has the paper's 91M parameters.
-    "paper": TokenizerConfig(
-        image_size=(288, 512), patch_size=16, embed_dim=768, depth=12, num_heads=12, codebook_size=16384,
-        decoder_channels=192, decoder_mult=(1, 1, 2, 2, 4), decoder_res_blocks=3,
-        abstract_decoder_channels=64, abstract_decoder_mult=(1, 1, 2, 2, 4), abstract_decoder_res_blocks=1,
-    ),
-}
-
-
-def tokenizer_config(preset: str, **overrides) -> TokenizerConfig:
-    """A preset's size with ``overrides``; an unknown preset or key, a wrong type or an impossible size raises."""
-    return preset_config(TOKENIZER_PRESETS, preset, overrides)
 
 
 def _config(config: TokenizerConfig | str) -> TokenizerConfig:

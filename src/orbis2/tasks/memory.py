@@ -28,8 +28,8 @@ from torch import nn
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from orbis2.config.params import PipelineConfig
-from orbis2.models.stdit import build_stdit_from, stdit_config
-from orbis2.models.tokenizer import tokenizer_config
+from orbis2.models.sizes import stdit_config, tokenizer_config
+from orbis2.models.stdit import build_stdit_from
 from orbis2.registry import registry
 from orbis2.train import SAVED_OPS
 

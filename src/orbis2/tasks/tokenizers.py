@@ -54,14 +54,9 @@ from orbis2.losses import (
 )
 from orbis2.models.discriminator import build_discriminator
 from orbis2.models.files import save_tokenizer
+from orbis2.models.sizes import tokenizer_config
 from orbis2.models.teachers import build_teacher
-from orbis2.models.tokenizer import (
-    build_abstract_tokenizer,
-    build_detail_tokenizer,
-    codebook_usage,
-    load_mae_encoder,
-    tokenizer_config,
-)
+from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer, codebook_usage, load_mae_encoder
 from orbis2.train import DataSpec, Update, load_weights, train, unwrap
 
 # Frames of one clip arrive together; a buffer spanning many clips mixes them into batches.

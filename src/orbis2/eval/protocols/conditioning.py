@@ -89,11 +89,6 @@ ModelFn = Callable[..., torch.Tensor]
 METRICS = ("loss", "one_step_mse")
 
 
-def scope_predictors(scope: str) -> list[str]:
-    """What ``eval_conditioning`` (scope ``main``) or ``eval_conditioning_all`` reads: the predictors of the
-    scope's Table 1 systems (registry.yaml) and the steered top one, main ones first."""
-    reg = registry()
-    return list(dict.fromkeys([*reg.table_predictors("main"), reg.steered, *reg.table_predictors(scope)]))
 MOVING_SPEED = 0.5  # m/s: a window "moves" above this mean speed
 
 
