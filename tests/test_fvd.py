@@ -207,13 +207,13 @@ def test_i3d_unit_with_its_batch_norm_folded_equals_convolution_then_batch_norm(
 
 
 def test_fvd_grows_as_videos_are_progressively_corrupted(i3d):
-    videos = np.stack([moving_pattern(16, 64, 64, seed=s) for s in range(8)])  # [8, 16, 64, 64, 3] uint8
+    videos = np.stack([moving_pattern(16, 64, 64, seed=s) for s in range(4)])  # [4, 16, 64, 64, 3] uint8
     rng = np.random.default_rng(6)
     sigmas = (8.0, 16.0, 32.0)  # Gaussian noise on 0..255 pixels, corruption levels 1, 2, 3
     noisy = [np.clip(videos + rng.normal(0.0, s, videos.shape), 0, 255).astype(np.uint8) for s in sigmas]
     features = np.split(i3d_features(np.concatenate([videos, *noisy]), i3d, batch_size=8), 4)
     values = [fvd(features[0], f) for f in features]
-    print("FVD at noise sigma 0, 8, 16, 32:", [round(v, 2) for v in values])
+    print("FVD at noise sigma 0, 8, 16, 32:", [round(v, 2) for v in values])  # 0, 553, 3990, 15048
     assert values[0] == pytest.approx(0.0, abs=1e-6)
     assert all(a < b for a, b in zip(values, values[1:]))
 
