@@ -161,7 +161,11 @@ def test_snakemake_smoke_dag(smoke_project, tmp_path):
     assert f"dvc.lock records this run ({len(ACTION_STAGES)} stages)" in out  # test_dvc_repro_smoke_dag: DVC agrees
     assert len([r for r in mlflow_runs(root / "mlflow.db") if r[2] is None]) == 3  # one parent per invocation
 
-    # The guidance scale chosen on val starts from the trained models (one eval_steering per scale).
+
+def test_guidance_selection_starts_from_the_trained_models(smoke_project, tmp_path):
+    """The guidance scale chosen on val, in a copy of the session's smoke project: one eval_steering per scale.
+    (A reader of its own, so that the suite's two workers share the readers' minutes evenly.)"""
+    root = Path(shutil.copytree(smoke_project, tmp_path / "project", symlinks=True))
     run([sys.executable, "tools/select_guidance.py", "--guidance", "1", "2", "--out", "selection"], root)
     chosen = json.loads((root / "selection/selection.json").read_text())
     assert chosen["split"] == "val" and chosen["chosen"] in (1.0, 2.0) and set(chosen["smaller_step_low_deg"]) == {
