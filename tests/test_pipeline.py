@@ -163,8 +163,7 @@ def test_snakemake_smoke_dag(smoke_project, tmp_path):
 
 
 def test_guidance_selection_starts_from_the_trained_models(smoke_project, tmp_path):
-    """The guidance scale chosen on val, in a copy of the session's smoke project: one eval_steering per scale.
-    (A reader of its own, so that the suite's two workers share the readers' minutes evenly.)"""
+    """The guidance scale chosen on val, in a copy of the session's smoke project: one eval_steering per scale."""
     root = Path(shutil.copytree(smoke_project, tmp_path / "project", symlinks=True))
     run([sys.executable, "tools/select_guidance.py", "--guidance", "1", "2", "--out", "selection"], root)
     chosen = json.loads((root / "selection/selection.json").read_text())

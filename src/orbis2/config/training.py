@@ -16,6 +16,7 @@ from typing import Any
 
 from orbis2.config.sections import positive
 from orbis2.errors import ConfigError
+from orbis2.models.sizes import STDIT_PRESETS, TOKENIZER_PRESETS
 
 # Fields that change only bookkeeping, never the trajectory: a resume may change them.
 # Activation checkpointing recomputes the same activations: it changes memory and time, not the numbers;
@@ -153,8 +154,6 @@ class AbstractTokenizerConfig:
 
 
 def _tokenizer_common(cfg: Any, where: str) -> None:
-    from orbis2.models.sizes import TOKENIZER_PRESETS
-
     _model_size(TOKENIZER_PRESETS, cfg.preset, {}, where)
     positive(cfg, where, "frames_per_clip", "eval_images", "scale_images")
     if cfg.latent_norm not in ("per_position", "global"):
@@ -188,8 +187,6 @@ class PredictorConfig:
     INIT_SOURCES: typing.ClassVar[tuple[str, ...]] = ()
 
     def validate(self, where: str) -> None:
-        from orbis2.models.sizes import STDIT_PRESETS
-
         _model_size(STDIT_PRESETS, self.preset, self.model, where)
         if self.init_from is not None and self.init_from not in self.INIT_SOURCES:
             allowed = [*self.INIT_SOURCES, None]
