@@ -12,6 +12,7 @@ import scipy.linalg
 import torch
 from torch import nn
 
+from orbis2.accel import conv_layout
 from orbis2.assets import ASSETS, ensure_asset
 from orbis2.eval.metrics.fvd import (
     FeatureStats,
@@ -28,7 +29,7 @@ from orbis2.eval.metrics.fvd import (
     video_fvd,
 )
 from orbis2.eval.protocols.rollout_fvd import PickedFrames, i3d_picks
-from orbis2.models.i3d import Unit3D, _max_pool_same, _same_pad, load_i3d
+from orbis2.models.i3d import InceptionI3d, InceptionModule, Unit3D, _max_pool_same, _same_pad, load_i3d
 
 from conftest import ROOT, moving_pattern
 
@@ -204,6 +205,29 @@ def test_i3d_unit_with_its_batch_norm_folded_equals_convolution_then_batch_norm(
     unfolded = nn.functional.batch_norm(unit.conv(_same_pad(x, kernel, stride, 0.0)), bn.running_mean,
                                         bn.running_var, None, bn.bias, False, 0.0, 1e-3).relu()
     torch.testing.assert_close(unit(x), unfolded, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_i3d_in_channels_last_throughout_gives_the_logits_of_the_mixed_layouts(monkeypatch, threads):
+    """The Inception modules hand on their input's channels-last layout (a layout only, no arithmetic): the
+    logits are bit for bit those of the network that let each concatenation pick its layout."""
+    torch.manual_seed(0)
+    model = conv_layout(InceptionI3d()).eval()
+    video = (torch.rand(1, 3, 9, 224, 224) * 2 - 1).contiguous(memory_format=torch.channels_last_3d)
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)  # one thread: PyTorch runs the 1x1x1 convolutions without oneDNN
+    try:
+        with torch.inference_mode():
+            block = model.Mixed_3b(torch.randn(1, 192, 4, 28, 28).contiguous(memory_format=torch.channels_last_3d))
+            logits = model(video)
+            monkeypatch.setattr(InceptionModule, "forward", lambda self, x: torch.cat(
+                [self.branch_0(x), self.branch_1(x), self.branch_2(x),
+                 self.branch_3(_max_pool_same(x, (3, 3, 3), (1, 1, 1)))], dim=1))
+            mixed = model(video)
+    finally:
+        torch.set_num_threads(previous)
+    assert block.is_contiguous(memory_format=torch.channels_last_3d)
+    torch.testing.assert_close(logits, mixed, rtol=0, atol=0)
 
 
 def test_fvd_grows_as_videos_are_progressively_corrupted(i3d):

@@ -64,6 +64,10 @@ def _max_pool_same(x: torch.Tensor, kernel: tuple[int, int, int], stride: tuple[
     return F.max_pool3d(_same_pad(x, kernel, stride, float("-inf")), kernel, stride)
 
 
+def _channels_last(x: torch.Tensor) -> bool:
+    return x.is_contiguous(memory_format=torch.channels_last_3d) and not x.is_contiguous()
+
+
 class BiasBatchNorm(nn.Module):
     """Inference batch norm with a learned shift only (Sonnet v1 / Flax ``use_scale=False``): its parameters,
     which :class:`Unit3D` folds into its convolution."""
@@ -110,8 +114,12 @@ class InceptionModule(nn.Module):
         self.out_channels = out[0] + out[2] + out[4] + out[5]
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """The concatenation back in ``x``'s layout: the 1x1x1 convolutions of branches 0 and 3 may answer in
+        the default layout (on one CPU thread PyTorch runs them without oneDNN), and a concatenation in that
+        layout would slow the next module's pooling tenfold and convert its every convolution's input."""
         pooled = _max_pool_same(x, (3, 3, 3), (1, 1, 1))
-        return torch.cat([self.branch_0(x), self.branch_1(x), self.branch_2(x), self.branch_3(pooled)], dim=1)
+        out = torch.cat([self.branch_0(x), self.branch_1(x), self.branch_2(x), self.branch_3(pooled)], dim=1)
+        return out.contiguous(memory_format=torch.channels_last_3d) if _channels_last(x) else out
 
 
 class InceptionI3d(nn.Module):

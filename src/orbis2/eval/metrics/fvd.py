@@ -22,15 +22,16 @@ import hashlib
 import os
 import re
 import tempfile
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 from torch import nn
 
 CLIP_FRAMES = 16
@@ -38,6 +39,18 @@ I3D_SIZE = 224
 
 # [N, T, H, W, 3] RGB, numpy or torch: uint8 in 0..255, or float in [-1, 1] (the project's image range).
 Videos = np.ndarray | torch.Tensor
+
+
+@cache
+def _threadpools() -> ThreadpoolController:
+    """The process's thread pools, found once: finding them walks every loaded library (a few ms in a stage
+    process), and a clip bootstrap computes hundreds of distances."""
+    return ThreadpoolController()
+
+
+def _one_blas_thread() -> AbstractContextManager:
+    """BLAS on one thread: the distances' float sums then do not depend on the machine's core count."""
+    return _threadpools().limit(limits=1, user_api="blas")
 
 
 def _check_covariance(name: str, sigma: np.ndarray, dim: int) -> None:
@@ -86,7 +99,7 @@ def frechet_distance(mu1, sigma1, mu2, sigma2) -> float:
     _check_covariance("sigma1", sigma1, dim)
     _check_covariance("sigma2", sigma2, dim)
 
-    with threadpool_limits(limits=1, user_api="blas"):
+    with _one_blas_thread():
         eigval, eigvec = np.linalg.eigh(sigma1)
         root1 = (eigvec * np.sqrt(_drop_round_off(eigval))) @ eigvec.T
         inner = root1 @ sigma2 @ root1
@@ -115,7 +128,7 @@ def frechet_distance_of_rows(mu1, rows1, mu2, rows2) -> float:
                          f"{rows2.shape}")
     if not all(np.all(np.isfinite(x)) for x in (mu1, mu2, rows1, rows2)):
         raise ValueError("the means or covariance rows have non-finite entries")
-    with threadpool_limits(limits=1, user_api="blas"):
+    with _one_blas_thread():
         trace_sqrt = np.linalg.svd(rows1 @ rows2.T, compute_uv=False).sum()
     diff = mu1 - mu2
     return float(diff @ diff + np.sum(rows1 * rows1) + np.sum(rows2 * rows2) - 2.0 * trace_sqrt)
