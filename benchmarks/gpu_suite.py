@@ -300,8 +300,6 @@ def main(argv: list[str] | None = None) -> None:
     args.preset = args.preset or ("smoke" if args.dry else "paper")
     args.repeats = args.repeats or (1 if args.dry else 10)
     torch.manual_seed(0)
-    if args.device.type == "cpu":
-        torch.set_num_threads(2)
     set_tf32(True)
     out = Record(args.out / f"{args.part}.json", part=args.part, preset=args.preset, device_type=args.device.type)
     start = time.perf_counter()

@@ -264,6 +264,19 @@ def test_sideways_shift_reads_a_known_translation():
     np.testing.assert_allclose(sideways_shift(before, after), moved.numpy())
 
 
+@pytest.mark.parametrize("shape", [(3, 4, 5, 16), (98, 8, 16, 28), (2, 1, 1, 7)])
+def test_translation_grid_is_affine_grids_bit_for_bit(shape):
+    """translate_columns builds its grid by broadcasting: the same samples as through ``F.affine_grid``."""
+    rng = torch.Generator().manual_seed(1)
+    x, columns = torch.randn(shape, generator=rng), 4 * torch.randn(shape[0], generator=rng)
+    theta = torch.zeros(shape[0], 2, 3)
+    theta[:, 0, 0] = theta[:, 1, 1] = 1.0
+    theta[:, 0, 2] = -2.0 * columns / max(shape[-1] - 1, 1)
+    grid = torch.nn.functional.affine_grid(theta, [shape[0], 1, *shape[2:]], align_corners=True)
+    expected = torch.nn.functional.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+    torch.testing.assert_close(translate_columns(x, columns), expected, rtol=0, atol=0)
+
+
 def test_probe_readout_applies_the_probe_to_a_latent_pair():
     rng = np.random.default_rng(2)
     before, after = rng.normal(size=(64, 2, 3, 4)), rng.normal(size=(64, 2, 3, 4))

@@ -43,7 +43,6 @@ def trained(smoke_cfg, tmp_path_factory):
     town = Town.generate("default", 11)
     train, val = episodes(town, range(6)), episodes(town, (20, 21, 22))
     cfg = dataclasses.replace(instrument_config(smoke_cfg, steps=200, batch_size=32, seed=0), width=16, scale=0.5)
-    torch.set_num_threads(2)
     return train_instrument(train, cfg, FPS, tmp_path_factory.mktemp("instrument"), torch.device("cpu")), val
 
 

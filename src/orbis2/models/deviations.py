@@ -29,14 +29,15 @@ def translate_columns(x: torch.Tensor, columns: torch.Tensor) -> torch.Tensor:
     """Latent grids [B, C, h, w] moved sideways by ``columns`` [B] (content at column j lands on j + columns).
 
     Linear interpolation, differentiable in ``columns``; zero (the dataset's per-position
-    mean, in the latent cache's normalisation) enters from the border.
+    mean, in the latent cache's normalisation) enters from the border. The sampling grid is the one
+    ``F.affine_grid`` makes for a pure translation, bit for bit, built by broadcasting: ``affine_grid``'s
+    batched matrix product took 9 ms per call in the steering evaluation's shift search.
     """
-    b, _, h, w = x.shape
-    theta = torch.zeros(b, 2, 3, device=x.device, dtype=x.dtype)
-    theta[:, 0, 0] = 1.0
-    theta[:, 1, 1] = 1.0
-    theta[:, 0, 2] = -2.0 * columns.to(x.dtype) / max(w - 1, 1)
-    grid = F.affine_grid(theta, [b, 1, h, w], align_corners=True)
+    _, _, h, w = x.shape
+    shift = -2.0 * columns.to(x.dtype) / max(w - 1, 1)
+    across = torch.linspace(-1, 1, w, device=x.device, dtype=x.dtype) + shift[:, None, None]  # [B, 1, w]
+    down = torch.linspace(-1, 1, h, device=x.device, dtype=x.dtype)[:, None]  # [h, 1]
+    grid = torch.stack(torch.broadcast_tensors(across, down), dim=-1)  # [B, h, w, 2]: (x, y) per output cell
     return F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
 
 
