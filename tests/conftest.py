@@ -24,6 +24,7 @@ from filelock import FileLock
 from orbis2.config.params import load_config
 from orbis2.config.training import TrainConfig
 from orbis2.data.video import write_video
+from orbis2.stage import freeze_imports
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -121,8 +122,9 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
-    """Start the smoke project's build if a test to run reads it (once per session, whichever xdist worker
-    gets here first)."""
+    """Freeze what collection imported, as a stage does (:func:`orbis2.stage.freeze_imports`), and start the smoke
+    project's build if a test to run reads it (once per session, whichever xdist worker gets here first)."""
+    freeze_imports()
     config = session.config
     if config.option.collectonly or not any(SMOKE in getattr(i, "fixturenames", ()) for i in session.items):
         return

@@ -49,6 +49,7 @@ from orbis2.rollout import (
     rollout_schedule,
     steering_sequences,
 )
+from orbis2.stage import freeze_imports
 
 DEFAULT_ACTION = layout_path("predictor", registry().steered) / "predictor.pt"
 DEFAULT_ABSTRACT_TF = layout_path("predictor", "abstract_tf") / "predictor.pt"
@@ -442,6 +443,7 @@ def main(argv: list[str] | None = None) -> None:
     add_evaluate_parser(sub)
     add_convert_parser(sub)
     args = parser.parse_args(argv)
+    freeze_imports()
     try:
         print(args.run(args))
     except OrbisError as err:
