@@ -8,6 +8,7 @@ TOWN, IMPORT, SHARDS, ASSETS = (INTERFACES[kind] for kind in ("town", "import", 
 
 rule town:
     threads: TOWN.resources.threads  # one process per core
+    priority: TOWN.priority
     resources: **resources_of(TOWN)
     input:
         code_inputs(TOWN.script),
@@ -24,6 +25,7 @@ rule town:
 rule import_videos:
     name: "import"
     threads: IMPORT.resources.threads
+    priority: IMPORT.priority
     resources: **resources_of(IMPORT)
     input:
         code_inputs(IMPORT.script),
@@ -41,6 +43,7 @@ rule import_videos:
 # A checkpoint: the rules that read the shards list its files once it has run (folder_files).
 checkpoint shards:
     threads: SHARDS.resources.threads
+    priority: SHARDS.priority
     resources: **resources_of(SHARDS)
     input:
         code_inputs(SHARDS.script),
@@ -57,6 +60,7 @@ checkpoint shards:
 
 rule assets:
     threads: ASSETS.resources.threads
+    priority: ASSETS.priority
     resources: **resources_of(ASSETS)
     input:
         code_inputs(ASSETS.script),

@@ -12,6 +12,7 @@ for stage in (s for s in INTERFACES.values() if s.rules is None):
     rule:
         name: stage.kind
         threads: stage.resources.threads
+        priority: stage.priority
         resources: **resources_of(stage)
         input:
             code_inputs(stage.script),

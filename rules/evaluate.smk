@@ -41,6 +41,7 @@ def evaluate_args(wildcards, input, output):
 
 rule evaluate:
     threads: EVALUATE.resources.threads
+    priority: EVALUATE.priority
     resources: **resources_of(EVALUATE)
     wildcard_constraints:
         name=r"[^/]+",

@@ -21,6 +21,7 @@ for system_name, system in REG.systems.items():
     rule:
         name: f"eval_fvd_{system_name}"
         threads: EVAL_FVD.resources.threads
+        priority: EVAL_FVD.priority
         resources: **resources_of(EVAL_FVD)
         input:
             code_inputs(EVAL_FVD.script),
@@ -45,6 +46,7 @@ for target in REG.probe_targets:
     rule:
         name: f"eval_probe_{target}"
         threads: EVAL_PROBE.resources.threads
+        priority: EVAL_PROBE.priority
         resources: **resources_of(EVAL_PROBE)
         input:
             code_inputs(EVAL_PROBE.script),
@@ -61,6 +63,7 @@ for target in REG.probe_targets:
 
 rule inverse_dynamics:
     threads: INVERSE_DYNAMICS.resources.threads  # trains a CNN on dense optical flow
+    priority: INVERSE_DYNAMICS.priority
     resources: **resources_of(INVERSE_DYNAMICS)
     input:
         code_inputs(INVERSE_DYNAMICS.script),
@@ -80,6 +83,7 @@ STEERING_PATHS = stage_paths(EVAL_STEERING, **latent_paths("compressed"), predic
 
 rule eval_steering:
     threads: EVAL_STEERING.resources.threads
+    priority: EVAL_STEERING.priority
     resources: **resources_of(EVAL_STEERING)
     input:
         code_inputs(EVAL_STEERING.script),
@@ -104,6 +108,7 @@ for scope, suffix in SCOPE_SUFFIX.items():
     rule:
         name: f"eval_speed{suffix}"
         threads: EVAL_SPEED.resources.threads  # timings need the machine to themselves
+        priority: EVAL_SPEED.priority
         resources: **resources_of(EVAL_SPEED)
         input:
             code_inputs(EVAL_SPEED.script),
@@ -120,6 +125,7 @@ for scope, suffix in SCOPE_SUFFIX.items():
     rule:
         name: f"eval_conditioning{suffix}"
         threads: EVAL_CONDITIONING.resources.threads  # batched forward passes of every predictor of the scope
+        priority: EVAL_CONDITIONING.priority
         resources: **resources_of(EVAL_CONDITIONING)
         input:
             code_inputs(EVAL_CONDITIONING.script),

@@ -12,6 +12,7 @@ for predictor, spec in REG.predictors.items():
     rule:
         name: predictor
         threads: PREDICTOR.resources.threads
+        priority: PREDICTOR.priority
         resources: **resources_of(PREDICTOR)
         input:
             code_inputs(PREDICTOR.script),

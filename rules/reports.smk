@@ -9,6 +9,7 @@ REPORT_ALL = stage_paths(REPORT, fvd=REG.systems, probe=REG.probe_targets, media
 
 rule report_main:
     threads: REPORT.resources.threads
+    priority: REPORT.priority
     resources: **resources_of(REPORT)
     input:
         code_inputs(REPORT.script),
@@ -26,6 +27,7 @@ rule report_main:
 
 rule report_all:
     threads: REPORT.resources.threads
+    priority: REPORT.priority
     resources: **resources_of(REPORT)
     input:
         code_inputs(REPORT.script),

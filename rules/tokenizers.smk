@@ -17,6 +17,7 @@ for tokenizer, kind in REG.tokenizers.items():
     rule:
         name: f"tokenizer_{tokenizer}"
         threads: stage.resources.threads
+        priority: stage.priority
         resources: **resources_of(stage)
         input:
             code_inputs(stage.script),
@@ -38,6 +39,7 @@ for latent_set, entry in REG.latent_sets.items():
     checkpoint:
         name: entry.stage
         threads: LATENTS.resources.threads
+        priority: LATENTS.priority
         resources: **resources_of(LATENTS)
         input:
             code_inputs(LATENTS.script),

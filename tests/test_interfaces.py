@@ -15,7 +15,7 @@ from test_dag import drift, dvc_stages, project_copy, snakemake_rules
 from orbis2 import dag, interfaces
 from orbis2.config.params import load_params
 from orbis2.eval import records
-from orbis2.interfaces import INTERFACES, LIGHT, SHARDS, Interface, PathOption
+from orbis2.interfaces import INTERFACES, LIGHT, SHARDS, SHORT, Interface, PathOption
 from orbis2.registry import registry
 
 from conftest import ROOT
@@ -111,7 +111,7 @@ def test_a_declaration_and_a_script_add_an_evaluation_stage_to_both_dags(tmp_pat
     monkeypatch.setenv("ORBIS2_REGISTRY", str(root / "registry.yaml"))
     dummy = Interface("eval_dummy", "stages/eval_dummy.py",
                       (SHARDS, PathOption("record", "--out", "the record", "dummy", output=True)),
-                      ("data", "evaluation"), LIGHT)
+                      ("data", "evaluation"), LIGHT, SHORT)
     monkeypatch.setitem(interfaces.INTERFACES, "eval_dummy", dummy)
     (root / dummy.script).write_text(
         '"""Stage `eval_dummy`: the number of shard files -> reports/eval/dummy.json."""\n\n'

@@ -49,6 +49,13 @@ GPU = Resources(threads=16, gpu=1, mem_mb=64000, runtime=600)
 PROBE = Resources(threads=CPU.threads, gpu=LIGHT.gpu, mem_mb=LIGHT.mem_mb, runtime=LIGHT.runtime)
 
 
+# Which ready job a scheduler starts first (Snakemake's ``priority:``, higher first): the stages other stages
+# wait on, then the long evaluations, then the short ones. A run on few cores then ends with short jobs side by
+# side instead of one long job alone (the smoke DAG's `reports/all` on 2 cores ran its last FVD stage alone for
+# 48 of its 320 s).
+FIRST, LONG, SHORT = 2, 1, 0
+
+
 @dataclass(frozen=True)
 class PathOption:
     """One input or output path a stage takes as an option (``--shards DIR``)."""
@@ -96,6 +103,7 @@ class Interface:
     paths: tuple[PathOption, ...]
     sections: tuple[str, ...]  # params.yaml sections every stage of the kind reads
     resources: Resources
+    priority: int  # FIRST, LONG or SHORT
     record: str | None = None  # the orbis2.eval.records model it writes, by name
     rules: str | None = None  # the rules/*.smk file that makes its rules; None: made from this declaration alone
 
@@ -140,26 +148,26 @@ INTERFACES: dict[str, Interface] = _declare(
         PathOption("raw", "--out", "raw episodes folder", "raw", name="town", output=True, folder=True),
         PathOption("sheet", "--sheet", "contact sheet", "reports", file="town_contact_sheet.png", output=True),
         PathOption("preview", "--preview", "preview video", "reports", file="town_preview.mp4", output=True),
-    ), ("data", "town"), CPU, rules="rules/data.smk"),
+    ), ("data", "town"), CPU, FIRST, rules="rules/data.smk"),
     Interface("import", "stages/import.py", (
         PathOption("raw", "--out", "raw episodes folder", "raw", name="import", output=True, folder=True),
-    ), ("data", "import"), LIGHT, rules="rules/data.smk"),
+    ), ("data", "import"), LIGHT, FIRST, rules="rules/data.smk"),
     Interface("shards", "stages/shards.py", (
         PathOption("raw", "--raw", "raw episodes folder", "raw", name="{name}", folder=True),
         PathOption("shards", "--out", "shards folder", "shards", output=True, folder=True),
-    ), ("data", "shards"), CPU, rules="rules/data.smk"),
+    ), ("data", "shards"), CPU, FIRST, rules="rules/data.smk"),
     Interface("assets", "stages/assets.py", (
         PathOption("assets", "--out", "assets folder", "assets", output=True, folder=True, fallback="assets.dir"),
-    ), ("assets",), LIGHT, rules="rules/data.smk"),
+    ), ("assets",), LIGHT, FIRST, rules="rules/data.smk"),
     # The tokenizers' own sections (tokenizer_<entry>) come with their registry.yaml entry.
-    Interface("tokenizer_detail", "stages/tokenizer_detail.py", TOKENIZER_PATHS, ("data",), TRAIN,
+    Interface("tokenizer_detail", "stages/tokenizer_detail.py", TOKENIZER_PATHS, ("data",), TRAIN, FIRST,
               rules="rules/tokenizers.smk"),
-    Interface("tokenizer_abstract", "stages/tokenizer_abstract.py", TOKENIZER_PATHS, ("data",), TRAIN,
+    Interface("tokenizer_abstract", "stages/tokenizer_abstract.py", TOKENIZER_PATHS, ("data",), TRAIN, FIRST,
               rules="rules/tokenizers.smk"),
     Interface("latents", "stages/latents.py", (
         SHARDS, *TOKENIZERS,
         PathOption("latents", "--out", "the latent cache", "latents", name="{name}", output=True, folder=True),
-    ), ("data", "latents"), GPU, rules="rules/tokenizers.smk"),
+    ), ("data", "latents"), GPU, FIRST, rules="rules/tokenizers.smk"),
     # A predictor's own section (its name) comes with its registry.yaml entry.
     Interface("predictor", "stages/predictor.py", (
         LATENTS, *TOKENIZERS,
@@ -167,18 +175,18 @@ INTERFACES: dict[str, Interface] = _declare(
                    fallback="data/predictors/<init_from>"),
         PathOption("weights", "--out", "output folder", "predictor", name="{name}", output=True, folder=True),
         REPORT,
-    ), ("data",), TRAIN, rules="rules/predictors.smk"),
+    ), ("data",), TRAIN, FIRST, rules="rules/predictors.smk"),
     Interface("eval_fvd", "stages/eval_fvd.py", (
         LATENTS, *TOKENIZERS, SHARDS, ASSETS, PREDICTORS,
         PathOption("fvd", "--fvd", "the record", "fvd", name="{name}", output=True),
         PathOption("media", "--media", "sample videos and grid frames", "media", name="{name}", output=True,
                    folder=True),
-    ), ("data", "assets", "evaluation"), GPU, record="FvdRecord", rules="rules/evaluation.smk"),
+    ), ("data", "assets", "evaluation"), GPU, LONG, record="FvdRecord", rules="rules/evaluation.smk"),
     Interface("eval_probe", "stages/eval_probe.py", (
         SHARDS, *TOKENIZERS, PathOption("assets", "--assets", "pretrained assets, the teacher", "assets",
                                         folder=True, optional=True, fallback="assets.dir"),
         PREDICTORS, PathOption("probe", "--out", "the record", "probe", name="{name}", output=True),
-    ), ("data", "evaluation"), PROBE, record="ProbeRecord", rules="rules/evaluation.smk"),
+    ), ("data", "evaluation"), PROBE, SHORT, record="ProbeRecord", rules="rules/evaluation.smk"),
     Interface("inverse_dynamics", "stages/inverse_dynamics.py", (
         SHARDS,
         PathOption("tokenizer", "--tokenizer", "the detail tokenizer's folder, for the reconstructions",
@@ -186,7 +194,7 @@ INTERFACES: dict[str, Interface] = _declare(
         PathOption("weights", "--out", "output folder (its inverse_dynamics.pt)", "inverse_dynamics", output=True,
                    folder=True),
         PathOption("report", "--report", "metrics report", "report", name="inverse_dynamics", output=True),
-    ), ("data", "inverse_dynamics"), GPU, rules="rules/evaluation.smk"),
+    ), ("data", "inverse_dynamics"), GPU, FIRST, rules="rules/evaluation.smk"),
     Interface("eval_steering", "stages/eval_steering.py", (
         LATENTS, *TOKENIZERS, SHARDS, PREDICTORS,
         PathOption("inverse_dynamics", "--inverse-dynamics", "the learned instrument's folder", "inverse_dynamics",
@@ -194,19 +202,19 @@ INTERFACES: dict[str, Interface] = _declare(
         PathOption("steering", "--out", "the record", "eval", file="steering.json", output=True),
         PathOption("strip", "--strip", "the figure of one rollout per mode", "eval", file="steering_strip.png",
                    output=True),
-    ), ("data", "town", "evaluation"), GPU, record="SteeringRecord", rules="rules/evaluation.smk"),
+    ), ("data", "town", "evaluation"), GPU, LONG, record="SteeringRecord", rules="rules/evaluation.smk"),
     Interface("eval_speed", "stages/eval_speed.py", (
         LATENTS, *TOKENIZERS, PREDICTORS,
         PathOption("speed", "--out", "the record", "eval", file="speed.json", output=True,
                    fallback="main: reports/eval/speed.json, all: reports/eval/speed_all.json"),
-    ), ("data", "evaluation"), GPU, record="SpeedRecord", rules="rules/evaluation.smk"),
+    ), ("data", "evaluation"), GPU, SHORT, record="SpeedRecord", rules="rules/evaluation.smk"),
     Interface("eval_conditioning", "stages/eval_conditioning.py", (
         PathOption("latents", "--latents", "the latent cache", "latents", folder=True,
                    fallback="the compressed latent set's folder, registry.yaml"),
         PREDICTORS,
         PathOption("conditioning", "--out", "the record", "eval", file="conditioning.json", output=True,
                    fallback="main: reports/eval/conditioning.json, all: reports/eval/conditioning_all.json"),
-    ), ("data", "evaluation"), GPU, record="ConditioningRecord", rules="rules/evaluation.smk"),
+    ), ("data", "evaluation"), GPU, LONG, record="ConditioningRecord", rules="rules/evaluation.smk"),
     Interface("evaluate", "stages/evaluate.py", (
         PathOption("rollouts", "--rollouts", "the folder of rollouts", "rollouts", name="{name}", folder=True,
                    required=True),
@@ -216,7 +224,7 @@ INTERFACES: dict[str, Interface] = _declare(
         *(PathOption(key, f"--{key}", what, "evaluate", name="{name}", file=file, output=True)
           for key, what, file in (("fvd", "the record", "fvd.json"), ("table", "the table and its card", "table.txt"),
                                   ("figure", "the figure", "fvd.png"))),
-    ), ("assets", "evaluation", "town"), GPU, rules="rules/evaluate.smk"),  # a record of `orbis2 evaluate`
+    ), ("assets", "evaluation", "town"), GPU, LONG, rules="rules/evaluate.smk"),  # a record of `orbis2 evaluate`
     Interface("report", "stages/report.py", (
         PathOption("fvd", "--fvd", "a system's FVD record", "fvd", named=True),
         PathOption("probe", "--probe", "a probe target's record", "probe", named=True),
@@ -227,5 +235,5 @@ INTERFACES: dict[str, Interface] = _declare(
         PathOption("strip", "--strip", "the steering strip (all)", "eval", file="steering_strip.png", optional=True),
         PathOption("report", "--out", "output folder", "reports", output=True, folder=True,
                    fallback="main: reports, all: reports/all"),
-    ), ("data", "evaluation"), LIGHT, rules="rules/reports.smk"),
+    ), ("data", "evaluation"), LIGHT, SHORT, rules="rules/reports.smk"),
 )
