@@ -15,9 +15,11 @@ The slowest commands are printed with their times.
 
 from __future__ import annotations
 
+import os
 import re
 import shlex
 import shutil
+import signal
 import socket
 import subprocess
 import time
@@ -113,11 +115,14 @@ def free_port() -> int:
 
 
 def serve(text: str, cwd: Path) -> str:
-    """Start a documented server on a free port, wait for its page, stop it; '' when it answered. One worker
-    process, not MLflow's four: each imports the whole server, and one answers the page as well."""
+    """Start a documented server on a free port, wait for its page, stop it with everything it started; '' when it
+    answered. One worker process, not MLflow's four, and without MLflow's job runners (seven processes for its
+    GenAI features, started beside the server): each imports the whole of MLflow, and the page needs none of them."""
     port = free_port()
+    env = {**project_env(cwd), "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
     proc = subprocess.Popen(shlex.split(text) + ["--host", "127.0.0.1", "--port", str(port), "--workers", "1"], cwd=cwd,
-                            env=project_env(cwd), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)
     try:
         for _ in range(120):
             if proc.poll() is not None:
@@ -129,7 +134,7 @@ def serve(text: str, cwd: Path) -> str:
                 time.sleep(0.5)
         return "did not answer within 60 s"
     finally:
-        proc.terminate()
+        os.killpg(proc.pid, signal.SIGTERM)
         proc.wait(timeout=30)
 
 
