@@ -66,6 +66,16 @@ def test_every_rule_is_made_from_a_declaration(commands):
         assert script in by_script, f"rule {name}: {script} has no declaration in orbis2.interfaces"
 
 
+def test_every_rule_is_scheduled_at_its_declarations_priority(commands):
+    """Among ready jobs, the stages others wait on start first, then the long evaluations, then the short ones."""
+    by_script = {i.script: i for i in INTERFACES.values()}
+    priorities = {rule.name: rule.priority for rule in dag.snakemake_rules(ROOT)}
+    for name, (words, _) in commands.items():
+        script = next(w for w in words if w.startswith("stages/"))
+        assert priorities[name] == by_script[script].priority, name
+    assert INTERFACES["predictor"].priority > INTERFACES["eval_fvd"].priority > INTERFACES["eval_probe"].priority
+
+
 def test_each_rule_reads_the_sections_its_stage_opens_and_passes_options_it_accepts(commands, monkeypatch):
     """Parse each rule's command with its script's own parser: an option the script lacks stops argparse, and
     the sections the stage opens its run with must be the rule's params sections (what re-runs it)."""

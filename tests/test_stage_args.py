@@ -1,6 +1,8 @@
 """Stage scripts get their paths from the DAG as options, and fall back on registry.yaml's layout by hand."""
 
 import argparse
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -44,3 +46,15 @@ def test_a_predictor_the_stage_does_not_read_is_an_error():
         predictor_files(args, ["detail"])
     with pytest.raises(argparse.ArgumentTypeError, match="NAME=PATH"):
         named_path("data/predictors/detail")
+
+
+def test_a_stage_process_freezes_its_imports_now_and_once_more_at_exit():
+    """freeze_imports: the heap imported so far leaves the collector's sight, and one exit handler freezes the rest."""
+    code = ("import atexit, gc\n"
+            "from orbis2.stage import freeze_imports\n"
+            "handlers = atexit._ncallbacks()\n"
+            "freeze_imports(); freeze_imports()\n"
+            "assert gc.get_freeze_count() > 10_000, gc.get_freeze_count()\n"
+            "assert atexit._ncallbacks() == handlers + 1\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
