@@ -2,13 +2,13 @@
 
 A stage's interface is its script, the input and output paths it takes as options
 (each at a registry.yaml ``layout`` kind by default), the params.yaml sections it
-reads, its machine needs and the evaluation record it writes. The Snakefile builds
-each rule's named inputs and outputs, ``params:`` sections, threads, resources and
-shell options from the declaration, and the stage script builds its argparse path
-options and the sections it logs (:func:`orbis2.stage.open_stage`) from the same
-object, so the two cannot drift apart. What varies per registry entry (the
-predictors a system reads, a predictor's own params section) stays in the
-registry and is passed in when a rule is made.
+reads, its machine needs, its scheduling priority and the evaluation record it writes.
+The Snakefile builds each rule's named inputs and outputs, ``params:`` sections,
+threads, priority, resources and shell options from the declaration, and the stage
+script builds its argparse path options and the sections it logs
+(:func:`orbis2.stage.open_stage`) from the same object, so the two cannot drift apart.
+What varies per registry entry (the predictors a system reads, a predictor's own params
+section) stays in the registry and is passed in when a rule is made.
 
 The record is named, not imported: every stage script imports this module, so
 importing :mod:`orbis2.eval.records` here would make every stage (the town
