@@ -13,14 +13,20 @@
   layout of oneDNN on the CPU and of cuDNN: the same math up to float round-off;
   on a 2-core CPU decoding runs 2.4x and I3D 1.6x faster, tokenizer training
   steps 1.0-1.1x (``benchmarks/bench_layout.py``).
-* **torch.compile** (:func:`compile_predictor`, :func:`compile_decoder`):
-  ``dynamic=False``, because a rollout calls each network with one shape per
-  rollout (fixed batch, window and grid), so each compiles once and re-uses
-  the graph for every Euler step. Predictors are compiled by region: the
-  repeated ST-DiT block is compiled once and its graph serves every block (the
-  weights are graph inputs), which is what keeps the warm-up short; on CUDA the
-  blocks run as CUDA graphs (``mode="reduce-overhead"``). :func:`compile_cache`
-  keeps the compiled artifacts between runs.
+* **torch.compile** (:func:`compile_predictor`, :func:`compile_for_training`,
+  :func:`compile_decoder`): ``dynamic=False``, because a rollout calls each
+  network with one shape per rollout (fixed batch, window and grid), so each
+  compiles once and re-uses the graph for every Euler step. Predictors are
+  compiled by region: the repeated ST-DiT block is compiled once per kind of
+  call (a KV-cache build, a cached step, a whole window) and its graph serves
+  every block at any depth (the weights are graph inputs, the block keeps no
+  Python state that dynamo would guard on), which is what keeps the warm-up
+  short. On CUDA the blocks of a rollout run as CUDA graphs
+  (``mode="reduce-overhead"``), each whole-network call one graph generation
+  (:meth:`~orbis2.models.stdit.STDiT.begin_graph_generation`). A recompile
+  beyond what the design needs (:data:`RECOMPILE_LIMIT`) falls back to eager
+  with one warning from dynamo; the tests compile with ``fullgraph=True``,
+  where it fails. :func:`compile_cache` keeps the compiled artifacts between runs.
 * **Weights cast once** (:func:`cast_for_inference`): under bf16 autocast every
   linear layer's weight is cast at every call (autocast caches casts only of
   weights that require grad, and inference weights do not); casting them to
@@ -86,17 +92,44 @@ def conv_layout(module: nn.Module) -> nn.Module:
     return module.to(memory_format=torch.channels_last_3d if three_d else torch.channels_last)
 
 
-def compile_predictor(model: nn.Module, cuda_graphs: bool | None = None, backend: str = "inductor") -> nn.Module:
-    """Compile an ST-DiT by region, in place: each block through one shared graph (same code, the block's
-    weights as inputs), so the network compiles in the time of one block; the sampling plan and the glue
-    between blocks stay eager. ``cuda_graphs`` (default: when the model is on CUDA): the blocks run as CUDA
-    graphs (``mode="reduce-overhead"``); a block that writes the KV cache in place may be run without a
-    graph by PyTorch (it says so in its log). Returns the same module."""
+# Compiled entries of the ST-DiT block's code one process may hold: one per kind of call (KV-cache build,
+# cached step, whole window; with or without abstract conditioning; training forward) and input shape
+# (batch, window, grid). A hierarchical rollout needs 3 (abstract KV build, abstract cached step, detail
+# step) whatever the depth; an evaluation process compiling every system of the registry at two batch sizes
+# stays under 32. Dynamo's default (8) counts all of them together, across blocks and predictors.
+RECOMPILE_LIMIT = 32
+
+
+def _compile_blocks(model: nn.Module, backend: str, fullgraph: bool, mode: str | None) -> None:
+    torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, RECOMPILE_LIMIT)
+    for block in model.blocks:
+        block.compile(dynamic=False, fullgraph=fullgraph, backend=backend, mode=mode)
+
+
+def compile_predictor(model: nn.Module, cuda_graphs: bool | None = None, backend: str = "inductor",
+                      fullgraph: bool = False) -> nn.Module:
+    """Compile an ST-DiT by region for inference, in place: each block through one shared graph per kind of
+    call (same code, the block's weights as inputs), so the network compiles in the time of one block at any
+    depth; the sampling plan and the glue between blocks stay eager. ``cuda_graphs`` (default: when the model
+    is on CUDA, with inductor): the blocks run as CUDA graphs (``mode="reduce-overhead"``) and every
+    whole-network call starts a graph generation. ``fullgraph``: a graph break or a recompile past
+    :data:`RECOMPILE_LIMIT` raises (the tests) instead of falling back to eager. Returns the same module."""
     if cuda_graphs is None:
         cuda_graphs = next(model.parameters()).device.type == "cuda"
-    for block in model.blocks:
-        block.compile(dynamic=False, fullgraph=True, backend=backend,
-                      mode="reduce-overhead" if cuda_graphs and backend == "inductor" else None)
+    cuda_graphs = cuda_graphs and backend == "inductor"
+    _compile_blocks(model, backend, fullgraph, "reduce-overhead" if cuda_graphs else None)
+    model.cuda_graphs = cuda_graphs
+    return model
+
+
+def compile_for_training(model: nn.Module, backend: str = "inductor", fullgraph: bool = False) -> nn.Module:
+    """``train.compile``, in place: an ST-DiT by region (its forward and backward compile once for all blocks,
+    activation checkpointing included), any other network whole. No CUDA graphs: a training step's optimizer
+    and loss run eagerly between the blocks' calls, and each step's batch is new memory."""
+    if hasattr(model, "begin_graph_generation"):  # an ST-DiT
+        _compile_blocks(model, backend, fullgraph, None)
+    else:
+        model.compile()
     return model
 
 

@@ -17,6 +17,7 @@ offsets the predictors were trained on.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -109,14 +110,7 @@ def target_velocity(model: ModelFn, context: torch.Tensor, n_target: int, nfe: i
     taus = euler_grid(nfe)[:-1]
     if hasattr(model, "plan"):
         plan = model.plan(context, n_target, taus, kv_cache=kv_cache, modulations=modulations, **cond)
-
-        def planned(x: torch.Tensor, step: int) -> torch.Tensor:
-            if x.is_cuda:  # one Euler step is one generation of CUDA graphs (blocks compiled with CUDA graphs,
-                # accel): the previous step's graph outputs are consumed by then. Not on the CPU: it loads inductor.
-                torch.compiler.cudagraph_mark_step_begin()
-            return model.planned_velocity(plan, x, step)
-
-        return planned
+        return functools.partial(model.planned_velocity, plan)
     b, n_context = context.shape[:2]
     tau_context = torch.zeros(b, n_context, device=context.device, dtype=context.dtype)
 

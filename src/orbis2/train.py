@@ -48,7 +48,7 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.checkpoint import CheckpointPolicy, checkpoint, create_selective_checkpoint_contexts
 from tqdm import tqdm
 
-from orbis2.accel import set_tf32
+from orbis2.accel import compile_for_training, set_tf32
 from orbis2.config.training import CHECKPOINT_POLICIES, TrainConfig
 from orbis2.errors import ConfigError, OrbisError
 from orbis2.io import atomic_file
@@ -341,7 +341,7 @@ class _Run:
                                                  find_unused_parameters=bool(extras))
         self.ema = None if cfg.ema_decay is None else copy.deepcopy(self.raw).requires_grad_(False).eval()
         if cfg.compile:
-            self.model.compile()  # in place: the state dict keeps its names; the EMA copy stays eager
+            compile_for_training(self.raw)  # in place: the state dict keeps its names; the EMA copy stays eager
         self.step = self.start_step = self.position = 0
         self.metrics: dict[str, float] = {}
         self.history: list[tuple[int, dict[str, float]]] = []

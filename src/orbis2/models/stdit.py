@@ -119,11 +119,13 @@ class STDiTBlock(nn.Module):
         causal: bool,
         cond: BlockConditioning | None = None,
         time_past: tuple[torch.Tensor, torch.Tensor] | None = None,
-        time_keep: list | None = None,
-    ) -> torch.Tensor:
+        return_kv: bool = False,
+    ) -> torch.Tensor | tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
         """x [B, F, N, D]; ``modulation`` from :meth:`modulation`; ``cond`` from :meth:`conditioning`.
 
-        ``time_past`` / ``time_keep``: the temporal attention's key/value cache (:class:`TemporalKVCache`).
+        ``time_past``: the context's temporal keys/values (:class:`TemporalKVCache`); ``return_kv``: also return
+        this call's temporal (keys, values), which builds that cache. Both are returned, never kept in Python
+        state, so a compiled block traces the same graph whichever block of whichever depth it serves.
         """
         b, f, n, d = x.shape
         if cond is not None:
@@ -139,9 +141,12 @@ class STDiTBlock(nn.Module):
         x = x + g_sm * self.space_mlp(modulate(self.space_mlp_norm(x), sh_sm, sc_sm))
 
         h = modulate(self.time_norm(x), sh_ta, sc_ta).permute(0, 2, 1, 3).reshape(b * n, f, d)
-        h = self.time_attn(h, causal=causal, past=time_past, keep=time_keep).reshape(b, n, f, d).permute(0, 2, 1, 3)
-        x = x + g_ta * h
-        return x + g_tm * self.time_mlp(modulate(self.time_mlp_norm(x), sh_tm, sc_tm))
+        h = self.time_attn(h, causal=causal, past=time_past, return_kv=return_kv)
+        if return_kv:
+            h, kv = h
+        x = x + g_ta * h.reshape(b, n, f, d).permute(0, 2, 1, 3)
+        x = x + g_tm * self.time_mlp(modulate(self.time_mlp_norm(x), sh_tm, sc_tm))
+        return (x, kv) if return_kv else x
 
 
 class FinalLayer(nn.Module):
@@ -205,6 +210,9 @@ class STDiT(nn.Module):
         # Activation checkpointing of the first ``checkpoint_blocks`` blocks while training (their activations
         # are recomputed in the backward pass); set by the training loop, not part of the architecture.
         self.checkpoint_blocks = 0
+        # Whether the blocks run as CUDA graphs (set by orbis2.accel.compile_predictor): every whole-network call
+        # then starts a new graph generation (:meth:`begin_graph_generation`).
+        self.cuda_graphs = False
         self.hidden_size = hidden_size
         self.patch_size = patch_size
         self.max_frames = max_frames
@@ -262,6 +270,17 @@ class STDiT(nn.Module):
             self.steering_shift.reset_parameters()
         if self.subgoal_shift is not None:
             self.subgoal_shift.reset_parameters()
+
+    def begin_graph_generation(self) -> None:
+        """Start a new CUDA-graph generation when the blocks run as CUDA graphs; a no-op otherwise.
+
+        Called at the start of every whole-network call (forward, KV-cache build, cached forward, planned
+        Euler step): the blocks of one call then form one generation, each block's graph reading the previous
+        block's output, and a later call may reuse their memory, because what outlives a call (the velocity,
+        the KV cache) is computed or copied outside the graphs.
+        """
+        if self.cuda_graphs:
+            torch.compiler.cudagraph_mark_step_begin()
 
     def conditioning(
         self,
@@ -391,6 +410,7 @@ class STDiT(nn.Module):
         depth = len(self.blocks)
         if features_from_block is not None and not 1 <= features_from_block <= depth:
             raise ValueError(f"features_from_block = {features_from_block} must be in 1..{depth}")
+        self.begin_graph_generation()
         c = self.conditioning(tau, steering, steering_drop)
         constants = self.window_constants(x, f, frame_rate, cond_frames, cond_mask)
         tokens = self._tokens(x, constants, f, 0, x[:, -2] if f >= 2 else None, steering, steering_drop)
@@ -438,26 +458,22 @@ class STDiT(nn.Module):
         Exact because context frames attend only to earlier frames (causal) and
         their noise level never changes during sampling: their features are the
         same at every Euler step of one rollout step, so :meth:`forward_cached`
-        needs to run only the target frames. The keys/values go into buffers sized
-        for context and targets, which each cached forward fills in place.
+        needs to run only the target frames. The keys/values are copied out of the
+        blocks' outputs: under CUDA graphs those are overwritten by the next graph
+        generation (the next Euler step), the copies are not.
         """
         self._check_cacheable()
+        self.begin_graph_generation()
         b, f_c = context.shape[:2]
         tau = torch.zeros(b, f_c, device=context.device, dtype=context.dtype)
         c = self.conditioning(tau, steering)
         constants = self.window_constants(context, f_c + n_target, frame_rate)
         tokens = self.embed(context, constants, total_frames=f_c + n_target)
-        keys: list[tuple[torch.Tensor, torch.Tensor]] = []
+        keys_values = []
         for block in self.blocks:
-            tokens = block(tokens, block.modulation(c), True, time_keep=keys)
-        buffers = []
-        for k, v in keys:
-            k_buf, v_buf = k.new_empty((*k.shape[:2], f_c + n_target, k.shape[3])), v.new_empty(
-                (*v.shape[:2], f_c + n_target, v.shape[3]))
-            k_buf[:, :, :f_c] = k
-            v_buf[:, :, :f_c] = v
-            buffers.append((k_buf, v_buf))
-        return TemporalKVCache(buffers, f_c, n_target, context[:, -1])
+            tokens, (k, v) = block(tokens, block.modulation(c), True, return_kv=True)
+            keys_values.append((k.clone(), v.clone()))
+        return TemporalKVCache(keys_values, f_c, n_target, context[:, -1])
 
     def forward_cached(
         self,
@@ -476,6 +492,7 @@ class STDiT(nn.Module):
         if f != cache.n_target or tuple(tau.shape) != (b, f):
             raise ValueError(f"the cache was built for {cache.n_target} target frames, got x {tuple(x.shape)} "
                              f"and tau {tuple(tau.shape)}")
+        self.begin_graph_generation()
         constants = self.window_constants(x, cache.n_context + f, frame_rate)
         return self._cached_velocity(x, self.modulations(self.conditioning(tau, steering)), cache, constants, steering)
 
@@ -540,6 +557,7 @@ class STDiT(nn.Module):
     def planned_velocity(self, plan: SamplingPlan, x: torch.Tensor, step: int) -> torch.Tensor:
         """Velocity of the target frames ``x`` [B, F_t, C, h, w] at Euler step ``step`` of ``plan``: equals
         ``forward(cat(context, x), cat(0, taus[step]), ...)[:, F_c:]`` bit for bit (a test checks it)."""
+        self.begin_graph_generation()
         modulations = plan.modulations[step]
         if plan.cache is not None:
             return self._cached_velocity(x, modulations, plan.cache, plan.constants, plan.steering)

@@ -103,26 +103,24 @@ class Attention(nn.Module):
         self.proj = nn.Linear(dim, dim)
 
     def forward(self, x: torch.Tensor, causal: bool = False, past: tuple[torch.Tensor, torch.Tensor] | None = None,
-                keep: list | None = None) -> torch.Tensor:
-        """``past``: key and value buffers [B, H, P + n, d] holding earlier positions' keys/values in their first
-        P positions; this call writes its own n after them, in place, and attends over the whole buffer.
-        ``keep``: a list that receives this call's (keys, values)."""
+                return_kv: bool = False) -> torch.Tensor | tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+        """``past``: earlier positions' keys and values [B, H, P, d], read only: this call's keys/values are
+        concatenated after them (inside a compiled graph, so a CUDA-graph replay mutates none of its inputs) and
+        its queries attend over all P + n. ``return_kv``: also return this call's (keys, values) [B, H, n, d]."""
         b, n, d = x.shape
         q, k, v = self.qkv(x).reshape(b, n, 3, self.num_heads, d // self.num_heads).permute(2, 0, 3, 1, 4)
         q, k = self.q_norm(q).to(v.dtype), self.k_norm(k).to(v.dtype)  # bf16 under autocast: flash-eligible
-        if keep is not None:
-            keep.append((k, v))
+        own = (k, v)
         mask = None
         if past is not None:
-            n_past = past[0].shape[2] - n
-            past[0][:, :, n_past:].copy_(k)
-            past[1][:, :, n_past:].copy_(v)
-            k, v = past
+            n_past = past[0].shape[2]
+            k, v = torch.cat([past[0], k], dim=2), torch.cat([past[1], v], dim=2)
             if causal and n > 1:  # query i sees every cached position and its own first i + 1
                 mask = torch.ones(n, n_past + n, dtype=torch.bool, device=x.device).tril(n_past)
             causal = False
-        out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, is_causal=causal)
-        return self.proj(out.transpose(1, 2).reshape(b, n, d))
+        out = self.proj(F.scaled_dot_product_attention(q, k, v, attn_mask=mask, is_causal=causal)
+                        .transpose(1, 2).reshape(b, n, d))
+        return (out, own) if return_kv else out
 
 
 class CrossAttention(nn.Module):
@@ -317,10 +315,9 @@ class WindowConstants:
 
 @dataclass
 class TemporalKVCache:
-    """Per block, key and value buffers [B*N, H, F_c + F_t, d] of the temporal attention: a clean context
-    window's in the first F_c positions, the latest target frames' after them (written in place by each
-    cached forward); and the context's last frame [B, C, h, w] (the :class:`SteeringShift` input of a first
-    target frame)."""
+    """Per block, the temporal attention's keys and values [B*N, H, F_c, d] of a clean context window (each
+    cached forward concatenates its own target frames' after them), and the context's last frame [B, C, h, w]
+    (the :class:`SteeringShift` input of a first target frame)."""
 
     keys_values: list[tuple[torch.Tensor, torch.Tensor]]
     n_context: int
