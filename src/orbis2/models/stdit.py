@@ -128,8 +128,8 @@ class STDiTBlock(nn.Module):
         state, so a compiled block traces the same graph whichever block of whichever depth it serves.
         """
         b, f, n, d = x.shape
-        if cond is not None:
-            x = x + cond.gate * modulate(self.cond_norm(x), cond.shift, cond.scale)
+        if cond is not None:  # the sums cast to the residual stream's dtype: the norms' fp32 would promote it
+            x = x + (cond.gate * modulate(self.cond_norm(x), cond.shift, cond.scale)).to(x.dtype)
         (sh_sa, sc_sa, g_sa, sh_sm, sc_sm, g_sm,
          sh_ta, sc_ta, g_ta, sh_tm, sc_tm, g_tm) = modulation.chunk(12, dim=-1)
 
@@ -137,7 +137,7 @@ class STDiTBlock(nn.Module):
         x = x + g_sa * self.space_attn(h).reshape(b, f, n, d)
         if cond is not None and cond.keys is not None:
             h = self.cross_attn(self.cross_norm(x).reshape(b, f * n, d), cond.keys, cond.values)
-            x = x + torch.tanh(self.cross_gate) * h.reshape(b, f, n, d)
+            x = x + (torch.tanh(self.cross_gate) * h.reshape(b, f, n, d)).to(x.dtype)
         x = x + g_sm * self.space_mlp(modulate(self.space_mlp_norm(x), sh_sm, sc_sm))
 
         h = modulate(self.time_norm(x), sh_ta, sc_ta).permute(0, 2, 1, 3).reshape(b * n, f, d)
@@ -315,7 +315,7 @@ class STDiT(nn.Module):
         tokens = self.x_embedder(patchify(x, self.patch_size).to(self.x_embedder.weight.dtype))
         tokens = tokens + constants.positions.to(tokens.dtype)
         start = self.max_frames - total + first
-        tokens = tokens + self.frame_embed[start : start + f, None]
+        tokens = tokens + self.frame_embed[start : start + f, None].to(tokens.dtype)
         if constants.rate is not None:
             tokens = tokens + constants.rate.to(tokens.dtype)[:, None, None]
         return tokens
