@@ -235,6 +235,7 @@ def main(argv: list[str] | None = None) -> None:
             return
         record = {"device": device_name, "preset": args.preset, "grid": list(args.grid), "precision": args.precision,
                   "compile": args.compile, "kv_cache": args.kv_cache, "seconds": args.seconds, "batch": 1,
+                  "repeats": args.repeats,
                   "decoding_included": True, "systems": results, "ratios": ratios()}
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(record, indent=2))

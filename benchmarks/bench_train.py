@@ -33,7 +33,7 @@ import torch
 from torch.nn.attention import SDPBackend, sdpa_kernel
 from torch.utils.flop_counter import FlopCounterMode
 
-from orbis2.accel import set_tf32
+from orbis2.accel import compile_for_training, set_tf32
 from orbis2.flow import teacher_forcing_loss
 from orbis2.models.sizes import STDIT_PRESETS
 from orbis2.models.stdit import build_stdit
@@ -101,9 +101,7 @@ class Step:
             self.cond = {"frame_rate": 2.0, "steering": torch.randn(batch, 5, 2, device=device)}
         else:
             frames, self.context = 10, 5
-            mask = torch.zeros(batch, frames, dtype=torch.bool, device=device)
-            mask[:, [4, 9]] = True
-            self.cond = {"frame_rate": 10.0, "cond_mask": mask,
+            self.cond = {"frame_rate": 10.0, "cond_mask": (4, 9),  # the slots, as the training task gives them
                          "cond_frames": torch.randn(batch, frames, LATENT_CHANNELS, h, w, device=device)}
         self.model.to(device).train()
         self.checkpointing, self.policy = args.checkpointing, args.policy
@@ -111,7 +109,7 @@ class Step:
         torch.nn.init.normal_(self.model.final_layer.linear.weight, std=0.02)
         self.x = torch.randn(batch, frames, LATENT_CHANNELS, h, w, device=device)
         self.tokens = batch * frames * h * w
-        self.forward = torch.compile(self.model) if args.compile else self.model
+        self.forward = compile_for_training(self.model) if args.compile else self.model  # train.compile
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=1e-4, fused=device.type == "cuda")
         self.generator = torch.Generator(device=device).manual_seed(0)
         cuda_bf16 = device.type == "cuda" and args.precision == "bf16"

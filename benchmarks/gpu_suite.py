@@ -1,29 +1,35 @@
 """The parts of the GPU measurement (``tools/gpu_run.sh``) that are not a benchmark of their own.
 
-    python benchmarks/gpu_suite.py PART --out DIR [--dry]
+    python benchmarks/gpu_suite.py PART --out DIR [--rehearse]
 
 PART is one of:
 
-* ``peak``: device, memory, the table's dense bf16 peak and a measured bf16 matmul.
-* ``forwards``: per forward (detail, abstract, cached abstract, flat) at the preset, batch 1:
-  time per call (CUDA events on the GPU), and the kernels from ``torch.profiler``: how many per
-  call and the top ones by device time.
+* ``carried``: the size of what travels to the GPU machine (the repository's files and ./wheelhouse),
+  against the limit the machine accepts.
+* ``peak``: device, driver, memory, the table's dense bf16 peak and a measured bf16 matmul.
+* ``forwards``: per forward (detail, abstract, cached abstract, flat) at the preset, batch 1, weights
+  cast once (``cast_for_inference``): time per call (CUDA events on the GPU), and the kernels from
+  ``torch.profiler``: how many per call and the top ones by device time.
 * ``toggles``: each inference switch against its reference on the same inputs: compile
   (``orbis2.accel.compile_predictor``, the ``evaluation.compile`` switch), the KV cache, bf16
   autocast and TF32, each with its largest difference and whether the outputs are equal.
-* ``graphs``: a CUDA-graph capture of the detail forward, replayed on new inputs, equal to eager.
+* ``graphs``: a CUDA-graph capture of the detail forward, replayed on new inputs, equal to eager
+  (on the CPU: the forward's host syncs, which would stop a capture, counted instead).
 * ``dag``: the ``gpu`` profile's DAG with its training and evaluation sizes scaled down
-  (:func:`scaled_params`), run by Snakemake in a copy of the project.
+  (:func:`scaled_params`), run by Snakemake in a copy of the project; skipped without the assets.
+* ``summary``: every part's JSON and exit status in one summary file.
 
 Every part writes ``DIR/PART.json`` after each measurement, so a part cut short by its time
-limit still leaves what it measured. ``--dry`` runs on the CPU at the ``smoke`` preset (and
-the DAG part as a Snakemake dry run): the same code paths, in seconds, for the tests.
+limit still leaves what it measured. ``--rehearse`` runs on the CPU at the ``smoke`` preset with
+inductor (no CUDA graphs) and the DAG part as a Snakemake dry run: the same code paths, for the tests.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import platform
 import shutil
 import statistics
 import subprocess
@@ -34,12 +40,13 @@ from typing import Any, Callable
 
 import torch
 import yaml
+from torch.utils._python_dispatch import TorchDispatchMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_rollout import LATENT_CHANNELS, flat_baseline, hierarchy  # noqa: E402
 from bench_train import measured_matmul_tflops, peak_bf16_tflops  # noqa: E402
 
-from orbis2.accel import compile_predictor, inference_autocast, set_tf32  # noqa: E402
+from orbis2.accel import cast_for_inference, compile_predictor, inference_autocast, set_tf32  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 GRIDS = {"smoke": (9, 16), "default": (10, 16), "paper": (18, 32)}
@@ -112,19 +119,20 @@ def kernels(fn: Callable[[], Any], device: torch.device, top: int = 8) -> dict[s
 class Nets:
     """The preset's predictors (random weights, output layer perturbed) and their batch-1 inputs."""
 
-    def __init__(self, preset: str, device: torch.device):
+    def __init__(self, preset: str, device: torch.device, cast: bool = True):
         h, w = GRIDS[preset]
         with torch.device(device):
             self.abstract, self.detail = (m.eval().requires_grad_(False) for m in hierarchy(preset))
             self.flat = flat_baseline(preset).eval().requires_grad_(False)
         for net in (self.abstract, self.detail, self.flat):
             torch.nn.init.normal_(net.final_layer.linear.weight, std=0.02)
+            if cast:  # as every rollout does: no weight cast per call (only fp32 references keep fp32 weights)
+                cast_for_inference(net, device, "bf16")
         g = torch.Generator(device).manual_seed(0)
         self.x10 = torch.randn(1, 10, LATENT_CHANNELS, h, w, device=device, generator=g)
         self.tau10 = torch.rand(1, 10, device=device, generator=g)
-        mask = torch.zeros(1, 10, dtype=torch.bool, device=device)
-        mask[:, [4, 9]] = True
-        self.detail_cond = {"frame_rate": 10.0, "cond_mask": mask,
+        # The conditioned slots as a tuple, as rollouts give them: a mask tensor is read on the host (no capture).
+        self.detail_cond = {"frame_rate": 10.0, "cond_mask": (4, 9),
                             "cond_frames": torch.randn(1, 10, LATENT_CHANNELS, h, w, device=device, generator=g)}
         self.x6, self.tau6 = self.x10[:, :6], torch.cat([torch.zeros(1, 5, device=device), self.tau10[:, :1]], 1)
         self.steering = torch.randn(1, 5, 2, device=device, generator=g)
@@ -150,6 +158,12 @@ def part_peak(args: argparse.Namespace, out: Record) -> None:
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
     out["device"] = name
     out["torch"] = torch.__version__
+    out["cuda"] = torch.version.cuda
+    out["python"] = platform.python_version()
+    if device.type == "cuda":
+        smi = subprocess.run(["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
+                             capture_output=True, text=True)
+        out["driver"] = smi.stdout.strip() if smi.returncode == 0 else None
     if device.type == "cuda":
         out["memory_gb"] = torch.cuda.get_device_properties(device).total_memory / 2**30
     out["peak_bf16_tflops_table"] = peak_bf16_tflops(name) if device.type == "cuda" else None
@@ -171,7 +185,7 @@ def _compare(on: torch.Tensor, off: torch.Tensor) -> dict[str, Any]:
 
 def part_toggles(args: argparse.Namespace, out: Record) -> None:
     """Each switch on against off on the same inputs (on the CPU, bf16 and TF32 are no-ops: equal by design)."""
-    device, nets = args.device, Nets(args.preset, args.device)
+    device, nets = args.device, Nets(args.preset, args.device, cast=False)
     fns = nets.forwards()
     with torch.no_grad():
         with inference_autocast(device, "bf16"):
@@ -201,11 +215,16 @@ def part_toggles(args: argparse.Namespace, out: Record) -> None:
 def part_graphs(args: argparse.Namespace, out: Record) -> None:
     """Capture the detail forward in a CUDA graph, replay it on new inputs, compare with eager."""
     device = args.device
-    if device.type != "cuda":
-        out["skipped"] = "needs CUDA"
-        return
     nets = Nets(args.preset, device)
     forward = nets.forwards()["detail"]
+    if device.type != "cuda":  # the rehearsal: what would stop a capture is a host sync inside the forward
+        with torch.no_grad(), HostSyncs() as syncs:
+            forward()
+        out["host_syncs"] = syncs.seen
+        out["captured"] = None
+        if syncs.seen:
+            raise SystemExit(f"the detail forward reads tensors on the host ({syncs.seen}): it cannot be captured")
+        return
     with torch.no_grad(), inference_autocast(device, "bf16"):
         stream = torch.cuda.Stream()
         stream.wait_stream(torch.cuda.current_stream())
@@ -227,6 +246,22 @@ def part_graphs(args: argparse.Namespace, out: Record) -> None:
         out["replay_vs_eager"] = _compare(static.clone(), forward())
         out["replay"] = time_call(graph.replay, device, args.repeats)
         out["eager"] = time_call(forward, device, args.repeats)
+
+
+class HostSyncs(TorchDispatchMode):
+    """Records the ops that read a tensor back to the host: each one stops a CUDA-graph capture."""
+
+    OPS = {"aten._local_scalar_dense", "aten.item", "aten.is_nonzero", "aten.equal", "aten.nonzero",
+           "aten.masked_select", "aten.unique", "aten._unique2", "aten.repeat_interleave"}
+
+    def __init__(self):
+        super().__init__()
+        self.seen: list[str] = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        if str(func.overloadpacket) in self.OPS:
+            self.seen.append(str(func))
+        return func(*args, **(kwargs or {}))
 
 
 def scaled_params(params: dict[str, Any], profile: str, steps: int) -> dict[str, Any]:
@@ -252,53 +287,171 @@ def scaled_params(params: dict[str, Any], profile: str, steps: int) -> dict[str,
     return params
 
 
+# What the DAG part imports beyond the benchmarks (torch, numpy, yaml, opencv, pillow): ./wheelhouse carries it.
+DAG_MODULES = ("snakemake", "mlflow", "webdataset", "pydantic", "sqlalchemy", "matplotlib", "pyarrow", "pandas")
+# Top-level folders a project copy leaves out: outputs, the wheels, the published docs.
+PROJECT_SKIP = {".git", "wheelhouse", "data", "reports", "docs", "mlruns", ".snakemake", ".dvc"}
+
+
+def _dag_environment(deps: Path) -> tuple[dict[str, str], list[str]]:
+    """The environment of the DAG's subprocess: ./wheelhouse's distributions this Python lacks installed into
+    ``deps`` (never shadowing the machine's torch or numpy), and the modules still missing after that."""
+    import importlib.metadata as md
+    import importlib.util
+
+    missing_wheels = []
+    for wheel in sorted((ROOT / "wheelhouse").glob("*.whl")):
+        try:
+            md.version(wheel.name.split("-")[0])
+        except md.PackageNotFoundError:
+            missing_wheels.append(str(wheel))
+    if missing_wheels:
+        subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-index", "--no-deps", "--no-compile",
+                        "--target", str(deps), *missing_wheels], check=True)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), str(deps), os.environ.get("PYTHONPATH",
+                                                                                                      "")])}
+    sys.path[:0] = [str(deps)]
+    missing = [name for name in DAG_MODULES if importlib.util.find_spec(name) is None]
+    return env, missing
+
+
 def part_dag(args: argparse.Namespace, out: Record) -> None:
-    """The ``gpu`` profile's DAG, scaled down, in a copy of the project; ``--dry``: Snakemake's dry run of it."""
+    """The ``gpu`` profile's DAG, scaled down, in a copy of the project; ``--rehearse``: Snakemake's dry run of it.
+
+    The DAG's first stages need the I3D and Inception assets, which the ``assets`` stage downloads: on a machine
+    without a network they come from ``--assets`` (a folder holding ``data/assets``), or the part is skipped."""
+    assets = Path(args.assets) / "data" / "assets" if args.assets else None
+    if not args.rehearse and (assets is None or not assets.is_dir()):
+        out["skipped"] = "no assets: pass ASSETS=<folder holding data/assets> (the machine has no network)"
+        return
+    env, missing = _dag_environment(Path(os.environ.get("DEPS", "/tmp/pydeps")))
+    if missing:
+        out["skipped"] = f"modules missing: {missing}; build ./wheelhouse with tools/build_wheelhouse.sh"
+        return
     work = args.out / "dag_project"
     if work.exists():
         shutil.rmtree(work)
-    files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=ROOT, capture_output=True,
-                           text=True, check=True).stdout.split()
-    for name in files:
-        source = ROOT / name
-        if source.is_file() and not name.startswith(("reports/", "docs/")):
-            (work / name).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(source, work / name)
+    shutil.copytree(ROOT, work, ignore=lambda folder, names: [n for n in names if n == "__pycache__" or (
+        Path(folder) == ROOT and n in PROJECT_SKIP)])
+    if assets is not None and assets.is_dir():
+        shutil.copytree(assets, work / "data" / "assets")
     params = yaml.safe_load((ROOT / "params.yaml").read_text())
     (work / "params.yaml").write_text(yaml.safe_dump(scaled_params(params, "gpu", args.dag_steps), sort_keys=False))
     command = [sys.executable, "-m", "snakemake", "--cores", str(args.cores), "--config", "profile=gpu"]
-    if args.dry:
+    if args.rehearse:
         command.append("-n")
     out["command"] = " ".join(command)
     start = time.perf_counter()
-    done = subprocess.run(command, cwd=work, capture_output=True, text=True)
+    done = subprocess.run(command, cwd=work, capture_output=True, text=True, env=env)
     out["seconds"] = time.perf_counter() - start
     out["exit"] = done.returncode
     log = done.stdout + done.stderr
-    out["jobs_done"] = log.count("Finished job") if not args.dry else None
+    out["jobs_done"] = log.count("Finished job") if not args.rehearse else None
     out["log_tail"] = log[-4000:]
+    shutil.rmtree(work, ignore_errors=True)  # the archive carries the record, not the project
     if done.returncode:
         raise SystemExit(f"snakemake exited with {done.returncode}; see {out.path}")
 
 
-PARTS = {"peak": part_peak, "forwards": part_forwards, "toggles": part_toggles, "graphs": part_graphs,
-         "dag": part_dag}
+def carried_files(root: Path) -> tuple[int, int]:
+    """Bytes of what travels to the GPU machine: the repository's files (without .git and the outputs that
+    git ignores, as a copy of the working tree has them) and ./wheelhouse."""
+    listed = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "-z"], cwd=root, capture_output=True)
+    if listed.returncode == 0:
+        names = [n for n in listed.stdout.decode().split("\0") if n]
+        repository = sum((root / n).stat().st_size for n in names if (root / n).is_file())
+    else:  # a copy without .git (on the GPU machine): every file but the ignored outputs
+        repository = sum(f.stat().st_size for f in root.rglob("*") if f.is_file()
+                         and f.relative_to(root).parts[0] not in PROJECT_SKIP - {"docs"})
+    wheels = sum(f.stat().st_size for f in (root / "wheelhouse").glob("*.whl"))
+    return repository, wheels
+
+
+def part_carried(args: argparse.Namespace, out: Record) -> None:
+    repository, wheels = carried_files(args.root)
+    mib = 2**20
+    out["repository_mib"], out["wheelhouse_mib"] = repository / mib, wheels / mib
+    out["carried_mib"], out["limit_mib"] = (repository + wheels) / mib, args.limit_mib
+    print(f"carried: {out['carried_mib']:.1f} MiB (repository {repository / mib:.1f}, wheelhouse {wheels / mib:.1f}); "
+          f"limit {args.limit_mib} MiB")
+    if (repository + wheels) / mib > args.limit_mib:
+        raise SystemExit(f"the carried files ({out['carried_mib']:.1f} MiB) exceed {args.limit_mib} MiB: "
+                         f"build ./wheelhouse with tools/build_wheelhouse.sh (it skips what the machine has)")
+
+
+# The figures the summary lifts out of each part's JSON (the whole JSON stays in the archive).
+HEADLINES = {
+    "peak": ("device", "driver", "torch", "cuda", "memory_gb", "peak_bf16_tflops_table", "matmul_tflops_measured"),
+    "carried": ("carried_mib", "repository_mib", "wheelhouse_mib", "limit_mib"),
+}
+
+
+def _rollout_figures(record: dict) -> dict:
+    keys = ("fps", "seconds", "min_seconds", "frames", "rollout_s", "decode_s", "warmup_s", "compile_s", "nfe",
+            "peak_memory_mb", "memory_kind", "error")
+    return {system: {k: v for k, v in run.items() if k in keys} | {"repeats": record.get("repeats")}
+            for system, run in record.get("systems", {}).items() if isinstance(run, dict)}
+
+
+def part_summary(args: argparse.Namespace, out: Record) -> None:
+    """One summary of the run: machine, commit, each part's exit status, and its headline figures."""
+    steps = [json.loads(line) for line in (args.out / "steps.jsonl").read_text().splitlines()] if (
+        args.out / "steps.jsonl").is_file() else []
+    summary: dict[str, Any] = {"commit": os.environ.get("GIT_COMMIT") or _git_commit(), "parts": {}}
+    for name in ["carried"] + [row["step"] for row in steps]:
+        path = args.out / f"{name}.json"
+        record = json.loads(path.read_text()) if path.is_file() else {}
+        entry = next(({k: row[k] for k in ("exit", "seconds", "limit", "skipped") if k in row}
+                      for row in steps if row["step"] == name), {})
+        if name.startswith("rollouts"):
+            entry["systems"] = _rollout_figures(record)
+        elif name == "forwards":
+            entry["forwards"] = {k: {f: v[f] for f in ("median_ms", "min_ms", "repeats") if f in v}
+                                 | {"kernels": v.get("kernels", {}).get("count")}
+                                 for k, v in record.items() if isinstance(v, dict) and "median_ms" in v}
+        elif name == "train":
+            entry["runs"] = record.get("runs", [])
+        elif name in ("toggles", "graphs", "dag"):
+            entry.update({k: v for k, v in record.items() if k not in ("log_tail",)})
+        else:
+            entry.update({k: record[k] for k in HEADLINES.get(name, ()) if k in record})
+        summary["parts"][name] = entry
+    args.summary.write_text(json.dumps(summary, indent=2, default=str))
+    out["written"] = str(args.summary)
+
+
+def _git_commit() -> str | None:
+    done = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True)
+    return done.stdout.strip() if done.returncode == 0 else None
+
+
+PARTS = {"carried": part_carried, "peak": part_peak, "forwards": part_forwards, "toggles": part_toggles,
+         "graphs": part_graphs, "dag": part_dag, "summary": part_summary}
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("part", choices=sorted(PARTS))
     parser.add_argument("--out", type=Path, required=True, help="folder of the JSON files")
-    parser.add_argument("--dry", action="store_true", help="CPU, smoke preset, Snakemake dry run: for the tests")
-    parser.add_argument("--preset", default=None, help="model preset (default: paper, smoke with --dry)")
-    parser.add_argument("--repeats", type=int, default=None, help="timed calls per forward (default 10, 1 dry)")
+    parser.add_argument("--rehearse", action="store_true",
+                        help="CPU, smoke preset, inductor without CUDA graphs, Snakemake dry run: for the tests")
+    parser.add_argument("--preset", default=None, help="model preset (default: paper, smoke with --rehearse)")
+    parser.add_argument("--repeats", type=int, default=None, help="timed calls per forward (default 10, 1 rehearsed)")
     parser.add_argument("--no-compile", dest="compile", action="store_false", help="skip the compile toggle")
     parser.add_argument("--dag-steps", type=int, default=3, help="training steps per stage in the scaled DAG")
+    parser.add_argument("--assets", default="", help="dag: a folder holding data/assets (I3D, Inception)")
     parser.add_argument("--cores", type=int, default=8)
+    parser.add_argument("--root", type=Path, default=ROOT, help="carried: the repository copy to measure")
+    parser.add_argument("--limit-mib", type=float, default=60.0, help="carried: the most the machine accepts")
+    parser.add_argument("--summary", type=Path, default=None, help="summary: the file to write")
     args = parser.parse_args(argv)
-    args.device = torch.device("cpu" if args.dry or not torch.cuda.is_available() else "cuda")
-    args.preset = args.preset or ("smoke" if args.dry else "paper")
-    args.repeats = args.repeats or (1 if args.dry else 10)
+    args.device = torch.device("cpu" if args.rehearse or not torch.cuda.is_available() else "cuda")
+    args.preset = args.preset or ("smoke" if args.rehearse else "paper")
+    args.repeats = args.repeats or (1 if args.rehearse else 10)
+    if args.part == "summary":
+        args.summary = args.summary or args.out / "summary.json"
+        part_summary(args, Record(args.out / "summary_part.json", part="summary"))
+        return
     torch.manual_seed(0)
     set_tf32(True)
     out = Record(args.out / f"{args.part}.json", part=args.part, preset=args.preset, device_type=args.device.type)

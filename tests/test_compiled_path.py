@@ -75,8 +75,8 @@ def build(preset: str, level: str, seed: int) -> torch.nn.Module:
 
 def inputs(seed: int = 0) -> dict[str, torch.Tensor]:
     gen = torch.Generator().manual_seed(seed)
-    return {"detail": torch.randn(1, 5, C, *GRID, generator=gen), "abstract": torch.randn(1, 5, C, *GRID, generator=gen),
-            "steering": torch.randn(1, 3, 5, 2, generator=gen)}
+    return {"detail": torch.randn(1, 5, C, *GRID, generator=gen),
+            "abstract": torch.randn(1, 5, C, *GRID, generator=gen), "steering": torch.randn(1, 3, 5, 2, generator=gen)}
 
 
 def rollout(top: torch.nn.Module, bottom: torch.nn.Module, x: dict[str, torch.Tensor], steps: int = 3):
