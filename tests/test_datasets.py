@@ -14,6 +14,8 @@ with a message naming the file.
 
 import io
 import json
+import re
+import shlex
 import sqlite3
 import zipfile
 from pathlib import Path
@@ -28,6 +30,8 @@ from orbis2.cli import main
 from orbis2.data.datasets import DatasetError, bdd100k, nuplan, physicalai_av
 from orbis2.data.importer import read_odometry_csv
 from orbis2.data.video import VideoError, probe, read_video, write_video
+
+from conftest import ROOT
 
 T0_US = 1_620_000_000_000_000  # a Unix time in microseconds, as the datasets store them
 
@@ -417,3 +421,23 @@ def test_a_codec_nothing_decodes_is_named(tmp_path):
     path.write_bytes(path.read_bytes()[:600])
     with pytest.raises(VideoError, match=r"cut.mkv: no frame could be decoded from its (libdav1d|av1) video stream"):
         read_video(path)
+
+
+def test_the_documented_commands_convert_trees_laid_out_as_documented(tmp_path, monkeypatch, capsys):
+    """Each `orbis2 convert` command of docs/datasets.md, as written, on trees at the paths it names."""
+    from test_docs import documented_commands
+
+    commands = [c.text for c in documented_commands(ROOT / "docs" / "datasets.md") if c.text.startswith("orbis2 ")]
+    assert {shlex.split(c)[2] for c in commands} == {"nuplan", "physicalai-av", "bdd100k", "opendv"}
+    nuplan_tree(tmp_path / "nuplan-v1.1")
+    for n, blobs in enumerate(("nuplan-sensor-blobs-1", "nuplan-sensor-blobs-2")):
+        nuplan_tree(tmp_path / "nuplan-v1.1", log=f"2021.06.09.17.23.18_veh-38_0077{n}_01140",
+                    blobs=f"../{blobs}")
+    physicalai_tree(tmp_path / "PhysicalAI-Autonomous-Vehicles")
+    bdd_tree(tmp_path / "bdd100k")
+    opendv_tree(tmp_path / "OpenDV-YouTube")
+    monkeypatch.chdir(tmp_path)
+    for command in commands:
+        main(shlex.split(command)[1:])
+        summary = capsys.readouterr().out
+        assert re.search(r": [1-9]\d* videos converted", summary), (command, summary)
