@@ -45,6 +45,28 @@ def test_resamples_resizes_and_interpolates_odometry(tmp_path, make_video, smoke
     assert RawIndex.read(out).episodes[1].origin.endswith("silent.mp4")
 
 
+@pytest.mark.parametrize("fps", [23.976, 24, 25, 29.97, 30, 50, 60])
+def test_any_source_rate_is_resampled_by_timestamps(tmp_path, make_video, smoke_cfg, fps):
+    """Each slot k / 10 s takes the nearest source frame; the odometry is read at that frame's own time."""
+    src = tmp_path / "videos"
+    n = round(3.2 * fps)
+    video = make_video("drive.mp4", n, fps=fps, width=200, height=48, folder=src / "train")
+    t = np.linspace(0, 3.3, 34)
+    write_csv(video.with_suffix(".csv"), t, 5 + t, 0.1 * np.ones_like(t))
+    make_video("v.mp4", 30, fps=10, width=64, height=48, folder=src / "val")
+    index, skipped = run_import(src, tmp_path / "raw", smoke_cfg)
+    episode = index.episodes[0]
+    slots = np.arange(int((n - 1) / fps * 10 + 1e-6) + 1) / 10
+    nearest = np.round(slots * fps) / fps  # the source frame closest to each slot
+    assert not skipped and episode.frames == len(slots)
+    assert episode.source_fps == pytest.approx(fps, rel=1e-3)
+    assert episode.timing_error_ms == pytest.approx(np.abs(nearest - slots).max() * 1000, abs=0.01)
+    assert episode.timing_error_ms <= 500 / fps + 1e-6
+    source_t = read_odometry(episode.odometry(tmp_path / "raw"))["speed"] - 5  # speed 5 + t: the time it was read at
+    np.testing.assert_allclose(source_t * fps, np.round(source_t * fps), atol=1e-4)  # a source frame's own time
+    assert np.abs(source_t - slots).max() <= 0.5 / fps + 1e-6  # the nearest one (either, on a tie)
+
+
 def test_split_subfolders(tmp_path, make_video, smoke_cfg):
     make_video("a.mp4", 30, fps=10, folder=tmp_path / "v" / "train")
     make_video("b.mp4", 30, fps=10, folder=tmp_path / "v" / "val")
@@ -71,8 +93,8 @@ def bad_inputs(tmp_path, make_video):
     make_video("s.mp4", 12, fps=10, folder=d)
     cases["shorter than a window"] = (d, "shorter than one training window")
     d = tmp_path / "rate"
-    make_video("r.mp4", 60, fps=25, folder=d)
-    cases["frame rate"] = (d, "not an integer multiple")
+    make_video("r.mp4", 20, fps=5, folder=d)
+    cases["frame rate"] = (d, "slower than 10")
     d = tmp_path / "columns"
     v = make_video("c.mp4", 30, fps=10, folder=d)
     write_csv(v.with_suffix(".csv"), [0, 1, 2], [1, 1, 1], [0, 0, 0], header="timestamp,velocity,yaw_rate")
@@ -96,7 +118,7 @@ def test_every_bad_input_stops_with_a_clear_message(tmp_path, make_video, smoke_
 def test_skip_bad_reports_and_keeps_the_good(tmp_path, make_video, smoke_cfg):
     src = tmp_path / "mixed"
     make_video("good.mp4", 40, fps=10, folder=src / "train")
-    make_video("rate.mp4", 60, fps=25, folder=src / "train")
+    make_video("rate.mp4", 20, fps=5, folder=src / "train")
     (src / "train" / "zz.mp4").write_bytes(b"garbage")
     make_video("v.mp4", 30, fps=10, folder=src / "val")
     out = tmp_path / "raw"
@@ -118,7 +140,8 @@ def stage_env(tmp_path):
 def test_stage_exits_nonzero_and_leaves_nothing(tmp_path, make_video):
     """The stage script: a bad video -> exit 2, message on stderr, no data/raw/import written."""
     src = tmp_path / "bad"
-    make_video("r.mp4", 60, fps=25, folder=src)
+    src.mkdir()
+    (src / "r.mp4").write_bytes(b"not a video")
     (tmp_path / "params.yaml").write_text((ROOT / "params.yaml").read_text())
     env = stage_env(tmp_path)
     proc = subprocess.run([sys.executable, str(ROOT / "stages/import.py"), "--profile", "smoke", "--videos", str(src)],
@@ -130,14 +153,19 @@ def test_stage_exits_nonzero_and_leaves_nothing(tmp_path, make_video):
     proc = subprocess.run([sys.executable, str(ROOT / "stages/import.py"), "--profile", "smoke", "--videos", str(src),
                            "--skip-bad"], cwd=tmp_path, capture_output=True, text=True, env=env)
     assert proc.returncode == 2 and "every video was skipped" in proc.stderr
-    make_video("r.mp4", 60, fps=25, folder=src / "train")
+    (src / "train").mkdir()
+    (src / "train" / "r.mp4").write_bytes(b"not a video")
     make_video("ok.mp4", 30, fps=10, folder=src / "train")
     make_video("ok.mp4", 30, fps=10, folder=src / "val")
     proc = subprocess.run([sys.executable, str(ROOT / "stages/import.py"), "--profile", "smoke", "--videos", str(src),
                            "--skip-bad"], cwd=tmp_path, capture_output=True, text=True, env=env)
     assert proc.returncode == 0, proc.stderr
     skipped = json.loads((tmp_path / "data/raw/import/skipped.json").read_text())
-    assert [s["path"].rsplit("/", 1)[1] for s in skipped] == ["r.mp4"]
+    assert [(s["path"].rsplit("/", 1)[1], s["reason"]) for s in skipped] == [("r.mp4", "video")]
+    assert "2 videos imported, 1 skipped (1 video)" in proc.stdout + proc.stderr
+    proc = subprocess.run([sys.executable, str(ROOT / "stages/import.py"), "--profile", "smoke", "--videos", str(src),
+                           "--skip-bad", "--strict"], cwd=tmp_path, capture_output=True, text=True, env=env)
+    assert proc.returncode == 2 and "r.mp4: cannot open" in proc.stderr
 
 
 def odometry_case(tmp_path, make_video, name, text):
@@ -180,7 +208,7 @@ def test_a_missing_split_stops_the_import(tmp_path, make_video, smoke_cfg):
         run_import(tmp_path / "flat", tmp_path / "raw", smoke_cfg)
     (tmp_path / "v" / "val").mkdir()
     (tmp_path / "v" / "val" / "broken.mp4").write_bytes(b"garbage")  # val exists, but its only video is skipped
-    with pytest.raises(ImportProblem, match="(?s)no val videos.*skipped: .*broken.mp4: OpenCV cannot open"):
+    with pytest.raises(ImportProblem, match="(?s)no val videos.*skipped: .*broken.mp4: cannot open"):
         run_import(tmp_path / "v", tmp_path / "raw", smoke_cfg, skip_bad=True)
 
 

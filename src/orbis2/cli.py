@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from orbis2.accel import cast_for_inference, compile_decoder, compile_predictor, inference_autocast, set_tf32
 from orbis2.config.params import PROFILES, load_config
-from orbis2.data.datasets import bdd100k, nuplan, opendv, physicalai_av
+from orbis2.data.datasets import DatasetError, bdd100k, nuplan, opendv, physicalai_av
 from orbis2.data.episodes import read_odometry
 from orbis2.data.images import to_uint8
 from orbis2.data.importer import read_odometry_csv
@@ -391,20 +391,24 @@ def add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def convert_command(args: argparse.Namespace) -> str:
-    """Turn a dataset tree into the import layout under ``--out``."""
+    """Turn a dataset tree into the import layout under ``--out``; bad items are skipped and reported."""
     start = time.perf_counter()
     if args.dataset == "nuplan":
-        written = nuplan.convert(args.db, args.sensor_root, args.out, args.split, args.channel, args.clip_seconds,
-                                 args.turns_deg)
+        report = nuplan.convert(args.db, args.sensor_root, args.out, args.split, args.channel, args.clip_seconds,
+                                args.turns_deg, args.strict)
     elif args.dataset == "physicalai-av":
-        written = physicalai_av.convert(args.root, args.out, args.split, args.camera)
+        report = physicalai_av.convert(args.root, args.out, args.split, args.camera, args.include_invalid,
+                                       args.strict)
     elif args.dataset == "bdd100k":
-        written = bdd100k.convert(args.root, args.out, args.allow_missing_info)
+        report = bdd100k.convert(args.root, args.out, args.allow_missing_info, args.max_fix_delay, args.strict)
     else:
-        written = opendv.convert(args.meta, args.videos, args.out, args.allow_missing, args.limit)
-    with_csv = sum(video.with_suffix(".csv").is_file() for video in written)
-    return (f"{args.dataset}: {len(written)} videos ({with_csv} with odometry) -> {args.out} in "
-            f"{time.perf_counter() - start:.1f} s; next: python stages/import.py --videos {args.out}")
+        report = opendv.convert(args.meta, args.videos, args.out, args.limit, args.strict)
+    path = report.write()
+    if not report.converted:
+        raise DatasetError(f"{report.summary()}: nothing usable was converted; see {path} for each item's problem "
+                           f"and fix")
+    return (f"{report.summary()} -> {args.out} in {time.perf_counter() - start:.1f} s; report: {path}; next: "
+            f"python stages/import.py --videos {args.out}")
 
 
 def add_convert_parser(sub: argparse._SubParsersAction) -> None:
@@ -412,7 +416,8 @@ def add_convert_parser(sub: argparse._SubParsersAction) -> None:
     datasets = p.add_subparsers(dest="dataset", required=True)
     n = datasets.add_parser("nuplan", help="front camera + ego poses of nuPlan log databases")
     n.add_argument("--db", type=Path, required=True, help="a log .db, or a folder of them (nuplan-v1.1/splits/<s>)")
-    n.add_argument("--sensor-root", type=Path, required=True, help="nuplan-v1.1/sensor_blobs")
+    n.add_argument("--sensor-root", type=Path, required=True, nargs="+", action="extend",
+                   help="nuplan-v1.1/sensor_blobs; several folders (one per unpacked camera archive) may be given")
     n.add_argument("--split", default="val", help="import split to write (default: val)")
     n.add_argument("--channel", default="CAM_F0", help="camera channel (default: CAM_F0, the front camera)")
     n.add_argument("--clip-seconds", type=float, default=20.0, help="cut logs into clips this long (default: 20)")
@@ -420,19 +425,26 @@ def add_convert_parser(sub: argparse._SubParsersAction) -> None:
                    help="keep only clips whose heading changes by at least this many degrees (nuPlan-turns)")
     a = datasets.add_parser("physicalai-av", help="front camera + egomotion of PhysicalAI-Autonomous-Vehicles")
     a.add_argument("--root", type=Path, required=True, help="dataset root (features.csv, clip_index.parquet, chunks)")
-    a.add_argument("--split", default="train", help="import split to write (default: train)")
+    a.add_argument("--split", default=None,
+                   help="put every clip into this import split (default: each clip's split in clip_index.parquet, "
+                        "test -> heldout)")
+    a.add_argument("--include-invalid", action="store_true",
+                   help="convert clips whose clip_is_valid is false too (default: skip and report them)")
     a.add_argument("--camera", default="camera_front_wide_120fov", help="camera feature (default: %(default)s)")
     b = datasets.add_parser("bdd100k", help="BDD100K videos with their info (GPS/IMU) files")
     b.add_argument("--root", type=Path, required=True, help="the bdd100k folder holding videos/ and info/")
     b.add_argument("--allow-missing-info", action="store_true", help="link videos without info, without odometry")
+    b.add_argument("--max-fix-delay", type=float, default=bdd100k.MAX_FIX_DELAY,
+                   help="bridge a first GPS fix up to this many seconds after the first frame (default: %(default)s)")
     o = datasets.add_parser("opendv", help="OpenDV-YouTube videos, without odometry (unconditional)")
     o.add_argument("--meta", type=Path, required=True, help="meta/OpenDV-YouTube.json")
     o.add_argument("--videos", type=Path, required=True, help="download root (<youtuber>/<videoid>.mp4)")
-    o.add_argument("--allow-missing", action="store_true", help="convert the listed videos that are present")
     o.add_argument("--limit", type=int, default=None, help="convert at most this many videos")
     for parser in (n, a, b, o):
         parser.add_argument("--out", type=Path, default=Path("data/videos"),
                             help="import folder to write into (default: data/videos)")
+        parser.add_argument("--strict", action="store_true",
+                            help="stop at the first bad item (default: skip it, list it in the report, go on)")
     p.set_defaults(run=convert_command)
 
 

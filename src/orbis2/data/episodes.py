@@ -46,6 +46,8 @@ class EpisodeRecord:
     has_pose: bool
     label_frames: list[int] = field(default_factory=list)
     origin: str = ""  # where it came from: town seed or the user's video path
+    source_fps: float | None = None  # an imported video's own rate (from its timestamps)
+    timing_error_ms: float | None = None  # resampling to the index's fps: largest |source time - slot time|
 
     def video(self, root: Path) -> Path:
         return root / self.split / f"{self.stem}.mp4"

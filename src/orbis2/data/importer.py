@@ -9,12 +9,19 @@ is read as ``train`` only, so it stops for want of ``val``). Next to
 - ``speed``: m/s;
 - ``yaw_rate``: rad/s, counter-clockwise (left turn) positive.
 
-Videos are resampled to ``data.fps`` by keeping every n-th frame (the source rate
-must be an integer multiple, within ``import.fps_tolerance``), resized to cover
-the configured resolution and centre-cropped. Odometry is interpolated linearly
-at the kept frames' times and the episode is cut to the span the CSV covers; the
-pose column is the integrated odometry (starting at the origin). Videos without
-a CSV are kept for unconditional training: their odometry is NaN.
+Videos at any frame rate at or above ``data.fps`` (23.976, 24, 25, 29.97, 30, 50,
+60 ...) are resampled to ``data.fps`` by timestamps, each slot taking the nearest
+source frame (:func:`orbis2.data.video.read_resampled`); the largest timing error
+goes into the index (``timing_error_ms``, with ``source_fps``). Frames are resized
+to cover the configured resolution and centre-cropped. Odometry is interpolated
+linearly at the kept frames' own source times (the clock the pictures were taken
+on) and the episode is cut to the span the CSV covers; the pose column is the
+integrated odometry (starting at the origin). Videos without a CSV are kept for
+unconditional training: their odometry is NaN.
+
+A bad video is skipped and listed (path, reason, problem and fix) in
+``skipped.json`` beside the index, unless ``strict``; the import fails only when
+no usable video is left for ``train`` or ``val``.
 """
 
 from __future__ import annotations
@@ -30,7 +37,7 @@ from tqdm import tqdm
 
 from orbis2.config.sections import SPLITS, DataConfig, ImportConfig
 from orbis2.data.episodes import EpisodeRecord, RawIndex, write_odometry
-from orbis2.data.video import VIDEO_SUFFIXES, VideoError, probe, read_video, resample_stride, write_video
+from orbis2.data.video import VIDEO_SUFFIXES, VideoError, probe, read_resampled, write_video
 from orbis2.errors import OrbisError
 from orbis2.kinematics import integrate_odometry
 
@@ -38,13 +45,31 @@ CSV_COLUMNS = ("timestamp", "speed", "yaw_rate")
 
 
 class ImportProblem(OrbisError):
-    """One input video (or its CSV) cannot be imported."""
+    """One input video (or its CSV) cannot be imported; ``reason`` is the short label the summary counts."""
+
+    def __init__(self, message: str, reason: str = "odometry CSV"):
+        super().__init__(message)
+        self.reason = reason
 
 
 @dataclass(frozen=True)
 class Skipped:
     path: str
-    problem: str
+    reason: str  # short label, counted in the summary
+    problem: str  # the message: the file, what is wrong, the fix
+
+
+def reason_of(err: OrbisError) -> str:
+    return err.reason if isinstance(err, ImportProblem) else "video"
+
+
+def summary_of(skipped: list[Skipped]) -> str:
+    """``2 skipped (1 video, 1 odometry CSV)``, or ``0 skipped``."""
+    counts: dict[str, int] = {}
+    for s in skipped:
+        counts[s.reason] = counts.get(s.reason, 0) + 1
+    by_reason = ", ".join(f"{n} {reason}" for reason, n in sorted(counts.items()))
+    return f"{len(skipped)} skipped" + (f" ({by_reason})" if by_reason else "")
 
 
 def find_videos(folder: Path) -> list[tuple[str, Path]]:
@@ -165,18 +190,16 @@ def check_time_unit(path: Path, timestamps: np.ndarray, video_seconds: float) ->
 
 def import_one(video: Path, split: str, stem: str, root: Path, data: DataConfig, cfg: ImportConfig) -> EpisodeRecord:
     info = probe(video)
-    stride = resample_stride(info.fps, data.fps, cfg.fps_tolerance, video)
-    frames = read_video(video, stride, (data.width, data.height))
-    expected = info.frames // stride
-    if expected and len(frames) < 0.9 * expected:
+    resampled = read_resampled(video, data.fps, (data.width, data.height))
+    frames, t = resampled.frames, resampled.source_times
+    if info.frames and resampled.source_frames < 0.9 * info.frames:
         raise VideoError(f"{video}: truncated: the container announces {info.frames} frames but only "
-                         f"{len(frames) * stride} could be decoded; re-encode or replace the file")
+                         f"{resampled.source_frames} could be decoded; re-encode or replace the file")
     csv_path = video.with_suffix(".csv")
     speed = yaw_rate = None
     if csv_path.exists():
         odo = read_odometry_csv(csv_path)
-        check_time_unit(csv_path, odo["timestamp"], len(frames) * stride / info.fps)
-        t = np.arange(len(frames)) / data.fps
+        check_time_unit(csv_path, odo["timestamp"], resampled.source_frames / resampled.source_fps)
         covered = t <= odo["timestamp"][-1] + 1e-9
         if t[0] < odo["timestamp"][0] - 1e-9:
             raise ImportProblem(f"{csv_path}: starts at {odo['timestamp'][0]:.3f} s but the video starts at 0 s")
@@ -186,7 +209,7 @@ def import_one(video: Path, split: str, stem: str, root: Path, data: DataConfig,
     if len(frames) < data.window_span_frames:
         raise ImportProblem(f"{video}: {len(frames)} frames at {data.fps} fps (after resampling"
                             f"{' and cutting to the odometry' if speed is not None else ''}) is shorter than one "
-                            f"training window ({data.window_span_frames} frames)")
+                            f"training window ({data.window_span_frames} frames)", reason="too short")
     folder = root / split
     folder.mkdir(parents=True, exist_ok=True)
     write_video(folder / f"{stem}.mp4", frames, data.fps)
@@ -195,7 +218,8 @@ def import_one(video: Path, split: str, stem: str, root: Path, data: DataConfig,
     write_odometry(folder / f"{stem}.parquet", data.fps, nan if speed is None else speed,
                    nan if yaw_rate is None else yaw_rate, pose)
     return EpisodeRecord(split, stem, len(frames), has_odometry=speed is not None, has_pose=speed is not None,
-                         origin=str(video))
+                         origin=str(video), source_fps=round(resampled.source_fps, 3),
+                         timing_error_ms=round(resampled.max_error_s * 1000, 3))
 
 
 def import_videos(folder: Path, root: Path, data: DataConfig, cfg: ImportConfig,
@@ -216,7 +240,7 @@ def import_videos(folder: Path, root: Path, data: DataConfig, cfg: ImportConfig,
                 raise
             for leftover in (root / split).glob(f"{stem}.*"):
                 leftover.unlink()
-            skipped.append(Skipped(str(video), str(err)))
+            skipped.append(Skipped(str(video), reason_of(err), str(err)))
     if not records:
         problems = "\n".join(f"  {s.path}: {s.problem}" for s in skipped)
         raise ImportProblem(f"{folder}: every video was skipped:\n{problems}")

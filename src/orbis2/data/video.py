@@ -1,7 +1,16 @@
-"""Video files through OpenCV: probing, reading, writing, frame-rate resampling; GIFs through Pillow.
+"""Video files through OpenCV (PyAV where OpenCV cannot decode): probing, reading, writing,
+frame-rate resampling by timestamps; GIFs through Pillow.
 
 Frames are RGB ``uint8`` arrays ``[H, W, 3]`` everywhere in the library; the BGR
 order OpenCV uses stays inside this module.
+
+Reading goes through OpenCV first (fast, and what wrote our own files) and falls back to
+PyAV when OpenCV cannot open a file or decodes no frame from it: OpenCV's wheels carry an
+FFmpeg without an AV1 decoder (AV1 files open and decode to zero frames), while PyAV's
+wheels carry FFmpeg with dav1d (AV1), HEVC, VP9 and H.264 decoders, are self-contained (no
+system FFmpeg, no subprocess) and give each frame's presentation time. A container whose
+header lies about its frame count (a webm without a duration reports about -2.8e17) is
+probed as "count unknown" (0), and :func:`count_frames` counts by demuxing.
 
 Two codecs are written: videos people watch (rollouts, previews) as VP9, which
 browsers and MLflow's artifact view play (OpenCV's wheels carry libvpx, but no
@@ -15,11 +24,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator
 
+import av
 import cv2
 import numpy as np
 from PIL import Image
 
 from orbis2.errors import OrbisError
+
+# Beyond this a container's frame count is a lie (a day of 1000-fps video), not a count.
+MAX_PLAUSIBLE_FRAMES = 10**8
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
 # FourCC of the codec written: for people (browsers play it) and for the dataset (fast, any OpenCV reads it).
@@ -35,9 +48,10 @@ class VideoError(OrbisError):
 class VideoInfo:
     path: Path
     fps: float
-    frames: int  # as reported by the container; verified when decoding
+    frames: int  # as reported by the container, 0 when it reports none or nonsense; verified when decoding
     width: int
     height: int
+    codec: str = ""  # as the reader names it (FourCC from OpenCV, FFmpeg's decoder name from PyAV)
 
 
 def printable(path: Path) -> str:
@@ -59,8 +73,8 @@ def open_capture(path: Path) -> cv2.VideoCapture:
     cap = cv2.VideoCapture(name)
     if not cap.isOpened():
         cap.release()
-        raise VideoError(f"{name}: OpenCV cannot open this file (unreadable or not a video); re-encode it as "
-                         f"mp4 (e.g. ffmpeg -i {Path(path).name} out.mp4) or remove it")
+        raise VideoError(f"{name}: cannot open this file with OpenCV or PyAV (unreadable or not a video); "
+                         f"re-encode it as mp4 (e.g. ffmpeg -i {Path(path).name} out.mp4) or remove it")
     return cap
 
 
@@ -75,21 +89,56 @@ def _opencv_name(path: Path) -> str:
     return name
 
 
+def plausible_count(frames: float) -> int:
+    """A container's frame count, 0 (unknown) when it is negative or absurd."""
+    return int(frames) if 0 < frames < MAX_PLAUSIBLE_FRAMES else 0
+
+
 def probe(path: Path) -> VideoInfo:
-    cap = open_capture(path)
+    """Rate, size, codec and announced frame count; through PyAV when OpenCV cannot open the file."""
+    _opencv_name(path)  # a name that is not UTF-8 is refused for every reader alike
     try:
-        info = VideoInfo(
-            path=Path(path),
-            fps=float(cap.get(cv2.CAP_PROP_FPS) or 0.0),
-            frames=int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0),
-            width=int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
-            height=int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),
-        )
-    finally:
-        cap.release()
+        cap = open_capture(path)
+    except VideoError:
+        info = _pyav_probe(path)
+        if info is None:
+            raise
+    else:
+        try:
+            code = int(cap.get(cv2.CAP_PROP_FOURCC)) & 0xFFFFFFFF
+            info = VideoInfo(
+                path=Path(path),
+                fps=float(cap.get(cv2.CAP_PROP_FPS) or 0.0),
+                frames=plausible_count(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0),
+                width=int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
+                height=int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),
+                codec=code.to_bytes(4, "little").decode("ascii", "replace"),
+            )
+        finally:
+            cap.release()
+        if info.fps <= 0:
+            info = _pyav_probe(path) or info
     if info.fps <= 0:
         raise VideoError(f"{path}: the container reports no frame rate; re-encode it with a fixed rate")
     return info
+
+
+def _pyav_probe(path: Path) -> VideoInfo | None:
+    """What PyAV reads from the container's first video stream, or None when it cannot open the file."""
+    try:
+        with av.open(str(path)) as container:
+            stream = container.streams.video[0]
+            rate = stream.average_rate or stream.guessed_rate or 0
+            return VideoInfo(Path(path), float(rate), plausible_count(stream.frames or 0),
+                             stream.codec_context.width, stream.codec_context.height, stream.codec_context.name)
+    except (av.FFmpegError, IndexError, OSError):
+        return None
+
+
+def codec_name(path: Path) -> str:
+    """The video codec's name for messages (FFmpeg's name where PyAV can read the container)."""
+    info = _pyav_probe(path)
+    return info.codec if info is not None else "unknown"
 
 
 def resample_stride(source_fps: float, target_fps: int, tolerance: float, path: Path) -> int:
@@ -108,21 +157,154 @@ def resample_stride(source_fps: float, target_fps: int, tolerance: float, path: 
     return stride
 
 
+def iter_timed_frames(path: Path) -> Iterator[tuple[float, np.ndarray]]:
+    """Every frame as (seconds from the first frame, RGB), by its presentation time.
+
+    OpenCV decodes when it can; a file it cannot open, or from which it decodes no frame
+    (AV1 in OpenCV's wheels), is decoded by PyAV. When neither decodes a frame the error
+    names the codec. A time that does not increase (a container without timestamps) is
+    replaced by the previous one plus one period of the announced rate.
+    """
+    _opencv_name(path)
+    try:
+        cap = open_capture(path)
+    except VideoError:
+        if _pyav_probe(path) is None:
+            raise
+        cap = None
+    decoded = 0
+    if cap is not None:
+        period = 1.0 / (cap.get(cv2.CAP_PROP_FPS) or 30.0)
+        try:
+            first = last = None
+            while True:
+                ok, frame = cap.read()
+                if not ok:
+                    break
+                t = cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+                first = t if first is None else first
+                t = t - first if last is None or t - first > last else last + period
+                last = t
+                decoded += 1
+                yield t, cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
+        finally:
+            cap.release()
+    if decoded == 0:
+        yield from _pyav_frames(path)
+
+
+def _pyav_frames(path: Path) -> Iterator[tuple[float, np.ndarray]]:
+    decoded = 0
+    try:
+        with av.open(str(path)) as container:
+            stream = container.streams.video[0]
+            period = 1.0 / float(stream.average_rate or stream.guessed_rate or 30)
+            first = last = None
+            for frame in container.decode(stream):
+                t = frame.time if frame.time is not None else (last or 0.0) + period
+                first = t if first is None else first
+                t = t - first if last is None or t - first > last else last + period
+                last = t
+                decoded += 1
+                yield t, frame.to_ndarray(format="rgb24")
+    except (av.FFmpegError, IndexError, OSError) as err:
+        if decoded:
+            return  # a truncated tail: the frames before it are kept, the caller checks the count
+        raise VideoError(f"{printable(path)}: no frame could be decoded from its {codec_name(path)} video stream "
+                         f"by OpenCV or PyAV ({err}); re-encode it (e.g. ffmpeg -i {Path(path).name} -c:v libx264 "
+                         f"out.mp4) or remove it") from None
+    if decoded == 0:
+        raise VideoError(f"{printable(path)}: no frame could be decoded from its {codec_name(path)} video stream "
+                         f"(empty or truncated, or a codec neither OpenCV nor PyAV decodes); re-encode it (e.g. "
+                         f"ffmpeg -i {Path(path).name} -c:v libx264 out.mp4) or remove it")
+
+
 def iter_frames(path: Path, stride: int = 1, size: tuple[int, int] | None = None) -> Iterator[np.ndarray]:
     """Decode every ``stride``-th frame as RGB, resized (cover + centre crop) to ``size=(W, H)``."""
-    cap = open_capture(path)
+    for index, (_, rgb) in enumerate(iter_timed_frames(path)):
+        if index % stride == 0:
+            yield rgb if size is None else resize_cover(rgb, size)
+
+
+def count_frames(path: Path) -> int:
+    """The number of frames, counted by reading the stream (for containers whose header lies).
+
+    OpenCV grabs without converting; a file it decodes nothing from is counted by PyAV's demuxer
+    (one packet per frame)."""
+    count = 0
     try:
-        index = 0
-        while True:
-            ok, frame = cap.read()
-            if not ok:
-                break
-            if index % stride == 0:
-                rgb = cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
-                yield rgb if size is None else resize_cover(rgb, size)
-            index += 1
-    finally:
-        cap.release()
+        cap = open_capture(path)
+    except VideoError:
+        cap = None
+    if cap is not None:
+        try:
+            while cap.grab():
+                count += 1
+        finally:
+            cap.release()
+    if count:
+        return count
+    try:
+        with av.open(str(path)) as container:
+            return sum(1 for packet in container.demux(container.streams.video[0]) if packet.size)
+    except (av.FFmpegError, IndexError, OSError) as err:
+        raise VideoError(f"{printable(path)}: cannot read its video stream ({err}); replace the file") from None
+
+
+@dataclass(frozen=True)
+class Resampled:
+    """Frames taken at a fixed rate from a video at any rate, and how far each is from its slot."""
+
+    frames: np.ndarray  # [N, H, W, 3] RGB, frame k standing for time k / fps
+    source_times: np.ndarray  # seconds from the first source frame of the frame kept for each slot
+    source_frames: int  # frames decoded from the source
+    source_fps: float  # from the decoded timestamps
+    max_error_s: float  # largest |source time - k / fps|
+
+
+
+def read_resampled(path: Path, fps: float, size: tuple[int, int] | None = None) -> Resampled:
+    """The video at ``fps`` by timestamps: for each slot k / fps up to the last frame, the nearest source frame.
+
+    Nearest frame rather than blending neighbours: a blend is a picture no camera took
+    (ghosted edges the tokenizer would learn), while the nearest frame is off in time by at
+    most half a source period (20 ms at 25 fps), which is recorded. Works for any source
+    rate at or above ``fps`` (23.976, 24, 25, 29.97, 30, 50, 60 ...) and for variable
+    rates; a source slower than ``fps``, or a gap of more than one slot, would repeat
+    frames and is refused.
+    """
+    kept, times, decoded = [], [], 0
+    previous: tuple[float, np.ndarray] | None = None
+    k = 0
+
+    def keep(t: float, frame: np.ndarray) -> None:
+        kept.append(frame if size is None else resize_cover(frame, size))
+        times.append(t)
+
+    for t, frame in iter_timed_frames(path):
+        decoded += 1
+        while k / fps <= t + 1e-9:
+            target = k / fps
+            if previous is not None and target - previous[0] <= t - target:
+                keep(*previous)
+            else:
+                keep(t, frame)
+            k += 1
+        previous = (t, frame)
+    if not kept:
+        raise VideoError(f"{printable(path)}: no frame could be decoded (empty or truncated video)")
+    source_times = np.array(times)
+    error = np.abs(source_times - np.arange(len(source_times)) / fps)
+    last_t = previous[0] if previous is not None else 0.0
+    source_fps = (decoded - 1) / last_t if decoded > 1 and last_t > 0 else fps
+    if len(kept) > 1 and error.max() > 0.5 / fps + 1e-6:
+        worst = int(np.argmax(error))
+        why = (f"the source runs at {source_fps:.3f} fps, slower than {fps:g}" if source_fps < fps * 0.99 else
+               f"the source has a gap near {source_times[worst]:.2f} s")
+        raise VideoError(f"{printable(path)}: {why}: the frame for {worst / fps:.2f} s would be "
+                         f"{error.max() * 1000:.0f} ms off (over half a period at {fps:g} fps) and frames would "
+                         f"repeat; use a source at {fps:g} fps or faster, or lower data.fps")
+    return Resampled(np.stack(kept), source_times, decoded, source_fps, float(error.max()))
 
 
 def read_video(path: Path, stride: int = 1, size: tuple[int, int] | None = None) -> np.ndarray:

@@ -10,6 +10,12 @@ read here follow the devkit's schema (docs/nuplan_schema.md): ``camera`` (``toke
 100 Hz, and are interpolated at the image times (``lidar_pc``, the point clouds, is not
 needed for this).
 
+Camera blobs exist for about a tenth of the logs and ship as separate archives, which users
+unpack into separate folders: every ``--sensor-root`` given is searched for a log's
+``<log>/<channel>/`` folder. A log whose database lists no images of the channel, or whose
+images are in none of the roots (not downloaded), is skipped and reported, and so is a clip
+with an image missing; the other logs convert.
+
 Each run of consecutive front images (a gap over 1.5 frame periods ends a run) is cut into
 ``clip_seconds`` clips. ``turns_deg`` keeps only clips whose heading changes by at least
 that many degrees: our stand-in for the paper's nuPlan-turns, whose selection rule the
@@ -26,6 +32,7 @@ import numpy as np
 
 from orbis2.data.datasets import (
     DatasetError,
+    Report,
     heading_change_deg,
     motion_from_poses,
     native_rate,
@@ -44,10 +51,10 @@ def check_schema(con: sqlite3.Connection, db: Path) -> None:
         present = {row[1] for row in con.execute(f"PRAGMA table_info({table})")}
         if not present:
             raise DatasetError(f"{db}: has no table {table!r}, so it is not a nuPlan log database; pass the .db files "
-                               f"of nuplan-v1.1/splits/<split>/")
+                               f"of nuplan-v1.1/splits/<split>/", reason="not a log database")
         if columns - present:
             raise DatasetError(f"{db}: table {table} lacks column(s) {sorted(columns - present)}; use the nuPlan v1.1 "
-                               f"log databases")
+                               f"log databases", reason="not a log database")
 
 
 def read_log(db: Path, channel: str) -> tuple[list[str], np.ndarray, np.ndarray, np.ndarray]:
@@ -56,7 +63,8 @@ def read_log(db: Path, channel: str) -> tuple[list[str], np.ndarray, np.ndarray,
         con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
         check_schema(con, db)
     except sqlite3.DatabaseError as err:
-        raise DatasetError(f"{db}: not a readable SQLite database ({err}); download the log again") from err
+        raise DatasetError(f"{db}: not a readable SQLite database ({err}); download the log again",
+                           reason="unreadable log") from err
     with con:
         images = con.execute("SELECT image.filename_jpg, image.timestamp FROM image JOIN camera "
                              "ON image.camera_token = camera.token WHERE camera.channel = ? "
@@ -65,10 +73,12 @@ def read_log(db: Path, channel: str) -> tuple[list[str], np.ndarray, np.ndarray,
                          .fetchall(), np.float64)
     con.close()
     if len(images) < 2:
-        raise DatasetError(f"{db}: holds {len(images)} {channel} image(s); pick a log with camera data (the "
-                           f"sensor-blob release) or another --channel")
+        raise DatasetError(f"{db}: its table image lists {len(images)} {channel} image(s): a log without camera "
+                           f"data (most logs have none); nothing to do, or pick another --channel",
+                           reason="no images in the log")
     if len(poses) < 3:
-        raise DatasetError(f"{db}: table ego_pose holds {len(poses)} rows; the log is incomplete, download it again")
+        raise DatasetError(f"{db}: table ego_pose holds {len(poses)} rows; the log is incomplete, download it again",
+                           reason="unreadable log")
     t_img = np.array([ts for _, ts in images], np.float64) / 1e6
     t_pose = poses[:, 0] / 1e6
     keep = np.concatenate([[True], np.diff(t_pose) > 0])
@@ -76,18 +86,19 @@ def read_log(db: Path, channel: str) -> tuple[list[str], np.ndarray, np.ndarray,
                                         yaw_of_quaternion(*poses[keep, 3:7].T))
     inside = (t_img >= t_pose[0]) & (t_img <= t_pose[-1])
     if not inside.any():
-        raise DatasetError(f"{db}: no {channel} image lies within the span of its ego poses; the log is incomplete")
+        raise DatasetError(f"{db}: no {channel} image lies within the span of its ego poses; the log is incomplete",
+                           reason="unreadable log")
     files = [name for (name, _), ok in zip(images, inside) if ok]
     t_img = t_img[inside]
     return (files, t_img, np.interp(t_img, t_pose[keep], speed), np.interp(t_img, t_pose[keep], yaw_rate))
 
 
-def clips_of(t: np.ndarray, fps: int, clip_seconds: float) -> list[slice]:
+def clips_of(t: np.ndarray, fps: float, clip_seconds: float) -> list[slice]:
     """Consecutive runs of frames (a gap over 1.5 periods ends one), cut into ``clip_seconds`` clips; a shorter
     piece is kept when it lasts half a clip or 5 s, whichever is less."""
     breaks = np.flatnonzero(np.diff(t) > 1.5 / fps) + 1
     length = max(2, round(clip_seconds * fps))
-    shortest = max(2, min(length // 2, 5 * fps))
+    shortest = max(2, min(length // 2, round(5 * fps)))
     clips = []
     for start, stop in zip(np.concatenate([[0], breaks]), np.concatenate([breaks, [len(t)]])):
         for a in range(start, stop, length):
@@ -97,33 +108,58 @@ def clips_of(t: np.ndarray, fps: int, clip_seconds: float) -> list[slice]:
     return clips
 
 
-def convert(databases: Path, sensor_root: Path, out: Path, split: str, channel: str = "CAM_F0",
-            clip_seconds: float = 20.0, turns_deg: float | None = None) -> list[Path]:
-    """Convert every log database in ``databases`` (a .db file or a folder of them); returns the videos written."""
+def blob_root(files: list[str], roots: list[Path], db: Path, channel: str) -> Path:
+    """The sensor root holding this log's images (the first that has its ``<log>/<channel>/`` folder)."""
+    for root in roots:
+        if (root / files[0]).parent.is_dir():
+            return root
+    raise DatasetError(f"{db}: none of its {len(files)} {channel} images ({files[0]}, ...) is under "
+                       f"{', '.join(str(r) for r in roots)}: the log's camera archive is not downloaded; download it "
+                       f"and pass the folder it unpacks to with --sensor-root (several may be given)",
+                       reason="images not downloaded")
+
+
+def read_clip(paths: list[Path], db: Path) -> list[np.ndarray]:
+    frames = []
+    for path in paths:
+        image = cv2.imread(str(path))
+        if image is None:
+            raise DatasetError(f"{path}: missing or unreadable, listed in {db} (table image); download the camera "
+                               f"archive holding log {db.stem} again", reason="missing images")
+        frames.append(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
+    return frames
+
+
+def convert(databases: Path, sensor_roots: list[Path], out: Path, split: str, channel: str = "CAM_F0",
+            clip_seconds: float = 20.0, turns_deg: float | None = None, strict: bool = False) -> Report:
+    """Convert every log database in ``databases`` (a .db file or a folder of them) whose images are present."""
     dbs = [databases] if databases.is_file() else sorted(databases.glob("*.db")) if databases.is_dir() else []
     if not dbs:
         raise DatasetError(f"{databases}: no nuPlan log database (*.db); pass nuplan-v1.1/splits/<split>/ or one .db")
-    if not sensor_root.is_dir():
-        raise DatasetError(f"{sensor_root}: no such folder; pass the sensor-blob root (nuplan-v1.1/sensor_blobs)")
-    written = []
+    for root in sensor_roots:
+        if not root.is_dir():
+            raise DatasetError(f"{root}: no such folder; pass the sensor-blob root (nuplan-v1.1/sensor_blobs)")
+    report = Report("nuplan", out, strict)
     for db in dbs:
-        files, t, speed, yaw_rate = read_log(db, channel)
-        fps = native_rate(t, f"{db} ({channel})")
+        try:
+            files, t, speed, yaw_rate = read_log(db, channel)
+            root = blob_root(files, sensor_roots, db, channel)
+            fps = native_rate(t, f"{db} ({channel})")
+        except DatasetError as err:
+            report.skip(str(db), err)
+            continue
         for n, clip in enumerate(clips_of(t, fps, clip_seconds)):
             if turns_deg is not None and heading_change_deg(yaw_rate[clip], t[clip]) < turns_deg:
                 continue
             stem = f"{db.stem}_{n:03d}"
-            frames = []
-            for name in files[clip]:
-                path = sensor_root / name
-                image = cv2.imread(str(path))
-                if image is None:
-                    raise DatasetError(f"{path}: missing or unreadable, listed in {db} (table image); download the "
-                                       f"sensor blobs of log {db.stem} into {sensor_root}")
-                frames.append(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
+            try:
+                frames = read_clip([root / name for name in files[clip]], db)
+            except DatasetError as err:
+                report.skip(stem, err)
+                continue
             video = out / split / f"{stem}.mp4"
             with atomic_file(video) as tmp:
                 write_video(tmp, frames, fps)
             write_odometry_csv(out / split / f"{stem}.csv", t[clip] - t[clip][0], speed[clip], yaw_rate[clip])
-            written.append(video)
-    return written
+            report.add(video, log=db.stem, fps=round(fps, 3))
+    return report

@@ -6,9 +6,15 @@ The dataset is published in chunks: per feature one zip per chunk, its path give
 its members per clip by the ``clip_files_in_zip`` JSON templates there (the camera's
 ``video`` mp4 and ``frame_timestamps`` Parquet with a ``timestamp`` column in
 microseconds; the ``egomotion`` Parquet with ``timestamp``, ``x``, ``y``, ``qx``, ``qy``,
-``qz``, ``qw``). ``clip_index.parquet`` maps each ``clip_id`` to its ``chunk``. These
-are the files the dataset's own interface (``physical_ai_av``) reads; this reader uses
-the same templates, so a partial download (some chunks) converts the clips it holds.
+``qz``, ``qw``). ``clip_index.parquet`` (index ``clip_id``) gives each clip's ``chunk``, its
+``split`` (``train``, ``val``, ``test``) and ``clip_is_valid``, which users of the dataset
+filter on. These are the files the dataset's own interface (``physical_ai_av``) reads; this
+reader uses the same templates, so a partial download (some chunks) converts the clips it holds.
+
+Clips go to the import split named by their ``split`` (``test`` to ``heldout``, the import's
+split for data no model trains on) unless ``split`` is given, which puts every clip there;
+invalid clips are skipped and reported unless ``include_invalid``. A clip whose members are
+missing, or whose ego motion does not cover its frames, is skipped and reported.
 
 The paper fine-tunes on the dataset's IMU-derived ego motion; the egomotion table is that
 motion, and speed and yaw rate are derived from its poses as for every dataset here.
@@ -26,11 +32,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from orbis2.data.datasets import DatasetError, motion_from_poses, write_odometry_csv, yaw_of_quaternion
+from orbis2.data.datasets import DatasetError, Report, motion_from_poses, write_odometry_csv, yaw_of_quaternion
 from orbis2.io import atomic_file
 
 CAMERA = "camera_front_wide_120fov"
 EGOMOTION = "egomotion"
+# The dataset's splits -> the import's split folders (the import has no `test`; `heldout` is its unseen data).
+SPLITS = {"train": "train", "val": "val", "test": "heldout"}
 
 
 def read_features(root: Path) -> pd.DataFrame:
@@ -57,54 +65,100 @@ def read_parquet(archive: zipfile.ZipFile, member: str, zip_path: Path, columns:
         table = pd.read_parquet(io.BytesIO(archive.read(member)))
     except KeyError:
         raise DatasetError(f"{zip_path}: has no member {member}; the chunk is incomplete, download it "
-                           f"again") from None
+                           f"again", reason="incomplete chunk") from None
     if set(columns) - set(table.columns):
-        raise DatasetError(f"{zip_path}: {member} lacks column(s) {sorted(set(columns) - set(table.columns))}")
+        raise DatasetError(f"{zip_path}: {member} lacks column(s) {sorted(set(columns) - set(table.columns))}",
+                           reason="incomplete chunk")
     return table
 
 
-def convert(root: Path, out: Path, split: str = "train", camera: str = CAMERA) -> list[Path]:
-    """Convert every clip whose camera chunk is present; returns the videos written."""
+def read_index(root: Path, split: str | None) -> pd.DataFrame:
+    """``clip_index.parquet``, checked for the columns this run needs."""
+    path = root / "clip_index.parquet"
+    if not path.is_file():
+        raise DatasetError(f"{path}: missing; download clip_index.parquet from the dataset's root")
+    index = pd.read_parquet(path)
+    needed = {"chunk"} | ({"split"} if split is None else set())
+    if needed - set(index.columns):
+        raise DatasetError(f"{path}: lacks column(s) {sorted(needed - set(index.columns))}; download the current "
+                           f"clip_index.parquet (without a split column: pass --split NAME to put every clip into "
+                           f"one import split)")
+    unknown = set(index["split"]) - set(SPLITS) if split is None else set()
+    if unknown:
+        raise DatasetError(f"{path}: split value(s) {sorted(unknown)} are not {sorted(SPLITS)}; pass --split NAME to "
+                           f"put every clip into one import split")
+    return index
+
+
+def convert_clip(clip_id: str, cams: zipfile.ZipFile, egos: zipfile.ZipFile, cam_zip: Path, ego_zip: Path,
+                 cam_files: dict[str, str], ego_member: str, folder: Path) -> Path:
+    """One clip's mp4 (copied) and odometry CSV (its ego motion at the frame timestamps)."""
+    names = {k: v.format(clip_id=clip_id) for k, v in cam_files.items()}
+    frame_t = read_parquet(cams, names["frame_timestamps"], cam_zip, ["timestamp"])["timestamp"]
+    ego = read_parquet(egos, ego_member.format(clip_id=clip_id), ego_zip,
+                       ["timestamp", "x", "y", "qx", "qy", "qz", "qw"]).sort_values("timestamp")
+    t_pose = ego["timestamp"].to_numpy(np.float64) / 1e6
+    try:
+        speed, yaw_rate = motion_from_poses(t_pose, ego["x"], ego["y"],
+                                            yaw_of_quaternion(ego["qw"], ego["qx"], ego["qy"], ego["qz"]))
+    except ValueError as err:
+        raise DatasetError(f"{ego_zip}: the ego motion of clip {clip_id}: {err}; the chunk is incomplete, download "
+                           f"it again", reason="incomplete chunk") from None
+    t = frame_t.to_numpy(np.float64) / 1e6
+    covered = (t >= t_pose[0]) & (t <= t_pose[-1])
+    if not covered[0] or covered.sum() < 2:
+        raise DatasetError(f"{ego_zip}: the ego motion of clip {clip_id} does not cover its first frames; the chunk "
+                           f"is incomplete, download it again", reason="ego motion does not cover the frames")
+    video = folder / f"{clip_id}.mp4"
+    with atomic_file(video) as tmp:
+        try:
+            tmp.write_bytes(cams.read(names["video"]))
+        except KeyError:
+            raise DatasetError(f"{cam_zip}: has no member {names['video']}; the chunk is incomplete, download it "
+                               f"again", reason="incomplete chunk") from None
+    write_odometry_csv(folder / f"{clip_id}.csv", t[covered] - t[0], np.interp(t[covered], t_pose, speed),
+                       np.interp(t[covered], t_pose, yaw_rate))
+    return video
+
+
+def convert(root: Path, out: Path, split: str | None = None, camera: str = CAMERA, include_invalid: bool = False,
+            strict: bool = False) -> Report:
+    """Convert every clip whose camera and egomotion chunks are present."""
     features = read_features(root)
-    index_path = root / "clip_index.parquet"
-    if not index_path.is_file():
-        raise DatasetError(f"{index_path}: missing; download clip_index.parquet from the dataset's root")
-    index = pd.read_parquet(index_path)
+    index = read_index(root, split)
     cam_path, cam_files = templates(features, camera, root)
     ego_path, ego_files = templates(features, EGOMOTION, root)
-    written = []
+    report = Report("physicalai-av", out, strict)
     chunks = sorted(set(int(c) for c in index["chunk"]))
     present = [c for c in chunks if (root / cam_path.format(chunk_id=c)).is_file()]
     if not present:
         raise DatasetError(f"{root / cam_path.format(chunk_id=chunks[0])}: no {camera} chunk is present; download "
                            f"at least one chunk of {camera} and of {EGOMOTION}")
+    absent = int(index["chunk"].isin(set(chunks) - set(present)).sum())
+    if absent:
+        report.notes["clips in chunks not downloaded"] = absent
+    valid = index["clip_is_valid"].astype(bool) if "clip_is_valid" in index.columns else pd.Series(True, index.index)
     for chunk in present:
         cam_zip, ego_zip = root / cam_path.format(chunk_id=chunk), root / ego_path.format(chunk_id=chunk)
+        clips = index.index[index["chunk"] == chunk]
         if not ego_zip.is_file():
-            raise DatasetError(f"{ego_zip}: missing, but {cam_zip} is present; download the {EGOMOTION} chunk "
-                               f"{chunk} too")
+            report.skip(f"chunk {chunk} ({len(clips)} clips)", DatasetError(
+                f"{ego_zip}: missing, but {cam_zip} is present; download the {EGOMOTION} chunk {chunk} too",
+                reason="egomotion chunk missing"))
+            continue
         with zipfile.ZipFile(cam_zip) as cams, zipfile.ZipFile(ego_zip) as egos:
-            for clip_id in index.index[index["chunk"] == chunk]:
-                names = {k: v.format(clip_id=clip_id) for k, v in cam_files.items()}
-                frame_t = read_parquet(cams, names["frame_timestamps"], cam_zip, ["timestamp"])["timestamp"]
-                ego = read_parquet(egos, ego_files[EGOMOTION].format(clip_id=clip_id), ego_zip,
-                                   ["timestamp", "x", "y", "qx", "qy", "qz", "qw"]).sort_values("timestamp")
-                t_pose = ego["timestamp"].to_numpy(np.float64) / 1e6
-                speed, yaw_rate = motion_from_poses(t_pose, ego["x"], ego["y"],
-                                                    yaw_of_quaternion(ego["qw"], ego["qx"], ego["qy"], ego["qz"]))
-                t = frame_t.to_numpy(np.float64) / 1e6
-                covered = (t >= t_pose[0]) & (t <= t_pose[-1])
-                if not covered[0] or covered.sum() < 2:
-                    raise DatasetError(f"{ego_zip}: the ego motion of clip {clip_id} does not cover its first "
-                                       f"frames; the chunk is incomplete, download it again")
-                video = out / split / f"{clip_id}.mp4"
-                with atomic_file(video) as tmp:
-                    try:
-                        tmp.write_bytes(cams.read(names["video"]))
-                    except KeyError:
-                        raise DatasetError(f"{cam_zip}: has no member {names['video']}; the chunk is incomplete, "
-                                           f"download it again") from None
-                write_odometry_csv(out / split / f"{clip_id}.csv", t[covered] - t[0],
-                                   np.interp(t[covered], t_pose, speed), np.interp(t[covered], t_pose, yaw_rate))
-                written.append(video)
-    return written
+            for clip_id in clips:
+                if not valid[clip_id] and not include_invalid:
+                    report.skip(clip_id, DatasetError(
+                        f"{root / 'clip_index.parquet'}: clip {clip_id} has clip_is_valid false; pass "
+                        f"--include-invalid to convert such clips too", reason="clip_is_valid false"))
+                    continue
+                target = split or SPLITS[index.at[clip_id, "split"]]
+                try:
+                    video = convert_clip(clip_id, cams, egos, cam_zip, ego_zip, cam_files, ego_files[EGOMOTION],
+                                         out / target)
+                except DatasetError as err:
+                    report.skip(clip_id, err)
+                    continue
+                report.add(video, split=target, clip_is_valid=bool(valid[clip_id]))
+    return report
