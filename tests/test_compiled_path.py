@@ -106,6 +106,12 @@ def test_compiled_rollout_at_gpu_and_paper_depth(preset, fresh_dynamo):
         window = torch.cat([x["abstract"], eager[1][:, :1]], 1)
         tau = torch.tensor([[0.0] * 5 + [0.5]])
         eager_window = top(window, tau, 2.0, steering=x["steering"][:, 0])
+        detail_window = torch.cat([x["detail"], eager[0][:, :5]], 1)
+        detail_tau = torch.tensor([[0.0] * 5 + [0.5] * 5])
+        cond_frames = torch.zeros(1, 10, C, *GRID)
+        cond_frames[:, 4], cond_frames[:, 9] = x["abstract"][:, -1], eager[1][:, 0]
+        detail_args = (detail_window, detail_tau, 10.0, cond_frames, (4, 9))
+        eager_detail = bottom(*detail_args)
         compile_predictor(top, backend="inductor", fullgraph=True)
         compile_predictor(bottom, backend="inductor", fullgraph=True)
         assert torch._dynamo.config.recompile_limit >= RECOMPILE_LIMIT
@@ -114,6 +120,8 @@ def test_compiled_rollout_at_gpu_and_paper_depth(preset, fresh_dynamo):
         assert stats["unique_graphs"] == ROLLOUT_GRAPHS, dict(stats)
         compiled_window = top(window, tau, 2.0, steering=x["steering"][:, 0])  # a new kind: one more graph
         assert stats["unique_graphs"] == WITH_WINDOW_GRAPHS, dict(stats)
+        compiled_detail = bottom(*detail_args)  # the detail step's graph
+        assert stats["unique_graphs"] == WITH_WINDOW_GRAPHS, dict(stats)
         assert not fresh_dynamo["graph_break"], dict(fresh_dynamo["graph_break"])
         torch._dynamo.config.error_on_recompile = True  # any recompile from here on raises
         again = rollout(top, bottom, x)
@@ -121,7 +129,8 @@ def test_compiled_rollout_at_gpu_and_paper_depth(preset, fresh_dynamo):
         torch._dynamo.config.error_on_recompile = False
     assert stats["unique_graphs"] == WITH_WINDOW_GRAPHS, dict(stats)
     for ours, reference, name in [(compiled[0], eager[0], "detail frames"), (compiled[1], eager[1], "subgoals"),
-                                  (compiled_window, eager_window, "abstract window")]:
+                                  (compiled_window, eager_window, "abstract window"),
+                                  (compiled_detail, eager_detail, "detail forward")]:
         scale = reference.abs().max()
         assert scale > 0.1, name
         # Float round-off of fused kernels, carried through 3 rollout steps and 2 levels: 1e-4 of the scale.
