@@ -83,15 +83,15 @@ fi
 rollout_cmd=("$PY" benchmarks/bench_rollout.py --preset "$preset" --device "$device" "${rollout[@]}"
              --timeout $((100 * SLACK)))
 step peak "${T_PEAK:-20}" "$PY" benchmarks/gpu_suite.py peak "${suite[@]}"
-step forwards "${T_FORWARDS:-40}" "$PY" benchmarks/gpu_suite.py forwards "${suite[@]}"
-step rollouts "${T_ROLLOUTS:-110}" "${rollout_cmd[@]}" --systems hierarchical,distilled --compile \
+step forwards "${T_FORWARDS:-35}" "$PY" benchmarks/gpu_suite.py forwards "${suite[@]}"
+step rollouts "${T_ROLLOUTS:-140}" "${rollout_cmd[@]}" --systems hierarchical,distilled --compile \
   --json "$WORK/rollouts.json"
-step train "${T_TRAIN:-60}" "$PY" benchmarks/bench_train.py "${train[@]}" --policy selective --max-batch 0 \
+step train "${T_TRAIN:-80}" "$PY" benchmarks/bench_train.py "${train[@]}" --policy selective --max-batch 0 \
   --compile --device "$device" --json "$WORK/train.json"
 step graphs "${T_GRAPHS:-20}" "$PY" benchmarks/gpu_suite.py graphs "${suite[@]}"
-step rollouts_eager "${T_ROLLOUTS_EAGER:-40}" "${rollout_cmd[@]}" --systems hierarchical,distilled \
+step rollouts_eager "${T_ROLLOUTS_EAGER:-35}" "${rollout_cmd[@]}" --systems hierarchical,distilled \
   --json "$WORK/rollouts_eager.json"
-step toggles "${T_TOGGLES:-40}" "$PY" benchmarks/gpu_suite.py toggles "${suite[@]}"
+step toggles "${T_TOGGLES:-30}" "$PY" benchmarks/gpu_suite.py toggles "${suite[@]}"
 step rollouts_v1 "${T_ROLLOUTS_V1:-60}" "${rollout_cmd[@]}" --systems flat_detail,v1_style "${v1[@]}" \
   --json "$WORK/rollouts_v1.json"
 step dag "${T_DAG:-120}" "$PY" benchmarks/gpu_suite.py dag "${suite[@]}" --assets "${ASSETS:-}"
