@@ -40,13 +40,12 @@ from typing import Any, Callable
 
 import torch
 import yaml
-from torch.utils._python_dispatch import TorchDispatchMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_rollout import LATENT_CHANNELS, flat_baseline, hierarchy  # noqa: E402
 from bench_train import measured_matmul_tflops, peak_bf16_tflops  # noqa: E402
 
-from orbis2.accel import cast_for_inference, compile_predictor, inference_autocast, set_tf32  # noqa: E402
+from orbis2.accel import HostSyncs, cast_for_inference, compile_predictor, inference_autocast, set_tf32  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 GRIDS = {"smoke": (9, 16), "default": (10, 16), "paper": (18, 32)}
@@ -246,22 +245,6 @@ def part_graphs(args: argparse.Namespace, out: Record) -> None:
         out["replay_vs_eager"] = _compare(static.clone(), forward())
         out["replay"] = time_call(graph.replay, device, args.repeats)
         out["eager"] = time_call(forward, device, args.repeats)
-
-
-class HostSyncs(TorchDispatchMode):
-    """Records the ops that read a tensor back to the host: each one stops a CUDA-graph capture."""
-
-    OPS = {"aten._local_scalar_dense", "aten.item", "aten.is_nonzero", "aten.equal", "aten.nonzero",
-           "aten.masked_select", "aten.unique", "aten._unique2", "aten.repeat_interleave"}
-
-    def __init__(self):
-        super().__init__()
-        self.seen: list[str] = []
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        if str(func.overloadpacket) in self.OPS:
-            self.seen.append(str(func))
-        return func(*args, **(kwargs or {}))
 
 
 def scaled_params(params: dict[str, Any], profile: str, steps: int) -> dict[str, Any]:

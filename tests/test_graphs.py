@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_flatten
 
-from orbis2.accel import cast_for_inference, compile_predictor
+from orbis2.accel import HostSyncs, cast_for_inference, compile_predictor
 from orbis2.config.params import load_config
 from orbis2.flow import euler_grid, euler_sample
 from orbis2.models.deviations import TURN_SEARCH, SteeringShift, best_sideways_shift, translate_columns
@@ -282,28 +282,6 @@ def test_a_mask_tensor_still_works_but_breaks_the_graph():
 
 
 # --------------------------------------------------------------------------- no host sync, nothing from the host
-
-
-SYNC_OPS = {"aten._local_scalar_dense", "aten.item", "aten.is_nonzero", "aten.equal", "aten.nonzero",
-            "aten.nonzero_static", "aten.masked_select", "aten.unique", "aten._unique2", "aten.unique_consecutive",
-            "aten.unique_dim", "aten.repeat_interleave.Tensor", "aten.bincount", "aten.histc"}
-
-
-class HostSyncs(TorchDispatchMode):
-    """Counts the ops that read a tensor back to the host or make a shape depend on its values."""
-
-    def __init__(self):
-        super().__init__()
-        self.seen: list[str] = []
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        name = str(func.overloadpacket)
-        if name in SYNC_OPS or str(func.name()).replace("::", ".") in SYNC_OPS:
-            self.seen.append(str(func))
-        if name == "aten.index" and any(isinstance(i, torch.Tensor) and i.dtype == torch.bool
-                                        for i in tree_flatten(args[1:])[0]):
-            self.seen.append("aten.index (boolean mask)")
-        return func(*args, **(kwargs or {}))
 
 
 def euler_step_fns(preset: str = "smoke"):

@@ -43,6 +43,8 @@ from pathlib import Path
 
 import torch
 from torch import nn
+from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils._pytree import tree_flatten
 
 from orbis2.io import atomic_file
 
@@ -131,6 +133,28 @@ def compile_for_training(model: nn.Module, backend: str = "inductor", fullgraph:
     else:
         model.compile()
     return model
+
+
+class HostSyncs(TorchDispatchMode):
+    """Records the ops that read a tensor back to the host or make a shape depend on its values: each one stops
+    a CUDA-graph capture and breaks a compiled graph. ``with HostSyncs() as syncs: ...``, then ``syncs.seen``."""
+
+    OPS = {"aten._local_scalar_dense", "aten.item", "aten.is_nonzero", "aten.equal", "aten.nonzero",
+           "aten.nonzero_static", "aten.masked_select", "aten.unique", "aten._unique2", "aten.unique_consecutive",
+           "aten.unique_dim", "aten.repeat_interleave.Tensor", "aten.bincount", "aten.histc"}
+
+    def __init__(self):
+        super().__init__()
+        self.seen: list[str] = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        name = str(func.overloadpacket)
+        if name in self.OPS or str(func.name()).replace("::", ".") in self.OPS:
+            self.seen.append(str(func))
+        if name == "aten.index" and any(isinstance(i, torch.Tensor) and i.dtype == torch.bool
+                                        for i in tree_flatten(args[1:])[0]):
+            self.seen.append("aten.index (boolean mask)")
+        return func(*args, **(kwargs or {}))
 
 
 def cast_for_inference(model: nn.Module, device: torch.device | str, precision: str = "bf16") -> nn.Module:
