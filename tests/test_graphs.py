@@ -8,6 +8,7 @@ the shift search one candidate at a time): the precomputed paths must equal them
 from __future__ import annotations
 
 import copy
+import logging
 import math
 
 import pytest
@@ -503,3 +504,44 @@ def test_weights_cast_once_keep_the_residual_stream_in_bf16_and_track_fp32():
             error = float((ours - fp32).pow(2).mean().sqrt() / fp32.pow(2).mean().sqrt())
             assert error < 0.01, (cast, error)
     assert cast_for_inference(copy.deepcopy(top), "cpu").blocks[0].adaLN_modulation[1].weight.dtype == torch.float32
+
+
+class Records(logging.Handler):
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
+
+
+@pytest.mark.parametrize("fullgraph", [False, True])
+def test_a_recompile_past_the_limit_warns_once_and_runs_eagerly_in_a_users_run(fullgraph):
+    """A user's run (``fullgraph=False``) that needs more compiled entries than ``RECOMPILE_LIMIT`` allows runs
+    the extra calls eagerly, with one warning from dynamo, and gets the same numbers; ``fullgraph=True`` (the
+    tests) fails instead."""
+    detail = detail_model()
+    inputs = [detail_inputs("smoke", b=b) for b in (1, 2, 3, 2)]
+    with torch.no_grad():
+        expected = [detail(x, torch.zeros(len(x), 10), 10.0, cond, (4, 9)) for x, cond, _ in inputs]
+    torch._dynamo.reset()
+    compile_predictor(detail, backend="eager", fullgraph=fullgraph)
+    limit = torch._dynamo.config.recompile_limit
+    torch._dynamo.config.recompile_limit = 1  # one entry: the second batch size is one too many
+    records, logger = Records(), logging.getLogger("torch._dynamo")
+    logger.addHandler(records)
+    try:
+        with torch.no_grad():
+            if fullgraph:
+                detail(inputs[0][0], torch.zeros(1, 10), 10.0, inputs[0][1], (4, 9))
+                with pytest.raises(torch._dynamo.exc.FailOnRecompileLimitHit):
+                    detail(inputs[1][0], torch.zeros(2, 10), 10.0, inputs[1][1], (4, 9))
+                return
+            outputs = [detail(x, torch.zeros(len(x), 10), 10.0, cond, (4, 9)) for x, cond, _ in inputs]
+        assert len([m for m in records.messages if "recompile_limit" in m]) == 1, records.messages
+        for ours, reference in zip(outputs, expected):
+            assert torch.equal(ours, reference)
+    finally:
+        logger.removeHandler(records)
+        torch._dynamo.config.recompile_limit = limit
+        torch._dynamo.reset()
