@@ -195,6 +195,17 @@ def compose(generated: np.ndarray, real: np.ndarray | None, path: tuple[np.ndarr
     return np.stack(frames)
 
 
+def decode_latents(tokenizer: TokenizerFile, latents: torch.Tensor, device: torch.device,
+                   precision: str) -> np.ndarray:
+    """Scaled detail latents [T, ...] -> RGB uint8 frames, decoded 8 at a time (``orbis2 play`` records through
+    this too, so its recordings match the rollout's frames bit for bit)."""
+    generated = []
+    with torch.inference_mode(), inference_autocast(device, precision):
+        for chunk in latents.split(8):
+            generated.append(to_uint8(tokenizer.model.decode(tokenizer.denormalize(chunk))))
+    return np.concatenate(generated)
+
+
 def write_outputs(out: Path, frames: np.ndarray, fps: float) -> Path:
     """``out`` (mp4) and the GIF with the same stem; both written atomically, the folder made if needed."""
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -265,12 +276,8 @@ def rollout_command(args: argparse.Namespace) -> str:
             on_step=lambda _: bar.update(1), kv_cache=not args.no_kv_cache,
             steering_guidance=args.steering_guidance)
 
-    generated = []
-    with torch.inference_mode(), inference_autocast(device, args.precision):
-        for chunk in details[0].split(8):
-            generated.append(to_uint8(detail_tok.model.decode(detail_tok.denormalize(chunk))))
     context_frames = frames[list(first.detail_context)]
-    video = np.concatenate([context_frames, np.concatenate(generated)])
+    video = np.concatenate([context_frames, decode_latents(detail_tok, details[0], device, args.precision)])
     indices = np.array(list(first.detail_context) + [i for s in schedule for i in s.detail_target])
     real = None
     if args.side_by_side:
