@@ -9,7 +9,7 @@ The episode comes back from the clip's metadata (its town style and seeds, the s
 so a town changed since the shards were written stops here instead of rendering another world.
 
 Storage mirrors the shards (:mod:`orbis2.data.shards`): WebDataset tars with fixed headers, one sample
-per start and command, keyed ``<clip key>_<start:04d>_<mode>``, members ``0000.jpg``... (JPEG at the
+per start and command, keyed ``<clip key>_<start:04d>_<mode>`` (:func:`truth_key`), members ``0000.jpg``... (JPEG at the
 shards' quality: the truth passes through the same lossy step as the real frames a model learned from),
 ``odometry.npy`` (float32 [T, 2]: speed and yaw rate driven from each frame), ``pose.npy`` (float64
 [T, 3]), ``events.npy`` (uint8 [T, 2]: collision, off road) and ``json``; ``manifest.json`` lists the
@@ -61,7 +61,8 @@ class Command:
 
 
 def truth_key(clip: str, start: int, mode: str) -> str:
-    return f"{clip}_{start:04d}_{mode}"
+    """A sample key: WebDataset splits a member name at its first dot, so the mode's dots ("x0.5") become "-"."""
+    return f"{clip}_{start:04d}_{re.sub(r'[^A-Za-z0-9_-]', '-', mode)}"
 
 
 @lru_cache(maxsize=4)
@@ -119,9 +120,14 @@ def write_truth(out: Path, rendered: Iterable[tuple[str, dict[str, bytes], dict[
                 header: dict[str, Any], max_shard_mb: float) -> dict[str, Any]:
     """Write rendered commands (:func:`render_commands`, in order) as shards plus ``manifest.json``."""
     writer = ShardWriter(out, "truth", int(max_shard_mb * 2**20))
+    seen: set[str] = set()
     events: dict[str, dict[str, int]] = {}
     samples = 0
     for key, members, summary in rendered:
+        if key in seen:
+            raise TruthError(f"two commands share the key {key!r}: give the steering modes names that differ in "
+                             f"more than their punctuation")
+        seen.add(key)
         writer.write(key, members)
         counts = events.setdefault(summary["mode"], {"samples": 0, "collision": 0, "off_road": 0})
         counts["samples"] += 1
