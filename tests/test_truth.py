@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
+from orbis2.eval.protocols.truth import horizon_frames, latent_errors, psnr, truth_claim
 from orbis2.sim import Camera, Town, render_episode, simulate_ego
 from orbis2.sim.counterfactual import PathFrames, PathRenderer, on_road, render_path
 
@@ -81,3 +83,59 @@ def test_commands_are_checked(town, drive):
         renderer.step([-1.0], [0.0])
     with pytest.raises(ValueError, match="outside"):
         PathRenderer(town, CAM, drive[0], 500)
+
+
+# --------------------------------------------------------------------------- the truth-based claim
+
+
+def _synthetic(follow: bool, n_clips: int = 16, per_clip: int = 2, seed: int = 0):
+    """Latent truths of three commands that differ by known offsets, and rollouts that follow their command
+    (the truth under it plus noise) or ignore it (the truth under the recorded command plus noise)."""
+    rng = np.random.default_rng(seed)
+    n = n_clips * per_clip
+    base = torch.from_numpy(rng.normal(size=(n, 6, 4, 3, 5))).float()
+    offsets = {"original": 0.0, "yaw_rate_x0.5": -0.6, "yaw_rate_x1.5": 0.6}
+    truths = {m: base + off for m, off in offsets.items()}
+    noise = {m: 0.5 * torch.from_numpy(rng.normal(size=base.shape)).float() for m in offsets}
+    rollouts = {m: (truths[m] if follow else truths["original"]) + noise[m] for m in offsets}
+    clusters = [f"clip{i // per_clip}" for i in range(n)]
+    distances = {c: {o: latent_errors(rollouts[c], truths[o]).mean(axis=1) for o in truths} for c in rollouts}
+    return distances, clusters
+
+
+def test_truth_claim_holds_when_rollouts_follow_their_command():
+    """Known answer: noise variance 0.25, offsets 0.6 apart -> own MSE 0.25, others 0.25 + 0.36 or + 0.72; the
+    margin of every command is far above 10 %."""
+    distances, clusters = _synthetic(follow=True)
+    claim = truth_claim(distances, clusters, material=0.1, seed=1)
+    assert claim["verdict"] == "holds"
+    for cells in claim["modes"].values():
+        assert cells["own"] == pytest.approx(0.25, rel=0.1) and cells["margin"]["low"] > 0.1
+    assert claim["pairs"]["original"]["yaw_rate_x1.5"] == pytest.approx(0.25 + 0.36, rel=0.1)
+    assert claim["modes"]["original"]["margin"]["estimate"] == pytest.approx(0.36 / 0.25, rel=0.15)
+
+
+def test_truth_claim_fails_when_rollouts_ignore_the_command():
+    """Rollouts that always show the recorded path are closer to another command's truth under x0.5 / x1.5."""
+    distances, clusters = _synthetic(follow=False)
+    claim = truth_claim(distances, clusters, material=0.1, seed=1)
+    assert claim["modes"]["yaw_rate_x1.5"]["verdict"] == "does not hold"
+    assert claim["modes"]["yaw_rate_x1.5"]["margin"]["high"] < 0 and claim["verdict"] == "does not hold"
+
+
+def test_truth_claim_is_unresolved_when_clips_disagree():
+    """Two clips, one 45 % closer to its own truth, one 20 % further: a margin of 12.5 % whose clip resamples
+    straddle the 10 % threshold."""
+    own, others = np.ones(2), np.array([0.8, 1.45])
+    distances = {"a": {"a": own, "b": others}, "b": {"a": others, "b": own}}
+    claim = truth_claim(distances, ["clip0", "clip1"], material=0.1, seed=0)
+    assert claim["modes"]["a"]["margin"]["estimate"] == pytest.approx(0.125)
+    assert claim["verdict"] == "not resolved at this sample size"
+
+
+def test_horizons_and_psnr():
+    assert horizon_frames([0.5, 1.0, 2.0, 3.0], 10, 20) == {0.5: 4, 1.0: 9, 2.0: 19}
+    frames = np.full((1, 2, 4, 4, 3), 100, np.uint8)
+    other = frames.copy()
+    other[0, 1] += 10
+    np.testing.assert_allclose(psnr(other, frames)[0], [100.0, 10 * np.log10(255 ** 2 / 100)])

@@ -20,12 +20,20 @@ use too, so the truth cache and the rollouts meet on the same (clip, start) keys
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from pathlib import Path
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
 
+from orbis2.config.sections import DataConfig, EvaluationConfig
+from orbis2.data.truth import TruthError, read_manifest, read_truth, truth_key
 from orbis2.eval.metrics.stats import decide, mean_interval, relative_difference
+from orbis2.eval.protocols.references import fvd_with_interval
+from orbis2.eval.protocols.starts import commanded_steps
+from orbis2.eval.protocols.systems import Sample
+from orbis2.latents import LatentCache, encode_frames
+from orbis2.models.files import TokenizerFile
 
 
 def horizon_frames(horizons_s: Sequence[float], fps: float, generated: int) -> dict[float, int]:
@@ -102,3 +110,67 @@ def truth_claim(distances: dict[str, dict[str, np.ndarray]], clusters: Sequence,
         "not resolved at this sample size"
     pairs = {c: {o: float(np.mean(distances[c][o])) for o in modes} for c in modes}
     return {"material": material, "verdict": overall, "modes": per_mode, "pairs": pairs}
+
+
+class TruthScorer:
+    """Scores each steering mode's rollouts against the true counterfactuals in ``root`` (the ``truth`` stage),
+    mode by mode (:meth:`add`; one mode's true videos in memory at a time), then the claim (:meth:`record`).
+
+    ``features``: I3D rows [N, 400] of videos [N, T, H, W, 3] uint8; ``read_turns``: the instrument's
+    (:func:`orbis2.eval.protocols.steering.score_videos`) on videos and their controls.
+    """
+
+    def __init__(self, root: Path, samples: list[Sample], clusters: list[str], data: DataConfig,
+                 ev: EvaluationConfig, steps: int, tokenizer: TokenizerFile, cache: LatentCache,
+                 features: Callable[[np.ndarray], np.ndarray], read_turns: Callable[[np.ndarray, list], dict],
+                 instrument: str):
+        manifest = read_manifest(root)
+        expected = {"split": ev.steering_split, "commanded_steps": commanded_steps(data, steps),
+                    "modes": {m: [float(v) for v in scales] for m, scales in ev.steering_modes.items()},
+                    "width": data.width, "height": data.height}
+        found = {k: manifest.get(k) for k in expected}
+        found["modes"] = {m: [float(v) for v in scales] for m, scales in (found["modes"] or {}).items()}
+        stale = {k: (found[k], v) for k, v in expected.items() if found[k] != v}
+        if stale:
+            raise TruthError(f"{root}: rendered for other steering settings ({stale}: found, wanted); re-run the "
+                             f"`truth` stage")
+        self.root, self.samples, self.clusters, self.data, self.ev = Path(root), samples, clusters, data, ev
+        self.tokenizer, self.cache, self.features, self.read_turns = tokenizer, cache, features, read_turns
+        self.instrument = instrument
+        self.generated: dict[str, torch.Tensor] = {}
+        self.truth: dict[str, torch.Tensor] = {}
+        self.modes: dict[str, dict[str, Any]] = {}
+
+    def add(self, mode: str, latents: torch.Tensor, videos: np.ndarray) -> None:
+        """One mode's rollouts: normalised detail latents [N, G, ...] and decoded videos [N, 1 + G, H, W, 3] (the
+        last context frame first)."""
+        keys = [truth_key(s.key, s.context_end, mode) for s in self.samples]
+        found = read_truth(self.root, keys)
+        true = [found[k] for k in keys]
+        frames = np.stack([t.frames for t in true])
+        if frames.shape != videos.shape:
+            raise TruthError(f"{self.root}: true videos {frames.shape[1:]} but rollouts {videos.shape[1:]} for mode "
+                             f"{mode}; re-run the `truth` stage")
+        encoded = encode_frames(self.tokenizer, frames[:, 1:].reshape(-1, *frames.shape[2:]))
+        truth = self.cache.normalize("detail", encoded.numpy().astype(np.float16)).reshape(latents.shape)
+        self.generated[mode], self.truth[mode] = latents.half(), truth.half()
+        ev, seed = self.ev, self.ev.seed
+        frames_at = horizon_frames(ev.truth_horizons_s, self.data.detail_hz, latents.shape[1])
+        errors, psnrs = latent_errors(latents, truth), psnr(videos[:, 1:], frames[:, 1:])
+        fvd = fvd_with_interval(self.features(frames), self.features(videos), self.clusters, ev.fvd_bootstrap_reps,
+                                seed)
+        read = self.read_turns(frames, [(t.speed, t.yaw_rate) for t in true])
+        self.modes[mode] = {
+            "samples": len(keys), "horizons": horizon_cells(errors, psnrs, frames_at, self.clusters, seed),
+            "fvd": fvd,
+            "instrument": instrument_calibration(read["turn_deg"], read["commanded_turn_deg"], self.clusters, seed),
+            "collision": int(sum(t.collision.any() for t in true)),
+            "off_road": int(sum(t.off_road.any() for t in true))}
+
+    def record(self) -> dict[str, Any]:
+        """Every mode's scores and the truth-based claim (latent MSE over the whole rollout, each rollout against
+        each mode's truth)."""
+        distances = {c: {o: latent_errors(self.generated[c], self.truth[o]).mean(axis=1) for o in self.truth}
+                     for c in self.generated}
+        claim = truth_claim(distances, self.clusters, self.ev.truth_margin, self.ev.seed)
+        return {"instrument": self.instrument, "modes": self.modes, "claim": claim}
