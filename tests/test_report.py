@@ -678,3 +678,12 @@ def test_fvd_splits_and_steering_modes_follow_the_config(evals, tmp_path, smoke_
     evals.fvd["hierarchical"].fvd.pop("dusk")  # a configured split the record lacks: named, not skipped
     with pytest.raises(OrbisError, match=r"fvd_hierarchical\.json .*fvd\.dusk"):
         tables.main_table(evals, "main", settings)
+
+
+def test_summary_has_the_instrument_calibration_on_the_truth(evals, tmp_path):
+    report.write_main_report(evals, tmp_path, SETUP, SETTINGS)
+    section = (tmp_path / "summary.md").read_text().split("## The steering instrument on the true counterfactuals")
+    assert len(section) == 2 and "| yaw_rate_x1.5 | learned | 21 | 20 | 18 | 22 | -0.05 | -0.1 | 0 | 20 |" in section[1]
+    evals.steering.truth = None
+    report.write_main_report(evals, tmp_path, SETUP, SETTINGS)
+    assert "true counterfactuals" not in (tmp_path / "summary.md").read_text().split("## Reading")[0]

@@ -235,6 +235,23 @@ def _turn_cells(evals: Evals, reading: str, mode: str) -> Row:
             f"turn_deg_{reading}_high": cell.high}
 
 
+def calibration_table(evals: Evals) -> list[Row]:
+    """The steering instrument on the town's true counterfactuals, per mode: the turn it reads from the true videos
+    against the commanded one (the true video follows the command exactly), and its relative error with an
+    interval; empty without a steering record with truth."""
+    truth = evals.steering_record().truth if evals.has("steering") else None
+    if truth is None:
+        return []
+    rows = []
+    for mode, cells in truth.modes.items():
+        reading, relative = cells.instrument.turn_deg, cells.instrument.relative_error
+        rows.append({"mode": mode, "instrument": truth.instrument,
+                     "commanded_turn_deg": cells.instrument.commanded_turn_deg,
+                     **_interval_cells("read_turn_deg", reading), **_interval_cells("relative_error", relative),
+                     "n": cells.samples})
+    return rows
+
+
 def speed_table(evals: Evals) -> list[Row]:
     """Table 5: frames per second and peak memory per model the record holds, on the device that measured them."""
     record = evals.speed_record()
