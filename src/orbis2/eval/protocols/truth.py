@@ -112,6 +112,9 @@ def truth_claim(distances: dict[str, dict[str, np.ndarray]], clusters: Sequence,
     return {"material": material, "verdict": overall, "modes": per_mode, "pairs": pairs}
 
 
+ENCODE_BATCH = 64  # true frames encoded at a time
+
+
 class TruthScorer:
     """Scores each steering mode's rollouts against the true counterfactuals in ``root`` (the ``truth`` stage),
     mode by mode (:meth:`add`; one mode's true videos in memory at a time), then the claim (:meth:`record`).
@@ -151,7 +154,9 @@ class TruthScorer:
         if frames.shape != videos.shape:
             raise TruthError(f"{self.root}: true videos {frames.shape[1:]} but rollouts {videos.shape[1:]} for mode "
                              f"{mode}; re-run the `truth` stage")
-        encoded = encode_frames(self.tokenizer, frames[:, 1:].reshape(-1, *frames.shape[2:]))
+        flat = frames[:, 1:].reshape(-1, *frames.shape[2:])
+        encoded = torch.cat([encode_frames(self.tokenizer, flat[i:i + ENCODE_BATCH])
+                             for i in range(0, len(flat), ENCODE_BATCH)])
         truth = self.cache.normalize("detail", encoded.numpy().astype(np.float16)).reshape(latents.shape)
         self.generated[mode], self.truth[mode] = latents.half(), truth.half()
         ev, seed = self.ev, self.ev.seed
