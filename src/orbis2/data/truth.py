@@ -33,9 +33,8 @@ from orbis2.config.sections import DataConfig, TownConfig
 from orbis2.data.shards import Clip, ShardError, ShardWriter, _jpeg, iter_samples
 from orbis2.errors import OrbisError
 from orbis2.io import load_npy, npy_bytes, sha256_file, write_json
-from orbis2.kinematics import integrate_odometry
 from orbis2.sim import Camera, EgoTrack, Town, simulate_ego
-from orbis2.sim.counterfactual import PathFrames, render_path
+from orbis2.sim.counterfactual import render_path
 
 MANIFEST = "manifest.json"
 _ORIGIN = re.compile(r"town style=(\S+) town_seed=(\d+) ego_seed=(\d+)")
@@ -152,8 +151,9 @@ def write_unavailable(out: Path, header: dict[str, Any], reason: str) -> dict[st
 
 @dataclass
 class TruthVideo:
-    """One start and command's true frames [T, H, W, 3] uint8 with what the ego drove (:class:`PathFrames`'s
-    speed, yaw_rate, x, y, yaw, collision, off_road as arrays [T])."""
+    """One start and command's true frames [T, H, W, 3] uint8 and what the ego drove: the speed and yaw rate from
+    each frame [T], the poses [T, 3] (x, y, yaw) and per frame the collision and off-road flags
+    (:class:`orbis2.sim.counterfactual.PathFrames`)."""
 
     frames: np.ndarray
     speed: np.ndarray
@@ -199,13 +199,3 @@ def read_truth(root: Path, wanted: Iterable[str] | None = None) -> dict[str, Tru
         raise TruthError(f"{root}: no true counterfactual for {len(missing)} of the evaluated starts and commands "
                          f"(first: {missing[0]}); re-run the `truth` stage with the evaluation's settings")
     return out
-
-
-def followed_path(video: TruthVideo, fps: float) -> np.ndarray:
-    """Positions [T, 2] the ego drove from the start frame, in its frame there (x forward, y left): the true path
-    a trajectory read from the video should recover."""
-    x, y, _ = integrate_odometry(video.speed, video.yaw_rate, fps)
-    return np.stack([x, y], 1)
-
-
-__all__ = ["Command", "PathFrames", "TruthError", "TruthVideo", "read_truth", "render_commands", "write_truth"]
