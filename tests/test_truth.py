@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
 
+from orbis2.data.shards import Clip
+from orbis2.data.truth import Command, TruthError, read_truth, render_commands, write_truth
 from orbis2.eval.protocols.truth import horizon_frames, latent_errors, psnr, truth_claim
 from orbis2.sim import Camera, Town, render_episode, simulate_ego
 from orbis2.sim.counterfactual import PathFrames, PathRenderer, on_road, render_path
@@ -139,3 +143,36 @@ def test_horizons_and_psnr():
     other = frames.copy()
     other[0, 1] += 10
     np.testing.assert_allclose(psnr(other, frames)[0], [100.0, 10 * np.log10(255 ** 2 / 100)])
+
+
+def _clip(smoke_cfg, town_seed=11, ego_seed=3, start_frame=10, frames=40):
+    """A town clip as the shards hold it (metadata and recorded poses; its frames are not read)."""
+    track = simulate_ego(Town.generate("default", town_seed), ego_seed, smoke_cfg.town.episode_seconds["val"], FPS)
+    span = slice(start_frame, start_frame + frames)
+    meta = {"source": "town", "split": "val", "episode": "town_val_00000", "fps": FPS, "start_frame": start_frame,
+            "frames": frames, "origin": f"town style=default town_seed={town_seed} ego_seed={ego_seed}"}
+    pose = np.stack([track.x[span], track.y[span], track.yaw[span]], 1)
+    return Clip("town_val_00000_0000", meta, [], np.zeros((frames, 2), np.float32), pose, None), track
+
+
+def test_truth_cache_round_trip_and_stale_clips(smoke_cfg, tmp_path):
+    """The stage's library: a clip's commands rendered, stored, read back with their events; a clip whose recorded
+    poses the town no longer drives is refused."""
+    clip, track = _clip(smoke_cfg)
+    data = dataclasses.replace(smoke_cfg.data, width=CAM.width, height=CAM.height)
+    commands = [Command(clip.key, 5, "original", 1.0, 1.0), Command(clip.key, 5, "yaw_rate_x1.5", 1.0, 1.5)]
+    rendered = render_commands(clip, commands, 10, data, smoke_cfg.town, 95)
+    write_truth(tmp_path, rendered, {"split": "val"}, 1.0)
+    truth = read_truth(tmp_path)
+    assert sorted(truth) == ["town_val_00000_0000_0005_original", "town_val_00000_0000_0005_yaw_rate_x1-5"]
+    recorded = truth["town_val_00000_0000_0005_original"]
+    assert recorded.frames.shape == (11, CAM.height, CAM.width, 3)
+    np.testing.assert_array_equal(recorded.pose, clip.pose[5:16])
+    np.testing.assert_allclose(recorded.yaw_rate[:10], track.yaw_rate[15:25], rtol=1e-6)
+    turned = truth["town_val_00000_0000_0005_yaw_rate_x1-5"]
+    np.testing.assert_allclose(turned.pose[-1, 2] - turned.pose[0, 2], 1.5 * track.yaw_rate[15:25].sum() / FPS)
+    with pytest.raises(TruthError, match="re-run the `truth` stage"):
+        read_truth(tmp_path, ["town_val_00000_0000_0006_original"])
+    clip.pose[3, 0] += 1e-9
+    with pytest.raises(TruthError, match="does not drive the clip's recorded poses"):
+        render_commands(clip, commands, 10, data, smoke_cfg.town, 95)
