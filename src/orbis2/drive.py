@@ -5,6 +5,9 @@ exactly as ``orbis2 rollout`` does, and runs :func:`~orbis2.rollout.cascaded_ste
 commanded speed and yaw rate (held over the step's native frames) or, in replay, the clip's recorded ones.
 The commanded odometry is kept at the native rate from the clip's first frame, so a recording is a CSV that
 ``orbis2 rollout --trajectory`` reads back to the same steering, and with the same seed to the same frames.
+
+For a town clip the drive also renders the true view: the recorded episode re-rendered along the commanded
+path (:class:`~orbis2.sim.counterfactual.PathRenderer`), the frames a camera on that path would have seen.
 """
 
 from __future__ import annotations
@@ -12,10 +15,15 @@ from __future__ import annotations
 import argparse
 import csv
 import io
+import json
+import re
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
+import cv2
 import numpy as np
+import pyarrow.parquet as pq
 import torch
 
 from orbis2.accel import cast_for_inference, inference_autocast, set_tf32
@@ -37,8 +45,11 @@ from orbis2.kinematics import integrate_odometry
 from orbis2.latents import encode_frames
 from orbis2.registry import layout_path
 from orbis2.rollout import cascaded_steps, first_context_end, rollout_schedule, steering_sequences
+from orbis2.sim import Camera, EgoTrack, Town
+from orbis2.sim.counterfactual import PathFrames, PathRenderer
 
 TOWN_SPLIT = "heldout"  # the town clips offered as scenes: none of them was trained on
+TOWN_ORIGIN = re.compile(r"town style=(\S+) town_seed=(\d+) ego_seed=(\d+)")  # a raw town episode's index entry
 
 
 @dataclass(frozen=True)
@@ -72,6 +83,37 @@ def find_scenes(extra: list[Path]) -> list[Scene]:
         raise OrbisError(f"no scenes: neither {layout_path('raw', 'town') / TOWN_SPLIT} nor {layout_path('videos')} "
                          f"holds a video with odometry; run the main job first or pass --video")
     return scenes
+
+
+@lru_cache(maxsize=2)
+def town_of(style: str, seed: int) -> Town:
+    return Town.generate(style, seed)
+
+
+def town_episode(scene: Scene) -> tuple[Town, EgoTrack] | None:
+    """The town and the recorded track of a raw town episode (its split folder's ``../index.json`` names the
+    town; its parquet holds the poses and controls as driven); None for any other video."""
+    index = scene.video.parent.parent / "index.json"
+    if scene.odometry_path.suffix != ".parquet" or not index.is_file():
+        return None
+    entries = {e["stem"]: e for e in json.loads(index.read_text())["episodes"]}
+    found = TOWN_ORIGIN.fullmatch(str(entries.get(scene.video.stem, {}).get("origin", "")))
+    if found is None:
+        return None
+    table = pq.read_table(scene.odometry_path)
+    columns = [table.column(c).to_numpy().astype(np.float64) for c in ("t", "x", "y", "yaw", "speed", "yaw_rate")]
+    fps = round(1 / float(columns[0][1] - columns[0][0]))
+    return town_of(found.group(1), int(found.group(2))), EgoTrack(*columns, fps=fps)
+
+
+@dataclass
+class StepFrames:
+    """One step's generated frames and, for a town clip, the true view at the same native frames with how far
+    the two differ (mean PSNR, dB)."""
+
+    generated: np.ndarray
+    true: PathFrames | None = None
+    psnr: float | None = None
 
 
 @dataclass
@@ -130,6 +172,12 @@ class Drive:
                                       abstract_ctx[None].to(m.device), generator, m.args.abstract_nfe, m.detail_nfe,
                                       abstract_hz=data.abstract_hz, detail_hz=data.detail_hz, steered=True)
         next(self.stepper)
+        episode = town_episode(scene)
+        self.truth = None
+        if episode is not None:
+            data, town = models.cfg.data, models.cfg.town
+            camera = Camera(data.width, data.height, town.hfov_deg, town.mount_height_m)
+            self.truth = PathRenderer(episode[0], camera, episode[1], self.context_end)
 
     def recorded(self, column: str, n: int, start: int = 0) -> np.ndarray:
         """The clip's recorded ``column`` at native frames ``start``..``n - 1`` (its last value past its end)."""
@@ -140,9 +188,10 @@ class Drive:
     def steps(self) -> int:
         return len(self.latents)
 
-    def step(self, speed: float, yaw_rate: float, replay: bool = False) -> np.ndarray:
+    def step(self, speed: float, yaw_rate: float, replay: bool = False) -> StepFrames:
         """One 0.5 s step steered by ``speed`` (m/s) and ``yaw_rate`` (rad/s, left positive), or by the clip's
-        recorded odometry when ``replay``; returns its decoded frames [frames_per_step, H, W, 3]."""
+        recorded odometry when ``replay``; returns its decoded frames [frames_per_step, H, W, 3] and the true
+        view (:class:`StepFrames`)."""
         m = self.models
         step = rollout_schedule(m.cfg.data, self.context_end, self.steps + 1)[-1]
         end = step.detail_target[-1] + 1
@@ -157,7 +206,16 @@ class Drive:
         with inference_autocast(m.device, m.args.precision):
             new, _ = self.stepper.send(steering.to(m.device))
         self.latents.append(new)
-        return decode_latents(m.detail_tok, new[0], m.device, m.args.precision)
+        generated = decode_latents(m.detail_tok, new[0], m.device, m.args.precision)
+        if self.truth is None:
+            return StepFrames(generated)
+        # Control k drives pose k to k + 1 (the convention of the bird's-eye path, integrate_odometry).
+        k0 = self.truth.frame
+        true = self.truth.step(self.speed[k0:end - 1], self.yaw_rate[k0:end - 1])
+        keep = np.isin(true.frames, step.detail_target)
+        true = PathFrames(*(getattr(true, f)[keep] for f in PathFrames.__dataclass_fields__))
+        psnr = float(np.mean([cv2.PSNR(g, t) for g, t in zip(generated, true.rgb, strict=True)]))
+        return StepFrames(generated, true, psnr)
 
     def path(self) -> tuple[np.ndarray, np.ndarray]:
         """The commanded path so far in metres from the last context frame (x forward, y left)."""

@@ -78,7 +78,7 @@ class Player:
                     scene = self.scenes[int(message["scene"])]
                     drive = await asyncio.to_thread(Drive, self.models, scene, self.seed)
                     await ws.send_json({"type": "started", "scene": scene.name, "frame": jpeg(drive.context_frames[-1]),
-                                        "speed": float(drive.speed[-1])})
+                                        "speed": float(drive.speed[-1]), "true_view": drive.truth is not None})
                 elif kind == "step" and drive is not None:
                     async with self.lock:
                         started = time.perf_counter()
@@ -87,10 +87,16 @@ class Player:
                         seconds = time.perf_counter() - started
                         self.steps_generated += 1
                     x, y = drive.path()
-                    await ws.send_json({"type": "chunk", "step": drive.steps, "seconds": seconds,
-                                        "frames": [jpeg(f) for f in frames], "request": message.get("request"),
-                                        "speed": float(drive.speed[-1]), "yaw_rate": float(drive.yaw_rate[-1]),
-                                        "path": np.stack([x, y], 1)[:: max(1, len(x) // 400)].round(3).tolist()})
+                    chunk = {"type": "chunk", "step": drive.steps, "seconds": seconds,
+                             "frames": [jpeg(f) for f in frames.generated], "request": message.get("request"),
+                             "speed": float(drive.speed[-1]), "yaw_rate": float(drive.yaw_rate[-1]),
+                             "path": np.stack([x, y], 1)[:: max(1, len(x) // 400)].round(3).tolist()}
+                    if frames.true is not None:
+                        true = frames.true
+                        chunk |= {"true_frames": [jpeg(f) for f in true.rgb], "psnr": frames.psnr,
+                                  "true_heading": float(true.yaw[-1] - drive.truth.recorded.yaw[drive.context_end]),
+                                  "collision": bool(true.collision.any()), "off_road": bool(true.off_road.any())}
+                    await ws.send_json(chunk)
                 elif kind == "save" and drive is not None:
                     stamp = time.strftime("%Y%m%d-%H%M%S")
                     out = self.record_dir / f"play-{drive.scene.name}-{stamp}.mp4"
