@@ -2,9 +2,9 @@
 
 One server and one browser serve every test of the module (they run in order): the page loads with no request
 outside the server and frames arrive; a held left key turns the commanded path and the town's true view left; a
-saved recording replays through ``orbis2 rollout --trajectory`` to the same frames; a closed page stops the
-generation. Bad input gets one line and exit status 2. ``ORBIS2_PLAY_SCREENSHOT=path`` keeps the browser's
-screenshot (the README's).
+saved recording replays through ``orbis2 rollout --trajectory`` to the same frames; replay drives the clip's
+recorded commands; a closed page stops the generation. Bad input gets one line and exit status 2.
+``ORBIS2_PLAY_SCREENSHOT=path`` keeps the browser's screenshot (the README's).
 """
 
 import json
@@ -20,6 +20,7 @@ import urllib.request
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 from PIL import Image, ImageSequence
 
@@ -107,6 +108,10 @@ def test_page_loads_with_no_outside_request_and_streams_frames(server, browser):
     assert from_page and any(u.startswith(f"{server[0]}thumb/") for u in from_page)
     outside = [u for u in from_page if not u.startswith((server[0], server[0].replace("http", "ws"), "data:"))]
     assert not outside, outside
+    browser.find_element("id", "forecast-toggle").click()
+    until(lambda: (browser.find_element("id", "forecast").get_attribute("src") or "").startswith("data:"),
+          what="the abstract level's forecast, decoded")
+    browser.find_element("id", "forecast-toggle").click()
 
 
 def test_held_left_key_turns_the_path_and_the_true_view_left(browser):
@@ -144,6 +149,24 @@ def test_a_recording_replays_to_the_same_frames(server, browser, smoke_project):
                    env=project_env(smoke_project), check=True, capture_output=True)
     replayed = Path(command[command.index("--out") + 1]).with_suffix(".gif")
     assert np.array_equal(gif_frames(gif), gif_frames(replayed))
+
+
+def test_replay_drives_the_clips_recorded_commands(browser, smoke_project):
+    from selenium.webdriver.common.keys import Keys
+
+    body = browser.find_element("tag name", "body")
+    body.send_keys("r")
+    body.send_keys(Keys.ENTER)
+    until(lambda: page(browser, "ready") and page(browser, "steps") >= 2, what="two replayed steps")
+    browser.execute_script("window.play.saved = null")
+    browser.find_element("id", "save").click()
+    saved = until(lambda: page(browser, "saved"), what="the replay's recording")
+    body.send_keys("r")
+    driven = np.loadtxt(saved["paths"][2], delimiter=",", skiprows=1)
+    video = Path(shlex.split(saved["replay"])[3])
+    recorded = pq.read_table(smoke_project / video.with_suffix(".parquet")).to_pydict()
+    for column, name in ((1, "speed"), (2, "yaw_rate")):
+        assert np.array_equal(driven[:, column], np.interp(driven[:, 0], recorded["t"], recorded[name]))
 
 
 def test_a_closed_page_stops_generation(server, browser):

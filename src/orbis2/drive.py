@@ -109,11 +109,12 @@ def town_episode(scene: Scene) -> tuple[Town, EgoTrack] | None:
 @dataclass
 class StepFrames:
     """One step's generated frames and, for a town clip, the true view at the same native frames with how far
-    the two differ (mean PSNR, dB)."""
+    the two differ (mean PSNR, dB); on request the abstract forecast the step was conditioned on."""
 
     generated: np.ndarray
     true: PathFrames | None = None
     psnr: float | None = None
+    forecast: np.ndarray | None = None  # the top level's new frame, decoded by the abstract tokenizer [H, W, 3]
 
 
 @dataclass
@@ -188,10 +189,10 @@ class Drive:
     def steps(self) -> int:
         return len(self.latents)
 
-    def step(self, speed: float, yaw_rate: float, replay: bool = False) -> StepFrames:
+    def step(self, speed: float, yaw_rate: float, replay: bool = False, forecast: bool = False) -> StepFrames:
         """One 0.5 s step steered by ``speed`` (m/s) and ``yaw_rate`` (rad/s, left positive), or by the clip's
-        recorded odometry when ``replay``; returns its decoded frames [frames_per_step, H, W, 3] and the true
-        view (:class:`StepFrames`)."""
+        recorded odometry when ``replay``; returns its decoded frames [frames_per_step, H, W, 3], the true
+        view and, with ``forecast``, the abstract level's prediction decoded (:class:`StepFrames`)."""
         m = self.models
         step = rollout_schedule(m.cfg.data, self.context_end, self.steps + 1)[-1]
         end = step.detail_target[-1] + 1
@@ -204,18 +205,21 @@ class Drive:
         self.speed, self.yaw_rate = np.concatenate([self.speed, new_speed]), np.concatenate([self.yaw_rate, new_yaw])
         steering = steering_sequences([step], self.speed, self.yaw_rate, m.abstract_pred.meta["steering"]["scale"])
         with inference_autocast(m.device, m.args.precision):
-            new, _ = self.stepper.send(steering.to(m.device))
+            new, top = self.stepper.send(steering.to(m.device))
         self.latents.append(new)
-        generated = decode_latents(m.detail_tok, new[0], m.device, m.args.precision)
+        frames = StepFrames(decode_latents(m.detail_tok, new[0], m.device, m.args.precision))
+        if forecast:
+            frames.forecast = decode_latents(m.abstract_tok, top[0, -1:], m.device, m.args.precision)[0]
         if self.truth is None:
-            return StepFrames(generated)
+            return frames
         # Control k drives pose k to k + 1 (the convention of the bird's-eye path, integrate_odometry).
         k0 = self.truth.frame
         true = self.truth.step(self.speed[k0:end - 1], self.yaw_rate[k0:end - 1])
         keep = np.isin(true.frames, step.detail_target)
         true = PathFrames(*(getattr(true, f)[keep] for f in PathFrames.__dataclass_fields__))
-        psnr = float(np.mean([cv2.PSNR(g, t) for g, t in zip(generated, true.rgb, strict=True)]))
-        return StepFrames(generated, true, psnr)
+        frames.true = true
+        frames.psnr = float(np.mean([cv2.PSNR(g, t) for g, t in zip(frames.generated, true.rgb, strict=True)]))
+        return frames
 
     def path(self) -> tuple[np.ndarray, np.ndarray]:
         """The commanded path so far in metres from the last context frame (x forward, y left)."""

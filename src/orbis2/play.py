@@ -83,7 +83,8 @@ class Player:
                     async with self.lock:
                         started = time.perf_counter()
                         frames = await asyncio.to_thread(drive.step, float(message["speed"]),
-                                                         float(message["yaw_rate"]), bool(message.get("replay")))
+                                                         float(message["yaw_rate"]), bool(message.get("replay")),
+                                                         bool(message.get("forecast")))
                         seconds = time.perf_counter() - started
                         self.steps_generated += 1
                     x, y = drive.path()
@@ -91,6 +92,8 @@ class Player:
                              "frames": [jpeg(f) for f in frames.generated], "request": message.get("request"),
                              "speed": float(drive.speed[-1]), "yaw_rate": float(drive.yaw_rate[-1]),
                              "path": np.stack([x, y], 1)[:: max(1, len(x) // 400)].round(3).tolist()}
+                    if frames.forecast is not None:
+                        chunk["forecast"] = jpeg(frames.forecast)
                     if frames.true is not None:
                         true = frames.true
                         chunk |= {"true_frames": [jpeg(f) for f in true.rgb], "psnr": frames.psnr,
