@@ -176,7 +176,6 @@ def play_command(args: argparse.Namespace) -> str:
     sock = bind(args.host, args.port)
     scenes = find_scenes(args.video)
     models = load_models(args)
-    args.record_dir.mkdir(parents=True, exist_ok=True)
     player = Player(models, scenes, args.seed, args.record_dir.resolve())
     print(f"orbis2 play: {len(scenes)} scenes; warming up ...", flush=True)
     seconds = player.warm_up()
