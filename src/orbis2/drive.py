@@ -172,7 +172,8 @@ class Drive:
         self.stepper = cascaded_steps(m.abstract_pred.model, m.detail_pred.model, detail_ctx[None].to(m.device),
                                       abstract_ctx[None].to(m.device), generator, m.args.abstract_nfe, m.detail_nfe,
                                       abstract_hz=data.abstract_hz, detail_hz=data.detail_hz, steered=True)
-        next(self.stepper)
+        with inference_autocast(m.device, m.args.precision):  # the set-up runs here, as in orbis2 rollout's autocast
+            next(self.stepper)
         episode = town_episode(scene)
         self.truth = None
         if episode is not None:
