@@ -1,6 +1,6 @@
 """``orbis2 play`` in a real browser: Debian's headless Chromium through chromedriver, on the smoke project's models.
 
-One server and one browser serve every test of the module (they run in order): the page loads with no request
+One server and one browser serve every test of the module: the page loads with no request
 outside the server and frames arrive; a held left key turns the commanded path and the town's true view left; a
 saved recording replays through ``orbis2 rollout --trajectory`` to the same frames; replay drives the clip's
 recorded commands; a closed page stops the generation. Bad input gets one line and exit status 2.
@@ -20,6 +20,7 @@ import urllib.request
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from PIL import Image, ImageSequence
@@ -74,7 +75,7 @@ def server(smoke_project, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def browser(server, tmp_path_factory):
+def chromium(server, tmp_path_factory):
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
@@ -86,9 +87,17 @@ def browser(server, tmp_path_factory):
         options.add_argument(flag)
     options.set_capability("goog:loggingPrefs", {"performance": "ALL"})
     driver = webdriver.Chrome(service=Service(DRIVER), options=options)
-    driver.get(server[0])
     yield driver
     driver.quit()
+
+
+@pytest.fixture
+def browser(chromium, server):
+    """The shared browser on the page: the tests run in order, but a worker of pytest-xdist may get only some."""
+    if not chromium.current_url.startswith(server[0]):
+        chromium.get(server[0])
+    until(lambda: chromium.execute_script("return window.play && window.play.ready"), what="the page")
+    return chromium
 
 
 def page(browser, expression: str):
@@ -139,6 +148,8 @@ def gif_frames(path: Path) -> np.ndarray:
 
 
 def test_a_recording_replays_to_the_same_frames(server, browser, smoke_project):
+    until(lambda: page(browser, "steps") >= 2, what="two steps to record")
+    browser.execute_script("window.play.saved = null")
     browser.find_element("id", "save").click()
     saved = until(lambda: page(browser, "saved"), what="the recording")
     video, gif, trajectory = (Path(p) for p in saved["paths"])
@@ -202,3 +213,20 @@ def test_bad_input_gets_one_line_and_a_nonzero_exit(smoke_project, make_video, t
             assert lines[0].startswith("orbis2 play: error: ") and expected in lines[0], f"{name}: {out}"
     finally:
         busy.close()
+
+
+def test_scenes_are_the_held_out_town_clips_and_imported_videos_with_odometry(make_video, tmp_path, monkeypatch):
+    from orbis2.drive import find_scenes
+    from orbis2.errors import OrbisError
+
+    monkeypatch.chdir(tmp_path)
+    town = make_video("data/raw/town/heldout/town_heldout_00000.mp4", 30, 10)
+    columns = {"frame": np.arange(30, dtype=np.int32), "t": np.arange(30) / 10, "speed": np.full(30, 5.0),
+               "yaw_rate": np.zeros(30), "x": np.arange(30) / 2, "y": np.zeros(30), "yaw": np.zeros(30)}
+    pq.write_table(pa.table(columns), town.with_suffix(".parquet"))
+    mine = make_video("data/videos/val/mine.mp4", 30, 10)
+    mine.with_suffix(".csv").write_text("timestamp,speed,yaw_rate\n0,5,0\n3,5,0\n")
+    make_video("data/videos/val/no_odometry.mp4", 30, 10)
+    assert [s.name for s in find_scenes([])] == ["town_heldout_00000", "mine"]
+    with pytest.raises(OrbisError, match="no odometry beside it"):
+        find_scenes([tmp_path / "data/videos/val/no_odometry.mp4"])

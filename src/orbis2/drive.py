@@ -38,7 +38,7 @@ from orbis2.cli import (
     write_outputs,
 )
 from orbis2.config.params import load_config
-from orbis2.data.video import PLAYABLE_SUFFIXES
+from orbis2.data.importer import find_videos
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file
 from orbis2.kinematics import integrate_odometry
@@ -74,10 +74,11 @@ def scene_of(video: Path) -> Scene:
 
 
 def find_scenes(extra: list[Path]) -> list[Scene]:
-    """The held-out town clips, the imported videos that have odometry, then ``extra`` (refused without)."""
+    """The held-out town clips, the imported videos that have odometry (any split sub-folder), then ``extra``
+    (refused without)."""
     videos = sorted(layout_path("raw", "town").glob(f"{TOWN_SPLIT}/*.mp4"))
-    videos += sorted(v for v in layout_path("videos").glob("*") if v.suffix.lower() in PLAYABLE_SUFFIXES | {".mkv"}
-                     and v.with_suffix(".csv").is_file())
+    if layout_path("videos").is_dir():
+        videos += [v for _, v in find_videos(layout_path("videos")) if v.with_suffix(".csv").is_file()]
     scenes = [scene_of(v) for v in videos] + [scene_of(v) for v in extra]
     if not scenes:
         raise OrbisError(f"no scenes: neither {layout_path('raw', 'town') / TOWN_SPLIT} nor {layout_path('videos')} "

@@ -76,7 +76,8 @@ class Player:
             try:
                 if kind == "start":
                     scene = self.scenes[int(message["scene"])]
-                    drive = await asyncio.to_thread(Drive, self.models, scene, self.seed)
+                    async with self.lock:
+                        drive = await asyncio.to_thread(Drive, self.models, scene, self.seed)
                     await ws.send_json({"type": "started", "scene": scene.name, "frame": jpeg(drive.context_frames[-1]),
                                         "speed": float(drive.speed[-1]), "true_view": drive.truth is not None})
                 elif kind == "step" and drive is not None:
