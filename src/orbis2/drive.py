@@ -37,12 +37,13 @@ from orbis2.cli import (
     read_context,
     write_outputs,
 )
-from orbis2.config.params import load_config
+from orbis2.config.params import PipelineConfig, load_config
 from orbis2.data.importer import find_videos
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file
 from orbis2.kinematics import integrate_odometry
 from orbis2.latents import encode_frames
+from orbis2.models.files import PredictorFile, TokenizerFile
 from orbis2.registry import layout_path
 from orbis2.rollout import cascaded_steps, first_context_end, rollout_schedule, steering_sequences
 from orbis2.sim import Camera, EgoTrack, Town
@@ -122,17 +123,18 @@ class StepFrames:
 class Models:
     """Both tokenizers and predictors, checked as ``orbis2 rollout`` checks them, on their device."""
 
-    args: argparse.Namespace
-    cfg: object
-    detail_tok: object
-    abstract_tok: object
-    abstract_pred: object
-    detail_pred: object
+    args: argparse.Namespace  # the command's options: model paths, sampler and precision (a replay repeats them)
+    cfg: PipelineConfig
+    detail_tok: TokenizerFile
+    abstract_tok: TokenizerFile
+    abstract_pred: PredictorFile
+    detail_pred: PredictorFile
     device: torch.device
     detail_nfe: int
 
 
 def load_models(args: argparse.Namespace) -> Models:
+    """The models of ``orbis2 rollout``'s options; the abstract predictor must be steered."""
     cfg = load_config(args.params, args.profile)
     detail_tok, abstract_tok, abstract_path, abstract_pred, detail_pred = load_checkpoints(args, cfg)
     check_pairing(abstract_pred, abstract_path, abstract_tok, "abstract", args.abstract_tokenizer)
