@@ -13,16 +13,24 @@ continuation as its calibration: the rollout's detail latents (their sideways sh
 decoding) and the decoded frames' sideways motion (no learning). Both readings also
 score a reference rollout: the bottom predictor alone, given the real subgoals (the real
 abstract latents) with no steering, which tells the turn lost by the bottom level from
-the turn the top's predictions lose.
+the turn the top's predictions lose. Where the data is the town, every mode's rollouts are also scored
+against the true counterfactuals the ``truth`` stage rendered from the same starts
+(:mod:`orbis2.eval.protocols.truth`): per-frame errors by horizon, FVD against the true videos, the
+instrument's reading of the truth (its calibration) and whether each rollout is closer to the truth
+under its own command than under the others.
 """
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from orbis2.accel import default_device
+from orbis2.assets import ensure_asset
 from orbis2.data.shards import split_clips, verify_shards
+from orbis2.data.truth import read_manifest
 from orbis2.errors import OrbisError
+from orbis2.eval.metrics.fvd import clip_features
 from orbis2.eval.metrics.inverse_dynamics import WEIGHTS_FILE
 from orbis2.eval.metrics.odometry import camera_intrinsics, get_inverse_dynamics
 from orbis2.eval.protocols.steering import (
@@ -49,10 +57,12 @@ from orbis2.eval.protocols.systems import (
     rollout_steps,
     sample_clusters,
 )
+from orbis2.eval.protocols.truth import TruthScorer
 from orbis2.eval.records import Material, Nfe, SteeringRecord, write_record
 from orbis2.interfaces import INTERFACES
 from orbis2.kinematics import integrate_controls
 from orbis2.latents import open_cache
+from orbis2.models.i3d import load_i3d
 from orbis2.registry import registry
 from orbis2.stage import (
     latent_paths,
@@ -97,6 +107,17 @@ def main(argv: list[str] | None = None) -> None:
         instruments = {name: get_inverse_dynamics(name, args.inverse_dynamics / WEIGHTS_FILE)
                        for name in dict.fromkeys([ev.inverse_dynamics, "opencv"])}
         on_rollouts = instruments if ev.opencv_rollouts else {ev.inverse_dynamics: instruments[ev.inverse_dynamics]}
+        truth = None
+        if read_manifest(args.truth)["available"]:  # the town: every start has its true counterfactuals
+            i3d_file = ensure_asset("i3d_kinetics400", args.assets or Path(cfg.assets.dir),
+                                    cfg.assets.local.get("i3d_kinetics400"), download=False)
+            i3d = load_i3d(i3d_file).to(dev).eval()
+            instrument = instruments[ev.inverse_dynamics]
+            truth = TruthScorer(args.truth, samples, clusters, data, ev, steps, system.tokenizers["detail"], cache,
+                                features=lambda videos: clip_features(videos, i3d, ev.batch_size, dev),
+                                read_turns=lambda videos, controls: score_videos(videos, controls, instrument, K,
+                                                                                 data.detail_hz),
+                                instrument=ev.inverse_dynamics)
         first = cache_latents(cache, split, "detail", samples, [np.array([s.context_end]) for s in samples])
         first_frames = system.decode(first)  # [N, 1, H, W, 3]
 
@@ -126,6 +147,8 @@ def main(argv: list[str] | None = None) -> None:
             latent_turn[mode] = latent_turns(first, latents, controls, data.detail_hz, cfg.town.hfov_deg)
             image_turn[mode] = image_turns(videos, controls, data.detail_hz, cfg.town.hfov_deg)
             modes[mode] = mode_record(per_sample[mode], clusters, speed_scale, yaw_scale, ev.seed)
+            if truth is not None:
+                truth.add(mode, latents, videos)
             sp, yw = controls[0]
             strip[mode] = (videos[0], integrate_controls(sp[:videos.shape[1] - 1], yw[:videos.shape[1] - 1],
                                                          1.0 / data.detail_hz))
@@ -140,13 +163,18 @@ def main(argv: list[str] | None = None) -> None:
             material=Material(turn_deg=ev.steering_turn_material_deg, path_ratio=ev.steering_path_ratio_material),
             odometry_sanity=sanity[ev.inverse_dynamics], sanity=sanity,
             latent_turn=turn_record(latent_turn, clusters, ev.seed),
-            image_turn=turn_record(image_turn, clusters, ev.seed))
+            image_turn=turn_record(image_turn, clusters, ev.seed),
+            truth=truth.record() if truth is not None else None)
         write_record(args.out, record)
         run.log_artifact(args.out)
         save_strip(strip, data.detail_hz, args.strip)
         run.log_artifact(args.strip)
         run.publish(args.strip, "figures")
         run.log_metrics({f"ade_{m}": v.ade for m, v in record.modes.items()})
+        if record.truth is not None:
+            run.log_metrics({f"truth_fvd_{m}": v.fvd.fvd for m, v in record.truth.modes.items()})
+            run.log_metrics({f"truth_instrument_turn_deg_{m}": v.instrument.turn_deg.estimate
+                             for m, v in record.truth.modes.items()})
         readings = (("latent_turn", record.latent_turn), ("image_turn", record.image_turn))
         run.log_metrics({f"{reading}_deg_{m}": v.turn_deg for reading, turns in readings
                          for m, v in turns.modes.items()})
@@ -162,7 +190,16 @@ def main(argv: list[str] | None = None) -> None:
                            + ", ".join(f"{m} {v.turn_deg:.0f}" for m, v in record.latent_turn.modes.items())
                            + " deg; from the image motion "
                            + ", ".join(f"{m} {v.turn_deg:.0f}" for m, v in record.image_turn.modes.items())
-                           + " deg")
+                           + " deg" + (truth_summary(record) if record.truth is not None else ""))
+
+
+def truth_summary(record: SteeringRecord) -> str:
+    """The summary's words on the truth: the claim's verdict and the instrument's reading of the true turns."""
+    truth = record.truth
+    readings = ", ".join(f"{m} {v.instrument.turn_deg.estimate:.0f}/{v.instrument.commanded_turn_deg:.0f}"
+                         for m, v in truth.modes.items())
+    return (f"; against the truth: closer to its own command's truth {truth.claim.verdict}; instrument on the true "
+            f"videos (read/commanded deg) {readings}")
 
 
 if __name__ == "__main__":

@@ -156,7 +156,28 @@ def steering_doc() -> dict:
         "sanity": {"learned": sanity, "opencv": {**sanity, "real_ade": 0.6}},
         "latent_turn": turns(5.0, 1.0),
         "image_turn": turns(2.0, 0.5),
+        "truth": truth_doc(list(ades), interval),
     }
+
+
+def truth_doc(modes: list[str], interval: dict) -> dict:
+    """The steering rollouts against the town's true counterfactuals (orbis2.eval.records.TruthReading)."""
+    def iv(estimate, low, high):
+        return {**interval, "estimate": estimate, "low": low, "high": high}
+
+    fvd = {"fvd": 80.0, "low": 70.0, "high": 90.0, "clips": 10, "videos": 20, "bootstrap_reps": 50,
+           "bootstrap_seed": 5, "draws": [80.0] * 5}
+    cells = {m: {"samples": 20, "horizons": [{"seconds": h, "frame": round(h * 10) - 1,
+                                              "latent_mse": iv(0.25 * (i + 1), 0.05, 0.9),
+                                              "psnr": iv(30.0 - i, 28.0, 32.0)} for i, h in enumerate((0.5, 1.0, 2.0))],
+                 "fvd": fvd, "instrument": {"turn_deg": iv(20.0, 18.0, 22.0), "commanded_turn_deg": 21.0,
+                                            "relative_error": iv(-0.05, -0.1, 0.0)},
+                 "collision": 0, "off_road": 1} for m in modes}
+    return {"instrument": "learned", "modes": cells,
+            "claim": {"material": 0.1, "verdict": "holds",
+                      "modes": {m: {"margin": iv(0.5, 0.3, 0.7), "own": 0.2, "others": 0.3, "verdict": "holds"}
+                                for m in modes},
+                      "pairs": {m: {o: 0.2 if o == m else 0.3 for o in modes} for m in modes}}}
 
 
 def speed_doc() -> dict:
@@ -302,7 +323,19 @@ def test_main_report_tables_round_trip(evals, tmp_path):
     assert list(steering[0]) == ["mode", "kind", "instrument", "ade", "ade_low", "ade_high", "ade_n", "turn_deg",
                                  "commanded_turn_deg", "ade_opencv", "turn_deg_opencv", "turn_deg_latent",
                                  "turn_deg_latent_low", "turn_deg_latent_high", "turn_deg_image",
-                                 "turn_deg_image_low", "turn_deg_image_high"]
+                                 "turn_deg_image_low", "turn_deg_image_high", "truth_n", "latent_mse_0.5s",
+                                 "latent_mse_0.5s_low", "latent_mse_0.5s_high", "psnr_0.5s", "psnr_0.5s_low",
+                                 "psnr_0.5s_high", "latent_mse_1s", "latent_mse_1s_low", "latent_mse_1s_high",
+                                 "psnr_1s", "psnr_1s_low", "psnr_1s_high", "latent_mse_2s", "latent_mse_2s_low",
+                                 "latent_mse_2s_high", "psnr_2s", "psnr_2s_low", "psnr_2s_high", "truth_fvd",
+                                 "truth_fvd_low", "truth_fvd_high", "truth_fvd_n", "truth_turn_deg",
+                                 "truth_turn_deg_low", "truth_turn_deg_high", "truth_commanded_turn_deg",
+                                 "truth_turn_relative_error", "truth_turn_relative_error_low",
+                                 "truth_turn_relative_error_high", "truth_margin", "truth_margin_low",
+                                 "truth_margin_high", "truth_verdict", "truth_collisions", "truth_off_road"]
+    assert float(steering[0]["latent_mse_2s"]) == 0.75 and steering[0]["truth_n"] == "20"
+    assert steering[0]["truth_verdict"] == "holds" and float(steering[1]["truth_turn_deg"]) == 20.0
+    assert steering[-1]["truth_fvd"] == "NA" and steering[5]["truth_margin"] == "NA"
     assert [float(r["turn_deg_latent"]) for r in steering[:-1]] == [5.0, 10.0, 15.0, 20.0, 25.0, 30.0, 0.0]
     assert steering[-1]["turn_deg_latent"] == "NA" and float(steering[-2]["turn_deg_latent_high"]) == 1.0
     assert [float(r["turn_deg_image"]) for r in steering[:-1]] == [2.0, 4.0, 6.0, 8.0, 10.0, 12.0, 0.0]
@@ -329,7 +362,7 @@ def test_main_report_tables_round_trip(evals, tmp_path):
     for heading in ("## Main results", "## Steering", "## Speed", "## Reading", "## Setup"):
         assert heading in summary
     assert "- profile: smoke" in summary and "- fvd_videos: 12" in summary
-    assert summary_verdicts(out / "summary.md") == ["holds"] * 8
+    assert summary_verdicts(out / "summary.md") == ["holds"] * 9
     assert not (out / "hierarchy_ablation.csv").exists()
 
 
@@ -340,6 +373,7 @@ def test_main_report_marks_absent_ablations_not_measured(tmp_path):
         "not measured",
         "holds",
         "not measured",
+        "holds",
         "holds",
         "holds",
         "holds",
@@ -431,7 +465,7 @@ def test_full_report_ablations_and_figures(evals, tmp_path):
     summary = (out / "summary.md").read_text()
     for heading in ("## Hierarchy design study", "## Training strategy", "## Latent compression"):
         assert heading in summary
-    assert summary_verdicts(out / "summary.md") == ["holds"] * 8
+    assert summary_verdicts(out / "summary.md") == ["holds"] * 9
 
 
 def _set(evals: Evals, path: tuple, value) -> None:
@@ -460,12 +494,13 @@ def _set(evals: Evals, path: tuple, value) -> None:
         (5, ("conditioning", "variants", 1, "high"), 0.02),  # another clip's subgoal: no material change
         (6, ("conditioning", "baselines", 0, "high"), 0.01),  # repeating the last frame is as good
         (7, ("fvd", "hierarchical", "fvd", "heldout", "draws"), [905.0] * 40),  # the held frame scores better
+        (8, ("steering", "truth", "claim", "verdict"), "does not hold"),  # a rollout nearer another command's truth
     ],
 )
 def test_each_claim_flips_with_the_numbers(evals, tmp_path, claim, path, value):
     assert verdicts(evals)[claim] == "holds"
     _set(evals, path, value)
-    expected = ["holds"] * 8
+    expected = ["holds"] * 9
     expected[claim] = "does not hold"
     if path[-1] == "high":  # an interval wholly below the material threshold
         _set(evals, path[:-1] + ("low",), -0.05)
@@ -477,6 +512,13 @@ def test_each_claim_flips_with_the_numbers(evals, tmp_path, claim, path, value):
 def test_an_interval_straddling_the_threshold_is_not_resolved(evals):
     _set(evals, ("conditioning", "variants", 1, "low"), 0.01)
     assert verdicts(evals)[5] == "not resolved at this sample size"
+
+
+def test_steering_without_truth_has_no_truth_columns_and_its_claim_is_not_measured(evals):
+    """A real-data source: no true counterfactuals, so the truth claim is not measured and no truth cells appear."""
+    evals.steering.truth = None
+    assert verdicts(evals)[8] == "not measured" and verdicts(evals)[3] == "holds"
+    assert not any(key.startswith(("truth", "truth_fvd")) for key in tables.steering_table(evals, SETTINGS)[0])
 
 
 def test_null_compression_slope_is_not_measured(evals):
@@ -621,6 +663,8 @@ def test_fvd_splits_and_steering_modes_follow_the_config(evals, tmp_path, smoke_
     steering.modes["yaw_rate_x2"] = steering.modes["yaw_rate_x1.5"].model_copy(update={"samples": 9})
     for reading in (steering.latent_turn, steering.image_turn):
         reading.modes["yaw_rate_x2"] = records.TurnCells(turn_deg=99.0, low=98.0, high=100.0, commanded_turn_deg=24.0)
+    for cells in (steering.truth.modes, steering.truth.claim.modes):
+        cells["yaw_rate_x2"] = cells["yaw_rate_x1.5"]
 
     report.write_main_report(evals, tmp_path, SETUP, settings)
     main = read_csv(tmp_path / "main_table.csv")
@@ -634,3 +678,12 @@ def test_fvd_splits_and_steering_modes_follow_the_config(evals, tmp_path, smoke_
     evals.fvd["hierarchical"].fvd.pop("dusk")  # a configured split the record lacks: named, not skipped
     with pytest.raises(OrbisError, match=r"fvd_hierarchical\.json .*fvd\.dusk"):
         tables.main_table(evals, "main", settings)
+
+
+def test_summary_has_the_instrument_calibration_on_the_truth(evals, tmp_path):
+    report.write_main_report(evals, tmp_path, SETUP, SETTINGS)
+    section = (tmp_path / "summary.md").read_text().split("## The steering instrument on the true counterfactuals")
+    assert len(section) == 2 and "| yaw_rate_x1.5 | learned | 21 | 20 | 18 | 22 | -0.05 | -0.1 | 0 | 20 |" in section[1]
+    evals.steering.truth = None
+    report.write_main_report(evals, tmp_path, SETUP, SETTINGS)
+    assert "true counterfactuals" not in (tmp_path / "summary.md").read_text().split("## Reading")[0]

@@ -1,8 +1,9 @@
 """The ``orbis2`` command: use trained models.
 
 ``orbis2 rollout`` reads the context from any video, rolls the hierarchical
-model forward and writes an mp4 and a GIF. ``orbis2 evaluate`` scores any
-model's rollouts against the real videos they continue, through the code the
+model forward and writes an mp4 and a GIF; ``orbis2 play`` drives it live in the
+browser (:mod:`orbis2.play`). ``orbis2 evaluate`` scores any model's rollouts
+against the real videos they continue, through the code the
 ``eval_fvd`` stages run (:mod:`orbis2.eval.protocols.evaluate`). ``orbis2 convert``
 turns nuPlan, PhysicalAI-AV, BDD100K or OpenDV-YouTube into the import layout
 (:mod:`orbis2.data.datasets`). User-fixable problems (short video,
@@ -195,6 +196,17 @@ def compose(generated: np.ndarray, real: np.ndarray | None, path: tuple[np.ndarr
     return np.stack(frames)
 
 
+def decode_latents(tokenizer: TokenizerFile, latents: torch.Tensor, device: torch.device,
+                   precision: str) -> np.ndarray:
+    """Scaled detail latents [T, ...] -> RGB uint8 frames, decoded 8 at a time (``orbis2 play`` records through
+    this too, so its recordings match the rollout's frames bit for bit)."""
+    generated = []
+    with torch.inference_mode(), inference_autocast(device, precision):
+        for chunk in latents.split(8):
+            generated.append(to_uint8(tokenizer.model.decode(tokenizer.denormalize(chunk))))
+    return np.concatenate(generated)
+
+
 def write_outputs(out: Path, frames: np.ndarray, fps: float) -> Path:
     """``out`` (mp4) and the GIF with the same stem; both written atomically, the folder made if needed."""
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -265,12 +277,8 @@ def rollout_command(args: argparse.Namespace) -> str:
             on_step=lambda _: bar.update(1), kv_cache=not args.no_kv_cache,
             steering_guidance=args.steering_guidance)
 
-    generated = []
-    with torch.inference_mode(), inference_autocast(device, args.precision):
-        for chunk in details[0].split(8):
-            generated.append(to_uint8(detail_tok.model.decode(detail_tok.denormalize(chunk))))
     context_frames = frames[list(first.detail_context)]
-    video = np.concatenate([context_frames, np.concatenate(generated)])
+    video = np.concatenate([context_frames, decode_latents(detail_tok, details[0], device, args.precision)])
     indices = np.array(list(first.detail_context) + [i for s in schedule for i in s.detail_target])
     real = None
     if args.side_by_side:
@@ -448,12 +456,48 @@ def add_convert_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=convert_command)
 
 
+# --------------------------------------------------------------------------- play command
+
+
+def play_command(args: argparse.Namespace) -> str:
+    from orbis2.play import play_command as serve  # the web server's imports, for this command only
+
+    for flag, value in (("--abstract-nfe", args.abstract_nfe), ("--detail-nfe", args.detail_nfe)):
+        if value is not None and value < 1:
+            raise OrbisError(f"{flag} {value}: needs at least 1 function evaluation per sample")
+    return serve(args)
+
+
+def add_play_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("play", help="drive the world model live in the browser (docs/play.md)")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default: this machine only)")
+    p.add_argument("--port", type=int, default=8765, help="port to listen on (0: a free one)")
+    p.add_argument("--video", type=Path, action="append", default=[],
+                   help="also offer this video as a scene (odometry beside it: <stem>.csv); repeatable")
+    p.add_argument("--record-dir", type=Path, default=Path("recordings"), help="where recordings are written")
+    p.add_argument("--detail-tokenizer", type=Path, default=layout_path("tokenizer", "detail") / "tokenizer.pt")
+    p.add_argument("--abstract-tokenizer", type=Path, default=layout_path("tokenizer", "abstract") / "tokenizer.pt")
+    p.add_argument("--abstract-predictor", type=Path, default=None, help=f"default: {DEFAULT_ACTION}")
+    p.add_argument("--detail-predictor", type=Path, default=layout_path("predictor", "detail") / "predictor.pt")
+    p.add_argument("--params", type=Path, default=Path("params.yaml"))
+    p.add_argument("--profile", default=None, help="smoke | default | gpu | paper (default: the file's `profile`)")
+    p.add_argument("--abstract-nfe", type=int, default=ABSTRACT_NFE, help="Euler steps per abstract latent")
+    p.add_argument("--detail-nfe", type=int, default=None,
+                   help="Euler steps per detail window (default: as orbis2 rollout)")
+    p.add_argument("--device", default=None, help="default: cuda if available, else cpu")
+    p.add_argument("--seed", type=int, default=0, help="the seed of every drive (and of its recording's replay)")
+    p.add_argument("--precision", choices=("bf16", "fp32"), default="bf16",
+                   help="bf16 autocast on CUDA (default) or fp32; the CPU always runs fp32")
+    p.set_defaults(run=play_command)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="orbis2", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     add_rollout_parser(sub)
     add_evaluate_parser(sub)
     add_convert_parser(sub)
+    add_play_parser(sub)
     args = parser.parse_args(argv)
     freeze_imports()
     try:

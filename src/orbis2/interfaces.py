@@ -195,14 +195,21 @@ INTERFACES: dict[str, Interface] = _declare(
                    folder=True),
         PathOption("report", "--report", "metrics report", "report", name="inverse_dynamics", output=True),
     ), ("data", "inverse_dynamics"), GPU, FIRST, rules="rules/evaluation.smk"),
+    # The town's true counterfactuals of the steering starts: data, cached per clip and command.
+    Interface("truth", "stages/truth.py", (
+        SHARDS,
+        PathOption("truth", "--out", "the true counterfactuals' folder", "truth", output=True, folder=True),
+        PathOption("report", "--report", "what was rendered and its cost", "report", name="truth", output=True),
+    ), ("data", "town", "shards", "evaluation", "truth"), CPU, FIRST),
     Interface("eval_steering", "stages/eval_steering.py", (
-        LATENTS, *TOKENIZERS, SHARDS, PREDICTORS,
+        LATENTS, *TOKENIZERS, SHARDS, PREDICTORS, ASSETS,
         PathOption("inverse_dynamics", "--inverse-dynamics", "the learned instrument's folder", "inverse_dynamics",
                    folder=True),
+        PathOption("truth", "--truth", "the true counterfactuals' folder", "truth", folder=True),
         PathOption("steering", "--out", "the record", "eval", file="steering.json", output=True),
         PathOption("strip", "--strip", "the figure of one rollout per mode", "eval", file="steering_strip.png",
                    output=True),
-    ), ("data", "town", "evaluation"), GPU, LONG, record="SteeringRecord", rules="rules/evaluation.smk"),
+    ), ("data", "town", "assets", "evaluation"), GPU, LONG, record="SteeringRecord", rules="rules/evaluation.smk"),
     Interface("eval_speed", "stages/eval_speed.py", (
         LATENTS, *TOKENIZERS, PREDICTORS,
         PathOption("speed", "--out", "the record", "eval", file="speed.json", output=True,

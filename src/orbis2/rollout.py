@@ -18,7 +18,7 @@ offsets the predictors were trained on.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -178,6 +178,62 @@ def detail_frames_per_step(detail_hz: float, abstract_hz: float, top_frames_per_
     return int(frames)
 
 
+RolloutChunk = tuple[torch.Tensor, torch.Tensor]  # one step's detail latents and top frames
+
+
+@torch.no_grad()
+def cascaded_steps(
+    abstract_model: ModelFn,
+    detail_model: ModelFn,
+    detail_context: torch.Tensor,
+    abstract_context: torch.Tensor,
+    generator: torch.Generator,
+    abstract_nfe: int = ABSTRACT_NFE,
+    detail_nfe: int = DETAIL_NFE,
+    *,
+    abstract_hz: float,
+    detail_hz: float,
+    steered: bool = False,
+    top_frames_per_step: int = 1,
+    kv_cache: bool = True,
+    subgoals: torch.Tensor | None = None,
+    steering_guidance: float = 1.0,
+) -> Generator[RolloutChunk | None, torch.Tensor | None, None]:
+    """The hierarchical rollout one 0.5 s step at a time, for a caller that decides each step's steering as it
+    goes (``orbis2 play``) as well as for :func:`cascaded_rollout`, which loops over it.
+
+    Start it with ``next()`` (it yields None once set up); then each ``send(steering)`` runs one step and
+    returns its chunk (detail latents [B, frames_per_step, ...], top frames [B, top_frames_per_step, ...]).
+    ``steering`` [B, S, K] conditions that step's top prediction; send None throughout when not ``steered``.
+    ``subgoals``: the top's frames given, consumed ``top_frames_per_step`` a step. Everything else as in
+    :func:`cascaded_rollout`.
+    """
+    n_context = detail_context.shape[1]
+    frames_per_step = detail_frames_per_step(detail_hz, abstract_hz, top_frames_per_step)
+    detail_table = unsteered_modulations(detail_model, detail_context, frames_per_step, detail_nfe, kv_cache)
+    top_table = None
+    if not steered and subgoals is None:
+        top_table = unsteered_modulations(abstract_model, abstract_context, top_frames_per_step, abstract_nfe,
+                                          kv_cache)
+    steering = yield None
+    k = 0
+    while True:
+        if subgoals is None:
+            cond = {} if steering is None else {"steering": steering}
+            top = sample_frames(abstract_model, abstract_context, top_frames_per_step, abstract_nfe, generator,
+                                kv_cache, steering_guidance, top_table, frame_rate=abstract_hz, **cond)
+        else:
+            top = subgoals[:, k * top_frames_per_step:(k + 1) * top_frames_per_step]
+        cond_frames, cond_mask = condition_frames(abstract_context[:, -1], top[:, -1], n_context, frames_per_step)
+        new = sample_frames(detail_model, detail_context, frames_per_step, detail_nfe, generator, kv_cache,
+                            modulations=detail_table, frame_rate=detail_hz, cond_frames=cond_frames,
+                            cond_mask=cond_mask)
+        detail_context = _slide(detail_context, new)
+        abstract_context = _slide(abstract_context, top)
+        k += 1
+        steering = yield new, top
+
+
 @torch.no_grad()
 def cascaded_rollout(
     abstract_model: ModelFn,
@@ -199,7 +255,7 @@ def cascaded_rollout(
     steering_guidance: float = 1.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Hierarchical rollout; returns detail latents [B, frames_per_step * steps, ...] and the top
-    predictor's frames [B, top_frames_per_step * steps, ...].
+    predictor's frames [B, top_frames_per_step * steps, ...]: ``steps`` steps of :func:`cascaded_steps`.
 
     The rates are the caller's: params.yaml's ``data`` section (``data.abstract_hz``, ``data.detail_hz``)
     or the rates the predictors were trained at; the detail frames per step follow from them
@@ -220,33 +276,22 @@ def cascaded_rollout(
     guidance on the top's steering (:func:`sample_frames`; 1 = none, the paper's sampler).
     """
     b = detail_context.shape[0]
-    n_context = detail_context.shape[1]
-    frames_per_step = detail_frames_per_step(detail_hz, abstract_hz, top_frames_per_step)
+    detail_frames_per_step(detail_hz, abstract_hz, top_frames_per_step)  # refuse bad rates before any check below
     if subgoals is not None and subgoals.shape[1] != top_frames_per_step * steps:
         raise ValueError(f"subgoals must hold {top_frames_per_step * steps} frames, got {subgoals.shape[1]}")
+    stepper = cascaded_steps(abstract_model, detail_model, detail_context, abstract_context, generator,
+                             abstract_nfe, detail_nfe, abstract_hz=abstract_hz, detail_hz=detail_hz,
+                             steered=steering is not None, top_frames_per_step=top_frames_per_step,
+                             kv_cache=kv_cache, subgoals=subgoals, steering_guidance=steering_guidance)
+    next(stepper)
     details, tops = [], []
-    detail_table = unsteered_modulations(detail_model, detail_context, frames_per_step, detail_nfe, kv_cache)
-    top_table = None
-    if steering is None and subgoals is None:
-        top_table = unsteered_modulations(abstract_model, abstract_context, top_frames_per_step, abstract_nfe,
-                                          kv_cache)
     for k in range(steps):
-        if subgoals is None:
-            top = sample_frames(abstract_model, abstract_context, top_frames_per_step, abstract_nfe, generator,
-                                kv_cache, steering_guidance, top_table, frame_rate=abstract_hz,
-                                **_step_steering(steering, k, b, steps))
-        else:
-            top = subgoals[:, k * top_frames_per_step:(k + 1) * top_frames_per_step]
-        cond_frames, cond_mask = condition_frames(abstract_context[:, -1], top[:, -1], n_context, frames_per_step)
-        new = sample_frames(detail_model, detail_context, frames_per_step, detail_nfe, generator, kv_cache,
-                            modulations=detail_table, frame_rate=detail_hz, cond_frames=cond_frames,
-                            cond_mask=cond_mask)
-        detail_context = _slide(detail_context, new)
-        abstract_context = _slide(abstract_context, top)
+        new, top = stepper.send(_step_steering(steering, k, b, steps).get("steering"))
         details.append(new)
         tops.append(top)
         if on_step is not None:
             on_step(k)
+    stepper.close()
     return torch.cat(details, dim=1), torch.cat(tops, dim=1)
 
 

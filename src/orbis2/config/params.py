@@ -36,6 +36,7 @@ from orbis2.config.sections import (
     LatentsConfig,
     ShardsConfig,
     TownConfig,
+    TruthConfig,
 )
 from orbis2.config.training import (
     AbstractTokenizerConfig,
@@ -62,6 +63,7 @@ FIXED_SECTIONS: dict[str, type] = {
     "latents": LatentsConfig,
     "evaluation": EvaluationConfig,
     "inverse_dynamics": InverseDynamicsConfig,
+    "truth": TruthConfig,
 }
 
 
@@ -90,6 +92,7 @@ class PipelineConfig:
     latents: LatentsConfig
     evaluation: EvaluationConfig
     inverse_dynamics: InverseDynamicsConfig
+    truth: TruthConfig
     # The tokenizer and predictor sections, one per registry.yaml entry (also reachable as attributes).
     stages: dict[str, Any]
 

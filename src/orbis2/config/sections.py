@@ -311,6 +311,11 @@ class EvaluationConfig:
     fvd_material: float
     # Seeds (noise draws, rollout noise) over which the claim-bearing evaluation is repeated.
     seeds: list[int]
+    # Scoring against the town's true counterfactuals (the truth stage): the horizons (s after the last context
+    # frame) of the per-frame errors, and the smallest relative margin by which a rollout must be closer to the
+    # truth under its own command than to the truths under the others for the claim (0.1 = 10 %).
+    truth_horizons_s: list[float]
+    truth_margin: float
 
     def validate(self, where: str) -> None:
         self.conditioning.validate(f"{where}.conditioning")
@@ -332,6 +337,22 @@ class EvaluationConfig:
         for mode, scales in self.steering_modes.items():
             if len(scales) != 2 or min(scales) <= 0:
                 raise ConfigError(f"{where}.steering_modes.{mode} must be [speed scale, yaw-rate scale], both > 0")
+        if not self.truth_horizons_s or min(self.truth_horizons_s) <= 0:
+            raise ConfigError(f"{where}.truth_horizons_s must be a non-empty list of positive seconds")
+        if self.truth_margin < 0:
+            raise ConfigError(f"{where}.truth_margin must be >= 0 (a fraction)")
+
+
+@dataclass(frozen=True)
+class TruthConfig:
+    """The ``truth`` stage: the town re-renders the steering evaluation's starts under each steering mode (what
+    it renders follows ``evaluation``'s steering settings; this section says how)."""
+
+    workers: int  # processes rendering clips side by side; 0 = one per CPU core
+
+    def validate(self, where: str) -> None:
+        if self.workers < 0:
+            raise ConfigError(f"{where}.workers must be >= 0 (0 = one per CPU core)")
 
 
 

@@ -310,9 +310,63 @@ class TurnReading(Record):
     commanded_turn_response_deg: Num | None = sometimes()
 
 
+class TruthHorizon(Record):
+    """Generated against true frames at one horizon (:func:`orbis2.eval.protocols.truth.horizon_cells`)."""
+
+    seconds: Num
+    frame: int
+    latent_mse: Interval
+    psnr: Interval
+
+
+class InstrumentOnTruth(Record):
+    """The instrument's turn read from the true videos (:func:`orbis2.eval.protocols.truth.instrument_calibration`);
+    ``relative_error`` is None where the command does not turn."""
+
+    turn_deg: Interval
+    commanded_turn_deg: Num
+    relative_error: Interval | None = sometimes()
+
+
+class TruthMode(Record):
+    """One steering mode scored against its true counterfactual: per-frame errors by horizon, FVD of the generated
+    against the true videos, the instrument on the truth, and how many true paths hit traffic or left the road."""
+
+    samples: int
+    horizons: list[TruthHorizon]
+    fvd: Bootstrapped
+    instrument: InstrumentOnTruth
+    collision: int
+    off_road: int
+
+
+class TruthMargin(Record):
+    margin: Interval
+    own: Num
+    others: Num
+    verdict: str
+
+
+class TruthClaim(Record):
+    """:func:`orbis2.eval.protocols.truth.truth_claim` on the rollouts' latent MSE to each command's truth."""
+
+    material: Num
+    verdict: str
+    modes: dict[str, TruthMargin]
+    pairs: dict[str, dict[str, Num]]
+
+
+class TruthReading(Record):
+    """The steering rollouts against the town's true counterfactuals (the ``truth`` stage)."""
+
+    instrument: str
+    modes: dict[str, TruthMode]
+    claim: TruthClaim
+
+
 class SteeringRecord(Record):
     """``steering.json``: per steering mode ADE and turn by each instrument, responses, sanity checks, and the
-    latent and image readings of the turn."""
+    latent and image readings of the turn; ``truth`` where the data has true counterfactuals (the town)."""
 
     split: str
     seconds: Num
@@ -329,6 +383,7 @@ class SteeringRecord(Record):
     sanity: dict[str, OdometrySanity]
     latent_turn: TurnReading
     image_turn: TurnReading
+    truth: TruthReading | None = sometimes()
 
 
 class SpeedRun(Record):

@@ -37,6 +37,8 @@ from orbis2.accel import Inference, cast_for_inference, compile_decoder, compile
 from orbis2.config.sections import DataConfig, EvaluationConfig
 from orbis2.data.images import to_uint8
 from orbis2.errors import OrbisError
+from orbis2.eval.protocols.starts import rollout_steps as rollout_steps  # where the rollouts import it from
+from orbis2.eval.protocols.starts import sample_ends
 from orbis2.latents import LatentCache
 from orbis2.models.files import PredictorFile, TokenizerFile, load_predictor, load_tokenizer
 from orbis2.registry import System, registry
@@ -44,7 +46,6 @@ from orbis2.rollout import (
     ScheduleStep,
     cascaded_rollout,
     detail_frames_per_step,
-    first_context_end,
     flat_rollout,
     rollout_schedule,
 )
@@ -195,25 +196,14 @@ class Sample:
     context_end: int
 
 
-def rollout_steps(data: DataConfig, seconds: float) -> int:
-    """Rollout steps (0.5 s each with the paper's windows) that cover ``seconds``."""
-    advance = (data.detail_window - data.detail_context) * data.detail_stride / data.fps
-    return int(np.ceil(seconds / advance - 1e-9))
-
-
 def eval_samples(cache: LatentCache, split: str, data: DataConfig, steps: int, starts_per_clip: int) -> list[Sample]:
     """Every clip of the split long enough for ``steps``, with ``starts_per_clip`` evenly spread starts."""
     index = cache.index(split)
-    first = first_context_end(data)
-    generated = rollout_schedule(data, first, steps)[-1].detail_target[-1] - first
     samples = []
     for key in sorted(index, key=lambda k: index[k]["offset"]):
         entry = index[key]
-        last = entry["length"] - 1 - generated
-        if last < first:
-            continue
-        for end in np.unique(np.linspace(first, last, starts_per_clip).round().astype(int)):
-            samples.append(Sample(key, int(entry["offset"]), int(end)))
+        for end in sample_ends(entry["length"], data, steps, starts_per_clip):
+            samples.append(Sample(key, int(entry["offset"]), end))
     if not samples:
         raise OrbisError(f"{cache.root}: no clip of the {split} split is long enough for {steps} rollout steps after "
                          f"its context; lower evaluation.seconds or use longer clips")

@@ -127,6 +127,24 @@ def claim_steering(evals: Evals, settings: TableSettings) -> tuple[str, str]:
     return verdict, text
 
 
+def claim_steering_truth(evals: Evals, settings: TableSettings) -> tuple[str, str]:
+    """(9) Steering follows counterfactual commands, read against the town's true counterfactuals: under every
+    command the rollout is closer (detail-latent MSE over the rollout) to the truth under that command than to
+    the truths under the others, by the record's material relative margin (paired per start, clip-resampled;
+    :func:`orbis2.eval.protocols.truth.truth_claim`). No instrument stands between the video and the verdict."""
+    if not evals.has("steering"):
+        return UNMEASURED, "needs eval_steering"
+    truth = evals.steering_record().truth
+    if truth is None:
+        return UNMEASURED, "needs the town's true counterfactuals (the truth stage; a real-data source has none)"
+    claim = truth.claim
+    parts = [f"{mode} {fmt(100 * m.margin.estimate)} % [{fmt(100 * m.margin.low)}, {fmt(100 * m.margin.high)}]"
+             for mode, m in claim.modes.items()]
+    samples = next(iter(truth.modes.values())).samples
+    return claim.verdict, ("latent MSE to the other commands' truths over that to its own, minus 1: "
+                           + ", ".join(parts) + f" (material: > {fmt(100 * claim.material)} %; {samples} starts)")
+
+
 def claim_speed(evals: Evals, settings: TableSettings) -> tuple[str, str]:
     """(5) The hierarchy generates frames faster than the flat detail-level model."""
     if not evals.has("speed") or "flat_detail" not in evals.speed_record().models:
@@ -201,6 +219,7 @@ CLAIMS: tuple[tuple[str, Callable[[Evals, TableSettings], tuple[str, str]]], ...
     ("the detail predictor follows its abstract subgoal", claim_subgoal),
     ("every main predictor beats repeating the last frame at 0.5 s", claim_beats_repeat),
     ("the hierarchy's FVD is below repeating the last frame's on every split", claim_fvd_below_repeat),
+    ("steering follows counterfactual commands, against the town's true counterfactuals", claim_steering_truth),
 )
 
 

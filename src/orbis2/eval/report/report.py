@@ -30,6 +30,7 @@ from orbis2.eval.report.tables import (
     TRAINING_ROWS,
     Row,
     TableSettings,
+    calibration_table,
     chunked,
     compression_table,
     hierarchy_table,
@@ -104,6 +105,12 @@ def summary_markdown(tables: Sequence[tuple[str, Sequence[Row]]], evals: Evals, 
         parts += [f"## {title}", "", markdown_table(rows), ""]
         if any(key.startswith("fvd") for row in rows for key in row):
             parts += protocol_lines(evals)
+    calibration = calibration_table(evals)
+    if calibration:  # docs/evaluation.md, "The instrument on the truth"
+        parts += ["## The steering instrument on the true counterfactuals", "",
+                  "The turn the instrument reads from the town's true videos under each command, against the "
+                  "commanded turn (degrees, each start's turn direction positive; relative error = read / "
+                  "commanded - 1, clip-bootstrap intervals).", "", markdown_table(calibration), ""]
     parts += ["## Reading", ""]
     for i, (claim, verdict, evidence) in enumerate(check_claims(evals, settings), start=1):
         parts.append(f"{i}. {claim}: **{verdict}**. {evidence}.")

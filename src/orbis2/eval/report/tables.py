@@ -16,7 +16,7 @@ from typing import Any
 
 from orbis2.config.params import PipelineConfig
 from orbis2.errors import OrbisError
-from orbis2.eval.records import Chunked, CompressionRecord, CompressionRow, RealFloor
+from orbis2.eval.records import Chunked, CompressionRecord, CompressionRow, Interval, RealFloor, SteeringRecord
 from orbis2.eval.report.evals import Evals
 from orbis2.registry import SCOPES, registry
 
@@ -140,7 +140,8 @@ def steering_table(evals: Evals, settings: TableSettings) -> list[Row]:
     instrument, with OpenCV odometry as a second column (NA where ``evaluation.opencv_rollouts`` left it off the
     generated videos); then the bottom level alone given the real subgoals (its turn readings only: a
     reference for what the top's predictions cost), and each instrument on real and on shuffled videos as
-    floor and chance."""
+    floor and chance. Where the record has the town's true counterfactuals, each mode's row also scores it
+    against them (:func:`_truth_cells`); a cell a row does not measure is NA."""
     record = evals.steering_record()
     main = record.inverse_dynamics
     measured = "opencv" in record.instruments
@@ -165,6 +166,7 @@ def steering_table(evals: Evals, settings: TableSettings) -> list[Row]:
             "turn_deg_opencv": opencv.turn_deg if opencv else NA,
             **_turn_cells(evals, "latent", mode),
             **_turn_cells(evals, "image", mode),
+            **_truth_cells(evals, record, mode),
         })
     rows.append({**{key: NA for key in rows[0]}, "mode": "real_subgoals", "kind": "reference",
                  "instrument": main, "ade_n": record.samples,
@@ -190,7 +192,36 @@ def steering_table(evals: Evals, settings: TableSettings) -> list[Row]:
             **{k: v if mode == "real_videos" else NA for reading in ("latent", "image")
                for k, v in _turn_cells(evals, reading, "real").items()},
         })
-    return rows
+    return [{**{key: NA for key in rows[0]}, **row} for row in rows]
+
+
+def _interval_cells(name: str, iv: Interval | None) -> Row:
+    return {name: NA, f"{name}_low": NA, f"{name}_high": NA} if iv is None else {
+        name: iv.estimate, f"{name}_low": iv.low, f"{name}_high": iv.high}
+
+
+def _truth_cells(evals: Evals, record: SteeringRecord, mode: str) -> Row:
+    """One mode's rollouts against the town's true counterfactuals (none without them): per horizon the latent
+    MSE and PSNR of generated against true frames, FVD of generated against true videos, the instrument's turn
+    read from the true videos beside the commanded one (its calibration: the true video follows the command),
+    the truth-based claim's margin (closer to its own command's truth than to the others', relative) and how
+    many true paths met traffic or left the road; every figure with its interval and sample count."""
+    truth = record.truth
+    if truth is None:
+        return {}
+    cells = evals.entry(truth.modes, mode, "steering", None, "truth.modes")
+    margin = evals.entry(truth.claim.modes, mode, "steering", None, "truth.claim.modes")
+    row: Row = {"truth_n": cells.samples}
+    for horizon in cells.horizons:
+        at = f"{horizon.seconds:g}s"
+        row |= _interval_cells(f"latent_mse_{at}", horizon.latent_mse) | _interval_cells(f"psnr_{at}", horizon.psnr)
+    row |= {"truth_fvd": cells.fvd.fvd, "truth_fvd_low": cells.fvd.low, "truth_fvd_high": cells.fvd.high,
+            "truth_fvd_n": cells.fvd.videos}
+    row |= _interval_cells("truth_turn_deg", cells.instrument.turn_deg)
+    row |= {"truth_commanded_turn_deg": cells.instrument.commanded_turn_deg}
+    row |= _interval_cells("truth_turn_relative_error", cells.instrument.relative_error)
+    row |= _interval_cells("truth_margin", margin.margin) | {"truth_verdict": margin.verdict}
+    return row | {"truth_collisions": cells.collision, "truth_off_road": cells.off_road}
 
 
 def _turn_cells(evals: Evals, reading: str, mode: str) -> Row:
@@ -202,6 +233,23 @@ def _turn_cells(evals: Evals, reading: str, mode: str) -> Row:
     cell = evals.entry(turns.modes, mode, "steering", None, f"{reading}_turn.modes")
     return {f"turn_deg_{reading}": cell.turn_deg, f"turn_deg_{reading}_low": cell.low,
             f"turn_deg_{reading}_high": cell.high}
+
+
+def calibration_table(evals: Evals) -> list[Row]:
+    """The steering instrument on the town's true counterfactuals, per mode: the turn it reads from the true videos
+    against the commanded one (the true video follows the command exactly), and its relative error with an
+    interval; empty without a steering record with truth."""
+    truth = evals.steering_record().truth if evals.has("steering") else None
+    if truth is None:
+        return []
+    rows = []
+    for mode, cells in truth.modes.items():
+        reading, relative = cells.instrument.turn_deg, cells.instrument.relative_error
+        rows.append({"mode": mode, "instrument": truth.instrument,
+                     "commanded_turn_deg": cells.instrument.commanded_turn_deg,
+                     **_interval_cells("read_turn_deg", reading), **_interval_cells("relative_error", relative),
+                     "n": cells.samples})
+    return rows
 
 
 def speed_table(evals: Evals) -> list[Row]:
