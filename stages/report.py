@@ -5,13 +5,15 @@
 
 ``all`` also draws the qualitative rollout grid (from the FVD stages' saved frames)
 and copies the steering strip. The pipeline's parent MLflow run gets ``main``'s
-headline (its tables' numbers as metrics, verdicts and claims as tags, the tables
-and ``summary.md``) and ``all``'s figures. The DAG passes every record the report reads
+headline (at most 20 of its tables' numbers as metrics, the claims as tags, every interval as
+one forest plot and one table, the tables, the stage times and ``summary.md``) and ``all``'s
+figures (:mod:`orbis2.eval.report.parent`). The DAG passes every record the report reads
 (``--fvd NAME=FILE``, ``--probe NAME=FILE``, ...); by hand, without them, every
 record of registry.yaml's layout that exists is read.
 """
 
 import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +24,16 @@ from orbis2.eval.protocols.systems import SYSTEMS
 from orbis2.eval.records import EVAL_KINDS
 from orbis2.eval.report.claims import check_claims
 from orbis2.eval.report.evals import read_evals
+from orbis2.eval.report.parent import (
+    FOREST_PNG,
+    INTERVALS_CSV,
+    STAGE_TIMES_CSV,
+    intervals,
+    parent_metrics,
+    plot_intervals,
+    write_intervals,
+    write_stage_times,
+)
 from orbis2.eval.report.report import (
     HEADLINE_JSON,
     MAIN_CSV,
@@ -82,18 +94,24 @@ def main(argv: list[str] | None = None) -> None:
             run.log_artifact(path, None if scope == "main" else "all")
         if scope == "main":  # the pipeline's parent run: the headline numbers, verdicts and summary
             # conditioning: the effect of each row (its verdict is a tag; intervals and counts stay in the CSV)
-            metrics, verdicts = headline([p for p in written if p.suffix == ".csv"], {"conditioning": ("effect",)})
+            tables = [p for p in written if p.suffix == ".csv"]
             table1, _ = headline([p for p in written if p.name == MAIN_CSV])
             headline_file = (args.out or layout_path("reports")) / HEADLINE_JSON
             # DVC's metrics: Table 1's point estimates only (intervals and counts stay in the CSV), so that
             # `dvc metrics show` and `dvc exp show` stay readable in a terminal
             write_json(headline_file, {k: v for k, v in table1.items() if not k.endswith(INTERVAL_SUFFIXES)})
             run.log_artifact(headline_file)
-            run.publish_metrics(metrics)
-            run.publish_tags({**verdicts, **{f"claim/{i}": f"{verdict}: {claim}" for i, (claim, verdict, _)
-                                             in enumerate(check_claims(evals, settings), start=1)}})
-            for path in written:
-                run.publish(path, None if path.suffix == ".md" else "tables")
+            # a one-minute read: <= 20 headline numbers, every interval as one figure and one table, the claims
+            run.publish_metrics(parent_metrics(tables))
+            run.publish_tags({f"claim {i}": f"{verdict}: {claim}" for i, (claim, verdict, _)
+                              in enumerate(check_claims(evals, settings), start=1)})
+            with tempfile.TemporaryDirectory() as tmp:  # for the parent run only, not the DAG's outputs
+                found = intervals(tables)
+                run.publish(plot_intervals(found, Path(tmp) / FOREST_PNG), "figures")
+                review = [write_intervals(found, Path(tmp) / INTERVALS_CSV), headline_file,
+                          write_stage_times(run.stage_times(), Path(tmp) / STAGE_TIMES_CSV)]
+                for path in [*written, *review]:
+                    run.publish(path, None if path.suffix == ".md" else "tables")
         else:
             for path in written:
                 if path.suffix == ".png":

@@ -177,8 +177,10 @@ def open_stage(name: str, args: argparse.Namespace, interface: Interface,
 
     The params.yaml sections the stage reads are its declaration's, with ``extra`` (an entry's own section,
     as its rule passes it); they are logged as the run's parameters. On leaving the block the wall time is
-    logged (on the parent run too, as ``time/<name>``) and ``[<name>] <summary> (<s> s, profile <p>)``
-    printed. A user-fixable problem (:class:`OrbisError`) prints ``[<name>] error: ...`` and exits with status 2.
+    logged as ``wall_seconds`` (the parent's ``tables/stage_times.csv`` collects them) and
+    ``[<name>] <summary> (<s> s, profile <p>)`` printed. A user-fixable problem (:class:`OrbisError`) prints
+    ``[<name>] error: ...`` and exits with status 2. Run by hand without ``--profile``, the stage takes the
+    profile of the data it works on (:func:`profile_witness`) and says so.
     """
     started = time.perf_counter()
     freeze_imports()  # the script's own imports
@@ -192,8 +194,7 @@ def open_stage(name: str, args: argparse.Namespace, interface: Interface,
             stage = Stage(name, cfg, run)
             yield stage
             seconds = time.perf_counter() - started
-            run.log_metrics({"wall_seconds": seconds})
-            run.publish_metrics({f"time/{name}": seconds})
+            run.log_metrics({"wall_seconds": seconds})  # the parent's tables/stage_times.csv (report_main)
     except OrbisError as err:
         print(f"[{name}] error: {err}", file=sys.stderr)
         sys.exit(2)

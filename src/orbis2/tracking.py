@@ -12,11 +12,12 @@ that name. The parent's status follows its children: FAILED as soon as one
 stage failed, FINISHED only when every stage finished.
 
 The parent is what a reviewer opens first, so it carries the run's headline: the
-profile, commit and params digest (tags and params, set when it is created), each
-stage's wall time (``time/<stage>``) and whatever stages :meth:`StageRun.publish`
-there (the report's tables, verdicts and summary, the figures, a rollout gallery).
-The experiment is tagged as a model-development one, so MLflow 3 lists its runs
-rather than its GenAI overview.
+profile, commit and params digest (tags and params, set when it is created) and
+whatever stages :meth:`StageRun.publish` there (the report's headline numbers,
+claims, tables, intervals, stage times and summary, the figures, a rollout gallery).
+The experiment is tagged as a model-development one; MLflow 3.17's UI does not read
+that tag, so ``mlflow server --app-name orbis2`` (:mod:`orbis2.mlflow_app`) opens it
+in model-training mode.
 
 A SQLite store records absolute artifact locations (MLflow resolves a relative
 one against the working directory when it creates an experiment), so a project
@@ -263,6 +264,17 @@ class StageRun:
             client = self._mlflow.MlflowClient()
             for key, value in tags.items():
                 client.set_tag(self.parent_id, key, str(value)[:5000])
+
+    def stage_times(self) -> dict[str, float]:
+        """Every finished stage run of this invocation so far: its ``wall_seconds`` by stage name."""
+        if not (self._mlflow and self.parent_id):
+            return {}
+        client = self._mlflow.MlflowClient()
+        parent = client.get_run(self.parent_id)
+        children = client.search_runs([parent.info.experiment_id],
+                                      filter_string=f"tags.`mlflow.parentRunId` = '{self.parent_id}'", max_results=5000)
+        return {run.info.run_name: run.data.metrics["wall_seconds"] for run in children
+                if "wall_seconds" in run.data.metrics}
 
     def log_model(self, folder: Path, metrics: dict[str, float] | None = None) -> None:
         """Record a trained model: an MLflow logged model named after the stage, holding the
