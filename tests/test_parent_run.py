@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pandas as pd
 import pytest
 
+from orbis2.eval.protocols.rollout_fvd import gallery_frames
 from orbis2.eval.report.parent import MAX_METRICS, intervals, parent_metrics, plot_intervals, write_stage_times
 
 from conftest import ROOT
@@ -34,3 +36,12 @@ def test_every_interval_is_one_row_and_one_panel(tmp_path):
     assert plot_intervals(found, tmp_path / "forest.png").read_bytes().startswith(b"\x89PNG")
     times = pd.read_csv(write_stage_times({"town": 3.0, "shards": 9.5}, tmp_path / "times.csv"))
     assert times["stage"].tolist() == ["shards", "town"]
+
+
+def test_the_gallery_shows_real_beside_generated_at_a_watchable_size():
+    real = np.zeros((3, 72, 128, 3), np.uint8)
+    generated = np.full((3, 72, 128, 3), 200, np.uint8)
+    frames = gallery_frames(real, generated)
+    assert frames.shape == (3, 288, 1024, 3)  # x4: the smoke profile's 72-px frames, at least 256 px tall
+    assert (frames[:, :, :512] == 0).all() and (frames[:, :, 512:] == 200).all()
+    assert gallery_frames(real[:, :64], generated[:, :64]).shape[1] == 256
