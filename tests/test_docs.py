@@ -104,8 +104,10 @@ ALL = [command for page in PAGES for command in documented_commands(page)]
 
 
 def ci_commands() -> list[str]:
-    lines = (ROOT / ".ci/run").read_text().splitlines()
-    return [line.strip() for line in lines if line.strip() and not line.lstrip().startswith(("#", "set ", "cd "))]
+    """.ci/run's commands, less the block that installs system packages (the browser of tests/test_mlflow_ui.py)."""
+    lines = [line.strip() for line in (ROOT / ".ci/run").read_text().splitlines()]
+    return [line for line in lines if line and not line.startswith(("#", "set ", "cd ")) and "apt-get" not in line
+            and line != "fi"]
 
 
 def free_port() -> int:
