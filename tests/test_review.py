@@ -36,6 +36,24 @@ def test_no_commit_when_the_run_differs_from_params_yaml(tmp_path, capfd, monkey
     assert capfd.readouterr().err == ""
 
 
+def test_a_run_of_another_profile_writes_it_into_params_yaml(tmp_path, capfd, monkeypatch):
+    """`snakemake --config profile=smoke` with params.yaml saying default: DVC then reads the run's profile."""
+    params = tmp_path / "params.yaml"
+    text = (ROOT / "params.yaml").read_text()
+    params.write_text(re.sub(r"^profile: \S+", "profile: default", text, count=1, flags=re.MULTILINE))
+    assert dag.adopt_profile("smoke", ["profile"], params) == ["profile"]  # not a DVC project: left alone
+    (tmp_path / ".dvc").mkdir()
+    assert dag.adopt_profile("smoke", ["action", "profile"], params) == ["action", "profile"]
+    assert load_params(params)["profile"] == "default"
+    assert dag.adopt_profile("smoke", ["profile"], params) == []
+    assert "params.yaml: profile default -> smoke" in capfd.readouterr().err
+    after = params.read_text()
+    assert load_params(params)["profile"] == "smoke" and after.replace("profile: smoke", "profile: default", 1) == \
+        re.sub(r"^profile: \S+", "profile: default", text, count=1, flags=re.MULTILINE)  # only that line changed
+    monkeypatch.setenv(dag.COMMIT_ENV, "0")
+    assert dag.adopt_profile("paper", ["profile"], params) == ["profile"]
+
+
 def test_a_run_is_committed_through_its_sinks_with_their_dependencies():
     """One `dvc commit --with-deps` of the run's last stages records exactly the run: DVC rewrites dvc.lock once
     per target, so naming all 45 smoke stages took 2.5 CPU minutes."""

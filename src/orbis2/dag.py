@@ -283,6 +283,26 @@ def config_drift(config: dict[str, Any], params_file: Path | str = "params.yaml"
     return sorted(key for key in keys if config.get(key) != raw.get(key))
 
 
+def adopt_profile(profile: str, drift: list[str], params_file: Path | str = "params.yaml") -> list[str]:
+    """A run whose ``--config`` changes the profile and nothing else DVC reads writes that profile into params.yaml
+    as it starts (its ``profile:`` line, nothing else), so that DVC's views (``dvc status``, ``dvc params diff``,
+    ``dvc exp show``), the ``orbis2`` command and the run's outputs describe the same run, and the run is handed
+    to DVC when it succeeds. Returns the keys that still differ (then nothing is written). Not done when the
+    hand-over is off (``ORBIS2_DVC_COMMIT=0``) or outside a DVC project."""
+    params_file = Path(params_file)
+    if drift != ["profile"] or os.environ.get(COMMIT_ENV, "1") == "0" or not (params_file.parent / ".dvc").is_dir():
+        return drift
+    text = params_file.read_text()
+    line = re.compile(r"^profile:[ \t]*(\S+)", re.MULTILINE)
+    before = line.search(text)
+    if before is None:
+        return drift
+    params_file.write_text(line.sub(f"profile: {profile}", text, count=1))
+    print(f"params.yaml: profile {before.group(1)} -> {profile} (--config), so that DVC's views and the orbis2 "
+          f"command describe this run; set it back when the run is done with (docs/tracking.md).", file=sys.stderr)
+    return []
+
+
 def _stage_paths(stage: dict[str, Any], keys: tuple[str, ...]) -> list[str]:
     """The paths a dvc.yaml stage lists under ``keys`` (each entry a path, or a path with its options)."""
     return [next(iter(entry)) if isinstance(entry, dict) else entry for key in keys for entry in stage.get(key, [])]
@@ -343,7 +363,8 @@ def commit_to_dvc(rules: list[str], drift: list[str], root: Path | str = ".") ->
         return False
     if drift:
         print(f"dvc.lock not updated: this run's config differs from params.yaml in {', '.join(drift)} "
-              "(--config), and DVC reads params.yaml only (docs/tracking.md).", file=sys.stderr)
+              "(--config), and DVC reads params.yaml only; to hand the run to DVC, write those values into "
+              "params.yaml and run `dvc commit --force` (docs/tracking.md).", file=sys.stderr)
         return False
     stages = set(yaml.safe_load((root / "dvc.yaml").read_text())["stages"])
     targets = sorted(name for name in set(rules) if name in stages)
