@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -106,3 +109,21 @@ def test_rollout_says_which_profile_it_found(params, tmp_path, capsys):
     err = capsys.readouterr().err
     assert end.value.code == 2 and f"orbis2 rollout: profile smoke (as {tok} says; {params} says default)" in err
     assert "missing.mp4" in err  # then the video, read at the smoke profile's size
+
+
+def test_a_stage_run_by_hand_takes_the_profile_of_its_shards(params, tmp_path):
+    """`python stages/<stage>.py` without --profile in a smoke project whose params.yaml says default."""
+    shards = tmp_path / "shards"
+    shards.mkdir()
+    manifest(shards / "manifest.json", 128, 72)
+    code = ("import argparse, sys\nfrom orbis2.interfaces import INTERFACES\nfrom orbis2.stage import open_stage\n"
+            f"args = argparse.Namespace(params={str(params)!r}, profile=None, shards={str(shards)!r})\n"
+            "with open_stage('latents', args, INTERFACES['latents']) as s:\n"
+            "    s.summary = s.cfg.profile\n")
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "ORBIS2_SYSTEM_METRICS": "0",
+           "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert f"[latents] profile smoke (as {shards / 'manifest.json'} says; {params} says default)" in proc.stderr
+    assert "[latents] smoke (" in proc.stdout
