@@ -146,7 +146,7 @@ def test_parent_run_carries_the_headline(tmp_path):
     [parent] = [r for r in runs(tmp_path) if "mlflow.parentRunId" not in r.data.tags]
     assert parent.info.run_name.startswith("pipeline smoke ")
     assert parent.data.params["profile"] == "smoke" and parent.data.params["git_commit"] == "unknown"
-    assert parent.data.tags["orbis2.params_sha256"].startswith(parent.data.params["params_sha256"])
+    assert len(parent.data.params["params_sha256"]) == 12 and "orbis2.params_sha256" not in parent.data.tags
     assert parent.data.metrics["main_table/hierarchical/fvd_heldout"] == 12.5
     assert parent.data.tags["claim 1"] == "holds: x"
     names = {f.path for f in client.list_artifacts(parent.info.run_id)}

@@ -10,7 +10,8 @@ shows every run page as GenAI.
 
 This app is MLflow's own (``mlflow.server.fastapi_app.create_fastapi_app`` over its Flask app), with one
 change: the UI's page starts with a line that sets that storage key to model training where the browser
-has none yet, before MLflow's scripts read it. A browser that chose GenAI keeps its choice. It is
+has none yet, before MLflow's scripts read it (and keeps MLflow's LLM assistant from opening itself on a
+fresh browser's first page). A browser that chose otherwise keeps its choice. It is
 registered as an ``mlflow.app`` entry point (pyproject.toml), the hook MLflow's server offers for
 apps built on it (``--app-name basic-auth`` is MLflow's own).
 """
@@ -22,9 +23,14 @@ from mlflow.server import app as flask_app
 from mlflow.server.fastapi_app import create_fastapi_app
 from mlflow.server.handlers import _add_static_prefix
 
-STORAGE_KEY, MODEL_TRAINING = "mlflow.workflowType_v1", '"machine_learning"'  # the UI's key, JSON-encoded value
-MODEL_TRAINING_FIRST = (f"<script>try{{if(!localStorage.getItem('{STORAGE_KEY}'))"
-                        f"localStorage.setItem('{STORAGE_KEY}','{MODEL_TRAINING}')}}catch(e){{}}</script>")
+# The UI's local-storage keys and the JSON values this app starts a fresh browser with: model training, and
+# MLflow's LLM assistant not opened over a third of every page on the first visit (the button stays).
+BROWSER_DEFAULTS = {"mlflow.workflowType_v1": '"machine_learning"',
+                    "mlflow.assistant.fab.autoOpenedOnFirstLoad_v1": "true"}
+MODEL_TRAINING_FIRST = ("<script>try{" + "".join(f"if(localStorage.getItem('{key}')===null)"
+                                                  f"localStorage.setItem('{key}','{value}');"
+                                                  for key, value in BROWSER_DEFAULTS.items())
+                        + "}catch(e){}</script>")
 
 
 def with_model_training_first(page: str) -> str:

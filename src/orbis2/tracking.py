@@ -367,9 +367,9 @@ def stage_run(stage: str, params: dict[str, Any], pipeline: dict[str, Any] | Non
 def parent_run(client: Any, experiment_id: str, key: str, pipeline: dict[str, Any] | None = None) -> str:
     """The invocation's parent run, created by whichever stage comes first.
 
-    A new parent gets the provenance of ``pipeline`` (the whole resolved config) as
-    tags, its profile, commit and params digest also as params (the runs table's
-    columns), and the config itself as ``params.json``.
+    A new parent gets the provenance of ``pipeline`` (the whole resolved config): its profile,
+    commit and params digest as params (the runs table's columns; not repeated as tags, whose
+    keys the run page cuts short), the rest as tags, and the config itself as ``params.json``.
     Stages on other nodes (where the store lock does not reach) may create one at the
     same moment; every stage then keeps the oldest (by start time, then id) and deletes the others.
     """
@@ -379,12 +379,12 @@ def parent_run(client: Any, experiment_id: str, key: str, pipeline: dict[str, An
 
         pipeline = pipeline or {}
         tags = provenance(pipeline)
-        profile = tags["orbis2.profile"]
+        profile, digest = tags.pop("orbis2.profile"), tags.pop("orbis2.params_sha256")
         run = client.create_run(experiment_id,
                                 run_name=f"pipeline {profile} {time.strftime('%Y-%m-%d %H:%M:%S')}",
                                 tags={INVOCATION_TAG: key, "orbis2.pipeline": "true", **tags})
         shown = {"profile": profile, "git_commit": tags.get("mlflow.source.git.commit", "unknown"),
-                 "params_sha256": tags["orbis2.params_sha256"][:12]}
+                 "params_sha256": digest[:12]}
         client.log_batch(run.info.run_id, params=[Param(k, v) for k, v in shown.items()])
         client.log_text(run.info.run_id, json.dumps(pipeline, indent=2, sort_keys=True, default=str), "params.json")
         found = _parents(client, experiment_id, key)
