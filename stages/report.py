@@ -36,8 +36,6 @@ from orbis2.eval.report.parent import (
 )
 from orbis2.eval.report.report import (
     HEADLINE_JSON,
-    MAIN_CSV,
-    headline,
     report_setup,
     write_full_report,
     write_main_report,
@@ -49,7 +47,6 @@ from orbis2.registry import layout_path, registry
 from orbis2.stage import add_name_argument, open_stage, stage_parser
 
 GRID = "grid.npz"  # the frames of the qualitative grid in an FVD stage's media folder
-INTERVAL_SUFFIXES = ("_low", "_high", "_n")  # Table 1's interval bounds and sample counts
 
 
 def given_or_all(given: list[tuple[str, Path]], kind: str, names: list[str], option: str) -> dict[str, Path]:
@@ -95,14 +92,13 @@ def main(argv: list[str] | None = None) -> None:
         if scope == "main":  # the pipeline's parent run: the headline numbers, verdicts and summary
             # conditioning: the effect of each row (its verdict is a tag; intervals and counts stay in the CSV)
             tables = [p for p in written if p.suffix == ".csv"]
-            table1, _ = headline([p for p in written if p.name == MAIN_CSV])
             headline_file = (args.out or layout_path("reports")) / HEADLINE_JSON
-            # DVC's metrics: Table 1's point estimates only (intervals and counts stay in the CSV), so that
-            # `dvc metrics show` and `dvc exp show` stay readable in a terminal
-            write_json(headline_file, {k: v for k, v in table1.items() if not k.endswith(INTERVAL_SUFFIXES)})
+            # a one-minute read: <= 20 headline numbers, every interval as one figure and one table, the claims.
+            # The same numbers under the same names are DVC's metrics (intervals and counts stay in the tables).
+            numbers = parent_metrics(tables)
+            write_json(headline_file, numbers)
             run.log_artifact(headline_file)
-            # a one-minute read: <= 20 headline numbers, every interval as one figure and one table, the claims
-            run.publish_metrics(parent_metrics(tables))
+            run.publish_metrics(numbers)
             run.publish_tags({f"claim {i}": f"{verdict}: {claim}" for i, (claim, verdict, _)
                               in enumerate(check_claims(evals, settings), start=1)})
             with tempfile.TemporaryDirectory() as tmp:  # for the parent run only, not the DAG's outputs

@@ -39,19 +39,18 @@ def test_no_commit_when_the_run_differs_from_params_yaml(tmp_path, capfd, monkey
 def test_a_run_of_another_profile_writes_it_into_params_yaml(tmp_path, capfd, monkeypatch):
     """`snakemake --config profile=smoke` with params.yaml saying default: DVC then reads the run's profile."""
     params = tmp_path / "params.yaml"
-    text = (ROOT / "params.yaml").read_text()
-    params.write_text(re.sub(r"^profile: \S+", "profile: default", text, count=1, flags=re.MULTILINE))
-    assert dag.adopt_profile("smoke", ["profile"], params) == ["profile"]  # not a DVC project: left alone
+    text = re.sub(r"^profile: \S+", "profile: default", (ROOT / "params.yaml").read_text(), count=1,
+                  flags=re.MULTILINE)
+    params.write_text(text)
+    assert not dag.follows_profile(["profile"], params)  # not a DVC project
     (tmp_path / ".dvc").mkdir()
-    assert dag.adopt_profile("smoke", ["action", "profile"], params) == ["action", "profile"]
-    assert load_params(params)["profile"] == "default"
-    assert dag.adopt_profile("smoke", ["profile"], params) == []
+    assert dag.follows_profile(["profile"], params) and not dag.follows_profile(["action", "profile"], params)
+    dag.adopt_profile("smoke", params)
     assert "params.yaml: profile default -> smoke" in capfd.readouterr().err
-    after = params.read_text()
-    assert load_params(params)["profile"] == "smoke" and after.replace("profile: smoke", "profile: default", 1) == \
-        re.sub(r"^profile: \S+", "profile: default", text, count=1, flags=re.MULTILINE)  # only that line changed
+    assert load_params(params)["profile"] == "smoke"
+    assert params.read_text().replace("profile: smoke", "profile: default", 1) == text  # only that line changed
     monkeypatch.setenv(dag.COMMIT_ENV, "0")
-    assert dag.adopt_profile("paper", ["profile"], params) == ["profile"]
+    assert not dag.follows_profile(["profile"], params)
 
 
 def test_a_run_is_committed_through_its_sinks_with_their_dependencies():

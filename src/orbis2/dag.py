@@ -85,9 +85,10 @@ SLURM_BASE = {"executor": "slurm", "jobs": 50,
               "latency-wait": 120,
               "retries": 1,  # a killed training job resumes from its last checkpoint
               "default-resources": {"slurm_partition": "cpu"}}
-# DVC's metrics: each training report (flat, a few named numbers) and the main table's headline.json,
-# so that `dvc metrics show` and `dvc exp show` stay readable; the evaluation records are plain outputs.
-METRICS = re.compile(r"reports/[^/]+\.json")
+# DVC's metrics: the run's headline (reports/headline.json, the numbers the MLflow parent run shows, under the
+# same names), which the main job always writes: `dvc metrics show` loads every metrics file after it, and
+# `dvc exp show` gets at most 20 metric columns. The training reports and evaluation records are plain outputs.
+METRICS = re.compile(r"reports/headline\.json")
 # Rule params that are not params.yaml sections.
 # Those set when the rule is defined and passed in its command (see the Snakefile's _passed_from).
 PASSED = ("script", "scope", "args")
@@ -190,7 +191,7 @@ def _out_entry(out: str, assets: str) -> Any:
     if out.count("/") == 1 and out.endswith((".png", ".mp4")):
         return {out: {"cache": False}}  # the town's previews: for people, rebuilt with the town
     if out.startswith("reports/") and out.endswith(".json"):
-        return {out: {"cache": False}}  # evaluation records: small, kept in git, not metrics (nested, hundreds of keys)
+        return {out: {"cache": False}}  # training reports and evaluation records: small, not metrics (see METRICS)
     return out
 
 
@@ -283,24 +284,27 @@ def config_drift(config: dict[str, Any], params_file: Path | str = "params.yaml"
     return sorted(key for key in keys if config.get(key) != raw.get(key))
 
 
-def adopt_profile(profile: str, drift: list[str], params_file: Path | str = "params.yaml") -> list[str]:
-    """A run whose ``--config`` changes the profile and nothing else DVC reads writes that profile into params.yaml
-    as it starts (its ``profile:`` line, nothing else), so that DVC's views (``dvc status``, ``dvc params diff``,
-    ``dvc exp show``), the ``orbis2`` command and the run's outputs describe the same run, and the run is handed
-    to DVC when it succeeds. Returns the keys that still differ (then nothing is written). Not done when the
-    hand-over is off (``ORBIS2_DVC_COMMIT=0``) or outside a DVC project."""
+def follows_profile(drift: list[str], params_file: Path | str = "params.yaml") -> bool:
+    """Whether a run whose config differs from params.yaml in ``drift`` writes its profile into params.yaml when it
+    starts (:func:`adopt_profile`): when the profile is all that differs, in a DVC project, with the hand-over to
+    DVC on (not ``ORBIS2_DVC_COMMIT=0``)."""
+    return (drift == ["profile"] and os.environ.get(COMMIT_ENV, "1") != "0"
+            and (Path(params_file).parent / ".dvc").is_dir())
+
+
+def adopt_profile(profile: str, params_file: Path | str = "params.yaml") -> None:
+    """Write ``profile`` into params.yaml (its ``profile:`` line, nothing else) and say so: a run of another profile
+    (``--config profile=smoke``) then leaves DVC's views (``dvc status``, ``dvc params diff``, ``dvc exp show``),
+    the ``orbis2`` command and its outputs describing the same run, and is handed to DVC when it succeeds."""
     params_file = Path(params_file)
-    if drift != ["profile"] or os.environ.get(COMMIT_ENV, "1") == "0" or not (params_file.parent / ".dvc").is_dir():
-        return drift
     text = params_file.read_text()
     line = re.compile(r"^profile:[ \t]*(\S+)", re.MULTILINE)
     before = line.search(text)
     if before is None:
-        return drift
+        raise ValueError(f"{params_file}: no top-level `profile:` line to set")
     params_file.write_text(line.sub(f"profile: {profile}", text, count=1))
     print(f"params.yaml: profile {before.group(1)} -> {profile} (--config), so that DVC's views and the orbis2 "
-          f"command describe this run; set it back when the run is done with (docs/tracking.md).", file=sys.stderr)
-    return []
+          f"command describe this run; set it back when you are done with it (docs/tracking.md).", file=sys.stderr)
 
 
 def _stage_paths(stage: dict[str, Any], keys: tuple[str, ...]) -> list[str]:
