@@ -101,13 +101,18 @@ def main(argv: list[str] | None = None) -> None:
             run.publish_metrics(numbers)
             run.publish_tags({f"claim {i}": f"{verdict}: {claim}" for i, (claim, verdict, _)
                               in enumerate(check_claims(evals, settings), start=1)})
-            with tempfile.TemporaryDirectory() as tmp:  # for the parent run only, not the DAG's outputs
-                found = intervals(tables)
-                run.publish(plot_intervals(found, Path(tmp) / FOREST_PNG), "figures")
-                review = [write_intervals(found, Path(tmp) / INTERVALS_CSV), headline_file,
-                          write_stage_times(run.stage_times(), Path(tmp) / STAGE_TIMES_CSV)]
-                for path in [*written, *review]:
-                    run.publish(path, None if path.suffix == ".md" else "tables")
+            found = intervals(tables)  # every interval as one table and one forest plot (dvc plots show's too)
+            forest = plot_intervals(found, headline_file.parent / FOREST_PNG)
+            table = write_intervals(found, headline_file.parent / INTERVALS_CSV)
+            written += [table, forest, headline_file]
+            for path in (table, forest):
+                run.log_artifact(path)
+            run.publish(forest, "figures")
+            with tempfile.TemporaryDirectory() as tmp:  # the invocation's stage times: the parent run's only
+                times = write_stage_times(run.stage_times(), Path(tmp) / STAGE_TIMES_CSV)
+                for path in [*written, times]:
+                    if path != forest:
+                        run.publish(path, None if path.suffix == ".md" else "tables")
         else:
             for path in written:
                 if path.suffix == ".png":

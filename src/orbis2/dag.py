@@ -49,7 +49,8 @@ FIGURES = ["fvd_chunked.png", "probe_per_block.png", "bubble_params_fvd_miou.png
 
 
 def plots(rules: list) -> str:
-    """dvc.yaml's `plots`: the report's figures and one PNG per loss of every training stage
+    """dvc.yaml's `plots`: the report's figures (the main job's forest plot of every interval first) and one PNG
+    per loss of every training stage
     (``<output>/curves/<metric>.png``, :data:`orbis2.stage.LOSS_PLOTS`), at the rules' output paths.
 
     Images only: DVC copies them beside its page, while a data plot makes the page load its chart
@@ -61,7 +62,8 @@ def plots(rules: list) -> str:
     trained = {rule.name: str(rule.output.weights) for rule in rules if "weights" in rule.output.keys()}
     predictors = [name for name, spec in reg.predictors.items() if spec.objective != "reflow"]
     report_all = Path(by_name["report_all"].output.report)
-    entries = [str(report_all / "figures" / name) for name in FIGURES]
+    forest = [str(f) for f in by_name["report_main"].output if str(f).endswith(".png")]  # the main job's intervals
+    entries = forest + [str(report_all / "figures" / name) for name in FIGURES]
     # One image per model and loss: the losses differ by orders of magnitude (the abstract tokenizer's ~400
     # against the predictors' ~1), so each keeps its own axis.
     train, val = (f"curves/{metric}.png" for metric in LOSS_PLOTS.values())
