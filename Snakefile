@@ -19,7 +19,7 @@ import uuid
 from pathlib import Path
 
 from orbis2.config.params import load_params, parse_config, resolve_section
-from orbis2.dag import adopt_profile, code_inputs, commit_to_dvc, config_drift, follows_profile
+from orbis2.dag import adopt_profile, code_inputs, commit_to_dvc, config_drift, follows_profile, requests
 from orbis2.interfaces import INTERFACES
 from orbis2.registry import layout_path, registry
 
@@ -157,7 +157,8 @@ def command(stage, head="", script=None):
 
 
 def resources_of(stage):
-    return stage.resources.scheduler()
+    """The declared needs for a scheduler; GPUs and memory at most this machine's when the jobs run here."""
+    return requests(stage.resources.scheduler(), lambda: workflow.local_exec)
 
 
 def log(name):

@@ -254,3 +254,18 @@ def test_snakefile_says_when_its_profile_is_not_the_one_dvc_reads(capfd, monkeyp
     assert f"profile {other} (--config); params.yaml says {file_profile}" in capfd.readouterr().err
     dag.snakemake_rules(ROOT)
     assert "params.yaml says" not in capfd.readouterr().err
+
+
+def test_a_local_run_requests_at_most_what_this_machine_has(monkeypatch):
+    """Jobs that run here state this machine's GPUs and memory at most (a smoke run's training rules asked for
+    8 GPUs and 480 GB); jobs sent to a scheduler, and the SLURM profile, keep the declared needs."""
+    declared = {"gpu": 8, "mem_mb": 480000, "runtime": 2880}
+    machine = dag.this_machine()
+    here = dag.requests(declared, lambda: True)
+    assert here["gpu"](None) == min(8, machine["gpu"]) and here["mem_mb"](None) == min(480000, machine["mem_mb"])
+    assert here["runtime"] == 2880 and 0 < machine["mem_mb"] < 480000
+    assert dag.requests(declared, lambda: False)["gpu"](None) == 8
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")
+    assert dag.this_machine()["gpu"] == 0
+    slurm = yaml.safe_load((ROOT / "profiles/slurm/config.yaml").read_text())["set-resources"]
+    assert slurm["abstract_df"]["gres"] == "gpu:8" and slurm["abstract_df"]["mem_mb"] == 480000

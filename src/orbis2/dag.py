@@ -20,9 +20,10 @@ import os
 import re
 import subprocess
 import sys
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import yaml
 
@@ -91,6 +92,7 @@ SLURM_BASE = {"executor": "slurm", "jobs": 50,
 # same names), which the main job always writes: `dvc metrics show` loads every metrics file after it, and
 # `dvc exp show` gets at most 20 metric columns. The training reports and evaluation records are plain outputs.
 METRICS = re.compile(r"reports/headline\.json")
+DECLARED_ENV = "ORBIS2_DECLARED_RESOURCES"  # set while the rules are read to generate the SLURM profile
 # Rule params that are not params.yaml sections.
 # Those set when the rule is defined and passed in its command (see the Snakefile's _passed_from).
 PASSED = ("script", "scope", "args")
@@ -147,11 +149,15 @@ def snakemake_rules(root: Path, profile: str | None = None) -> list:
     from snakemake.settings.types import ConfigSettings, OutputSettings, ResourceSettings
 
     profile = profile or load_params(root / "params.yaml")["profile"]
-    with SnakemakeApi(OutputSettings(quiet={"all"})) as api:
-        workflow = api.workflow(resource_settings=ResourceSettings(cores=1),
-                                config_settings=ConfigSettings(config={"profile": profile}),
-                                snakefile=root / "Snakefile", workdir=root)._workflow
-        return [rule for rule in workflow.rules if rule.name != "all"]
+    os.environ[DECLARED_ENV] = "1"  # the declared resources (for the SLURM profile), not this machine's
+    try:
+        with SnakemakeApi(OutputSettings(quiet={"all"})) as api:
+            workflow = api.workflow(resource_settings=ResourceSettings(cores=1),
+                                    config_settings=ConfigSettings(config={"profile": profile}),
+                                    snakefile=root / "Snakefile", workdir=root)._workflow
+            return [rule for rule in workflow.rules if rule.name != "all"]
+    finally:
+        del os.environ[DECLARED_ENV]
 
 
 # A rule's named input or output in its shell command.
@@ -241,8 +247,44 @@ def snakemake_only(rule) -> bool:
     return rule.has_wildcards()
 
 
+def this_machine() -> dict[str, int]:
+    """This machine's GPUs (the NVIDIA driver lists them in /proc/driver/nvidia/gpus; CUDA_VISIBLE_DEVICES narrows
+    them) and memory (MB)."""
+    listed = Path("/proc/driver/nvidia/gpus")
+    gpus = len(list(listed.iterdir())) if listed.is_dir() else 0
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is not None:
+        gpus = min(gpus, len([d for d in visible.split(",") if d.strip() not in ("", "-1")]))
+    return {"gpu": gpus, "mem_mb": os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2**20}
+
+
+@dataclass(frozen=True)
+class Request:
+    """One resource a rule requests: its declaration's (the paper profile's needs, orbis2.interfaces) when its
+    jobs go to a scheduler, at most this machine's when they run here, so that a local run's log states what the
+    job can have (a smoke run's training rules asked for 8 GPUs and 480 GB). Snakemake calls it per job."""
+
+    declared: int
+    here: int
+    runs_here: Callable[[], bool]
+
+    def __call__(self, wildcards) -> int:
+        return min(self.declared, self.here) if self.runs_here() else self.declared
+
+
+def requests(declared: dict[str, int], runs_here: Callable[[], bool]) -> dict[str, int | Request]:
+    """A rule's ``resources:``: GPUs and memory as :class:`Request` (the rest as declared); all as declared while
+    :func:`snakemake_rules` reads the rules."""
+    if os.environ.get(DECLARED_ENV):
+        return dict(declared)
+    machine = this_machine()
+    return {name: Request(value, machine[name], runs_here) if name in machine else value
+            for name, value in declared.items()}
+
+
 def slurm_resources(rule) -> dict:
-    """A rule's SLURM request: GPU rules on the gpu partition, one task with the rule's threads."""
+    """A rule's SLURM request: GPU rules on the gpu partition, one task with the rule's threads (the rules as
+    :func:`snakemake_rules` reads them: with the declared GPUs and memory, not this machine's)."""
     value = {name: int(rule.resources[name].value) for name in ("gpu", "_cores", "mem_mb", "runtime")}
     gpus = value["gpu"]
     out = {"slurm_partition": "gpu" if gpus else "cpu", "cpus_per_task": value["_cores"],
