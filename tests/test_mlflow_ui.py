@@ -99,6 +99,7 @@ def test_the_readme_address_and_the_parent_run_open_in_model_training_mode(smoke
         REVIEW.mkdir(exist_ok=True)
         driver.save_screenshot(str(REVIEW / "runs.png"))
 
+        driver.set_window_size(1600, 1900)  # the parent's page to its params and metrics
         driver.get(f"{base}/#/experiments/{experiment.experiment_id}/runs/{parent.info.run_id}")  # as a link opens it
         page = page_text(driver, "params_sha256")
         assert "params_sha256" in page and "profile" in page and "claim 1" in page, page[:2000]
@@ -106,11 +107,15 @@ def test_the_readme_address_and_the_parent_run_open_in_model_training_mode(smoke
         assert "main_table/hierarchical/fvd_heldout" in page
         driver.save_screenshot(str(REVIEW / "parent.png"))
 
-        driver.get(f"{base}/#/experiments/{experiment.experiment_id}/runs/{parent.info.run_id}/artifacts/"
-                   "figures/intervals.png")
-        page_text(driver, "intervals.png")
-        time.sleep(2)  # the image itself
-        driver.save_screenshot(str(REVIEW / "intervals.png"))
+        driver.set_window_size(1600, 1000)
+        artifacts = f"{base}/#/experiments/{experiment.experiment_id}/runs/{parent.info.run_id}/artifacts/"
+        for artifact, shot in (("figures/intervals.png", "intervals.png"), ("gallery/hierarchical_val.gif",
+                                                                            "gallery.png")):
+            driver.get("about:blank")  # a page load, not only a new address fragment
+            driver.get(artifacts + artifact)
+            assert Path(artifact).name in page_text(driver, Path(artifact).name)
+            time.sleep(3)  # the image itself
+            driver.save_screenshot(str(REVIEW / shot))
     finally:
         if driver is not None:
             driver.quit()
