@@ -27,7 +27,7 @@ LAYERS = (
     ("orbis2.eval.report",),
     ("orbis2.tasks",),
     ("orbis2.tracking", "orbis2.stage"),  # the MLflow run and what stage scripts share
-    ("orbis2.cli", "orbis2.dag"),
+    ("orbis2.cli", "orbis2.dag", "orbis2.mlflow_app"),  # mlflow_app: MLflow's server, for `mlflow ui --app-name`
 )
 # Library packages that must not know about experiment tracking, even through a lazy import.
 PURE = ("orbis2.models", "orbis2.data", "orbis2.tasks", "orbis2.eval")

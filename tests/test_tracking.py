@@ -157,10 +157,11 @@ def test_parent_run_carries_the_headline(tmp_path):
     assert config["evaluation"] == {"seed": 3}  # the whole config, not only the first stage's sections
 
 
-def test_stage_times_are_collected_for_the_parent(tmp_path, monkeypatch):
+def test_stage_times_are_collected_for_the_parent(tmp_path):
     import subprocess as sp
+    from types import SimpleNamespace
 
-    import mlflow
+    from mlflow.tracking import MlflowClient
 
     env = {**os.environ, "PYTHONPATH": str(SRC), "ORBIS2_PIPELINE_ID": "inv", "ORBIS2_SYSTEM_METRICS": "0",
            "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}
@@ -175,8 +176,8 @@ def test_stage_times_are_collected_for_the_parent(tmp_path, monkeypatch):
     [child] = [r for r in runs(tmp_path) if "mlflow.parentRunId" in r.data.tags]
     assert not parent.data.metrics  # the parent's metrics are the report's headline only
     assert child.data.metrics["wall_seconds"] > 0
-    monkeypatch.setenv("MLFLOW_TRACKING_URI", env["MLFLOW_TRACKING_URI"])
-    logger = StageRun(mlflow, child.info.run_id, "report_main", parent_id=parent.info.run_id)
+    store = SimpleNamespace(MlflowClient=lambda: MlflowClient(tracking_uri=env["MLFLOW_TRACKING_URI"]))
+    logger = StageRun(store, child.info.run_id, "report_main", parent_id=parent.info.run_id)
     assert logger.stage_times() == {"timed": child.data.metrics["wall_seconds"]}
 
 
