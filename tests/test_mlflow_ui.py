@@ -1,7 +1,8 @@
 """MLflow's UI as a reviewer first sees it, in headless Chromium with a fresh browser profile: the README's
 server command and address open the smoke run's experiment, and its parent run's page, in model-training mode
 (orbis2.mlflow_app), not on MLflow 3's GenAI pages. The screenshots are the ones docs/tracking.md shows
-(docs/review/). Needs the Debian packages chromium and chromium-driver (.ci/run installs them)."""
+(docs/review/). Needs the Debian packages chromium and chromium-driver (.ci/run installs them); the first test
+checks the page the app serves without them."""
 
 from __future__ import annotations
 
@@ -64,6 +65,19 @@ def page_text(driver, wanted: str, timeout_s: float = 60) -> str:
         if wanted in text or time.monotonic() > deadline:
             return text
         time.sleep(0.5)
+
+
+def test_the_ui_page_starts_by_choosing_model_training_where_the_browser_has_no_choice():
+    """What the browser test sees, without a browser: MLflow's page with the defaults first in its head."""
+    from orbis2.mlflow_app import BROWSER_DEFAULTS, MODEL_TRAINING_FIRST, flask_app, with_model_training_first
+
+    page = flask_app.test_client().get("/")
+    text = page.get_data(as_text=True)
+    assert page.status_code == 200 and text.startswith("<!doctype html><html lang=\"en\"><head>" + MODEL_TRAINING_FIRST)
+    assert BROWSER_DEFAULTS["mlflow.workflowType_v1"] == '"machine_learning"' and text.count(MODEL_TRAINING_FIRST) == 1
+    assert "localStorage.getItem('mlflow.workflowType_v1')===null" in MODEL_TRAINING_FIRST  # a choice made stays
+    assert with_model_training_first(text) == text
+    assert flask_app.test_client().get("/health").get_data(as_text=True) == "OK"
 
 
 @pytest.mark.slow
