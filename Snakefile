@@ -19,7 +19,7 @@ import uuid
 from pathlib import Path
 
 from orbis2.config.params import load_params, parse_config, resolve_section
-from orbis2.dag import code_inputs, commit_to_dvc, config_drift
+from orbis2.dag import adopt_profile, code_inputs, commit_to_dvc, config_drift, follows_profile, requests
 from orbis2.interfaces import INTERFACES
 from orbis2.registry import layout_path, registry
 
@@ -32,7 +32,8 @@ envvars: "ORBIS2_PIPELINE_ID"
 
 DVC_DRIFT = config_drift(config)  # the keys DVC cannot see
 PROFILE = config["profile"]
-if PROFILE != FILE_PROFILE:  # DVC reads params.yaml only: say where its views and this run part ways
+FOLLOWS = follows_profile(DVC_DRIFT)  # params.yaml takes the run's profile when it starts (onstart below)
+if PROFILE != FILE_PROFILE and not FOLLOWS:  # DVC reads params.yaml only: say where its views and the run part ways
     print(f"profile {PROFILE} (--config); params.yaml says {FILE_PROFILE}, which is what `dvc params diff`, "
           f"`dvc exp show` and `dvc status` read. MLflow records {PROFILE}. To let DVC see this run, set "
           f"`profile: {PROFILE}` in params.yaml instead (docs/tracking.md).", file=sys.stderr)
@@ -156,7 +157,8 @@ def command(stage, head="", script=None):
 
 
 def resources_of(stage):
-    return stage.resources.scheduler()
+    """The declared needs for a scheduler; GPUs and memory at most this machine's when the jobs run here."""
+    return requests(stage.resources.scheduler(), lambda: workflow.local_exec)
 
 
 def log(name):
@@ -184,5 +186,12 @@ include: "rules/declared.smk"
 
 # A successful run leaves DVC's lock in step (when DVC reads the same config): `dvc status` is clean and
 # `dvc repro` re-runs only what changes. ORBIS2_DVC_COMMIT=0 turns it off.
+# A run that changes only the profile (`--config profile=smoke`) writes it into params.yaml when it starts (not
+# in a dry run), so that DVC and the orbis2 command describe the run it makes.
+onstart:
+    if FOLLOWS:
+        adopt_profile(PROFILE)
+        DVC_DRIFT.clear()
+
 onsuccess:
     commit_to_dvc([job.rule.name for job in workflow.dag.jobs], DVC_DRIFT)

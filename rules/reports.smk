@@ -16,7 +16,8 @@ rule report_main:
         **inputs(REPORT, REPORT_MAIN),
     output:  # the main tables' files in the folder passed as --out
         *(f"{REPORT_MAIN['report']}/{name}" for name in ("main_table.csv", "steering.csv", "speed.csv",
-                                                      "conditioning.csv", "summary.md", "headline.json")),
+                                                      "conditioning.csv", "summary.md", "headline.json",
+                                                      "intervals.csv", "intervals.png")),
     params:
         **stage_params(REPORT, REPORT_MAIN),
     log: log("report_main")

@@ -80,11 +80,10 @@ def main(argv: list[str] | None = None) -> None:
                            protocol={s: r["protocol"] for s, r in results.items()},
                            chunked=chunked[-1] if chunked else None)
 
-        for video in sorted(media.glob("*.mp4")):
+        # the parent's rollout gallery: per system and split, real beside generated as VP9 and as GIF
+        for video in sorted([*media.glob("*.mp4"), *media.glob("*.gif")]):
             run.log_artifact(video, "videos")
-        for gif in sorted(media.glob("*.gif")):  # the parent's rollout gallery: one thumbnail per system and split
-            run.log_artifact(gif, "videos")
-            run.publish(gif, "gallery", f"{name}_{gif.name}")
+            run.publish(video, "gallery", f"{name}_{video.name}")
         write_record(report, record)
         run.log_artifact(report)
         run.log_metrics({f"fvd_{split}": v.fvd for split, v in record.fvd.items()})

@@ -5,13 +5,15 @@
 
 ``all`` also draws the qualitative rollout grid (from the FVD stages' saved frames)
 and copies the steering strip. The pipeline's parent MLflow run gets ``main``'s
-headline (its tables' numbers as metrics, verdicts and claims as tags, the tables
-and ``summary.md``) and ``all``'s figures. The DAG passes every record the report reads
+headline (at most 20 of its tables' numbers as metrics, the claims as tags, every interval as
+one forest plot and one table, the tables, the stage times and ``summary.md``) and ``all``'s
+figures (:mod:`orbis2.eval.report.parent`). The DAG passes every record the report reads
 (``--fvd NAME=FILE``, ``--probe NAME=FILE``, ...); by hand, without them, every
 record of registry.yaml's layout that exists is read.
 """
 
 import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -22,10 +24,18 @@ from orbis2.eval.protocols.systems import SYSTEMS
 from orbis2.eval.records import EVAL_KINDS
 from orbis2.eval.report.claims import check_claims
 from orbis2.eval.report.evals import read_evals
+from orbis2.eval.report.parent import (
+    FOREST_PNG,
+    INTERVALS_CSV,
+    STAGE_TIMES_CSV,
+    intervals,
+    parent_metrics,
+    plot_intervals,
+    write_intervals,
+    write_stage_times,
+)
 from orbis2.eval.report.report import (
     HEADLINE_JSON,
-    MAIN_CSV,
-    headline,
     report_setup,
     write_full_report,
     write_main_report,
@@ -37,7 +47,6 @@ from orbis2.registry import layout_path, registry
 from orbis2.stage import add_name_argument, open_stage, stage_parser
 
 GRID = "grid.npz"  # the frames of the qualitative grid in an FVD stage's media folder
-INTERVAL_SUFFIXES = ("_low", "_high", "_n")  # Table 1's interval bounds and sample counts
 
 
 def given_or_all(given: list[tuple[str, Path]], kind: str, names: list[str], option: str) -> dict[str, Path]:
@@ -82,18 +91,28 @@ def main(argv: list[str] | None = None) -> None:
             run.log_artifact(path, None if scope == "main" else "all")
         if scope == "main":  # the pipeline's parent run: the headline numbers, verdicts and summary
             # conditioning: the effect of each row (its verdict is a tag; intervals and counts stay in the CSV)
-            metrics, verdicts = headline([p for p in written if p.suffix == ".csv"], {"conditioning": ("effect",)})
-            table1, _ = headline([p for p in written if p.name == MAIN_CSV])
+            tables = [p for p in written if p.suffix == ".csv"]
             headline_file = (args.out or layout_path("reports")) / HEADLINE_JSON
-            # DVC's metrics: Table 1's point estimates only (intervals and counts stay in the CSV), so that
-            # `dvc metrics show` and `dvc exp show` stay readable in a terminal
-            write_json(headline_file, {k: v for k, v in table1.items() if not k.endswith(INTERVAL_SUFFIXES)})
+            # a one-minute read: <= 20 headline numbers, every interval as one figure and one table, the claims.
+            # The same numbers under the same names are DVC's metrics (intervals and counts stay in the tables).
+            numbers = parent_metrics(tables)
+            write_json(headline_file, numbers)
             run.log_artifact(headline_file)
-            run.publish_metrics(metrics)
-            run.publish_tags({**verdicts, **{f"claim/{i}": f"{verdict}: {claim}" for i, (claim, verdict, _)
-                                             in enumerate(check_claims(evals, settings), start=1)}})
-            for path in written:
-                run.publish(path, None if path.suffix == ".md" else "tables")
+            run.publish_metrics(numbers)
+            run.publish_tags({f"claim {i}": f"{verdict}: {claim}" for i, (claim, verdict, _)
+                              in enumerate(check_claims(evals, settings), start=1)})
+            found = intervals(tables)  # every interval as one table and one forest plot (dvc plots show's too)
+            forest = plot_intervals(found, headline_file.parent / FOREST_PNG)
+            table = write_intervals(found, headline_file.parent / INTERVALS_CSV)
+            written += [table, forest, headline_file]
+            for path in (table, forest):
+                run.log_artifact(path)
+            run.publish(forest, "figures")
+            with tempfile.TemporaryDirectory() as tmp:  # the invocation's stage times: the parent run's only
+                times = write_stage_times(run.stage_times(), Path(tmp) / STAGE_TIMES_CSV)
+                for path in [*written, times]:
+                    if path != forest:
+                        run.publish(path, None if path.suffix == ".md" else "tables")
         else:
             for path in written:
                 if path.suffix == ".png":

@@ -222,16 +222,16 @@ def test_a_params_typo_fails_when_the_snakefile_is_read(tmp_path):
         snakemake_rules(root)
 
 
-def test_dvc_metrics_are_the_few_named_files():
-    """`dvc metrics show` reads the training reports and Table 1's headline only, each a rule's output;
-    the evaluation records (nested, hundreds of keys) are plain outputs."""
+def test_dvc_metrics_are_the_headline_the_main_job_writes():
+    """`dvc metrics show` reads the headline only, which the main job writes (a metrics file of a stage outside
+    it, an ablation's training report, failed to load after the main job); the training reports and the
+    evaluation records (nested, hundreds of keys) are plain outputs, not cached."""
     stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
     metrics = {next(iter(m)): name for name, stage in stages.items() for m in stage.get("metrics", [])}
-    assert metrics["reports/headline.json"] == "report_main"
-    assert all(dag.METRICS.fullmatch(path) for path in metrics)
-    assert not [path for path in metrics if path.startswith("reports/eval/")]
+    assert metrics == {"reports/headline.json": "report_main"}
     trained = {name for name, stage in stages.items() if "--report reports/" in stage["cmd"]}
-    assert trained <= set(metrics.values()) and len(trained) >= 10
+    outs = {next(iter(o)): o[next(iter(o))] for name in trained for o in stages[name]["outs"] if isinstance(o, dict)}
+    assert len(trained) >= 10 and {"reports/abstract_tf.json": {"cache": False}}.items() <= outs.items()
 
 
 def test_each_loss_curve_has_its_own_plot():
@@ -244,11 +244,28 @@ def test_each_loss_curve_has_its_own_plot():
     assert {p.split("/curves/")[0] for p in losses} == trained and len(set(losses)) == len(losses)
 
 
-def test_snakefile_says_when_its_profile_is_not_the_one_dvc_reads(capfd):
-    """A `--config profile=` other than params.yaml's is a run DVC's views cannot describe: the Snakefile says so."""
+def test_snakefile_says_when_its_profile_is_not_the_one_dvc_reads(capfd, monkeypatch):
+    """A `--config profile=` other than params.yaml's, with the hand-over to DVC off (else the run writes it into
+    params.yaml: tests/test_review.py), is a run DVC's views cannot describe: the Snakefile says so."""
+    monkeypatch.setenv(dag.COMMIT_ENV, "0")
     file_profile = load_params(ROOT / "params.yaml")["profile"]
     other = next(p for p in PROFILES if p != file_profile)
     dag.snakemake_rules(ROOT, other)
     assert f"profile {other} (--config); params.yaml says {file_profile}" in capfd.readouterr().err
     dag.snakemake_rules(ROOT)
     assert "params.yaml says" not in capfd.readouterr().err
+
+
+def test_a_local_run_requests_at_most_what_this_machine_has(monkeypatch):
+    """Jobs that run here state this machine's GPUs and memory at most (a smoke run's training rules asked for
+    8 GPUs and 480 GB); jobs sent to a scheduler, and the SLURM profile, keep the declared needs."""
+    declared = {"gpu": 8, "mem_mb": 480000, "runtime": 2880}
+    machine = dag.this_machine()
+    here = dag.requests(declared, lambda: True)
+    assert here["gpu"](None) == min(8, machine["gpu"]) and here["mem_mb"](None) == min(480000, machine["mem_mb"])
+    assert here["runtime"] == 2880 and 0 < machine["mem_mb"] < 480000
+    assert dag.requests(declared, lambda: False)["gpu"](None) == 8
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")
+    assert dag.this_machine()["gpu"] == 0
+    slurm = yaml.safe_load((ROOT / "profiles/slurm/config.yaml").read_text())["set-resources"]
+    assert slurm["abstract_df"]["gres"] == "gpu:8" and slurm["abstract_df"]["mem_mb"] == 480000

@@ -104,11 +104,14 @@ ALL = [command for page in PAGES for command in documented_commands(page)]
 
 
 def ci_commands() -> list[str]:
-    """The commands of .ci/run but the Debian packages the browser tests need (the README names them; the tests
-    that need them are skipped without them)."""
-    lines = (ROOT / ".ci/run").read_text().splitlines()
-    return [line.strip() for line in lines if line.strip() and not line.lstrip().startswith(("#", "set ", "cd "))
-            and "apt-get install" not in line]
+    """.ci/run's commands, less its block that installs the browser tests' Debian packages (``if ... fi``)."""
+    commands, skipping = [], False
+    for line in (line.strip() for line in (ROOT / ".ci/run").read_text().splitlines()):
+        skipping = skipping or line.startswith("if ")
+        if not skipping and line and not line.startswith(("#", "set ", "cd ")):
+            commands.append(line)
+        skipping = skipping and line != "fi"
+    return commands
 
 
 def free_port() -> int:

@@ -166,6 +166,15 @@ def test_bad_input_stops_with_the_file_and_the_fix(tmp_path, capsys):
         evaluate_pairs(short, CONTEXT, PROTO, PooledPixels(), "sha")
 
 
+def test_a_short_rollout_among_long_ones_is_refused_by_name(tmp_path):
+    """One 20-frame rollout among 32-frame ones would drop every rollout's chunked FVD and FVD-slope."""
+    pairs = write_set(tmp_path)
+    write_video(pairs[5].generated, scene(5, 20), FPS, lossless=True)
+    with pytest.raises(EvaluateError, match=r"generated/05.mkv \(20 frames\): shorter than the 32 generated frames"
+                                            r" the other rollouts are scored on \(FVD, chunked FVD and FVD-slope\)"):
+        evaluate_pairs(pairs, CONTEXT, PROTO, PooledPixels(), "sha")
+
+
 class LeftArc:
     """Stand-in instrument: reads every video as a 10 m/s left arc at 0.3 rad/s (the interface's [T, 2] positions)."""
 

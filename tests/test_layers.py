@@ -19,7 +19,7 @@ LAYERS = (
     ("orbis2.sim",),  # the driving simulator: numpy/numba/cv2 and orbis2.kinematics only
     ("orbis2.registry", "orbis2.config", "orbis2.interfaces"),  # config checks model presets; all read registry.yaml
     ("orbis2.hierarchy", "orbis2.data"),  # hierarchy: what each predictor sees, its windows included
-    ("orbis2.latents", "orbis2.rollout", "orbis2.train", "orbis2.assets"),
+    ("orbis2.latents", "orbis2.rollout", "orbis2.train", "orbis2.assets", "orbis2.run_profile"),
     # evaluation never imports training tasks: a change in training must not re-run it. Inside it, the measures
     # (with the records and the figure writer, orbis2.eval's own modules), then how they are applied, then the report.
     ("orbis2.eval", "orbis2.eval.metrics"),
@@ -27,7 +27,7 @@ LAYERS = (
     ("orbis2.eval.report",),
     ("orbis2.tasks",),
     ("orbis2.tracking", "orbis2.stage"),  # the MLflow run and what stage scripts share
-    ("orbis2.cli", "orbis2.dag", "orbis2.drive", "orbis2.play"),  # drive and play: orbis2 play, on cli's checks
+    ("orbis2.cli", "orbis2.dag", "orbis2.drive", "orbis2.play", "orbis2.mlflow_app"),  # play; MLflow app
 )
 # Library packages that must not know about experiment tracking, even through a lazy import.
 PURE = ("orbis2.models", "orbis2.data", "orbis2.tasks", "orbis2.eval")

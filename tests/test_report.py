@@ -632,21 +632,6 @@ def test_fvd_tables_carry_the_protocol_card(evals, tmp_path):
     assert "FVD protocol" not in steering
 
 
-def test_headline_names_each_number_by_table_row_and_column(tmp_path):
-    from orbis2.eval.report.report import headline
-
-    (tmp_path / "main_table.csv").write_text("model,kind,label,fvd_heldout,miou\n"
-                                             "hierarchical,model,Orbis 2,120.5,0.31\nflat,model,Flat,NA,0.2\n")
-    (tmp_path / "conditioning.csv").write_text("model,metric,variant,effect,verdict\n"
-                                               "hierarchical,ade,no actions,0.4,used\n")
-    metrics, tags = headline([tmp_path / "main_table.csv", tmp_path / "conditioning.csv"])
-    assert metrics == {"main_table/hierarchical/fvd_heldout": 120.5, "main_table/hierarchical/miou": 0.31,
-                       "main_table/flat/miou": 0.2, "conditioning/hierarchical/ade/no actions/effect": 0.4}
-    assert tags == {"verdict/conditioning/hierarchical/ade/no actions": "used"}
-    metrics, _ = headline([tmp_path / "main_table.csv"], {"main_table": ("miou",)})
-    assert metrics == {"main_table/hierarchical/miou": 0.31, "main_table/flat/miou": 0.2}
-
-
 def test_fvd_splits_and_steering_modes_follow_the_config(evals, tmp_path, smoke_cfg):
     """A split renamed and one added in ``evaluation.fvd_splits``, a steering mode renamed in
     ``evaluation.steering_modes``: the tables and the split-wise claim follow the config, not a fixed list."""

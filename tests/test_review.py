@@ -36,6 +36,23 @@ def test_no_commit_when_the_run_differs_from_params_yaml(tmp_path, capfd, monkey
     assert capfd.readouterr().err == ""
 
 
+def test_a_run_of_another_profile_writes_it_into_params_yaml(tmp_path, capfd, monkeypatch):
+    """`snakemake --config profile=smoke` with params.yaml saying default: DVC then reads the run's profile."""
+    params = tmp_path / "params.yaml"
+    text = re.sub(r"^profile: \S+", "profile: default", (ROOT / "params.yaml").read_text(), count=1,
+                  flags=re.MULTILINE)
+    params.write_text(text)
+    assert not dag.follows_profile(["profile"], params)  # not a DVC project
+    (tmp_path / ".dvc").mkdir()
+    assert dag.follows_profile(["profile"], params) and not dag.follows_profile(["action", "profile"], params)
+    dag.adopt_profile("smoke", params)
+    assert "params.yaml: profile default -> smoke" in capfd.readouterr().err
+    assert load_params(params)["profile"] == "smoke"
+    assert params.read_text().replace("profile: smoke", "profile: default", 1) == text  # only that line changed
+    monkeypatch.setenv(dag.COMMIT_ENV, "0")
+    assert not dag.follows_profile(["profile"], params)
+
+
 def test_a_run_is_committed_through_its_sinks_with_their_dependencies():
     """One `dvc commit --with-deps` of the run's last stages records exactly the run: DVC rewrites dvc.lock once
     per target, so naming all 45 smoke stages took 2.5 CPU minutes."""

@@ -50,6 +50,7 @@ from orbis2.rollout import (
     rollout_schedule,
     steering_sequences,
 )
+from orbis2.run_profile import resolve_profile
 from orbis2.stage import freeze_imports
 
 DEFAULT_ACTION = layout_path("predictor", registry().steered) / "predictor.pt"
@@ -223,7 +224,10 @@ def write_outputs(out: Path, frames: np.ndarray, fps: float) -> Path:
 
 def rollout_command(args: argparse.Namespace) -> str:
     check_numbers(args)
-    cfg = load_config(args.params, args.profile)
+    cfg, which = resolve_profile(args.params, args.profile, [
+        args.detail_tokenizer, args.abstract_tokenizer, abstract_predictor_path(args.abstract_predictor),
+        args.detail_predictor])
+    print(f"orbis2 rollout: {which}", file=sys.stderr)
     data = cfg.data
     steps = max(1, math.ceil(args.seconds * data.abstract_hz))
     context_end = first_context_end(data)
@@ -329,7 +333,8 @@ def add_rollout_parser(sub: argparse._SubParsersAction) -> None:
                    help=f"default: {DEFAULT_ACTION}, else {DEFAULT_ABSTRACT_TF}")
     p.add_argument("--detail-predictor", type=Path, default=layout_path("predictor", "detail") / "predictor.pt")
     p.add_argument("--params", type=Path, default=Path("params.yaml"))
-    p.add_argument("--profile", default=None, help="smoke | default | gpu | paper (default: the file's `profile`)")
+    p.add_argument("--profile", default=None,
+                   help="smoke | default | gpu | paper (default: the one the files it reads were made with)")
     p.add_argument("--side-by-side", action="store_true", help="show the real continuation on the left")
     p.add_argument("--abstract-nfe", type=int, default=ABSTRACT_NFE,
                    help="Euler steps per abstract latent (default: the paper's %(default)s)")
@@ -357,7 +362,9 @@ def evaluate_command(args: argparse.Namespace) -> str:
         raise OrbisError("pass --generated and --real folders (matched by file name), or --manifest")
     else:
         pairs = pairs_from_folders(args.generated, args.real)
-    record = evaluate_videos(pairs, load_config(args.params, args.profile), context=args.context_frames,
+    cfg, which = resolve_profile(args.params, args.profile, [pairs[0].real, pairs[0].generated])
+    print(f"orbis2 evaluate: {which}", file=sys.stderr)
+    record = evaluate_videos(pairs, cfg, context=args.context_frames,
                              where=args.manifest, protocol_name=args.protocol,
                              generated_has_context=args.generated_has_context, split=args.split, i3d=args.i3d,
                              instrument=args.instrument, instrument_weights=args.instrument_weights,
@@ -393,7 +400,8 @@ def add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=None, help="write the record (FVDs, intervals, card) as JSON")
     p.add_argument("--i3d", type=Path, default=None, help="I3D weights (default: assets.dir/i3d_kinetics400.pt)")
     p.add_argument("--params", type=Path, default=Path("params.yaml"))
-    p.add_argument("--profile", default=None, help="smoke | default | gpu | paper (default: the file's `profile`)")
+    p.add_argument("--profile", default=None,
+                   help="smoke | default | gpu | paper (default: the one the files it reads were made with)")
     p.add_argument("--device", default=None, help="default: cuda if available, else cpu")
     p.set_defaults(run=evaluate_command)
 

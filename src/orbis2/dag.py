@@ -20,9 +20,10 @@ import os
 import re
 import subprocess
 import sys
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import yaml
 
@@ -49,7 +50,8 @@ FIGURES = ["fvd_chunked.png", "probe_per_block.png", "bubble_params_fvd_miou.png
 
 
 def plots(rules: list) -> str:
-    """dvc.yaml's `plots`: the report's figures and one PNG per loss of every training stage
+    """dvc.yaml's `plots`: the report's figures (the main job's forest plot of every interval first) and one PNG
+    per loss of every training stage
     (``<output>/curves/<metric>.png``, :data:`orbis2.stage.LOSS_PLOTS`), at the rules' output paths.
 
     Images only: DVC copies them beside its page, while a data plot makes the page load its chart
@@ -61,7 +63,8 @@ def plots(rules: list) -> str:
     trained = {rule.name: str(rule.output.weights) for rule in rules if "weights" in rule.output.keys()}
     predictors = [name for name, spec in reg.predictors.items() if spec.objective != "reflow"]
     report_all = Path(by_name["report_all"].output.report)
-    entries = [str(report_all / "figures" / name) for name in FIGURES]
+    forest = [str(f) for f in by_name["report_main"].output if str(f).endswith(".png")]  # the main job's intervals
+    entries = forest + [str(report_all / "figures" / name) for name in FIGURES]
     # One image per model and loss: the losses differ by orders of magnitude (the abstract tokenizer's ~400
     # against the predictors' ~1), so each keeps its own axis.
     train, val = (f"curves/{metric}.png" for metric in LOSS_PLOTS.values())
@@ -85,9 +88,11 @@ SLURM_BASE = {"executor": "slurm", "jobs": 50,
               "latency-wait": 120,
               "retries": 1,  # a killed training job resumes from its last checkpoint
               "default-resources": {"slurm_partition": "cpu"}}
-# DVC's metrics: each training report (flat, a few named numbers) and the main table's headline.json,
-# so that `dvc metrics show` and `dvc exp show` stay readable; the evaluation records are plain outputs.
-METRICS = re.compile(r"reports/[^/]+\.json")
+# DVC's metrics: the run's headline (reports/headline.json, the numbers the MLflow parent run shows, under the
+# same names), which the main job always writes: `dvc metrics show` loads every metrics file after it, and
+# `dvc exp show` gets at most 20 metric columns. The training reports and evaluation records are plain outputs.
+METRICS = re.compile(r"reports/headline\.json")
+DECLARED_ENV = "ORBIS2_DECLARED_RESOURCES"  # set while the rules are read to generate the SLURM profile
 # Rule params that are not params.yaml sections.
 # Those set when the rule is defined and passed in its command (see the Snakefile's _passed_from).
 PASSED = ("script", "scope", "args")
@@ -144,11 +149,15 @@ def snakemake_rules(root: Path, profile: str | None = None) -> list:
     from snakemake.settings.types import ConfigSettings, OutputSettings, ResourceSettings
 
     profile = profile or load_params(root / "params.yaml")["profile"]
-    with SnakemakeApi(OutputSettings(quiet={"all"})) as api:
-        workflow = api.workflow(resource_settings=ResourceSettings(cores=1),
-                                config_settings=ConfigSettings(config={"profile": profile}),
-                                snakefile=root / "Snakefile", workdir=root)._workflow
-        return [rule for rule in workflow.rules if rule.name != "all"]
+    os.environ[DECLARED_ENV] = "1"  # the declared resources (for the SLURM profile), not this machine's
+    try:
+        with SnakemakeApi(OutputSettings(quiet={"all"})) as api:
+            workflow = api.workflow(resource_settings=ResourceSettings(cores=1),
+                                    config_settings=ConfigSettings(config={"profile": profile}),
+                                    snakefile=root / "Snakefile", workdir=root)._workflow
+            return [rule for rule in workflow.rules if rule.name != "all"]
+    finally:
+        del os.environ[DECLARED_ENV]
 
 
 # A rule's named input or output in its shell command.
@@ -190,7 +199,7 @@ def _out_entry(out: str, assets: str) -> Any:
     if out.count("/") == 1 and out.endswith((".png", ".mp4")):
         return {out: {"cache": False}}  # the town's previews: for people, rebuilt with the town
     if out.startswith("reports/") and out.endswith(".json"):
-        return {out: {"cache": False}}  # evaluation records: small, kept in git, not metrics (nested, hundreds of keys)
+        return {out: {"cache": False}}  # training reports and evaluation records: small, not metrics (see METRICS)
     return out
 
 
@@ -238,8 +247,44 @@ def snakemake_only(rule) -> bool:
     return rule.has_wildcards()
 
 
+def this_machine() -> dict[str, int]:
+    """This machine's GPUs (the NVIDIA driver lists them in /proc/driver/nvidia/gpus; CUDA_VISIBLE_DEVICES narrows
+    them) and memory (MB)."""
+    listed = Path("/proc/driver/nvidia/gpus")
+    gpus = len(list(listed.iterdir())) if listed.is_dir() else 0
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is not None:
+        gpus = min(gpus, len([d for d in visible.split(",") if d.strip() not in ("", "-1")]))
+    return {"gpu": gpus, "mem_mb": os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2**20}
+
+
+@dataclass(frozen=True)
+class Request:
+    """One resource a rule requests: its declaration's (the paper profile's needs, orbis2.interfaces) when its
+    jobs go to a scheduler, at most this machine's when they run here, so that a local run's log states what the
+    job can have (a smoke run's training rules asked for 8 GPUs and 480 GB). Snakemake calls it per job."""
+
+    declared: int
+    here: int
+    runs_here: Callable[[], bool]
+
+    def __call__(self, wildcards) -> int:
+        return min(self.declared, self.here) if self.runs_here() else self.declared
+
+
+def requests(declared: dict[str, int], runs_here: Callable[[], bool]) -> dict[str, int | Request]:
+    """A rule's ``resources:``: GPUs and memory as :class:`Request` (the rest as declared); all as declared while
+    :func:`snakemake_rules` reads the rules."""
+    if os.environ.get(DECLARED_ENV):
+        return dict(declared)
+    machine = this_machine()
+    return {name: Request(value, machine[name], runs_here) if name in machine else value
+            for name, value in declared.items()}
+
+
 def slurm_resources(rule) -> dict:
-    """A rule's SLURM request: GPU rules on the gpu partition, one task with the rule's threads."""
+    """A rule's SLURM request: GPU rules on the gpu partition, one task with the rule's threads (the rules as
+    :func:`snakemake_rules` reads them: with the declared GPUs and memory, not this machine's)."""
     value = {name: int(rule.resources[name].value) for name in ("gpu", "_cores", "mem_mb", "runtime")}
     gpus = value["gpu"]
     out = {"slurm_partition": "gpu" if gpus else "cpu", "cpus_per_task": value["_cores"],
@@ -281,6 +326,29 @@ def config_drift(config: dict[str, Any], params_file: Path | str = "params.yaml"
     raw = load_params(params_file)
     keys = (set(config) | set(raw)) - {"train_launcher"}
     return sorted(key for key in keys if config.get(key) != raw.get(key))
+
+
+def follows_profile(drift: list[str], params_file: Path | str = "params.yaml") -> bool:
+    """Whether a run whose config differs from params.yaml in ``drift`` writes its profile into params.yaml when it
+    starts (:func:`adopt_profile`): when the profile is all that differs, in a DVC project, with the hand-over to
+    DVC on (not ``ORBIS2_DVC_COMMIT=0``)."""
+    return (drift == ["profile"] and os.environ.get(COMMIT_ENV, "1") != "0"
+            and (Path(params_file).parent / ".dvc").is_dir())
+
+
+def adopt_profile(profile: str, params_file: Path | str = "params.yaml") -> None:
+    """Write ``profile`` into params.yaml (its ``profile:`` line, nothing else) and say so: a run of another profile
+    (``--config profile=smoke``) then leaves DVC's views (``dvc status``, ``dvc params diff``, ``dvc exp show``),
+    the ``orbis2`` command and its outputs describing the same run, and is handed to DVC when it succeeds."""
+    params_file = Path(params_file)
+    text = params_file.read_text()
+    line = re.compile(r"^profile:[ \t]*(\S+)", re.MULTILINE)
+    before = line.search(text)
+    if before is None:
+        raise ValueError(f"{params_file}: no top-level `profile:` line to set")
+    params_file.write_text(line.sub(f"profile: {profile}", text, count=1))
+    print(f"params.yaml: profile {before.group(1)} -> {profile} (--config), so that DVC's views and the orbis2 "
+          f"command describe this run; set it back when you are done with it (docs/tracking.md).", file=sys.stderr)
 
 
 def _stage_paths(stage: dict[str, Any], keys: tuple[str, ...]) -> list[str]:
@@ -343,7 +411,8 @@ def commit_to_dvc(rules: list[str], drift: list[str], root: Path | str = ".") ->
         return False
     if drift:
         print(f"dvc.lock not updated: this run's config differs from params.yaml in {', '.join(drift)} "
-              "(--config), and DVC reads params.yaml only (docs/tracking.md).", file=sys.stderr)
+              "(--config), and DVC reads params.yaml only; to hand the run to DVC, write those values into "
+              "params.yaml and run `dvc commit --force` (docs/tracking.md).", file=sys.stderr)
         return False
     stages = set(yaml.safe_load((root / "dvc.yaml").read_text())["stages"])
     targets = sorted(name for name in set(rules) if name in stages)

@@ -33,12 +33,13 @@ from pathlib import Path
 from typing import Iterable, Iterator, Sequence
 
 import orbis2
-from orbis2.config.params import PipelineConfig, as_dict, load_config
+from orbis2.config.params import PipelineConfig, as_dict
 from orbis2.config.training import BOOKKEEPING_FIELDS
 from orbis2.errors import OrbisError
 from orbis2.interfaces import Interface, PathOption
 from orbis2.io import atomic_dir, sha256_file, write_json
 from orbis2.registry import layout_path, registry
+from orbis2.run_profile import SHARD_MANIFEST, resolve_profile
 from orbis2.tracking import StageRun, stage_run
 
 
@@ -176,25 +177,40 @@ def open_stage(name: str, args: argparse.Namespace, interface: Interface,
 
     The params.yaml sections the stage reads are its declaration's, with ``extra`` (an entry's own section,
     as its rule passes it); they are logged as the run's parameters. On leaving the block the wall time is
-    logged (on the parent run too, as ``time/<name>``) and ``[<name>] <summary> (<s> s, profile <p>)``
-    printed. A user-fixable problem (:class:`OrbisError`) prints ``[<name>] error: ...`` and exits with status 2.
+    logged as ``wall_seconds`` (the parent's ``tables/stage_times.csv`` collects them) and
+    ``[<name>] <summary> (<s> s, profile <p>)`` printed. A user-fixable problem (:class:`OrbisError`) prints
+    ``[<name>] error: ...`` and exits with status 2. Run by hand without ``--profile``, the stage takes the
+    profile of the data it works on (:func:`profile_witness`) and says so.
     """
     started = time.perf_counter()
     freeze_imports()  # the script's own imports
     try:
-        cfg = load_config(args.params, args.profile)
+        cfg, which = resolve_profile(args.params, args.profile, [profile_witness(interface, args)])
+        if args.profile is None:
+            print(f"[{name}] {which}", file=sys.stderr)
         params = {"profile": cfg.profile, **{s: as_dict(cfg.section(s)) for s in interface.sections_with(extra)}}
         with stage_run(name, params, as_dict(cfg)) as run:
             freeze_imports()  # MLflow's, imported by the run
             stage = Stage(name, cfg, run)
             yield stage
             seconds = time.perf_counter() - started
-            run.log_metrics({"wall_seconds": seconds})
-            run.publish_metrics({f"time/{name}": seconds})
+            run.log_metrics({"wall_seconds": seconds})  # the parent's tables/stage_times.csv (report_main)
     except OrbisError as err:
         print(f"[{name}] error: {err}", file=sys.stderr)
         sys.exit(2)
     print(f"[{name}] {stage.summary} ({time.perf_counter() - started:.1f} s, profile {cfg.profile})")
+
+
+# Stages that make the data (or need none): a run's profile is what they are told, not what they find.
+MAKE_THE_DATA = ("town", "import", "shards", "assets")
+
+
+def profile_witness(interface: Interface, args: argparse.Namespace) -> Path | None:
+    """The artifact that says which profile a stage run by hand without --profile is at: the shard manifest
+    of the data it works on (:mod:`orbis2.run_profile`); None for the stages that make the data."""
+    if interface.kind in MAKE_THE_DATA:
+        return None
+    return Path(getattr(args, "shards", None) or layout_path("shards")) / SHARD_MANIFEST
 
 
 def training_dir(name: str, cfg: PipelineConfig, sections: list[str], inputs: dict[str, Path]) -> Path:

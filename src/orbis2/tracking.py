@@ -12,11 +12,12 @@ that name. The parent's status follows its children: FAILED as soon as one
 stage failed, FINISHED only when every stage finished.
 
 The parent is what a reviewer opens first, so it carries the run's headline: the
-profile, commit and params digest (tags and params, set when it is created), each
-stage's wall time (``time/<stage>``) and whatever stages :meth:`StageRun.publish`
-there (the report's tables, verdicts and summary, the figures, a rollout gallery).
-The experiment is tagged as a model-development one, so MLflow 3 lists its runs
-rather than its GenAI overview.
+profile, commit and params digest (tags and params, set when it is created) and
+whatever stages :meth:`StageRun.publish` there (the report's headline numbers,
+claims, tables, intervals, stage times and summary, the figures, a rollout gallery).
+The experiment is tagged as a model-development one; MLflow 3.17's UI does not read
+that tag, so ``mlflow server --app-name orbis2`` (:mod:`orbis2.mlflow_app`) opens it
+in model-training mode.
 
 A SQLite store records absolute artifact locations (MLflow resolves a relative
 one against the working directory when it creates an experiment), so a project
@@ -264,6 +265,17 @@ class StageRun:
             for key, value in tags.items():
                 client.set_tag(self.parent_id, key, str(value)[:5000])
 
+    def stage_times(self) -> dict[str, float]:
+        """Every finished stage run of this invocation so far: its ``wall_seconds`` by stage name."""
+        if not (self._mlflow and self.parent_id):
+            return {}
+        client = self._mlflow.MlflowClient()
+        parent = client.get_run(self.parent_id)
+        children = client.search_runs([parent.info.experiment_id],
+                                      filter_string=f"tags.`mlflow.parentRunId` = '{self.parent_id}'", max_results=5000)
+        return {run.info.run_name: run.data.metrics["wall_seconds"] for run in children
+                if "wall_seconds" in run.data.metrics}
+
     def log_model(self, folder: Path, metrics: dict[str, float] | None = None) -> None:
         """Record a trained model: an MLflow logged model named after the stage, holding the
         folder's files (final weights) and ``config.json`` (the stage's resolved params),
@@ -355,9 +367,9 @@ def stage_run(stage: str, params: dict[str, Any], pipeline: dict[str, Any] | Non
 def parent_run(client: Any, experiment_id: str, key: str, pipeline: dict[str, Any] | None = None) -> str:
     """The invocation's parent run, created by whichever stage comes first.
 
-    A new parent gets the provenance of ``pipeline`` (the whole resolved config) as
-    tags, its profile, commit and params digest also as params (the runs table's
-    columns), and the config itself as ``params.json``.
+    A new parent gets the provenance of ``pipeline`` (the whole resolved config): its profile,
+    commit and params digest as params (the runs table's columns; not repeated as tags, whose
+    keys the run page cuts short), the rest as tags, and the config itself as ``params.json``.
     Stages on other nodes (where the store lock does not reach) may create one at the
     same moment; every stage then keeps the oldest (by start time, then id) and deletes the others.
     """
@@ -367,12 +379,12 @@ def parent_run(client: Any, experiment_id: str, key: str, pipeline: dict[str, An
 
         pipeline = pipeline or {}
         tags = provenance(pipeline)
-        profile = tags["orbis2.profile"]
+        profile, digest = tags.pop("orbis2.profile"), tags.pop("orbis2.params_sha256")
         run = client.create_run(experiment_id,
                                 run_name=f"pipeline {profile} {time.strftime('%Y-%m-%d %H:%M:%S')}",
                                 tags={INVOCATION_TAG: key, "orbis2.pipeline": "true", **tags})
         shown = {"profile": profile, "git_commit": tags.get("mlflow.source.git.commit", "unknown"),
-                 "params_sha256": tags["orbis2.params_sha256"][:12]}
+                 "params_sha256": digest[:12]}
         client.log_batch(run.info.run_id, params=[Param(k, v) for k, v in shown.items()])
         client.log_text(run.info.run_id, json.dumps(pipeline, indent=2, sort_keys=True, default=str), "params.json")
         found = _parents(client, experiment_id, key)

@@ -510,7 +510,8 @@ def predictor_meta(stage: str, cfg: PipelineConfig, cache: LatentCache, metrics:
     level_window = {"abstract": (d.abstract_window, d.abstract_context), "detail": (d.detail_window, d.detail_context)}
     rate, window, context = rate_geometry(d, spec.rate)
     meta = {
-        "stage": stage, "level": spec.level, "rate": spec.rate, "objective": spec.objective, "init_from": pc.init_from,
+        "stage": stage, "profile": cfg.profile, "level": spec.level, "rate": spec.rate, "objective": spec.objective,
+        "init_from": pc.init_from,
         "condition": spec.condition,
         "tokenizers": {kind: {"checksum": cache.meta["tokenizers"][kind]["checksum"]}
                        for kind in ("detail", "abstract")},

@@ -497,7 +497,7 @@ def train_detail_tokenizer(cfg: PipelineConfig, shards_root: Path, out_dir: Path
                                                                  tc.train.batch_size, tc.train.seed))
     metrics.update(rfid=fid, steps=result.step, **stats)
     save_tokenizer(out_dir / "tokenizer.pt", "detail", tokenizer, scale, {"preset": tc.preset},
-                   {"metrics": metrics}, shift)
+                   {"metrics": metrics, "profile": cfg.profile}, shift)
     return metrics
 
 
@@ -525,5 +525,5 @@ def train_abstract_tokenizer(cfg: PipelineConfig, shards_root: Path, out_dir: Pa
     metrics.update(steps=result.step, **stats)
     build = {"preset": tc.preset, "teacher_dim": model.teacher_dim, "compress": tc.compress}
     save_tokenizer(out_dir / "tokenizer.pt", "abstract", model, scale, build,
-                   {"metrics": metrics, "teacher": tc.teacher}, shift)
+                   {"metrics": metrics, "teacher": tc.teacher, "profile": cfg.profile}, shift)
     return metrics

@@ -111,6 +111,26 @@ def windows_of(proto: Protocol, fps: float, n_frames: int) -> tuple[slice, list[
     return short, [], None
 
 
+def refuse_short_ones(pairs: list[Pair], lengths: list[int], proto: Protocol, fps: float) -> None:
+    """Every rollout is scored over the same windows, those of the shortest, so one short rollout would change
+    them for all (a 20-frame one among 35-frame ones dropped the chunked FVD and the FVD-slope of every rollout):
+    refuse it, naming it, when it changes what the longest rollouts are scored on."""
+    first_window = proto.short(fps).stop
+    if max(lengths) < first_window:
+        return  # none is long enough: windows_of says so for all of them
+    full = windows_of(proto, fps, max(lengths))
+    short = [(pair.generated, n) for pair, n in zip(pairs, lengths)
+             if n < first_window or windows_of(proto, fps, n) != full]
+    if not short:
+        return
+    needed = round(proto.long_seconds * fps) if full[1] else first_window
+    named = ", ".join(f"{path} ({n} frames)" for path, n in short[:3])
+    more = f" and {len(short) - 3} more" if len(short) > 3 else ""
+    raise EvaluateError(f"{named}{more}: shorter than the {needed} generated frames the other rollouts are scored "
+                        f"on ({'FVD, chunked FVD and FVD-slope' if full[1] else 'FVD'}); all are scored on the "
+                        f"windows of the shortest, so leave the short one(s) out or pass rollouts of one length")
+
+
 def chunked_record(split: str, windows: list[slice], whole: slice, real: Features, fake: Features,
                    clusters: list[str], fps: float, proto: Protocol) -> dict[str, Any]:
     """Chunked FVD over consecutive ``chunk_seconds`` windows, FVD over ``whole`` (their span), and the FVD-slope,
@@ -304,6 +324,7 @@ def evaluate_pairs(pairs: list[Pair], context_frames: int, proto: Protocol, i3d,
             raise EvaluateError(f"{pair.generated}: {info.fps:g} fps, but {pairs[0].generated} has {fps:g}; "
                                 f"write every rollout at one rate")
     lengths = [frame_count(p.generated) - (context_frames if generated_has_context else 0) for p in pairs]
+    refuse_short_ones(pairs, lengths, proto, fps)
     short, chunks, whole = windows_of(proto, fps, min(lengths))
     picks = np.unique(np.concatenate([i3d_picks(w) for w in [short, *chunks, *([whole] if whole else [])]]))
     real_stride = {p.real: resample_stride(probe(p.real).fps, round(fps), 1e-3, p.real) for p in pairs}

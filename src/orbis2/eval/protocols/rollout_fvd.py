@@ -70,7 +70,15 @@ class PickedFrames:
         return self.frames[:, [self.position[int(p)] for p in i3d_picks(window)]]
 
 
-GIF_WIDTH = 320  # pixels: the rollout thumbnails on the runs' pages
+GALLERY_HEIGHT = 256  # pixels, at least: the sample videos on the runs' pages, watchable at every profile
+
+
+def gallery_frames(real: np.ndarray, generated: np.ndarray, min_height: int = GALLERY_HEIGHT) -> np.ndarray:
+    """The sample video as a reviewer watches it: the real continuation (left) beside the generated one,
+    enlarged by a whole factor to at least ``min_height`` pixels (nearest neighbour: no detail made up)."""
+    frames = np.concatenate([real, generated], axis=2)
+    factor = max(1, -(-min_height // frames.shape[1]))
+    return frames.repeat(factor, axis=1).repeat(factor, axis=2)
 
 
 def split_fvd(split: str, system: LoadedSystem, cache: LatentCache, i3d, media: Path, data: DataConfig,
@@ -79,7 +87,8 @@ def split_fvd(split: str, system: LoadedSystem, cache: LatentCache, i3d, media: 
     """Roll out one split: ``{"fvd": ..., "references": ..., "protocol": ...}``, plus ``"chunked"`` on the long
     split, scored by :func:`orbis2.eval.protocols.evaluate.score_rollouts` (the code ``orbis2 evaluate`` runs).
 
-    Writes a sample video (``media/<split>.mp4``, VP9, and a GIF thumbnail ``media/<split>.gif``)
+    Writes a sample video, real beside generated at least 256 px tall (``media/<split>.mp4``, VP9, and
+    the same as ``media/<split>.gif``)
     and, on the long split, the frames of
     the qualitative grid (``media/grid.npz``). ``shards`` is the shard folder the cache
     was encoded from; ``stats_cache`` the folder of cached real-video features. Given
@@ -120,8 +129,9 @@ def split_fvd(split: str, system: LoadedSystem, cache: LatentCache, i3d, media: 
     first = every[0] if every is not None else system.decode(latents[:1])[0]  # the sample video, every frame
     if long:
         save_grid_frames(media / "grid.npz", first, data.detail_hz)
-    write_video(media / f"{split}.mp4", first, data.detail_hz, playable=True)
-    write_gif(media / f"{split}.gif", first, data.detail_hz, width=GIF_WIDTH)
+    sample = gallery_frames(real_videos(clips, samples[:1], indices[:1])[0], first)
+    write_video(media / f"{split}.mp4", sample, data.detail_hz, playable=True)
+    write_gif(media / f"{split}.gif", sample, data.detail_hz)
     if rollouts is not None:
         write_rollouts(rollouts / split, every, clips, samples, indices, clusters, data)
     return out

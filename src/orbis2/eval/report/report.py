@@ -8,10 +8,7 @@ Everything a writer needs is checked before its first file is written.
 
 from __future__ import annotations
 
-import csv
 import json
-import math
-import re
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -26,7 +23,6 @@ from orbis2.eval.report.claims import check_claims, fmt
 from orbis2.eval.report.evals import Evals
 from orbis2.eval.report.tables import (
     HIERARCHY_LAYOUT,
-    NA,
     TRAINING_ROWS,
     Row,
     TableSettings,
@@ -212,52 +208,6 @@ def write_full_report(
     plot_probe_blocks(evals, figures / FIG_BLOCKS)
     plot_bubble(evals, figures / FIG_BUBBLE, settings=settings)
     return written + [out_dir / CHUNKED_CSV, figures / FIG_CHUNKED, figures / FIG_BLOCKS, figures / FIG_BUBBLE]
-
-
-# Columns that describe a row rather than name it or measure it (left out of headline names).
-DESCRIPTIVE = ("label", "kind", "instrument", "device", "seed_verdicts")
-
-
-def headline(tables: Sequence[str | Path], columns: Mapping[str, Sequence[str]] | None = None
-             ) -> tuple[dict[str, float], dict[str, str]]:
-    """The report tables' numbers as metrics ``<table>/<row>/<column>`` and their verdicts as
-    tags ``verdict/<table>/<row>``: what the pipeline's parent run shows a reviewer.
-
-    A row is named by its text cells outside :data:`DESCRIPTIVE` (``main_table/hierarchical``,
-    ``conditioning/hierarchical/ade/no_actions``); NA cells are left out. ``columns`` keeps,
-    for the tables it names (by file stem), only those numeric columns.
-    """
-    columns = columns or {}
-    metrics: dict[str, float] = {}
-    tags: dict[str, str] = {}
-    for path in map(Path, tables):
-        with path.open(newline="") as f:
-            rows = list(csv.DictReader(f))
-        for row in rows:
-            numbers = {k: _number(v) for k, v in row.items()}
-            name = "/".join(_key(v) for k, v in row.items()
-                            if numbers[k] is None and v != NA and k not in DESCRIPTIVE and k != "verdict")
-            prefix = f"{path.stem}/{name}" if name else path.stem
-            kept = columns.get(path.stem)
-            for column, value in numbers.items():
-                if value is not None and column not in DESCRIPTIVE and (kept is None or column in kept):
-                    metrics[f"{prefix}/{_key(column)}"] = value
-            if row.get("verdict"):
-                tags[f"verdict/{prefix}"] = row["verdict"]
-    return metrics, tags
-
-
-def _number(text: str | None) -> float | None:
-    try:
-        value = float(text)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        return None
-    return value if math.isfinite(value) else None
-
-
-def _key(text: str) -> str:
-    """Text as part of an MLflow metric name (letters, digits, ``_-. /`` only)."""
-    return re.sub(r"[^A-Za-z0-9_.\- ]+", "_", str(text)).strip("_") or "_"
 
 
 # ---------------------------------------------------------------- figures
