@@ -79,6 +79,9 @@ LATENT_SET = "compressed"
 
 def main(argv: list[str] | None = None) -> None:
     parser = stage_parser(INTERFACES["eval_steering"], __doc__)
+    parser.add_argument("--no-truth", action="store_true",
+                        help="leave out the scoring against the true counterfactuals (a split the truth stage did "
+                             "not render, e.g. tools/select_guidance.py's)")
     args = parser.parse_args(argv)
     with open_stage("eval_steering", args, INTERFACES["eval_steering"]) as stage:
         cfg, run = stage.cfg, stage.run
@@ -108,7 +111,7 @@ def main(argv: list[str] | None = None) -> None:
                        for name in dict.fromkeys([ev.inverse_dynamics, "opencv"])}
         on_rollouts = instruments if ev.opencv_rollouts else {ev.inverse_dynamics: instruments[ev.inverse_dynamics]}
         truth = None
-        if read_manifest(args.truth)["available"]:  # the town: every start has its true counterfactuals
+        if not args.no_truth and read_manifest(args.truth)["available"]:  # the town: true counterfactuals
             i3d_file = ensure_asset("i3d_kinetics400", args.assets or Path(cfg.assets.dir),
                                     cfg.assets.local.get("i3d_kinetics400"), download=False)
             i3d = load_i3d(i3d_file).to(dev).eval()

@@ -54,7 +54,8 @@ def main() -> None:
         scaled.write_text(yaml.safe_dump(params, sort_keys=False))
         record = args.out / f"steering_g{scale:g}.json"
         subprocess.run([sys.executable, str(STAGE), "--params", str(scaled), "--profile", cfg.profile,
-                        "--out", str(record), "--strip", str(args.out / f"strip_g{scale:g}.png")], check=True)
+                        "--out", str(record), "--strip", str(args.out / f"strip_g{scale:g}.png"),
+                        "--no-truth"], check=True)  # the truth stage renders the reported split only
         records[scale] = from_json(SteeringRecord, record, "eval_steering")
 
     result = choose_guidance(records, ev.inverse_dynamics, ev.steering_turn_material_deg, args.split)
