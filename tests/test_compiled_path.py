@@ -163,6 +163,10 @@ def test_compiled_training_step_of_each_predictor_stage_at_paper_depth(fresh_dyn
     """The paper profile's training set-up (``train.compile``, selective checkpointing of every block) at the
     paper preset's depth and heads: each predictor stage's loss and gradients, compiled against eager.
 
+    Compiled through dynamo and AOTAutograd (forward and backward graphs, the checkpointing policy inside them)
+    with the ``aot_eager`` backend: inductor's CPU code generation of the two backward graphs would add a
+    minute to a suite that has none to spare, and inductor's lowering of these blocks is what the rollout test
+    above and the GPU measurement's rehearsal (``tests/test_gpu_script.py``: a compiled training step) check.
     Width 384 instead of 768 (the gpu profile's): the paper width's weights, gradients and a second copy for
     the eager reference need 9 GB per predictor, more than the test machine lends one test; the graphs do not
     depend on the width (the rollout test above compiles the full paper preset)."""
@@ -182,7 +186,7 @@ def test_compiled_training_step_of_each_predictor_stage_at_paper_depth(fresh_dyn
         compiled = copy.deepcopy(models[level])
         for model in (eager, compiled):
             set_checkpointing(model, size["depth"], "selective")
-        compile_for_training(compiled, backend="inductor", fullgraph=True)
+        compile_for_training(compiled, backend="aot_eager", fullgraph=True)
         results = []
         for model in (eager, compiled):
             loss = training_losses(model, stage, frames if level == "detail" else frames[:, :6], seed=6)

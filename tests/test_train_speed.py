@@ -190,12 +190,15 @@ def test_worker_processes_and_pinning_give_the_same_batches(cache, smoke_cfg):
 
 
 def test_compile_compiles_the_trained_network_and_not_its_average(cache, smoke_cfg, tmp_path):
-    """``compile: true`` wraps the training network in place (the state dict keeps its names); EMA stays eager."""
+    """``compile: true`` compiles the training predictor by region, in place (every block; the state dict keeps
+    its names); the EMA copy stays eager."""
     _, run = make_run("abstract_tf", cache, smoke_cfg, tmp_path, compile=True, ema_decay=0.9)
-    assert run.model._compiled_call_impl is not None and run.ema._compiled_call_impl is None
+    assert all(block._compiled_call_impl is not None for block in run.model.blocks)
+    assert all(block._compiled_call_impl is None for block in run.ema.blocks)
+    assert not run.model.cuda_graphs  # training runs no CUDA graphs
     assert list(run.model.state_dict()) == list(run.ema.state_dict())
     _, plain = make_run("abstract_tf", cache, smoke_cfg, tmp_path / "plain")
-    assert plain.model._compiled_call_impl is None
+    assert all(block._compiled_call_impl is None for block in plain.model.blocks)
 
 
 def test_the_split_losses_draw_as_the_single_function_did():

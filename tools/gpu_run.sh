@@ -5,7 +5,7 @@
 #
 #   OUT=/path/to/results bash tools/gpu_run.sh          # from the repository root, on the GPU machine
 #   REHEARSE=1 OUT=/tmp/rehearsal bash tools/gpu_run.sh  # every part on the CPU, inductor, smoke preset
-#   (rollouts_v1 eager there; the DAG part a Snakemake dry run)
+#   (rollouts_v1 eager and the toggles without their compile check there; the DAG part a Snakemake dry run)
 #
 # Parts, in the order of what they are worth if time runs out, each under its own limit (seconds; T_<PART>
 # overrides) within BUDGET (default 350 s): a part that fails or times out does not stop the others.
@@ -70,6 +70,7 @@ export PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}" PYTHONDONTWRITEBYTECODE=
 suite=(--out "$WORK")
 if [ -n "$REHEARSE" ]; then  # CPU, smoke preset, inductor: every part's real code path in minutes
   suite+=(--rehearse)
+  toggles=(--no-compile)  # the rollouts and train parts rehearse the compiled paths; the suite has no time to spare
   preset=smoke device=cpu
   rollout=(--seconds 0.5 --repeats 1 --distill-nfe 2)
   v1=()  # eager: the rollouts part rehearses the compiled rollout already, and the test suite has no time to spare
@@ -77,7 +78,7 @@ if [ -n "$REHEARSE" ]; then  # CPU, smoke preset, inductor: every part's real co
 else
   preset=paper device=cuda
   rollout=(--seconds 2 --repeats 3)
-  v1=(--compile)
+  v1=(--compile) toggles=()
   train=(--presets paper --mfu-preset paper --batch-size 8 --checkpointing 24 --steps 3 --warmup 2)
 fi
 rollout_cmd=("$PY" benchmarks/bench_rollout.py --preset "$preset" --device "$device" "${rollout[@]}"
@@ -91,7 +92,7 @@ step train "${T_TRAIN:-80}" "$PY" benchmarks/bench_train.py "${train[@]}" --poli
 step graphs "${T_GRAPHS:-20}" "$PY" benchmarks/gpu_suite.py graphs "${suite[@]}"
 step rollouts_eager "${T_ROLLOUTS_EAGER:-35}" "${rollout_cmd[@]}" --systems hierarchical,distilled \
   --json "$WORK/rollouts_eager.json"
-step toggles "${T_TOGGLES:-30}" "$PY" benchmarks/gpu_suite.py toggles "${suite[@]}"
+step toggles "${T_TOGGLES:-30}" "$PY" benchmarks/gpu_suite.py toggles "${suite[@]}" "${toggles[@]}"
 step rollouts_v1 "${T_ROLLOUTS_V1:-60}" "${rollout_cmd[@]}" --systems flat_detail,v1_style "${v1[@]}" \
   --json "$WORK/rollouts_v1.json"
 step dag "${T_DAG:-120}" "$PY" benchmarks/gpu_suite.py dag "${suite[@]}" --assets "${ASSETS:-}"
