@@ -203,3 +203,31 @@ def test_compiled_training_step_of_each_predictor_stage_at_paper_depth(fresh_dyn
     # One graph (forward and backward) for every block of the abstract stages (diffusion forcing, teacher
     # forcing and steering share it), one more for the conditioned detail blocks.
     assert graphs == {"abstract_df": 1, "abstract_tf": 1, "action": 1, "detail": 2}, graphs
+
+
+def test_the_default_presets_rollout_needs_the_same_graphs():
+    """Depth 4 (the default preset, 4 x 128): the same 3 graphs of a rollout as at depth 8 and 24 (dynamo's
+    graphs through the ``eager`` backend: the count is the design's, whatever the backend)."""
+    torch._dynamo.reset()
+    torch._dynamo.utils.counters.clear()
+    size = dict(hidden_size=128, depth=4, num_heads=4, cond_dim=64)
+    top = randomized(build_stdit(stdit_config("default", **size, steering_shift=True), C, causal=True,
+                                 steering=True), 1).eval().requires_grad_(False)
+    bottom = randomized(build_stdit(stdit_config("default", **size, subgoal_shift=True), C, causal=False,
+                                    abstract_channels=C), 2).eval().requires_grad_(False)
+    x = inputs()
+    with torch.no_grad():
+        eager = rollout(top, bottom, x)
+        compile_predictor(top, backend="eager", fullgraph=True)
+        compile_predictor(bottom, backend="eager", fullgraph=True)
+        compiled = rollout(top, bottom, x)
+        assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == ROLLOUT_GRAPHS
+        torch._dynamo.config.error_on_recompile = True
+        try:
+            again = rollout(top, bottom, x)
+        finally:
+            torch._dynamo.config.error_on_recompile = False
+            torch._dynamo.reset()
+    for ours, second, reference in zip(compiled, again, eager):
+        assert torch.equal(ours, reference) and torch.equal(second, reference)
+
