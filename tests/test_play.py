@@ -128,8 +128,9 @@ def test_held_left_key_turns_the_path_and_the_true_view_left(browser):
     from selenium.webdriver.common.keys import Keys
 
     browser.find_element("tag name", "body").send_keys(Keys.ENTER)  # reset: a straight start
-    until(lambda: page(browser, "steps") >= 1 and page(browser, "ready"), what="the reset scene")
-    straight = page(browser, "path")
+    # The reset clears the path before its first step draws it again: wait for that step's path, not the old one's.
+    straight = until(lambda: page(browser, "steps") >= 1 and page(browser, "ready") and page(browser, "path"),
+                     what="the reset scene")
     assert max(abs(y) for _, y in straight) < 1e-6, "no key: the first step goes straight on"
     steps = page(browser, "steps")
     ActionChains(browser).key_down(Keys.LEFT).perform()
