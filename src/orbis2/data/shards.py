@@ -147,14 +147,15 @@ def _jpeg(frame: np.ndarray, params: list[int]) -> bytes:
 # --------------------------------------------------------------------------- reading
 
 
-def load_manifest(root: Path) -> dict[str, Any]:
+def load_manifest(root: Path, stage: str = "shards", error: type[OrbisError] = ShardError) -> dict[str, Any]:
+    """The manifest of a folder of checked shards, written by ``stage`` (missing or unreadable: ``error``)."""
     path = Path(root) / MANIFEST
     if not path.is_file():
-        raise ShardError(f"{path}: missing; run the `shards` stage first")
+        raise error(f"{path}: missing; run the `{stage}` stage first")
     try:
         return json.loads(path.read_text())
     except ValueError as err:
-        raise ShardError(f"{path}: not valid JSON ({err}); re-run the `shards` stage") from err
+        raise error(f"{path}: not valid JSON ({err}); re-run the `{stage}` stage") from err
 
 
 def shard_paths(root: Path, split: str) -> list[Path]:

@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from orbis2.config.sections import DataConfig, TownConfig
-from orbis2.data.shards import Clip, ShardError, ShardWriter, _jpeg, iter_samples
+from orbis2.data.shards import Clip, ShardError, ShardWriter, _jpeg, iter_samples, load_manifest
 from orbis2.errors import OrbisError
 from orbis2.io import load_npy, npy_bytes, sha256_file, write_json
 from orbis2.sim import Camera, EgoTrack, Town, simulate_ego
@@ -164,13 +164,7 @@ class TruthVideo:
 
 
 def read_manifest(root: Path) -> dict[str, Any]:
-    path = Path(root) / MANIFEST
-    if not path.is_file():
-        raise TruthError(f"{path}: missing; run the `truth` stage first")
-    try:
-        return json.loads(path.read_text())
-    except ValueError as err:
-        raise TruthError(f"{path}: not valid JSON ({err}); re-run the `truth` stage") from err
+    return load_manifest(root, "truth", TruthError)
 
 
 def read_truth(root: Path, wanted: Iterable[str] | None = None) -> dict[str, TruthVideo]:
