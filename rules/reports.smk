@@ -1,7 +1,8 @@
 # The paper's tables: the main table (registry.yaml's main_table) and every ablation.
 
 REPORT = INTERFACES["report"]
-REPORT_MAIN = stage_paths(REPORT, fvd=REG.table("main"), probe=REG.table("main").values(), report=P("reports"))
+REPORT_MAIN = stage_paths(REPORT, fvd=REG.table("main"), probe=REG.table("main").values(),
+                          headline=rules.eval_steering.output.headline, report=P("reports"))
 REPORT_ALL = stage_paths(REPORT, fvd=REG.systems, probe=REG.probe_targets, media=REG.systems,
                          speed=rules.eval_speed_all.output.speed, strip=rules.eval_steering.output.strip,
                          conditioning=rules.eval_conditioning_all.output.conditioning, report=P("report_all"))
@@ -17,7 +18,7 @@ rule report_main:
     output:  # the main tables' files in the folder passed as --out
         *(f"{REPORT_MAIN['report']}/{name}" for name in ("main_table.csv", "steering.csv", "speed.csv",
                                                       "conditioning.csv", "summary.md", "headline.json",
-                                                      "intervals.csv", "intervals.png")),
+                                                      "intervals.csv", "intervals.png", "headline.png")),
     params:
         **stage_params(REPORT, REPORT_MAIN),
     log: log("report_main")

@@ -78,7 +78,8 @@ def main(argv: list[str] | None = None) -> None:
                            fvd_material=ev.fvd_material, fvd={s: r["fvd"] for s, r in results.items()},
                            references={s: r["references"] for s, r in results.items()},
                            protocol={s: r["protocol"] for s, r in results.items()},
-                           chunked=chunked[-1] if chunked else None)
+                           chunked=chunked[-1] if chunked else None,
+                           first_frame={s: r["first_frame"] for s, r in results.items()})
 
         # the parent's rollout gallery: per system and split, real beside generated as VP9 and as GIF
         for video in sorted([*media.glob("*.mp4"), *media.glob("*.gif")]):
@@ -94,7 +95,10 @@ def main(argv: list[str] | None = None) -> None:
         splits = ", ".join(f"{s} {v.fvd:.1f} [{v.low:.1f}, {v.high:.1f}] (n={v.videos}, {v.clips} clips)"
                            for s, v in record.fvd.items())
         slope = f"; FVD-slope {record.chunked.fvd_slope:.1f}" if record.chunked is not None else ""
-        stage.summary = f"{name}: FVD {splits}{slope}"
+        first = "; first frame PSNR (generated, tokenizer): " + ", ".join(
+            f"{s} {v.generated_psnr.estimate:.1f}, {v.reconstruction_psnr.estimate:.1f} dB"
+            for s, v in (record.first_frame or {}).items())
+        stage.summary = f"{name}: FVD {splits}{slope}{first}"
 
 
 if __name__ == "__main__":

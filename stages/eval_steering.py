@@ -1,5 +1,5 @@
 """Stage `eval_steering`: original and counterfactual steering ADE with visual odometry
--> reports/eval/steering.json, reports/eval/steering_strip.png.
+-> reports/eval/steering.json, reports/eval/steering_strip.png, reports/eval/headline.png.
 
 Rollouts of the hierarchical model with the steered top predictor (``action``) on
 ``steering_split`` starts, under each mode's scaling of the clip's own speed and yaw
@@ -17,7 +17,9 @@ the turn the top's predictions lose. Where the data is the town, every mode's ro
 against the true counterfactuals the ``truth`` stage rendered from the same starts
 (:mod:`orbis2.eval.protocols.truth`): per-frame errors by horizon, FVD against the true videos, the
 instrument's reading of the truth (its calibration) and whether each rollout is closer to the truth
-under its own command than under the others.
+under its own command than under the others. The headline figure (the README's, through the report) shows the
+first clip: its real frames, the tokenizer's reconstruction of them, and the model's rollouts under the recorded
+command and the yaw-rate counterfactuals, each beside the town's truth where there is one.
 """
 
 from pathlib import Path
@@ -39,6 +41,7 @@ from orbis2.eval.protocols.steering import (
     mode_record,
     odometry_sanity,
     real_videos,
+    save_headline,
     save_strip,
     score_videos,
     steering_inputs,
@@ -75,6 +78,8 @@ from orbis2.stage import (
 # on the compressed latents.
 SYSTEM, TOP = "hierarchical", registry().steered
 LATENT_SET = "compressed"
+# The steering modes the headline figure shows (evaluation.steering_modes' names), with their row labels.
+HEADLINE_MODES = {"original": "recorded command", "yaw_rate_x0.5": "yaw rate x0.5", "yaw_rate_x1.5": "yaw rate x1.5"}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -140,6 +145,8 @@ def main(argv: list[str] | None = None) -> None:
                                                   real_controls, data.detail_hz, cfg.town.hfov_deg)
         per_sample: dict[str, dict[str, dict[str, np.ndarray]]] = {}
         strip = {}
+        headline = {"real": real_frames[0],
+                    "tokenizer (real, encoded + decoded)": np.concatenate([first_frames[0], system.decode(real[:1])[0]])}
         for mode, (speed_scale, yaw_scale) in ev.steering_modes.items():
             controls, steering = steering_inputs(samples, odometry, data, steps, speed_scale, yaw_scale,
                                                  steer_meta["scale"])
@@ -152,6 +159,10 @@ def main(argv: list[str] | None = None) -> None:
             modes[mode] = mode_record(per_sample[mode], clusters, speed_scale, yaw_scale, ev.seed)
             if truth is not None:
                 truth.add(mode, latents, videos)
+            if mode in HEADLINE_MODES:
+                headline[f"model: {HEADLINE_MODES[mode]}"] = videos[0]
+                if truth is not None and mode != "original":  # the recorded command's truth is the real row
+                    headline[f"town's truth: {HEADLINE_MODES[mode]}"] = truth.first_video[mode]
             sp, yw = controls[0]
             strip[mode] = (videos[0], integrate_controls(sp[:videos.shape[1] - 1], yw[:videos.shape[1] - 1],
                                                          1.0 / data.detail_hz))
@@ -171,6 +182,8 @@ def main(argv: list[str] | None = None) -> None:
         write_record(args.out, record)
         run.log_artifact(args.out)
         save_strip(strip, data.detail_hz, args.strip)
+        save_headline(headline, data.detail_hz, args.headline)
+        run.log_artifact(args.headline)
         run.log_artifact(args.strip)
         run.publish(args.strip, "figures")
         run.log_metrics({f"ade_{m}": v.ade for m, v in record.modes.items()})

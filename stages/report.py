@@ -1,6 +1,6 @@
 """Stage `report_main` / `report_all`: the paper's tables, figures and a summary from the evaluation records.
 
-    python stages/report.py main   # reports/main_table.csv, steering.csv, speed.csv, summary.md, headline.json
+    python stages/report.py main   # reports/main_table.csv, steering.csv, speed.csv, summary.md, headline.json/.png
     python stages/report.py all    # reports/all/: every table (ablations too), figures, summary.md
 
 ``all`` also draws the qualitative rollout grid (from the FVD stages' saved frames)
@@ -42,11 +42,12 @@ from orbis2.eval.report.report import (
 )
 from orbis2.eval.report.tables import TableSettings, compression_from_evals
 from orbis2.interfaces import INTERFACES
-from orbis2.io import atomic_dir, write_json
+from orbis2.io import atomic_dir, atomic_file, write_json
 from orbis2.registry import layout_path, registry
 from orbis2.stage import add_name_argument, open_stage, stage_parser
 
 GRID = "grid.npz"  # the frames of the qualitative grid in an FVD stage's media folder
+HEADLINE_PNG = "headline.png"  # main: the steering stage's headline figure, beside the tables
 
 
 def given_or_all(given: list[tuple[str, Path]], kind: str, names: list[str], option: str) -> dict[str, Path]:
@@ -72,7 +73,12 @@ def main(argv: list[str] | None = None) -> None:
                            **{kind: getattr(args, kind) for kind in EVAL_KINDS})
         setup, settings = report_setup(cfg), TableSettings.from_config(cfg)
         if scope == "main":
-            written = write_main_report(evals, args.out or layout_path("reports"), setup, settings)
+            out = args.out or layout_path("reports")
+            written = write_main_report(evals, out, setup, settings)
+            if args.headline is not None and Path(args.headline).is_file():  # the README's figure
+                with atomic_file(out / HEADLINE_PNG) as tmp:
+                    shutil.copyfile(args.headline, tmp)
+                written.append(out / HEADLINE_PNG)
         else:
             evals.compression = compression_from_evals(evals)
             out = args.out or layout_path("report_all")
@@ -112,7 +118,8 @@ def main(argv: list[str] | None = None) -> None:
                 times = write_stage_times(run.stage_times(), Path(tmp) / STAGE_TIMES_CSV)
                 for path in [*written, times]:
                     if path != forest:
-                        run.publish(path, None if path.suffix == ".md" else "tables")
+                        run.publish(path, None if path.suffix == ".md" else "figures" if path.suffix == ".png"
+                                    else "tables")
         else:
             for path in written:
                 if path.suffix == ".png":

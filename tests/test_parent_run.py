@@ -45,3 +45,5 @@ def test_the_gallery_shows_real_beside_generated_at_a_watchable_size():
     assert frames.shape == (3, 288, 1024, 3)  # x4: the smoke profile's 72-px frames, at least 256 px tall
     assert (frames[:, :, :512] == 0).all() and (frames[:, :, 512:] == 200).all()
     assert gallery_frames(real[:, :64], generated[:, :64]).shape[1] == 256
+    three = gallery_frames(real, np.full_like(real, 100), generated)  # real | tokenizer | model
+    assert three.shape == (3, 288, 1536, 3) and (three[:, :, 512:1024] == 100).all()

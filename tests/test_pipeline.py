@@ -106,7 +106,7 @@ def check_reports(root: Path, full: bool) -> None:
     for row in rows:
         for column in ("fvd_val", "fvd_heldout", "fvd_turns", "fvd_slope_turns", "miou", "rmse"):
             assert math.isfinite(float(row[column])) and int(row[f"{column}_n"]) >= 2, (row["model"], column)
-    for name in ("steering.csv", "speed.csv", "summary.md"):
+    for name in ("steering.csv", "speed.csv", "summary.md", "headline.png"):
         assert (root / "reports" / name).stat().st_size > 100
     for name in ("hierarchy_ablation.csv", "training_ablation.csv", "compression_ablation.csv", "summary.md",
                  "figures/fvd_chunked.png", "figures/probe_per_block.png", "figures/bubble_params_fvd_miou.png",

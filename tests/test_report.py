@@ -580,6 +580,23 @@ def test_rollout_grid_and_steering_strip_are_pngs(tmp_path):
         figures.save_rollout_grid([f.astype(np.float32) for f in frames], ["a", "b"], times, tmp_path / "bad.png")
 
 
+def test_the_headline_figure_shows_each_row_at_the_times_its_videos_reach(tmp_path, monkeypatch):
+    from orbis2.eval.protocols import steering
+
+    drawn = {}
+    monkeypatch.setattr(steering, "save_rollout_grid",
+                        lambda frames, labels, times, path: drawn.update(frames=frames, labels=labels, times=times))
+    videos = {"real": np.arange(31, dtype=np.uint8)[:, None, None, None] * np.ones((1, 4, 6, 3), np.uint8),
+              "model": np.zeros((21, 4, 6, 3), np.uint8)}  # 2 s: the 3 s column is left out
+    steering.save_headline(videos, 10.0, tmp_path / "headline.png")
+    assert drawn["labels"] == ["real", "model"] and drawn["times"] == [0.0, 1.0]
+    assert [int(f[0, 0, 0]) for f in drawn["frames"][0]] == [0, 10]  # frame 0: the last context frame
+    monkeypatch.undo()
+    steering.save_headline({k: v[:31] for k, v in videos.items()}, 10.0, tmp_path / "headline.png")
+    with Image.open(tmp_path / "headline.png") as image:
+        assert image.format == "PNG"
+
+
 def test_compression_rows_come_from_the_flat_abstract_models(evals):
     """Compressed vs full: each row reads its own flat abstract model's rollouts and probes."""
     full = fvd_doc("flat_abstract") | {"model": "flat_abstract_full", "latent_channels": 768}

@@ -32,7 +32,7 @@ from orbis2.config.params import PROFILES, as_dict, load_params, parse_config
 from orbis2.io import atomic_file
 
 TABLES = ("main_table.csv", "steering.csv", "speed.csv", "conditioning.csv")
-PICTURES = ("town_contact_sheet.png",)
+PICTURES = ("town_contact_sheet.png", "headline.png")
 RESULTS = Path("docs/results")
 
 

@@ -209,6 +209,8 @@ INTERFACES: dict[str, Interface] = _declare(
         PathOption("steering", "--out", "the record", "eval", file="steering.json", output=True),
         PathOption("strip", "--strip", "the figure of one rollout per mode", "eval", file="steering_strip.png",
                    output=True),
+        PathOption("headline", "--headline", "the README's figure: one clip, real, reconstructed and rolled out",
+                   "eval", file="headline.png", output=True),
     ), ("data", "town", "assets", "evaluation"), GPU, LONG, record="SteeringRecord", rules="rules/evaluation.smk"),
     Interface("eval_speed", "stages/eval_speed.py", (
         LATENTS, *TOKENIZERS, PREDICTORS,
@@ -240,6 +242,8 @@ INTERFACES: dict[str, Interface] = _declare(
         PathOption("media", "--media", "a system's media folder (all: the rollout grid)", "media", named=True,
                    folder=True),
         PathOption("strip", "--strip", "the steering strip (all)", "eval", file="steering_strip.png", optional=True),
+        PathOption("headline", "--headline", "the headline figure (main)", "eval", file="headline.png",
+                   optional=True),
         PathOption("report", "--out", "output folder", "reports", output=True, folder=True,
                    fallback="main: reports, all: reports/all"),
     ), ("data", "evaluation"), LIGHT, SHORT, rules="rules/reports.smk"),

@@ -167,6 +167,15 @@ class Chunked(Record):
     fvd_slope_draws: list[Num]
 
 
+class FirstFrame(Record):
+    """The first generated frame's PSNR (dB) against the real frame, the tokenizer's reconstruction's, and the gap
+    (reconstruction minus generated, paired per rollout): what the predictor adds to the tokenizer's blur."""
+
+    generated_psnr: Interval
+    reconstruction_psnr: Interval
+    gap_db: Interval
+
+
 class FvdRecord(Record):
     """``fvd_<system>.json``: per split of ``evaluation.fvd_splits`` its FVD, reference rows and protocol card;
     the long split's chunked FVD."""
@@ -183,6 +192,7 @@ class FvdRecord(Record):
     references: dict[str, References]
     protocol: dict[str, ProtocolCard]
     chunked: Chunked | None = sometimes()
+    first_frame: dict[str, FirstFrame] | None = sometimes()  # per split; records made before it have none
 
 
 class SegmentationProbe(Record):

@@ -32,6 +32,7 @@ from orbis2.config.sections import DataConfig, EvaluationConfig
 from orbis2.data.shards import Clip, split_clips, split_digest
 from orbis2.data.video import write_gif, write_video
 from orbis2.eval.metrics.fvd import CLIP_FRAMES, cached_features, i3d_features
+from orbis2.eval.metrics.stats import mean_interval, paired_difference
 from orbis2.eval.protocols.evaluate import i3d_picks, protocol, score_rollouts
 from orbis2.eval.protocols.references import reference_rows
 from orbis2.eval.protocols.systems import (
@@ -44,6 +45,7 @@ from orbis2.eval.protocols.systems import (
     rollout_steps,
     sample_clusters,
 )
+from orbis2.eval.protocols.truth import psnr
 from orbis2.latents import LatentCache
 
 # Times (s) of the frames shown in the qualitative rollout grid.
@@ -73,23 +75,52 @@ class PickedFrames:
 GALLERY_HEIGHT = 256  # pixels, at least: the sample videos on the runs' pages, watchable at every profile
 
 
-def gallery_frames(real: np.ndarray, generated: np.ndarray, min_height: int = GALLERY_HEIGHT) -> np.ndarray:
-    """The sample video as a reviewer watches it: the real continuation (left) beside the generated one,
+def gallery_frames(*panels: np.ndarray, min_height: int = GALLERY_HEIGHT) -> np.ndarray:
+    """The sample video as a reviewer watches it: equal-length videos side by side (left to right as given),
     enlarged by a whole factor to at least ``min_height`` pixels (nearest neighbour: no detail made up)."""
-    frames = np.concatenate([real, generated], axis=2)
+    frames = np.concatenate(panels, axis=2)
     factor = max(1, -(-min_height // frames.shape[1]))
     return frames.repeat(factor, axis=1).repeat(factor, axis=2)
+
+
+def sample_video(system: LoadedSystem, cache: LatentCache, split: str, clips: dict[str, Clip], sample: Sample,
+                 indices: np.ndarray, generated: np.ndarray, data: DataConfig) -> np.ndarray:
+    """One rollout from its context on, in three panels: the real frames | the tokenizer's reconstruction of
+    them | the model (the context as the tokenizer reconstructs it, which is what the model sees, then its
+    prediction). Side by side, a reader tells the tokenizer's blur from the predictor's. ``indices``: the
+    generated frames' native indices."""
+    span = np.concatenate([context_indices(data, sample.context_end), indices])
+    real = clips[sample.key].frames(span)
+    recon = system.decode(cache_latents(cache, split, system.output_level, [sample], [span]))[0]
+    model = np.concatenate([recon[:data.detail_context], generated])
+    return gallery_frames(real, recon, model)
+
+
+def first_frame(system: LoadedSystem, cache: LatentCache, split: str, clips: dict[str, Clip],
+                samples: list[Sample], indices: list[np.ndarray], latents: torch.Tensor, clusters: list[str],
+                seed: int) -> dict[str, Any]:
+    """PSNR of each rollout's first generated frame and of the tokenizer's reconstruction of the same real frame,
+    against the real frame, and their paired gap, with clip-bootstrap intervals (a :class:`FirstFrame`)."""
+    first = [idx[:1] for idx in indices]
+    real = real_videos(clips, samples, first)
+    recon = system.decode(cache_latents(cache, split, system.output_level, samples, first))
+    generated = system.decode(latents[:, :1])
+    ours, tokenizer = psnr(generated, real)[:, 0], psnr(recon, real)[:, 0]
+    return {"generated_psnr": mean_interval(ours, clusters, seed=seed).to_dict(),
+            "reconstruction_psnr": mean_interval(tokenizer, clusters, seed=seed).to_dict(),
+            "gap_db": paired_difference(tokenizer, ours, clusters, seed=seed).to_dict()}
 
 
 def split_fvd(split: str, system: LoadedSystem, cache: LatentCache, i3d, media: Path, data: DataConfig,
               ev: EvaluationConfig, device: torch.device, shards: Path, stats_cache: Path, i3d_sha256: str = "",
               rollouts: Path | None = None) -> dict[str, Any]:
-    """Roll out one split: ``{"fvd": ..., "references": ..., "protocol": ...}``, plus ``"chunked"`` on the long
+    """Roll out one split: ``{"fvd": ..., "references": ..., "first_frame": ..., "protocol": ...}``, plus
+    ``"chunked"`` on the long
     split, scored by :func:`orbis2.eval.protocols.evaluate.score_rollouts` (the code ``orbis2 evaluate`` runs).
 
-    Writes a sample video, real beside generated at least 256 px tall (``media/<split>.mp4``, VP9, and
-    the same as ``media/<split>.gif``)
-    and, on the long split, the frames of
+    Writes a sample video, real | tokenizer | model from the context on, at least 256 px tall
+    (:func:`sample_video`; ``media/<split>.mp4``, VP9, and the same as ``media/<split>.gif``) and, on the long
+    split, the frames of
     the qualitative grid (``media/grid.npz``). ``shards`` is the shard folder the cache
     was encoded from; ``stats_cache`` the folder of cached real-video features. Given
     ``rollouts``, every frame is decoded and each rollout is written losslessly with the
@@ -124,12 +155,13 @@ def split_fvd(split: str, system: LoadedSystem, cache: LatentCache, i3d, media: 
     out["fvd"]["source_resolution"] = list(generated.frames.shape[2:4])
     out["references"] = references(split, system, cache, samples, indices, short, real(short), clusters, what, i3d,
                                    ev, cached)
+    out["first_frame"] = first_frame(system, cache, split, clips, samples, indices, latents, clusters, ev.seed)
     out["protocol"] = proto.card(data.detail_hz, data.detail_context, len(set(clusters)), len(samples), i3d_sha256,
                                  generated.frames.shape[2:4])
     first = every[0] if every is not None else system.decode(latents[:1])[0]  # the sample video, every frame
     if long:
         save_grid_frames(media / "grid.npz", first, data.detail_hz)
-    sample = gallery_frames(real_videos(clips, samples[:1], indices[:1])[0], first)
+    sample = sample_video(system, cache, split, clips, samples[0], indices[0], first, data)
     write_video(media / f"{split}.mp4", sample, data.detail_hz, playable=True)
     write_gif(media / f"{split}.gif", sample, data.detail_hz)
     if rollouts is not None:

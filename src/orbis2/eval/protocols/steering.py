@@ -25,7 +25,7 @@ import torch.nn.functional as F
 
 from orbis2.config.sections import DataConfig
 from orbis2.data.shards import Clip
-from orbis2.eval.figures import save_steering_strip
+from orbis2.eval.figures import save_rollout_grid, save_steering_strip
 from orbis2.eval.metrics.odometry import endpoint_angle, path_length, trajectory_ade
 from orbis2.eval.metrics.stats import mean_interval, paired_difference
 from orbis2.eval.protocols.conditioning import sideways_shift
@@ -35,6 +35,8 @@ from orbis2.rollout import rollout_schedule, steering_sequences
 
 # Times (s) of the frames shown in the steering strip (those the rollout reaches).
 STRIP_TIMES = (0.0, 2.0, 4.0, 6.0)
+# Times (s after the last context frame) of the headline figure's columns.
+HEADLINE_TIMES = (0.0, 1.0, 3.0)
 
 
 def steering_inputs(samples: list[Sample], odometry: np.ndarray, data: DataConfig, steps: int, speed_scale: float,
@@ -258,6 +260,15 @@ def odometry_sanity(videos: list[np.ndarray], samples: list[Sample], indices: li
     return {"real_ade": real_iv.estimate, "real_low": real_iv.low, "real_high": real_iv.high,
             "shuffled_ade": shuffled_iv.estimate, "shuffled_low": shuffled_iv.low,
             "shuffled_high": shuffled_iv.high, "videos": len(samples)}
+
+
+def save_headline(rows: dict[str, np.ndarray], fps: float, path: Path) -> None:
+    """The README's figure: one clip's videos (rows, labelled by the keys; each starts at the last context frame)
+    at ``HEADLINE_TIMES``."""
+    length = min(len(video) for video in rows.values())
+    times = [t for t in HEADLINE_TIMES if round(t * fps) < length]
+    picks = [round(t * fps) for t in times]
+    save_rollout_grid([video[picks] for video in rows.values()], list(rows), times, path)
 
 
 def save_strip(strip: dict[str, tuple[np.ndarray, np.ndarray]], fps: float, path: Path) -> None:

@@ -143,6 +143,7 @@ class TruthScorer:
         self.generated: dict[str, torch.Tensor] = {}
         self.truth: dict[str, torch.Tensor] = {}
         self.modes: dict[str, dict[str, Any]] = {}
+        self.first_video: dict[str, np.ndarray] = {}  # mode -> the first sample's true video (the figures)
 
     def add(self, mode: str, latents: torch.Tensor, videos: np.ndarray) -> None:
         """One mode's rollouts: normalised detail latents [N, G, ...] and decoded videos [N, 1 + G, H, W, 3] (the
@@ -159,6 +160,7 @@ class TruthScorer:
                              for i in range(0, len(flat), ENCODE_BATCH)])
         truth = self.cache.normalize("detail", encoded.numpy().astype(np.float16)).reshape(latents.shape)
         self.generated[mode], self.truth[mode] = latents.half(), truth.half()
+        self.first_video[mode] = frames[0]
         ev, seed = self.ev, self.ev.seed
         frames_at = horizon_frames(ev.truth_horizons_s, self.data.detail_hz, latents.shape[1])
         errors, psnrs = latent_errors(latents, truth), psnr(videos[:, 1:], frames[:, 1:])
