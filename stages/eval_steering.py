@@ -146,7 +146,8 @@ def main(argv: list[str] | None = None) -> None:
         per_sample: dict[str, dict[str, dict[str, np.ndarray]]] = {}
         strip = {}
         headline = {"real": real_frames[0],
-                    "tokenizer (real, encoded + decoded)": np.concatenate([first_frames[0], system.decode(real[:1])[0]])}
+                    "tokenizer\n(real, encoded, decoded)": np.concatenate([first_frames[0],
+                                                                            system.decode(real[:1])[0]])}
         for mode, (speed_scale, yaw_scale) in ev.steering_modes.items():
             controls, steering = steering_inputs(samples, odometry, data, steps, speed_scale, yaw_scale,
                                                  steer_meta["scale"])
@@ -160,9 +161,9 @@ def main(argv: list[str] | None = None) -> None:
             if truth is not None:
                 truth.add(mode, latents, videos)
             if mode in HEADLINE_MODES:
-                headline[f"model: {HEADLINE_MODES[mode]}"] = videos[0]
+                headline[f"model:\n{HEADLINE_MODES[mode]}"] = videos[0]
                 if truth is not None and mode != "original":  # the recorded command's truth is the real row
-                    headline[f"town's truth: {HEADLINE_MODES[mode]}"] = truth.first_video[mode]
+                    headline[f"town's truth:\n{HEADLINE_MODES[mode]}"] = truth.first_video[mode]
             sp, yw = controls[0]
             strip[mode] = (videos[0], integrate_controls(sp[:videos.shape[1] - 1], yw[:videos.shape[1] - 1],
                                                          1.0 / data.detail_hz))

@@ -584,7 +584,7 @@ def test_the_headline_figure_shows_each_row_at_the_times_its_videos_reach(tmp_pa
     from orbis2.eval.protocols import steering
 
     drawn = {}
-    monkeypatch.setattr(steering, "save_rollout_grid",
+    monkeypatch.setattr(steering, "save_frame_columns",
                         lambda frames, labels, times, path: drawn.update(frames=frames, labels=labels, times=times))
     videos = {"real": np.arange(31, dtype=np.uint8)[:, None, None, None] * np.ones((1, 4, 6, 3), np.uint8),
               "model": np.zeros((21, 4, 6, 3), np.uint8)}  # 2 s: the 3 s column is left out

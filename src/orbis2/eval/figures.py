@@ -78,6 +78,31 @@ def save_rollout_grid(
     save_figure(fig, path)
 
 
+def save_frame_columns(
+    frames: Sequence[np.ndarray], labels: Sequence[str], times: Sequence[float], path: str | Path
+) -> None:
+    """A grid with one column per video (``labels`` as column titles) and one row per time (frames[i] is uint8
+    [T, H, W, 3]): many videos of one clip side by side, read across."""
+    if len(frames) != len(labels) or not frames:
+        raise ValueError(f"need one label per video column, got {len(frames)} columns and {len(labels)} labels")
+    columns = _frame_rows(frames, labels, times)
+    plt = pyplot()
+    h, w = columns[0].shape[1:3]
+    fig, axes = plt.subplots(len(times), len(columns), figsize=(1.9 * len(columns) * w / h, 1.9 * len(times)),
+                             squeeze=False, gridspec_kw={"wspace": 0.04, "hspace": 0.04})
+    for c, (video, label) in enumerate(zip(columns, labels)):
+        for r, t in enumerate(times):
+            ax = axes[r][c]
+            ax.imshow(video[r])
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(label, fontsize=8)
+            if c == 0:
+                ax.set_ylabel(f"{t:g} s", fontsize=8)
+    save_figure(fig, path)
+
+
 def save_steering_strip(
     frames: Sequence[np.ndarray],
     modes: Sequence[str],

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 
 from orbis2.config.sections import DataConfig
 from orbis2.data.shards import Clip
-from orbis2.eval.figures import save_rollout_grid, save_steering_strip
+from orbis2.eval.figures import save_frame_columns, save_steering_strip
 from orbis2.eval.metrics.odometry import endpoint_angle, path_length, trajectory_ade
 from orbis2.eval.metrics.stats import mean_interval, paired_difference
 from orbis2.eval.protocols.conditioning import sideways_shift
@@ -263,12 +263,12 @@ def odometry_sanity(videos: list[np.ndarray], samples: list[Sample], indices: li
 
 
 def save_headline(rows: dict[str, np.ndarray], fps: float, path: Path) -> None:
-    """The README's figure: one clip's videos (rows, labelled by the keys; each starts at the last context frame)
-    at ``HEADLINE_TIMES``."""
+    """The README's figure: one clip's videos (columns, titled by the keys; each starts at the last context frame)
+    at ``HEADLINE_TIMES`` (rows)."""
     length = min(len(video) for video in rows.values())
     times = [t for t in HEADLINE_TIMES if round(t * fps) < length]
     picks = [round(t * fps) for t in times]
-    save_rollout_grid([video[picks] for video in rows.values()], list(rows), times, path)
+    save_frame_columns([video[picks] for video in rows.values()], list(rows), times, path)
 
 
 def save_strip(strip: dict[str, tuple[np.ndarray, np.ndarray]], fps: float, path: Path) -> None:
