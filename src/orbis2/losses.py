@@ -15,6 +15,11 @@ def l1_reconstruction(recon: torch.Tensor, target: torch.Tensor) -> torch.Tensor
     return (recon - target).abs().mean()
 
 
+def mse_reconstruction(recon: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean squared pixel error: not in VQGAN's objective; what PSNR measures (``tokenizer_detail.mse_weight``)."""
+    return (recon - target).square().mean()
+
+
 def hinge_d_loss(logits_real: torch.Tensor, logits_fake: torch.Tensor) -> torch.Tensor:
     """Discriminator hinge loss (taming): 0.5 * (E[relu(1 - D(x))] + E[relu(1 + D(x_hat))])."""
     return 0.5 * (F.relu(1.0 - logits_real).mean() + F.relu(1.0 + logits_fake).mean())

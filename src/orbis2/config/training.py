@@ -105,6 +105,7 @@ class DetailTokenizerConfig:
     train: TrainConfig
     frames_per_clip: int
     l1_weight: float
+    mse_weight: float  # 0 in the paper's objective (docs/differences.md, "Detail tokenizer objective")
     entropy_start: float
     entropy_end: float
     entropy_decay_steps: int

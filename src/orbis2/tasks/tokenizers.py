@@ -1,8 +1,8 @@
 """Training the two tokenizers (paper Sec. 3.2, App. "Tokenizer") with the shared loop.
 
-- :class:`DetailTokenizerTask`: the VQGAN objective. L1 reconstruction, codebook
-  and commitment losses, the decaying entropy penalty, and from ``disc_start`` a
-  PatchGAN hinge loss with the adaptive weight of taming. The tokenizer and its
+- :class:`DetailTokenizerTask`: the VQGAN objective. L1 reconstruction (plus pixel MSE with
+  ``mse_weight``, not the paper's), codebook and commitment losses, the decaying entropy penalty,
+  and from ``disc_start`` a PatchGAN hinge loss with the adaptive weight of taming. The tokenizer and its
   discriminator form one module, so one checkpoint holds both.
 - :class:`AbstractTokenizerTask`: the encoder's latent, through the projection
   head P, predicts a frozen teacher's patch features (paper eq. 3), with a weak
@@ -48,6 +48,7 @@ from orbis2.losses import (
     generator_gan_loss,
     hinge_d_loss,
     l1_reconstruction,
+    mse_reconstruction,
     psnr,
     ssim,
     teacher_alignment_loss,
@@ -275,12 +276,13 @@ class DetailTokenizerTask(_TokenizerTask):
         cfg = self.cfg
         gan = step >= cfg.disc_start
         recon, vq, logits_fake = model(images, gan=gan)
-        l1 = l1_reconstruction(recon, images)
-        rec = cfg.l1_weight * l1
+        l1, mse = l1_reconstruction(recon, images), mse_reconstruction(recon, images)
+        rec = cfg.l1_weight * l1 + cfg.mse_weight * mse
         loss = rec + vq.vq_loss + entropy_weight(step, cfg.entropy_start, cfg.entropy_end,
                                                  cfg.entropy_decay_steps) * vq.entropy_loss
-        metrics = {"l1": l1.detach(), "codebook": vq.codebook_loss.detach(), "commitment": vq.commitment_loss.detach(),
-                   "entropy": vq.entropy_loss.detach(), "perplexity": vq.perplexity, "used_fraction": vq.used_fraction}
+        metrics = {"l1": l1.detach(), "mse": mse.detach(), "codebook": vq.codebook_loss.detach(),
+                   "commitment": vq.commitment_loss.detach(), "entropy": vq.entropy_loss.detach(),
+                   "perplexity": vq.perplexity, "used_fraction": vq.used_fraction}
         if gan:
             g_loss = generator_gan_loss(logits_fake)
             weight = adaptive_gan_weight(rec, g_loss, unwrap(model).tokenizer.last_layer, cfg.gan_scale)
