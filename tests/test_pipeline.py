@@ -11,6 +11,7 @@ import math
 import re
 import shutil
 import sqlite3
+import subprocess
 import sys
 from pathlib import Path
 
@@ -24,7 +25,7 @@ from orbis2.latents import LatentWindowDataset, open_cache
 from orbis2.models.files import load_predictor, load_tokenizer
 from orbis2.tasks.predictors import STAGES as STAGE_SPECS
 
-from conftest import project_copy, run
+from conftest import project_copy, project_env, run
 
 pytestmark = pytest.mark.slow
 
@@ -160,6 +161,28 @@ def test_snakemake_smoke_dag(smoke_project, tmp_path):
     assert re.findall(r"^(?:local)?rule (\w+):", out, re.MULTILINE) == ["action"]
     assert f"dvc.lock records this run ({len(ACTION_STAGES)} stages)" in out  # test_dvc_repro_smoke_dag: DVC agrees
     assert len([r for r in mlflow_runs(root / "mlflow.db") if r[2] is None]) == 3  # one parent per invocation
+
+
+def test_tokenizer_levers_measure_a_change_against_a_baseline(smoke_project, tmp_path):
+    """tools/tokenizer_levers.py: two short trainings on the smoke shards (outside the shared project), the second
+    with pixel MSE and its paired PSNR gain over the first; an unknown setting stops with its name."""
+    shutil.copy(smoke_project / "params.yaml", tmp_path / "params.yaml")
+    tool = [sys.executable, str(Path(__file__).parents[1] / "tools" / "tokenizer_levers.py")]
+    common = ["--profile", "smoke", "--shards", str(smoke_project / "data/shards"), "--assets",
+              str(smoke_project / "data/assets"), "--set", "train.steps=6", "--set", "fid_images=8"]
+    run([*tool, "base", *common], tmp_path)
+    out = run([*tool, "mse", *common, "--set", "mse_weight=1.0", "--against", "base"], tmp_path)
+    rows = [json.loads(line) for line in (tmp_path / "reports/tokenizer_levers.jsonl").read_text().splitlines()]
+    assert [r["name"] for r in rows] == ["base", "mse"] and rows[1]["set"] == {"train.steps": 6, "fid_images": 8,
+                                                                                "mse_weight": 1.0}
+    assert rows[0]["steps"] == 6 and rows[0]["frames"] == 8 and rows[0]["clips"] >= 2
+    assert rows[0]["psnr_per_frame"] != rows[1]["psnr_per_frame"]  # the lever changed the training
+    gain = rows[1]["psnr_gain_db"]
+    assert gain["low"] <= gain["estimate"] <= gain["high"] and "vs base" in out
+    assert gain["estimate"] == pytest.approx(sum(rows[1]["psnr_per_frame"]) / 8 - sum(rows[0]["psnr_per_frame"]) / 8)
+    bad = subprocess.run([*tool, "bad", *common, "--set", "no_such_key=1"], cwd=tmp_path, capture_output=True,
+                         text=True, env=project_env(tmp_path))
+    assert bad.returncode != 0 and "no_such_key" in bad.stderr
 
 
 def test_guidance_selection_starts_from_the_trained_models(smoke_project, tmp_path):
