@@ -50,18 +50,21 @@ def _frame_rows(frames: Sequence[np.ndarray], labels: Sequence[str], times: Sequ
     return rows
 
 
-def _draw_frame_rows(axes, rows: list[np.ndarray], labels: Sequence[str], times: Sequence[float]) -> None:
-    """Frames into the first ``len(times)`` columns, times as column titles, labels as row titles."""
+def _draw_frame_rows(axes, rows: list[np.ndarray], labels: Sequence[str], times: Sequence[float],
+                     as_columns: bool = False) -> None:
+    """Frames into the first ``len(times)`` columns, times as column titles, labels as row titles; ``as_columns``:
+    each video down a column instead (labels as column titles, times as row titles)."""
     for r, (f, label) in enumerate(zip(rows, labels)):
         for c, t in enumerate(times):
-            ax = axes[r][c]
+            ax = axes[c][r] if as_columns else axes[r][c]
             ax.imshow(f[c])
             ax.set_xticks([])
             ax.set_yticks([])
-            if r == 0:
-                ax.set_title(f"{t:g} s", fontsize=8)
-            if c == 0:
-                ax.set_ylabel(label, fontsize=8)
+            title, side = (label, f"{t:g} s") if as_columns else (f"{t:g} s", label)
+            if (c if as_columns else r) == 0:
+                ax.set_title(title, fontsize=8)
+            if (r if as_columns else c) == 0:
+                ax.set_ylabel(side, fontsize=8)
 
 
 def save_rollout_grid(
@@ -90,16 +93,7 @@ def save_frame_columns(
     h, w = columns[0].shape[1:3]
     fig, axes = plt.subplots(len(times), len(columns), figsize=(1.9 * len(columns) * w / h, 1.9 * len(times)),
                              squeeze=False, gridspec_kw={"wspace": 0.04, "hspace": 0.04})
-    for c, (video, label) in enumerate(zip(columns, labels)):
-        for r, t in enumerate(times):
-            ax = axes[r][c]
-            ax.imshow(video[r])
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if r == 0:
-                ax.set_title(label, fontsize=8)
-            if c == 0:
-                ax.set_ylabel(f"{t:g} s", fontsize=8)
+    _draw_frame_rows(axes, columns, labels, times, as_columns=True)
     save_figure(fig, path)
 
 
