@@ -102,7 +102,7 @@ def test_the_reference_rows_are_fields_of_the_record():
 def test_a_published_evaluate_record_rewrites_byte_for_byte(tmp_path, split):
     """The records `orbis2 evaluate --out` wrote for the default run validate strictly and re-write to the same
     bytes (tests/test_evaluate.py checks one with steering scores and trajectories)."""
-    source = ROOT / "docs" / "results" / "default" / "evaluate" / f"evaluate_{split}.json"
+    source = ROOT / "docs" / "evaluate_default" / f"evaluate_{split}.json"
     record = EvaluateRecord.model_validate_json(source.read_text())
     records.write_record(tmp_path / source.name, record)
     assert (tmp_path / source.name).read_bytes() == source.read_bytes()
