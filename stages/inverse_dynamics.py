@@ -1,20 +1,31 @@
 """Stage `inverse_dynamics`: the learned instrument that reads speed and yaw rate from consecutive frames
 -> data/inverse_dynamics/model.pt (with curves/), reports/inverse_dynamics.json.
 
-Trains on the train split's frame pairs with the shared loop; checkpoints live in
+Trains on the train split's frame pairs, and on those of train clips the town drives again along
+counterfactual paths (``counterfactual_clips``, ``counterfactual_scales``: the turns and off-road views
+the steering evaluation's commands lead to), with the shared loop; checkpoints live in
 data/runs/ (see `training_dir`): a killed run resumes there. Val R^2 on real
 pairs, on the detail tokenizer's reconstructions of them and on shuffled pairs
 (the control); see :mod:`orbis2.eval.metrics.inverse_dynamics`.
 """
 
 
+import os
+
 from orbis2.accel import default_device
 from orbis2.data.shards import verify_shards
-from orbis2.eval.metrics.inverse_dynamics import WEIGHTS_FILE, evaluate_instrument, load_clips, pair_index, reconstruct
+from orbis2.eval.metrics.inverse_dynamics import (
+    WEIGHTS_FILE,
+    ClipFrames,
+    evaluate_instrument,
+    load_clips,
+    pair_index,
+    reconstruct,
+)
 from orbis2.interfaces import INTERFACES
 from orbis2.io import atomic_dir, write_json
 from orbis2.stage import TOKENIZER_FILE, copy_curves, open_stage, stage_parser, training_dir
-from orbis2.tasks.instrument import train_instrument
+from orbis2.tasks.instrument import counterfactual_train_clips, train_instrument
 
 INTERFACE = INTERFACES["inverse_dynamics"]
 SECTIONS = INTERFACE.sections_with()
@@ -29,13 +40,17 @@ def main(argv: list[str] | None = None) -> None:
         ic, fps, dev = cfg.inverse_dynamics, float(cfg.data.fps), default_device()
 
         work = training_dir("inverse_dynamics", cfg, SECTIONS, {"shards": args.shards / "manifest.json"})
-        train = load_clips(args.shards, "train", ic.scale, ic.max_train_clips)
+        recorded = load_clips(args.shards, "train", ic.scale, ic.max_train_clips)
+        driven, counterfactual = counterfactual_train_clips(args.shards, cfg, cfg.truth.workers or os.cpu_count() or 1)
+        train = ClipFrames(recorded.frames + driven.frames, recorded.odometry + driven.odometry,
+                           recorded.keys + driven.keys)
         instrument = train_instrument(train, ic, fps, work, dev, run)
         val = load_clips(args.shards, "val", ic.scale)
         reconstructed = reconstruct(args.tokenizer / TOKENIZER_FILE, args.shards, "val", val, ic.scale, dev)
         result = evaluate_instrument(instrument, val, ic.eval_pairs, ic.train.seed, reconstructed)
 
-        record = {"train_clips": len(train.keys), "train_pairs": len(pair_index(train)), "steps": ic.train.steps,
+        record = {"train_clips": len(recorded.keys), "train_pairs": len(pair_index(recorded)),
+                  "counterfactual": counterfactual, "steps": ic.train.steps,
                   "fps": fps, "input": list(train.frames[0].shape[1:3]), "seed": ic.train.seed, "val": result}
         with atomic_dir(args.out) as tmp:
             instrument.save(tmp / WEIGHTS_FILE, record)

@@ -18,15 +18,11 @@ from concurrent.futures import ProcessPoolExecutor
 from tqdm import tqdm
 
 from orbis2.data.shards import load_manifest, split_clips, verify_shards
-from orbis2.data.truth import Command, render_commands, write_truth, write_unavailable
+from orbis2.data.truth import Command, render_commands, single_thread_renderer, write_truth, write_unavailable
 from orbis2.eval.protocols.starts import commanded_steps, rollout_steps, sample_ends
 from orbis2.interfaces import INTERFACES
 from orbis2.io import atomic_dir, write_json
 from orbis2.stage import open_stage, stage_parser
-
-
-def _init_worker() -> None:
-    os.environ["NUMBA_NUM_THREADS"] = "1"  # one numba thread per process: clips are the unit of parallelism
 
 
 def _render(job):
@@ -68,7 +64,7 @@ def main(argv: list[str] | None = None) -> None:
         seconds = []
 
         def rendered():
-            with ProcessPoolExecutor(workers, initializer=_init_worker) as pool:
+            with ProcessPoolExecutor(workers, initializer=single_thread_renderer) as pool:
                 for items, took in tqdm(pool.map(_render, jobs), total=len(jobs), desc="truth: clips", unit="clip"):
                     seconds.append(took)
                     yield from items

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from orbis2.data.shards import Clip
-from orbis2.data.truth import Command, TruthError, read_truth, render_commands, write_truth
+from orbis2.data.truth import Command, TruthError, counterfactual_clip, read_truth, render_commands, write_truth
 from orbis2.eval.protocols.truth import horizon_frames, latent_errors, psnr, truth_claim
 from orbis2.sim import Camera, Town, render_episode, simulate_ego
 from orbis2.sim.counterfactual import PathFrames, PathRenderer, on_road, render_path
@@ -50,6 +50,20 @@ def _stepwise(town, track, start, speed, yaw_rate, per_step=5) -> PathFrames:
     for i in range(0, len(speed), per_step):
         parts.append(renderer.step(speed[i:i + per_step], yaw_rate[i:i + per_step]))
     return PathFrames.concatenate(parts)
+
+
+def test_advancing_without_rendering_keeps_the_path(town, drive):
+    """orbis2 play's true view switched off for a step and on again: the next frames are those of a renderer
+    that rendered throughout (the same poses, bit for bit)."""
+    track, _ = drive
+    speed, yaw_rate = np.full(10, 6.0), np.full(10, 0.4)
+    shown, skipping = PathRenderer(town, CAM, track, 20), PathRenderer(town, CAM, track, 20)
+    shown.step(speed[:5], yaw_rate[:5])
+    assert skipping.advance(speed[:5], yaw_rate[:5]).tolist() == list(range(21, 26))
+    want, got = shown.step(speed[5:], yaw_rate[5:]), skipping.step(speed[5:], yaw_rate[5:])
+    assert got.frames.tolist() == list(range(26, 31))
+    for name in ("rgb", "x", "y", "yaw"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
 
 
 def test_a_left_command_renders_a_left_turn(town, drive):
@@ -176,3 +190,17 @@ def test_truth_cache_round_trip_and_stale_clips(smoke_cfg, tmp_path):
     clip.pose[3, 0] += 1e-9
     with pytest.raises(TruthError, match="does not drive the clip's recorded poses"):
         render_commands(clip, commands, 10, data, smoke_cfg.town, 95)
+
+
+def test_a_counterfactual_train_clip_is_the_whole_clip_driven_again(smoke_cfg, tmp_path):
+    """The instrument's extra training data: a clip from its first frame with its controls scaled, its frames as the
+    truth cache (and the shards) would hold them, its odometry the scaled controls."""
+    clip, track = _clip(smoke_cfg)
+    data = dataclasses.replace(smoke_cfg.data, width=CAM.width, height=CAM.height)
+    frames, odometry = counterfactual_clip(clip, 1.0, 1.5, data, smoke_cfg.town, 95)
+    assert frames.shape == (40, CAM.height, CAM.width, 3) and odometry.shape == (40, 2)
+    np.testing.assert_allclose(odometry[:39, 1], 1.5 * track.yaw_rate[10:49])
+    np.testing.assert_allclose(odometry[:39, 0], track.speed[10:49])
+    write_truth(tmp_path, render_commands(clip, [Command(clip.key, 0, "yaw", 1.0, 1.5)], 39, data, smoke_cfg.town, 95),
+                {"split": "val"}, 1.0)
+    np.testing.assert_array_equal(frames, read_truth(tmp_path)["town_val_00000_0000_0000_yaw"].frames)

@@ -43,8 +43,6 @@ from orbis2.latents import encode_frames
 from orbis2.models.files import PredictorFile, TokenizerFile, load_predictor, load_tokenizer
 from orbis2.registry import layout_path, registry
 from orbis2.rollout import (
-    ABSTRACT_NFE,
-    DETAIL_NFE,
     cascaded_rollout,
     first_context_end,
     rollout_schedule,
@@ -222,6 +220,28 @@ def write_outputs(out: Path, frames: np.ndarray, fps: float) -> Path:
 # --------------------------------------------------------------------------- rollout command
 
 
+def sampler_settings(args: argparse.Namespace, cfg, detail_pred: PredictorFile, steered: bool
+                     ) -> tuple[int, int, float, str]:
+    """Abstract and detail Euler steps and the steering guidance a rollout samples with, and a line saying so.
+
+    The options given, else the sampler the run's evaluation scored these models with (params.yaml's
+    ``evaluation`` of the profile: 4 and 6 steps with guidance 3 at the default profile, the paper's 15 and 30
+    without guidance at ``paper``), so that what a user rolls out or drives is what the report measured. A
+    distilled detail predictor's own steps come before the evaluation's; guidance applies to a steered rollout.
+    """
+    ev = cfg.evaluation
+    abstract_nfe = args.abstract_nfe or ev.top_nfe
+    detail_nfe = args.detail_nfe or detail_pred.nfe(ev.bottom_nfe)
+    guidance = args.steering_guidance if args.steering_guidance is not None else ev.steering_guidance
+    guidance = guidance if steered else 1.0
+    given = [flag for flag, value in (("--abstract-nfe", args.abstract_nfe), ("--detail-nfe", args.detail_nfe),
+                                      ("--steering-guidance", args.steering_guidance)) if value is not None]
+    why = f"given {', '.join(given)}; otherwise " if given else ""
+    line = (f"sampler: {abstract_nfe} abstract / {detail_nfe} detail Euler steps, steering guidance {guidance:g} "
+            f"({why}evaluation.{cfg.profile}'s)")
+    return abstract_nfe, detail_nfe, guidance, line
+
+
 def rollout_command(args: argparse.Namespace) -> str:
     check_numbers(args)
     cfg, which = resolve_profile(args.params, args.profile, [
@@ -269,17 +289,15 @@ def rollout_command(args: argparse.Namespace) -> str:
     for predictor in (abstract_pred, detail_pred):  # bf16 weights cast once on CUDA (a no-op on the CPU)
         cast_for_inference(predictor.model, device, args.precision)
     if args.compile:
-        compile_predictor(abstract_pred.model)
-        compile_predictor(detail_pred.model)
-        compile_decoder(detail_tok.model)
-    detail_nfe = args.detail_nfe or detail_pred.nfe(DETAIL_NFE)
+        compile_models(abstract_pred, detail_pred, detail_tok)
+    abstract_nfe, detail_nfe, guidance, line = sampler_settings(args, cfg, detail_pred, steering is not None)
+    print(f"orbis2 rollout: {line}", file=sys.stderr)
     with tqdm(total=steps, desc="rollout", unit="step") as bar, inference_autocast(device, args.precision):
         details, _ = cascaded_rollout(
             abstract_pred.model, detail_pred.model, detail_ctx[None].to(device), abstract_ctx[None].to(device),
-            steps, generator, abstract_nfe=args.abstract_nfe, detail_nfe=detail_nfe,
+            steps, generator, abstract_nfe=abstract_nfe, detail_nfe=detail_nfe,
             abstract_hz=data.abstract_hz, detail_hz=data.detail_hz, steering=steering,
-            on_step=lambda _: bar.update(1), kv_cache=not args.no_kv_cache,
-            steering_guidance=args.steering_guidance)
+            on_step=lambda _: bar.update(1), kv_cache=not args.no_kv_cache, steering_guidance=guidance)
 
     context_frames = frames[list(first.detail_context)]
     video = np.concatenate([context_frames, decode_latents(detail_tok, details[0], device, args.precision)])
@@ -299,18 +317,44 @@ def check_numbers(args: argparse.Namespace) -> None:
     """Numbers argparse accepts but a rollout cannot use (NaN, infinity, zero or negative lengths, no steps,
     negative guidance)."""
     for flag, value in (("--seconds", args.seconds), ("--speed-scale", args.speed_scale),
-                        ("--yaw-rate-scale", args.yaw_rate_scale), ("--steering-guidance", args.steering_guidance)):
+                        ("--yaw-rate-scale", args.yaw_rate_scale)):
         if not math.isfinite(value):
             raise OrbisError(f"{flag} {value}: not a finite number")
     if args.seconds <= 0:
         raise OrbisError(f"--seconds {args.seconds:g}: the rollout length must be > 0")
     if args.out.suffix.lower() not in PLAYABLE_SUFFIXES:
         raise OrbisError(f"--out {args.out}: the video is written as VP9, in .mp4 or .webm; change the suffix")
-    if args.steering_guidance < 0:
-        raise OrbisError(f"--steering-guidance {args.steering_guidance:g}: must be >= 0 (1: no guidance)")
+    check_sampler(args)
+
+
+def compile_models(abstract_pred: PredictorFile, detail_pred: PredictorFile, detail_tok: TokenizerFile) -> None:
+    """``--compile``: both predictors by region and the detail decoder (each shape compiles on first use)."""
+    compile_predictor(abstract_pred.model)
+    compile_predictor(detail_pred.model)
+    compile_decoder(detail_tok.model)
+
+
+def check_sampler(args: argparse.Namespace) -> None:
+    """Sampler options a rollout cannot use (None: the evaluation's, :func:`sampler_settings`)."""
+    guidance = args.steering_guidance
+    if guidance is not None and not math.isfinite(guidance):
+        raise OrbisError(f"--steering-guidance {guidance}: not a finite number")
+    if guidance is not None and guidance < 0:
+        raise OrbisError(f"--steering-guidance {guidance:g}: must be >= 0 (1: no guidance)")
     for flag, value in (("--abstract-nfe", args.abstract_nfe), ("--detail-nfe", args.detail_nfe)):
-        if value is not None and value < 1:  # --detail-nfe None: the predictor's own steps
+        if value is not None and value < 1:
             raise OrbisError(f"{flag} {value}: needs at least 1 function evaluation per sample")
+
+
+def add_sampler_options(p: argparse.ArgumentParser) -> None:
+    """The sampler's options of ``orbis2 rollout`` and ``orbis2 play`` (:func:`sampler_settings`)."""
+    g = p.add_argument_group("sampler", "default: the sampler the run's evaluation used (params.yaml's evaluation "
+                                        "section of the profile: the paper's 15 / 30 steps at gpu and paper)")
+    g.add_argument("--abstract-nfe", type=int, default=None, help="Euler steps per abstract latent")
+    g.add_argument("--detail-nfe", type=int, default=None,
+                   help="Euler steps per detail window (a distilled detail predictor's own steps come first)")
+    g.add_argument("--steering-guidance", type=float, default=None,
+                   help="classifier-free guidance on the steering (1: none, the paper's sampler)")
 
 
 def add_rollout_parser(sub: argparse._SubParsersAction) -> None:
@@ -321,8 +365,6 @@ def add_rollout_parser(sub: argparse._SubParsersAction) -> None:
                         "(default: <video>.csv or <video>.parquet if present)")
     p.add_argument("--hold-last", action="store_true",
                    help="a trajectory shorter than the rollout keeps its last speed and yaw rate (default: error)")
-    p.add_argument("--steering-guidance", type=float, default=1.0,
-                   help="classifier-free guidance on the steering (1: none, the paper's sampler)")
     p.add_argument("--speed-scale", type=float, default=1.0, help="multiply the speeds (counterfactuals)")
     p.add_argument("--yaw-rate-scale", type=float, default=1.0, help="multiply the yaw rates (counterfactuals)")
     p.add_argument("--seconds", type=float, default=16.0, help="rollout length in seconds")
@@ -336,17 +378,14 @@ def add_rollout_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--profile", default=None,
                    help="smoke | default | gpu | paper (default: the one the files it reads were made with)")
     p.add_argument("--side-by-side", action="store_true", help="show the real continuation on the left")
-    p.add_argument("--abstract-nfe", type=int, default=ABSTRACT_NFE,
-                   help="Euler steps per abstract latent (default: the paper's %(default)s)")
-    p.add_argument("--detail-nfe", type=int, default=None,
-                   help=f"Euler steps per detail window; default: the paper's {DETAIL_NFE}, or the steps a distilled "
-                        "detail predictor (detail_distill) records")
     p.add_argument("--device", default=None, help="default: cuda if available, else cpu")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--precision", choices=("bf16", "fp32"), default="bf16",
                    help="bf16 autocast on CUDA (default) or fp32; the CPU always runs fp32")
+    add_sampler_options(p)
     p.add_argument("--compile", action="store_true",
-                   help="torch.compile the predictors and the decoder (CUDA; compiles once per rollout shape)")
+                   help="torch.compile the predictors and the decoder (compiles once per rollout shape; about 1.2x "
+                        "on the CPU after a minute of compiling, more on CUDA)")
     p.add_argument("--no-kv-cache", action="store_true",
                    help="recompute the abstract predictor's context at every Euler step (for comparison)")
     p.set_defaults(run=rollout_command)
@@ -470,9 +509,9 @@ def add_convert_parser(sub: argparse._SubParsersAction) -> None:
 def play_command(args: argparse.Namespace) -> str:
     from orbis2.play import play_command as serve  # the web server's imports, for this command only
 
-    for flag, value in (("--abstract-nfe", args.abstract_nfe), ("--detail-nfe", args.detail_nfe)):
-        if value is not None and value < 1:
-            raise OrbisError(f"{flag} {value}: needs at least 1 function evaluation per sample")
+    check_sampler(args)
+    if args.threads is not None and args.threads < 1:
+        raise OrbisError(f"--threads {args.threads}: needs at least 1")
     return serve(args)
 
 
@@ -489,13 +528,17 @@ def add_play_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--detail-predictor", type=Path, default=layout_path("predictor", "detail") / "predictor.pt")
     p.add_argument("--params", type=Path, default=Path("params.yaml"))
     p.add_argument("--profile", default=None, help="smoke | default | gpu | paper (default: the file's `profile`)")
-    p.add_argument("--abstract-nfe", type=int, default=ABSTRACT_NFE, help="Euler steps per abstract latent")
-    p.add_argument("--detail-nfe", type=int, default=None,
-                   help="Euler steps per detail window (default: as orbis2 rollout)")
     p.add_argument("--device", default=None, help="default: cuda if available, else cpu")
     p.add_argument("--seed", type=int, default=0, help="the seed of every drive (and of its recording's replay)")
     p.add_argument("--precision", choices=("bf16", "fp32"), default="bf16",
                    help="bf16 autocast on CUDA (default) or fp32; the CPU always runs fp32")
+    p.add_argument("--compile", action="store_true",
+                   help="torch.compile the predictors and the decoder during the warm-up (a minute on the CPU the "
+                        "first time, then from the compile cache; about 1.2x on the CPU)")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch threads on the CPU (default: the cores less one, which the browser and the true "
+                        "view use)")
+    add_sampler_options(p)
     p.set_defaults(run=play_command)
 
 

@@ -17,6 +17,7 @@ import csv
 import io
 import json
 import re
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -28,16 +29,18 @@ import torch
 
 from orbis2.accel import cast_for_inference, inference_autocast, set_tf32
 from orbis2.cli import (
-    DETAIL_NFE,
+    abstract_predictor_path,
     check_pairing,
+    compile_models,
     compose,
     decode_latents,
     load_checkpoints,
     load_steering,
     read_context,
+    sampler_settings,
     write_outputs,
 )
-from orbis2.config.params import PipelineConfig, load_config
+from orbis2.config.params import PipelineConfig
 from orbis2.data.importer import find_videos
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file
@@ -46,9 +49,11 @@ from orbis2.latents import encode_frames
 from orbis2.models.files import PredictorFile, TokenizerFile
 from orbis2.registry import layout_path
 from orbis2.rollout import cascaded_steps, first_context_end, rollout_schedule, steering_sequences
+from orbis2.run_profile import resolve_profile
 from orbis2.sim import Camera, EgoTrack, Town
 from orbis2.sim.counterfactual import PathFrames, PathRenderer
 
+TRUTH_WORKER = ThreadPoolExecutor(1, thread_name_prefix="true-view")  # the town's kernels release the GIL
 TOWN_SPLIT = "heldout"  # the town clips offered as scenes: none of them was trained on
 TOWN_ORIGIN = re.compile(r"town style=(\S+) town_seed=(\d+) ego_seed=(\d+)")  # a raw town episode's index entry
 
@@ -130,12 +135,18 @@ class Models:
     abstract_pred: PredictorFile
     detail_pred: PredictorFile
     device: torch.device
+    abstract_nfe: int  # the sampler (orbis2.cli.sampler_settings)
     detail_nfe: int
+    guidance: float
+    summary: str  # which profile and sampler, and why
 
 
 def load_models(args: argparse.Namespace) -> Models:
-    """The models of ``orbis2 rollout``'s options; the abstract predictor must be steered."""
-    cfg = load_config(args.params, args.profile)
+    """The models of ``orbis2 rollout``'s options, its profile (from the files, unless ``--profile``) and its
+    sampler; the abstract predictor must be steered."""
+    cfg, which = resolve_profile(args.params, args.profile, [
+        args.detail_tokenizer, args.abstract_tokenizer, abstract_predictor_path(args.abstract_predictor),
+        args.detail_predictor])
     detail_tok, abstract_tok, abstract_path, abstract_pred, detail_pred = load_checkpoints(args, cfg)
     check_pairing(abstract_pred, abstract_path, abstract_tok, "abstract", args.abstract_tokenizer)
     check_pairing(detail_pred, args.detail_predictor, detail_tok, "detail", args.detail_tokenizer)
@@ -148,8 +159,11 @@ def load_models(args: argparse.Namespace) -> Models:
         set_tf32(True)
     for predictor in (abstract_pred, detail_pred):
         cast_for_inference(predictor.model, device, args.precision)
-    return Models(args, cfg, detail_tok, abstract_tok, abstract_pred, detail_pred, device,
-                  args.detail_nfe or detail_pred.nfe(DETAIL_NFE))
+    if args.compile:
+        compile_models(abstract_pred, detail_pred, detail_tok)
+    abstract_nfe, detail_nfe, guidance, sampler = sampler_settings(args, cfg, detail_pred, steered=True)
+    return Models(args, cfg, detail_tok, abstract_tok, abstract_pred, detail_pred, device, abstract_nfe, detail_nfe,
+                  guidance, f"{which}; {sampler}")
 
 
 class Drive:
@@ -173,8 +187,9 @@ class Drive:
         generator = torch.Generator(device=m.device).manual_seed(seed)
         self.latents: list[torch.Tensor] = []
         self.stepper = cascaded_steps(m.abstract_pred.model, m.detail_pred.model, detail_ctx[None].to(m.device),
-                                      abstract_ctx[None].to(m.device), generator, m.args.abstract_nfe, m.detail_nfe,
-                                      abstract_hz=data.abstract_hz, detail_hz=data.detail_hz, steered=True)
+                                      abstract_ctx[None].to(m.device), generator, m.abstract_nfe, m.detail_nfe,
+                                      abstract_hz=data.abstract_hz, detail_hz=data.detail_hz, steered=True,
+                                      steering_guidance=m.guidance)
         with inference_autocast(m.device, m.args.precision):  # the set-up runs here, as in orbis2 rollout's autocast
             next(self.stepper)
         episode = town_episode(scene)
@@ -193,10 +208,12 @@ class Drive:
     def steps(self) -> int:
         return len(self.latents)
 
-    def step(self, speed: float, yaw_rate: float, replay: bool = False, forecast: bool = False) -> StepFrames:
+    def step(self, speed: float, yaw_rate: float, replay: bool = False, forecast: bool = False,
+             true_view: bool = True) -> StepFrames:
         """One 0.5 s step steered by ``speed`` (m/s) and ``yaw_rate`` (rad/s, left positive), or by the clip's
         recorded odometry when ``replay``; returns its decoded frames [frames_per_step, H, W, 3], the true
-        view and, with ``forecast``, the abstract level's prediction decoded (:class:`StepFrames`)."""
+        view (a town clip, unless ``true_view`` is off: the path is kept, nothing rendered) and, with
+        ``forecast``, the abstract level's prediction decoded (:class:`StepFrames`)."""
         m = self.models
         step = rollout_schedule(m.cfg.data, self.context_end, self.steps + 1)[-1]
         end = step.detail_target[-1] + 1
@@ -208,17 +225,24 @@ class Drive:
             new_yaw = np.full(end - len(self.speed), float(yaw_rate))
         self.speed, self.yaw_rate = np.concatenate([self.speed, new_speed]), np.concatenate([self.yaw_rate, new_yaw])
         steering = steering_sequences([step], self.speed, self.yaw_rate, m.abstract_pred.meta["steering"]["scale"])
+        rendering = None
+        if self.truth is not None:  # the true view renders in another thread while the model samples
+            # Control k drives pose k to k + 1 (the convention of the bird's-eye path, integrate_odometry).
+            k0 = self.truth.frame
+            controls = self.speed[k0:end - 1], self.yaw_rate[k0:end - 1]
+            if true_view:
+                rendering = TRUTH_WORKER.submit(self.truth.step, *controls)
+            else:
+                self.truth.advance(*controls)
         with inference_autocast(m.device, m.args.precision):
             new, top = self.stepper.send(steering.to(m.device))
         self.latents.append(new)
         frames = StepFrames(decode_latents(m.detail_tok, new[0], m.device, m.args.precision))
         if forecast:
             frames.forecast = decode_latents(m.abstract_tok, top[0, -1:], m.device, m.args.precision)[0]
-        if self.truth is None:
+        if rendering is None:
             return frames
-        # Control k drives pose k to k + 1 (the convention of the bird's-eye path, integrate_odometry).
-        k0 = self.truth.frame
-        true = self.truth.step(self.speed[k0:end - 1], self.yaw_rate[k0:end - 1])
+        true = rendering.result()
         keep = np.isin(true.frames, step.detail_target)
         true = PathFrames(*(getattr(true, f)[keep] for f in PathFrames.__dataclass_fields__))
         frames.true = true
@@ -264,10 +288,9 @@ class Drive:
         a = self.models.args
         command = ["orbis2", "rollout", "--video", str(self.scene.video), "--trajectory", str(trajectory),
                    "--seconds", repr(self.steps / self.models.cfg.data.abstract_hz), "--seed", str(self.seed),
-                   "--out", str(out), "--params", str(a.params), "--abstract-nfe", str(a.abstract_nfe),
-                   "--detail-nfe", str(self.models.detail_nfe), "--precision", a.precision]
-        if a.profile:
-            command += ["--profile", a.profile]
+                   "--out", str(out), "--params", str(a.params), "--abstract-nfe", str(self.models.abstract_nfe),
+                   "--detail-nfe", str(self.models.detail_nfe), "--steering-guidance", repr(self.models.guidance),
+                   "--precision", a.precision, "--profile", self.models.cfg.profile]
         for flag in ("detail_tokenizer", "abstract_tokenizer", "abstract_predictor", "detail_predictor", "device"):
             if getattr(a, flag) is not None:
                 command += [f"--{flag.replace('_', '-')}", str(getattr(a, flag))]

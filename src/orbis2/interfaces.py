@@ -194,7 +194,7 @@ INTERFACES: dict[str, Interface] = _declare(
         PathOption("weights", "--out", "output folder (its inverse_dynamics.pt)", "inverse_dynamics", output=True,
                    folder=True),
         PathOption("report", "--report", "metrics report", "report", name="inverse_dynamics", output=True),
-    ), ("data", "inverse_dynamics"), GPU, FIRST, rules="rules/evaluation.smk"),
+    ), ("data", "town", "shards", "truth", "inverse_dynamics"), GPU, FIRST, rules="rules/evaluation.smk"),
     # The town's true counterfactuals of the steering starts: data, cached per clip and command.
     Interface("truth", "stages/truth.py", (
         SHARDS,

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import base64
+import os
 import socket
 import time
 from importlib.resources import files
@@ -20,6 +21,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 import uvicorn
 from starlette.applications import Starlette
 from starlette.responses import FileResponse, HTMLResponse, JSONResponse, Response
@@ -53,10 +55,11 @@ class Player:
         self.clients = 0
 
     def warm_up(self) -> float:
-        """Generate two steps from the first scene and drop them: allocations, caches and any compile happen now."""
+        """Generate steps from the first scene and drop them: allocations, caches and any compile happen now (two
+        steps; compiled, a whole abstract window, after which no new shape comes)."""
         started = time.perf_counter()
         drive = Drive(self.models, self.scenes[0], self.seed)
-        for _ in range(2):
+        for _ in range(self.models.cfg.data.abstract_window + 1 if self.models.args.compile else 2):
             drive.step(float(drive.speed[-1]), 0.0)
         return time.perf_counter() - started
 
@@ -85,7 +88,8 @@ class Player:
                         started = time.perf_counter()
                         frames = await asyncio.to_thread(drive.step, float(message["speed"]),
                                                          float(message["yaw_rate"]), bool(message.get("replay")),
-                                                         bool(message.get("forecast")))
+                                                         bool(message.get("forecast")),
+                                                         bool(message.get("true_view", True)))
                         seconds = time.perf_counter() - started
                         self.steps_generated += 1
                     x, y = drive.path()
@@ -173,11 +177,22 @@ def bind(host: str, port: int) -> socket.socket:
     return sock
 
 
+def cpu_threads() -> int:
+    """Torch's threads on the CPU: the cores this process may use less one, left to the browser, the true view's
+    renderer and the server (batch-1 sampling gains little from a second thread; a busy core slows it a lot)."""
+    return max(1, len(os.sched_getaffinity(0)) - 1)
+
+
 def play_command(args: argparse.Namespace) -> str:
     sock = bind(args.host, args.port)
     scenes = find_scenes(args.video)
     models = load_models(args)
+    threads = ""
+    if models.device.type == "cpu":
+        torch.set_num_threads(args.threads or cpu_threads())
+        threads = f"; {torch.get_num_threads()} torch threads"
     player = Player(models, scenes, args.seed, args.record_dir.resolve())
+    print(f"orbis2 play: {models.summary}{threads}", flush=True)
     print(f"orbis2 play: {len(scenes)} scenes; warming up ...", flush=True)
     seconds = player.warm_up()
     host, port = sock.getsockname()[:2]

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import typing
 from dataclasses import dataclass
 from typing import Any
@@ -286,18 +287,31 @@ class ActionConfig(TeacherForcingConfig):
 class InverseDynamicsConfig:
     """The learned inverse-dynamics instrument (``orbis2.eval.metrics.inverse_dynamics``): a CNN of base ``width``
     trained (``train``) on pairs of consecutive train frames (resized by ``scale``, at most ``max_train_clips``
-    clips) to regress speed and yaw rate; scored on ``eval_pairs`` val pairs drawn with ``train.seed``."""
+    clips) to regress speed and yaw rate; scored on ``eval_pairs`` val pairs drawn with ``train.seed``.
+
+    ``counterfactual_clips`` town clips of the train split (evenly spread; 0: none) are also driven again by the
+    town with their recorded controls scaled by each (speed, yaw rate) pair of ``counterfactual_scales``, and
+    their pairs join the real ones: the recorded drives stay on the road and turn only as the roads do, so an
+    instrument trained on them alone under-reads the counterfactual commands the steering evaluation gives."""
 
     train: TrainConfig
     width: int
     scale: float
     max_train_clips: int | None
     eval_pairs: int
+    counterfactual_clips: int
+    counterfactual_scales: list[list[float]]
 
     def validate(self, where: str) -> None:
         positive(self, where, "width", "scale", "eval_pairs")
         if self.scale > 1:
             raise ConfigError(f"{where}.scale must be in (0, 1] (frames are only ever shrunk)")
+        if self.counterfactual_clips < 0:
+            raise ConfigError(f"{where}.counterfactual_clips must be >= 0 (0: the recorded drives only)")
+        for pair in self.counterfactual_scales:
+            if len(pair) != 2 or not all(math.isfinite(v) for v in pair) or pair[0] < 0:
+                raise ConfigError(f"{where}.counterfactual_scales: {pair} is not a (speed >= 0, yaw rate) pair of "
+                                  f"finite scales")
 
 
 def predictor_config_type(spec: Any) -> type:

@@ -20,6 +20,7 @@ no shards.
 from __future__ import annotations
 
 import json
+import os
 import re
 from dataclasses import dataclass
 from functools import lru_cache
@@ -62,6 +63,11 @@ class Command:
 def truth_key(clip: str, start: int, mode: str) -> str:
     """A sample key: WebDataset splits a member name at its first dot, so the mode's dots ("x0.5") become "-"."""
     return f"{clip}_{start:04d}_{re.sub(r'[^A-Za-z0-9_-]', '-', mode)}"
+
+
+def single_thread_renderer() -> None:
+    """A rendering worker process's initializer: one numba thread each, as clips are the unit of parallelism."""
+    os.environ["NUMBA_NUM_THREADS"] = "1"
 
 
 @lru_cache(maxsize=4)
@@ -113,6 +119,23 @@ def render_commands(clip: Clip, commands: list[Command], steps: int, data: DataC
         members["json"] = json.dumps({**clip.meta, **summary, "truth": True}, sort_keys=True).encode()
         out.append((c.key, members, summary))
     return out
+
+
+def counterfactual_clip(clip: Clip, speed_scale: float, yaw_rate_scale: float, data: DataConfig,
+                        town_cfg: TownConfig, jpeg_quality: int) -> tuple[np.ndarray, np.ndarray]:
+    """A whole town clip driven again from its first frame with its recorded controls scaled: the frames as the
+    shards would hold them (rendered, JPEG at the shards' quality, decoded) [T, H, W, 3] uint8 and the speed and
+    yaw rate driven from each frame [T, 2] (what the inverse-dynamics instrument learns to read off the road)."""
+    town, track = recorded_episode(clip, town_cfg)
+    camera = Camera(data.width, data.height, town_cfg.hfov_deg, town_cfg.mount_height_m)
+    first = clip.meta["start_frame"]
+    controls = slice(first, first + clip.meta["frames"] - 1)
+    path = render_path(town, camera, track, first, track.speed[controls] * speed_scale,
+                       track.yaw_rate[controls] * yaw_rate_scale)
+    encode = [int(cv2.IMWRITE_JPEG_QUALITY), jpeg_quality]
+    frames = np.stack([cv2.cvtColor(cv2.imdecode(np.frombuffer(_jpeg(f, encode), np.uint8), cv2.IMREAD_COLOR),
+                                    cv2.COLOR_BGR2RGB) for f in path.rgb])
+    return frames, np.stack([path.speed, path.yaw_rate], 1)
 
 
 def write_truth(out: Path, rendered: Iterable[tuple[str, dict[str, bytes], dict[str, Any]]],

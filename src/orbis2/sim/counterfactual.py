@@ -138,6 +138,12 @@ class PathRenderer:
     def step(self, speed, yaw_rate) -> PathFrames:
         """Drive the controls (m/s, rad/s, CCW positive; one per native step) from the last frame rendered and
         render the frames they reach (as many as controls)."""
+        frames = self.advance(speed, yaw_rate)
+        return self._render(self._track(max(len(self.speed), len(self.recorded.t))), frames)
+
+    def advance(self, speed, yaw_rate) -> np.ndarray:
+        """Drive the controls as :meth:`step` does without rendering (a caller not showing the view for a while
+        keeps the path); returns the frames they reach."""
         speed, yaw_rate = np.asarray(speed, np.float64).reshape(-1), np.asarray(yaw_rate, np.float64).reshape(-1)
         if speed.shape != yaw_rate.shape or not len(speed):
             raise ValueError(f"a step needs as many speeds as yaw rates, at least one (got {speed.shape} and "
@@ -151,7 +157,7 @@ class PathRenderer:
             self.yaw_rate = np.append(self.yaw_rate, np.zeros(end - len(self.yaw_rate)))
         self.speed[k0:k0 + n], self.yaw_rate[k0:k0 + n] = speed, yaw_rate
         self.frame = k0 + n
-        return self._render(self._track(max(len(self.speed), len(self.recorded.t))), np.arange(k0 + 1, k0 + n + 1))
+        return np.arange(k0 + 1, k0 + n + 1)
 
 
 def render_path(town: Town, camera: Camera, recorded: EgoTrack, start: int, speed, yaw_rate) -> PathFrames:

@@ -35,8 +35,9 @@ _FM = {"nsz", "arcp", "contract", "afn", "reassoc"}  # fastmath without no-nan/n
 
 
 def _jit(fn):
-    # error_model="numpy": float division by zero gives inf/nan instead of a checked exception.
-    return njit(cache=True, fastmath=_FM, error_model="numpy")(fn)
+    # error_model="numpy": float division by zero gives inf/nan instead of a checked exception. nogil: the
+    # kernels touch no Python object, so a render can run in a thread beside torch (orbis2 play's true view).
+    return njit(cache=True, fastmath=_FM, error_model="numpy", nogil=True)(fn)
 
 
 _K_SKY, _K_GROUND, _K_BLOCK, _K_BUILDING, _K_HEDGE, _K_TRUNK, _K_POLE, _K_LAMP, _K_SIGN = range(9)

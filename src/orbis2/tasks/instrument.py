@@ -16,6 +16,8 @@ loop's in round-off only.
 from __future__ import annotations
 
 import itertools
+import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -25,9 +27,12 @@ import torch.nn.functional as F
 from torch import nn
 
 from orbis2.accel import conv_layout
+from orbis2.config.params import PipelineConfig
 from orbis2.config.training import InverseDynamicsConfig
+from orbis2.data.shards import split_clips
+from orbis2.data.truth import counterfactual_clip, single_thread_renderer
 from orbis2.errors import OrbisError
-from orbis2.eval.metrics.inverse_dynamics import ClipFrames, Instrument, pair_flow, pair_index
+from orbis2.eval.metrics.inverse_dynamics import ClipFrames, Instrument, pair_flow, pair_index, resize
 from orbis2.models.inverse_dynamics import InverseDynamicsNet
 from orbis2.train import DataSpec, LossOutput, load_weights, train
 
@@ -83,6 +88,38 @@ class InstrumentTask:
         net = self.build_model()
         net.load_state_dict(weights)
         return Instrument(net.to(device).eval(), self.mean, self.std, fps, self.cfg.scale)
+
+
+def _render_counterfactuals(job) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """One clip under each scale pair: (key, frames at the instrument's scale, odometry)."""
+    clip, scales, data, town, jpeg_quality, scale = job
+    out = []
+    for speed_scale, yaw_rate_scale in scales:
+        frames, odometry = counterfactual_clip(clip, speed_scale, yaw_rate_scale, data, town, jpeg_quality)
+        out.append((f"{clip.key}_speed{speed_scale:g}_yaw{yaw_rate_scale:g}", resize(frames, scale), odometry))
+    return out
+
+
+def counterfactual_train_clips(shards: Path, cfg: PipelineConfig, workers: int) -> tuple[ClipFrames, dict[str, Any]]:
+    """``inverse_dynamics.counterfactual_clips`` town clips of the train split (evenly spread), each driven again
+    by the town under every ``counterfactual_scales`` pair (:func:`orbis2.data.truth.counterfactual_clip`), at
+    the instrument's scale, rendered on ``workers`` processes; and what was rendered (a record's part)."""
+    ic = cfg.inverse_dynamics
+    clips = [c for c in split_clips(shards, "train").values() if c.meta.get("source") == "town"
+             and c.meta["has_odometry"]]
+    clips.sort(key=lambda c: c.key)
+    wanted = min(ic.counterfactual_clips, len(clips))
+    summary: dict[str, Any] = {"clips": wanted, "scales": ic.counterfactual_scales, "videos": 0, "pairs": 0}
+    if not wanted or not ic.counterfactual_scales:
+        return ClipFrames([], [], []), {**summary, "clips": 0, "reason": "none asked for, or no town clip in train"}
+    picked = [clips[int(i)] for i in np.linspace(0, len(clips) - 1, wanted).round()]
+    jobs = [(c, ic.counterfactual_scales, cfg.data, cfg.town, cfg.shards.jpeg_quality, ic.scale) for c in picked]
+    began = time.perf_counter()
+    with ProcessPoolExecutor(max(1, min(workers, len(jobs))), initializer=single_thread_renderer) as pool:
+        rendered = [item for items in pool.map(_render_counterfactuals, jobs) for item in items]
+    data = ClipFrames([f for _, f, _ in rendered], [o for _, _, o in rendered], [k for k, _, _ in rendered])
+    return data, {**summary, "videos": len(rendered), "pairs": len(pair_index(data)),
+                  "render_seconds": time.perf_counter() - began}
 
 
 def train_instrument(data: ClipFrames, cfg: InverseDynamicsConfig, fps: float, out_dir: Path,
