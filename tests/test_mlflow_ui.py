@@ -75,7 +75,7 @@ def test_the_ui_page_starts_by_choosing_model_training_where_the_browser_has_no_
     text = page.get_data(as_text=True)
     assert page.status_code == 200 and text.startswith("<!doctype html><html lang=\"en\"><head>" + MODEL_TRAINING_FIRST)
     assert BROWSER_DEFAULTS["mlflow.workflowType_v1"] == '"machine_learning"' and text.count(MODEL_TRAINING_FIRST) == 1
-    assert "localStorage.getItem('mlflow.workflowType_v1')===null" in MODEL_TRAINING_FIRST  # a choice made stays
+    assert 'localStorage.getItem("mlflow.workflowType_v1")===null' in MODEL_TRAINING_FIRST  # a choice made stays
     assert with_model_training_first(text) == text
     assert flask_app.test_client().get("/health").get_data(as_text=True) == "OK"
 
@@ -110,6 +110,8 @@ def test_the_readme_address_and_the_parent_run_open_in_model_training_mode(smoke
                                                                          f"/experiments/{experiment.experiment_id}/"))
         runs = page_text(driver, parent.info.run_name)
         assert parent.info.run_name in runs and not [m for m in GENAI if m in runs], runs[:2000]
+        headline = sorted(client.get_run(parent.info.run_id).data.metrics)[0]  # the first column the table shows
+        assert headline in page_text(driver, headline), runs[:2000]  # the parent's columns, not MLflow's defaults
         REVIEW.mkdir(exist_ok=True)
         driver.save_screenshot(str(REVIEW / "runs.png"))
 

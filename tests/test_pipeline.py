@@ -185,6 +185,23 @@ def test_tokenizer_levers_measure_a_change_against_a_baseline(smoke_project, tmp
     assert bad.returncode != 0 and "no_such_key" in bad.stderr
 
 
+def test_sampler_sweep_pairs_settings_on_the_same_starts_and_noise(smoke_project, tmp_path):
+    """tools/sampler_sweep.py on the smoke run: a setting equal to the base reproduces its frames (a paired
+    difference of exactly zero), fewer Euler steps change them; every figure carries its interval."""
+    out = tmp_path / "sweep.jsonl"
+    run([sys.executable, str(Path(__file__).parents[1] / "tools" / "sampler_sweep.py"), "--profile", "smoke",
+         "--seconds", "1", "--horizons", "0.1", "0.5", "--setting", "same:", "--setting", "one:bottom_nfe=1",
+         "--out", str(out)], smoke_project)
+    base, same, one = [json.loads(line) for line in out.read_text().splitlines()]
+    assert [base["setting"], one["bottom_nfe"], base["bottom_nfe"]] == ["base", 1, 2] and base["rollouts"] >= 2
+    assert set(base["horizons"]) == {"0.1", "0.5"} and "vs_base_db" not in base["horizons"]["0.1"]
+    for h in ("0.1", "0.5"):
+        assert same["horizons"][h]["vs_base_db"]["estimate"] == 0.0
+        assert one["horizons"][h]["vs_base_db"]["estimate"] != 0.0
+        e = one["horizons"][h]["generated_psnr"]
+        assert e["low"] <= e["estimate"] <= e["high"]
+
+
 def test_guidance_selection_starts_from_the_trained_models(smoke_project, tmp_path):
     """The guidance scale chosen on val, in a copy of the session's smoke project: one eval_steering per scale."""
     root = Path(shutil.copytree(smoke_project, tmp_path / "project", symlinks=True))

@@ -50,7 +50,8 @@ def _finite(value) -> bool:
 
 
 def parent_metrics(tables: Sequence[Path]) -> dict[str, float]:
-    """The headline: :data:`HEADLINE`'s cells of the tables given (NA cells left out), at most 20."""
+    """The headline: :data:`HEADLINE`'s cells of the tables given (NA cells left out), at most 20, to 4 significant
+    digits (MLflow's runs table and DVC print every digit they get; the tables and records keep them all)."""
     frames, metrics = _read(tables), {}
     for stem, (key, wanted) in HEADLINE.items():
         if stem not in frames:
@@ -59,7 +60,7 @@ def parent_metrics(tables: Sequence[Path]) -> dict[str, float]:
             columns = wanted.get(str(row[key]), wanted.get("*", ()))
             for column in columns:
                 if column in row and _finite(row[column]):
-                    metrics[f"{stem}/{row[key]}/{column}"] = float(row[column])
+                    metrics[f"{stem}/{row[key]}/{column}"] = float(f"{float(row[column]):.4g}")
     if len(metrics) > MAX_METRICS:
         raise ValueError(f"{len(metrics)} headline metrics, more than {MAX_METRICS}: trim HEADLINE")
     return metrics
