@@ -196,8 +196,10 @@ def test_sampler_sweep_pairs_settings_on_the_same_starts_and_noise(smoke_project
     assert [base["setting"], one["bottom_nfe"], base["bottom_nfe"]] == ["base", 1, 2] and base["rollouts"] >= 2
     assert set(base["horizons"]) == {"0.1", "0.5"} and "vs_base_db" not in base["horizons"]["0.1"]
     for h in ("0.1", "0.5"):
-        assert same["horizons"][h]["vs_base_db"]["estimate"] == 0.0
+        same_h = same["horizons"][h]
+        assert same_h["vs_base_db"]["estimate"] == same_h["vs_base_sharpness"]["estimate"] == 0
         assert one["horizons"][h]["vs_base_db"]["estimate"] != 0.0
+        assert 0 < base["horizons"][h]["reconstruction_sharpness"]["estimate"] < 2
         e = one["horizons"][h]["generated_psnr"]
         assert e["low"] <= e["estimate"] <= e["high"]
 

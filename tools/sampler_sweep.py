@@ -9,10 +9,12 @@ Run in a project whose main job has finished (its latent cache, tokenizers and p
 starts of ``--split`` (``evaluation.starts_per_clip`` per clip, its seed, so every setting draws the same
 noise) and reports, per horizon in ``--horizons`` (seconds after the last context frame; 0.1 is the first
 generated frame), the mean PSNR of the generated frame against the real one, the tokenizer's own
-reconstruction's PSNR, and the paired gap, each with a clip-bootstrap interval; and, against the first
-setting (``base``, the evaluation's sampler), the paired PSNR difference per horizon. One JSON row per
-setting goes to ``--out``; the table prints. Sampling seconds are the machine's: time nothing beside
-another torch process.
+reconstruction's PSNR, and the paired gap, each with a clip-bootstrap interval; the sharpness of the
+generated frame and of the reconstruction (the energy of their Laplacian over the real frame's: 1 keeps
+the real detail, below 1 is blur; PSNR alone rewards blur, the mean of what may come); and, against the
+first setting (``base``, the evaluation's sampler), the paired PSNR and sharpness differences per
+horizon. One JSON row per setting goes to ``--out``; the table prints. Sampling seconds are the
+machine's: time nothing beside another torch process.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import json
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -61,6 +64,16 @@ def parse_setting(text: str) -> tuple[str, dict[str, int]]:
     return name, values
 
 
+def detail_energy(frames: np.ndarray) -> np.ndarray:
+    """Mean squared Laplacian of each frame's luma at half resolution [..., H, W, 3] uint8 -> [...]: the energy
+    of its detail (at full resolution the pixel-level aliasing of the rendered frames dominates it)."""
+    flat = frames.reshape(-1, *frames.shape[-3:])
+    half = [cv2.resize(cv2.cvtColor(f, cv2.COLOR_RGB2GRAY), None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
+            for f in flat]
+    energy = [float(np.mean(cv2.Laplacian(g, cv2.CV_32F) ** 2)) for g in half]
+    return np.array(energy).reshape(frames.shape[:-3])
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--profile", default=None, help="params.yaml profile (default: the file's)")
@@ -88,7 +101,9 @@ def main() -> None:
     clips = split_clips(layout_path("shards"), a.split)
     at = [np.array([idx[k] for k in picks.values()]) for idx in indices]
     real = real_videos(clips, samples, at)
-    recon = psnr(system.decode(cache_latents(cache, a.split, system.output_level, samples, at)), real)
+    reconstructed = system.decode(cache_latents(cache, a.split, system.output_level, samples, at))
+    recon, real_energy = psnr(reconstructed, real), detail_energy(real)
+    recon_sharpness = detail_energy(reconstructed) / real_energy
     settings = [("base", {})] + [parse_setting(s) for s in a.setting]
     rows, base = [], None
     for name, values in settings:
@@ -96,17 +111,23 @@ def main() -> None:
         began = time.perf_counter()
         latents = generate(system, cache, a.split, samples, steps, data, run_ev, dev)
         seconds = time.perf_counter() - began
-        ours = psnr(system.decode(latents[:, list(picks.values())]), real)
+        generated = system.decode(latents[:, list(picks.values())])
+        ours, sharpness = psnr(generated, real), detail_energy(generated) / real_energy
         row = {"setting": name, "top_nfe": run_ev.top_nfe, "bottom_nfe": run_ev.bottom_nfe, "split": a.split,
                "rollouts": len(samples), "clips": len(set(clusters)), "sampling_seconds": seconds, "horizons": {}}
         for j, h in enumerate(a.horizons):
             entry = {"generated_psnr": mean_interval(ours[:, j], clusters, seed=ev.seed).to_dict(),
                      "reconstruction_psnr": mean_interval(recon[:, j], clusters, seed=ev.seed).to_dict(),
-                     "gap_db": paired_difference(recon[:, j], ours[:, j], clusters, seed=ev.seed).to_dict()}
+                     "gap_db": paired_difference(recon[:, j], ours[:, j], clusters, seed=ev.seed).to_dict(),
+                     "sharpness": mean_interval(sharpness[:, j], clusters, seed=ev.seed).to_dict(),
+                     "reconstruction_sharpness": mean_interval(recon_sharpness[:, j], clusters,
+                                                               seed=ev.seed).to_dict()}
             if base is not None:
-                entry["vs_base_db"] = paired_difference(ours[:, j], base[:, j], clusters, seed=ev.seed).to_dict()
+                entry["vs_base_db"] = paired_difference(ours[:, j], base[0][:, j], clusters, seed=ev.seed).to_dict()
+                entry["vs_base_sharpness"] = paired_difference(sharpness[:, j], base[1][:, j], clusters,
+                                                               seed=ev.seed).to_dict()
             row["horizons"][f"{h:g}"] = entry
-        base = ours if base is None else base
+        base = (ours, sharpness) if base is None else base
         rows.append(row)
         a.out.parent.mkdir(parents=True, exist_ok=True)
         with a.out.open("a") as fh:
@@ -116,14 +137,16 @@ def main() -> None:
 
 def format_row(row: dict) -> str:
     def interval(d: dict) -> str:
-        return f"{d['estimate']:.2f} [{d['low']:.2f}, {d['high']:.2f}]"
+        return f"{d['estimate']:.3g} [{d['low']:.3g}, {d['high']:.3g}]"
 
     parts = [f"{row['setting']} (top {row['top_nfe']}, detail {row['bottom_nfe']} NFE; {row['rollouts']} rollouts of "
              f"{row['clips']} clips; {row['sampling_seconds']:.0f} s)"]
     for h, e in row["horizons"].items():
-        vs = f", vs base {interval(e['vs_base_db'])}" if "vs_base_db" in e else ""
+        vs = (f"; vs base {interval(e['vs_base_db'])} dB, sharpness {interval(e['vs_base_sharpness'])}"
+              if "vs_base_db" in e else "")
         parts.append(f"  {h} s: generated {interval(e['generated_psnr'])} dB, tokenizer "
-                     f"{interval(e['reconstruction_psnr'])}, gap {interval(e['gap_db'])}{vs}")
+                     f"{interval(e['reconstruction_psnr'])}, gap {interval(e['gap_db'])}; sharpness generated "
+                     f"{interval(e['sharpness'])}, tokenizer {interval(e['reconstruction_sharpness'])}{vs}")
     return "\n".join(parts)
 
 
