@@ -1,7 +1,7 @@
 """Training the learned inverse-dynamics instrument (:mod:`orbis2.eval.metrics.inverse_dynamics`) with the shared loop.
 
-The flow front end is fixed, so every train pair's Farneback flow, and its mirror
-image (horizontal flow negated), is computed once. Each step draws ``batch_size``
+The flow front end is fixed, so every train pair's Farneback flow is computed once
+(its mirror image, horizontal flow negated, per batch). Each step draws ``batch_size``
 random pairs and flips about half of them (yaw rate negated), from one numpy
 Generator seeded with ``train.seed``; the targets are standardised with the train
 pairs' mean and std, which the instrument keeps. With the instrument's params
@@ -36,8 +36,9 @@ from orbis2.eval.metrics.inverse_dynamics import ClipFrames, Instrument, pair_fl
 from orbis2.models.inverse_dynamics import InverseDynamicsNet
 from orbis2.train import DataSpec, LossOutput, load_weights, train
 
-# A horizontal flip keeps the speed and negates the yaw rate.
+# A horizontal flip keeps the speed and negates the yaw rate, and negates the flow's horizontal component.
 FLIP_SIGN = np.array([1.0, -1.0])
+MIRROR_FLOW = np.array([-1.0, 1.0], np.float32)[:, None, None]
 
 
 class InstrumentTask:
@@ -54,7 +55,6 @@ class InstrumentTask:
         self.mean, self.std = self.targets.mean(axis=0), self.targets.std(axis=0) + 1e-6
         self.flows = pair_flow(np.stack([data.frames[c][t] for c, t in self.index]),
                                np.stack([data.frames[c][t + 1] for c, t in self.index]))
-        self.mirrored = np.ascontiguousarray(self.flows[..., ::-1] * np.array([-1.0, 1.0], np.float32)[:, None, None])
 
     def build_model(self) -> nn.Module:
         return conv_layout(InverseDynamicsNet(self.cfg.width))
@@ -75,7 +75,8 @@ class InstrumentTask:
             if position < spec.start:
                 continue
             pick, flip = pick[mine], flip[mine]
-            flow = np.where(flip[:, None, None, None], self.mirrored[pick], self.flows[pick])
+            flows = self.flows[pick]  # mirrored per batch: a stored copy of every mirror image doubled the memory
+            flow = np.where(flip[:, None, None, None], flows[..., ::-1] * MIRROR_FLOW, flows)
             target = np.where(flip[:, None], self.targets[pick] * FLIP_SIGN, self.targets[pick])
             yield torch.from_numpy(flow), torch.from_numpy((target - self.mean) / self.std).float()
 
