@@ -39,6 +39,7 @@ from orbis2.train import DataSpec, LossOutput, load_weights, train
 # A horizontal flip keeps the speed and negates the yaw rate, and negates the flow's horizontal component.
 FLIP_SIGN = np.array([1.0, -1.0])
 MIRROR_FLOW = np.array([-1.0, 1.0], np.float32)[:, None, None]
+FLOW_CHUNK = 1024  # pairs whose frames are stacked at once to compute their flow
 
 
 class InstrumentTask:
@@ -53,8 +54,12 @@ class InstrumentTask:
                              f"train clips")
         self.targets = np.stack([data.odometry[c][t] for c, t in self.index])
         self.mean, self.std = self.targets.mean(axis=0), self.targets.std(axis=0) + 1e-6
-        self.flows = pair_flow(np.stack([data.frames[c][t] for c, t in self.index]),
-                               np.stack([data.frames[c][t + 1] for c, t in self.index]))
+        h, w = data.frames[0].shape[1:3]
+        self.flows = np.empty((len(self.index), 2, h, w), np.float32)
+        for start in range(0, len(self.index), FLOW_CHUNK):  # frame stacks of one chunk at a time, not of all pairs
+            rows = self.index[start:start + FLOW_CHUNK]
+            self.flows[start:start + len(rows)] = pair_flow(np.stack([data.frames[c][t] for c, t in rows]),
+                                                            np.stack([data.frames[c][t + 1] for c, t in rows]))
 
     def build_model(self) -> nn.Module:
         return conv_layout(InverseDynamicsNet(self.cfg.width))

@@ -81,12 +81,13 @@ def pair_index(data: ClipFrames) -> np.ndarray:
 
 
 def pair_flow(first: np.ndarray, second: np.ndarray) -> np.ndarray:
-    """Dense optical flow (Farneback) [N, 2, h, w] from each ``first[i]`` to ``second[i]`` (uint8 RGB)."""
-    out = []
-    for a, b in zip(first, second):
+    """Dense optical flow (Farneback) [N, 2, h, w] float32 from each ``first[i]`` to ``second[i]`` (uint8 RGB),
+    written into one array (no list of fields and copies of it beside it)."""
+    out = np.empty((len(first), 2, *np.shape(first)[1:3]), np.float32)
+    for i, (a, b) in enumerate(zip(first, second)):
         ga, gb = cv2.cvtColor(a, cv2.COLOR_RGB2GRAY), cv2.cvtColor(b, cv2.COLOR_RGB2GRAY)
-        out.append(cv2.calcOpticalFlowFarneback(ga, gb, None, 0.5, 3, 9, 3, 5, 1.1, 0).transpose(2, 0, 1))
-    return np.stack(out).astype(np.float32)
+        out[i] = cv2.calcOpticalFlowFarneback(ga, gb, None, 0.5, 3, 9, 3, 5, 1.1, 0).transpose(2, 0, 1)
+    return out
 
 
 def to_input(first: np.ndarray, second: np.ndarray, device: torch.device) -> torch.Tensor:
