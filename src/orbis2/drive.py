@@ -294,4 +294,6 @@ class Drive:
         for flag in ("detail_tokenizer", "abstract_tokenizer", "abstract_predictor", "detail_predictor", "device"):
             if getattr(a, flag) is not None:
                 command += [f"--{flag.replace('_', '-')}", str(getattr(a, flag))]
+        if a.compile:  # compiled kernels may round differently from eager ones
+            command.append("--compile")
         return command
