@@ -58,8 +58,9 @@ def parse_setting(text: str) -> tuple[str, dict[str, int]]:
     values = {}
     for item in filter(None, rest.split(",")):
         key, _, value = item.partition("=")
-        if key not in KEYS:
-            raise SystemExit(f"--setting {text}: unknown key {key!r} (one of {', '.join(KEYS)})")
+        if key not in KEYS or not value.isdigit() or int(value) < 1:
+            raise SystemExit(f"--setting {text}: {item!r} is not KEY=STEPS with KEY one of {', '.join(KEYS)} and "
+                             f"STEPS >= 1")
         values[key] = int(value)
     return name, values
 

@@ -45,7 +45,6 @@ RUNS_TABLE = {"searchFilter": "", "orderByKey": "attributes.start_time", "orderB
               "runListHidden": False, "isAccordionReordered": False, "useGroupedValuesInCharts": True,
               "hideEmptyCharts": True, "groupBy": None, "groupsExpanded": {}, "autoRefreshEnabled": True,
               "globalLineChartConfig": {"xAxisKey": "step", "lineSmoothness": 0, "selectedXAxisMetricKey": ""}}
-PARENT_PARAMS = ("profile", "git_commit", "params_sha256")  # what orbis2.tracking.parent_run logs as params
 
 
 def defaults_script(defaults: dict[str, str]) -> str:
@@ -69,7 +68,8 @@ def runs_table_defaults(store=None) -> dict[str, str]:
         if not parents:
             continue
         metrics = next((sorted(run.data.metrics) for run in parents if run.data.metrics), [])
-        columns = [f"params.`{key}`" for key in PARENT_PARAMS] + [f"metrics.`{key}`" for key in metrics]
+        params = list(parents[0].data.params)  # what orbis2.tracking.parent_run logs: profile, commit, digest
+        columns = [f"params.`{key}`" for key in params] + [f"metrics.`{key}`" for key in metrics]
         key = f"MLflowLocalStorage-1.1-ExperimentPage-{json.dumps([experiment.experiment_id])}-ReactComponentState"
         defaults[key] = json.dumps({**RUNS_TABLE, "selectedColumns": ["attributes.`Models`", *columns]},
                                    separators=(",", ":"))
