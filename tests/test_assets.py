@@ -24,7 +24,8 @@ from torch import nn
 
 from orbis2.assets import ASSETS, AssetError, ensure_asset, sha256_file
 from orbis2.models.i3d import InceptionI3d, _same_pad, convert_i3d_pickle, load_i3d
-from orbis2.models.teachers import DinoV2Teacher, InceptionTeacher, build_teacher
+from orbis2.losses import feature_distance
+from orbis2.models.teachers import DinoV2Teacher, InceptionPerceptual, InceptionTeacher, build_teacher
 
 REPO = Path(__file__).resolve().parents[1]
 INCEPTION_MEMBER = ASSETS["inception_v3"].member
@@ -406,6 +407,51 @@ def test_inception_teacher_runs_torchscript_up_to_mixed_7(tmp_path):
     # [-1, 1] is mapped to the TF-slim range [-1, 255/128 - 1].
     assert torch.allclose(out[0, :, 0, 0], torch.tensor([-1.0, -0.00390625, 0.9921875]))
     assert not any(p.requires_grad for p in teacher.parameters())
+
+
+class _StandInPerceptualNet(nn.Module):
+    """Three scaled taps, then a layer past the last tap that must not run."""
+
+    def __init__(self):
+        super().__init__()
+        self.layers = nn.Sequential(OrderedDict(
+            conv_2=nn.Conv2d(3, 4, 3, padding=1), pool0=nn.AvgPool2d(2), conv_4=nn.Conv2d(4, 5, 1),
+            mixed_2=nn.Conv2d(5, 6, 1), mixed_3=_MustNotRun()))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.layers(x)
+
+
+class _StandInPerceptual(nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.net = _StandInPerceptualNet()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
+
+
+@pytest.mark.filterwarnings("ignore:`torch.jit:DeprecationWarning")
+def test_inception_perceptual_maps_carry_gradients_to_the_image(tmp_path):
+    """The perceptual lever's network: the tapped maps, frozen weights, gradients to the reconstruction; the
+    distance is 0 for the same image, blind to a per-position feature scale, and positive for another image."""
+    path = tmp_path / "inception.pt"
+    torch.jit.save(torch.jit.script(_StandInPerceptual()), str(path))
+    network = InceptionPerceptual(path)
+    image = torch.rand(2, 3, 8, 8, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    recon = (image + 0.3 * torch.randn(2, 3, 8, 8, generator=torch.Generator().manual_seed(1))).requires_grad_()
+    maps = network(recon)
+    assert [tuple(m.shape) for m in maps] == [(2, 4, 8, 8), (2, 5, 4, 4), (2, 6, 4, 4)]
+    assert not any(p.requires_grad for p in network.parameters())
+    target = network(image)
+    distance = feature_distance(maps, target)
+    distance.backward()
+    assert distance > 0 and recon.grad.abs().sum() > 0
+    assert feature_distance(target, target) == 0
+    scaled = [m * torch.rand(m.shape[0], 1, *m.shape[2:]).add(0.5) for m in target]
+    assert feature_distance(scaled, target) < 1e-10
+    with pytest.raises(ValueError, match="no layer"):
+        InceptionPerceptual(path, taps=("conv_2", "mixed_9"))
 
 
 def test_unknown_teacher():

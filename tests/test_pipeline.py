@@ -164,8 +164,9 @@ def test_snakemake_smoke_dag(smoke_project, tmp_path):
 
 
 def test_tokenizer_levers_measure_a_change_against_a_baseline(smoke_project, tmp_path):
-    """tools/tokenizer_levers.py: two short trainings on the smoke shards (outside the shared project), the second
-    with pixel MSE and its paired PSNR gain over the first; an unknown setting stops with its name."""
+    """tools/tokenizer_levers.py: short trainings on the smoke shards (outside the shared project), one with pixel
+    MSE and its paired PSNR gain over the base, one with the perceptual term; an unknown setting, or a folder's
+    name reused with other settings, stops with a line."""
     shutil.copy(smoke_project / "params.yaml", tmp_path / "params.yaml")
     tool = [sys.executable, str(Path(__file__).parents[1] / "tools" / "tokenizer_levers.py")]
     common = ["--profile", "smoke", "--shards", str(smoke_project / "data/shards"), "--assets",
@@ -183,6 +184,12 @@ def test_tokenizer_levers_measure_a_change_against_a_baseline(smoke_project, tmp
     bad = subprocess.run([*tool, "bad", *common, "--set", "no_such_key=1"], cwd=tmp_path, capture_output=True,
                          text=True, env=project_env(tmp_path))
     assert bad.returncode != 0 and "no_such_key" in bad.stderr
+    out = run([*tool, "percept", *common, "--perceptual", "1.0", "--against", "base"], tmp_path)
+    percept = json.loads((tmp_path / "reports/tokenizer_levers.jsonl").read_text().splitlines()[-1])
+    assert percept["perceptual"] == 1.0 and percept["psnr_per_frame"] != rows[0]["psnr_per_frame"]
+    other = subprocess.run([*tool, "percept", *common], cwd=tmp_path, capture_output=True, text=True,
+                           env=project_env(tmp_path))  # the folder holds a training with other settings
+    assert other.returncode != 0 and "started with" in other.stderr
 
 
 def test_sampler_sweep_pairs_settings_on_the_same_starts_and_noise(smoke_project, tmp_path):

@@ -4,13 +4,17 @@
     python tools/tokenizer_levers.py lr1e3 --set train.lr=0.001
     python tools/tokenizer_levers.py lr1e3_mse --set train.lr=0.001 --set mse_weight=1.0 --against base
     python tools/tokenizer_levers.py wide --model decoder_channels=32 --against base
+    python tools/tokenizer_levers.py percept --perceptual 0.1 --against base
 
 Trains on the existing shards (``data/shards``) with the shared training loop in
 ``data/runs/tokenizer_levers/<name>/`` (resumable), then measures what the ``tokenizer_detail`` stage
 reports: val PSNR through the continuous latent (what the predictors' latents decode like) and
 through the codebook, SSIM, and the reconstruction FID, plus training seconds per step. ``--set``
 changes a key of the ``tokenizer_detail`` section (``train.<key>`` for its training settings),
-``--model`` a field of the tokenizer's size preset; values are read as YAML. Each run appends one
+``--model`` a field of the tokenizer's size preset; values are read as YAML. ``--perceptual W`` adds W times an
+LPIPS-style distance on the Inception FID network's maps (``InceptionPerceptual``; the paper's LPIPS weights are
+not available offline) to the reconstruction terms. A training folder refuses other settings than those it was
+started with. Each run appends one
 JSON row to ``--out`` (default ``reports/tokenizer_levers.jsonl``) with the per-frame continuous
 PSNRs and their clips; ``--against NAME`` adds the paired difference to that earlier row with a
 clip-bootstrap interval. Time nothing beside another torch process: the seconds are the machine's.
@@ -29,13 +33,15 @@ from pathlib import Path
 import torch
 import yaml
 
+from orbis2.accel import conv_layout
 from orbis2.assets import asset_path
 from orbis2.config.params import load_config
 from orbis2.data.shards import load_manifest
 from orbis2.eval.metrics.stats import paired_difference
-from orbis2.losses import psnr
+from orbis2.losses import feature_distance, psnr
 from orbis2.models.discriminator import build_discriminator
 from orbis2.models.sizes import tokenizer_config
+from orbis2.models.teachers import InceptionPerceptual
 from orbis2.models.tokenizer import build_detail_tokenizer
 from orbis2.tasks.tokenizers import DetailGAN, DetailTokenizerTask, _final_model, frame_batches, reconstruction_fid
 from orbis2.train import train
@@ -63,6 +69,22 @@ class LeverTask(DetailTokenizerTask):
         return DetailGAN(build_detail_tokenizer(self.sizes), build_discriminator(self.sizes))
 
 
+class PerceptualLeverTask(LeverTask):
+    """The lever task with ``weight`` x the perceptual distance among the reconstruction terms (as LPIPS is in
+    taming's nll, so the adaptive GAN weight balances against it too)."""
+
+    def __init__(self, cfg, shards, out_dir, sizes, network: InceptionPerceptual, weight: float):
+        super().__init__(cfg, shards, out_dir, sizes)
+        self.network, self.weight = network, weight
+
+    def reconstruction_loss(self, recon, images):
+        rec, metrics = super().reconstruction_loss(recon, images)
+        with torch.no_grad():
+            target = self.network(images)
+        distance = feature_distance(self.network(recon), target)
+        return rec + self.weight * distance, {**metrics, "perceptual": distance.detach()}
+
+
 def changed_section(section, settings: dict):
     """``section`` with ``settings`` applied (``train.<key>`` for its training settings); unknown keys stop."""
     train_keys = {k.removeprefix("train."): v for k, v in settings.items() if k.startswith("train.")}
@@ -87,6 +109,8 @@ def main() -> None:
                         help="a tokenizer_detail setting (train.<key> for training)")
     parser.add_argument("--model", action="append", default=[], metavar="FIELD=VALUE",
                         help="a field of the tokenizer size preset (e.g. decoder_channels=32)")
+    parser.add_argument("--perceptual", type=float, default=0.0, metavar="W",
+                        help="weight of the Inception perceptual distance among the reconstruction terms")
     parser.add_argument("--against", help="an earlier row's name: the paired PSNR difference to it")
     parser.add_argument("--profile", default=None, help="params.yaml's profile unless given")
     parser.add_argument("--shards", type=Path, default=Path("data/shards"))
@@ -102,7 +126,16 @@ def main() -> None:
         raise SystemExit(f"--model: {err}") from err
     inception = asset_path(args.assets, "inception_v3")
     work = Path("data/runs/tokenizer_levers") / args.name
-    task = LeverTask(section, args.shards, work, sizes)
+    settings = {"set": assignments(args.set), "model": assignments(args.model), "perceptual": args.perceptual}
+    record = work / "lever.json"
+    if record.is_file() and json.loads(record.read_text()) != settings:
+        raise SystemExit(f"{work}: started with {record.read_text()}, not {json.dumps(settings)}; "
+                         f"choose another name or delete the folder")
+    work.mkdir(parents=True, exist_ok=True)
+    record.write_text(json.dumps(settings))
+    task = (PerceptualLeverTask(section, args.shards, work, sizes, conv_layout(InceptionPerceptual(inception)),
+                                args.perceptual)
+            if args.perceptual else LeverTask(section, args.shards, work, sizes))
     start = time.perf_counter()
     result = train(task, section.train, work)
     seconds = time.perf_counter() - start
@@ -115,7 +148,7 @@ def main() -> None:
     # the stage's val frames: ceil(count / clips) consecutive frames from each clip in turn
     per_clip = math.ceil(section.eval_images / load_manifest(args.shards)["splits"]["val"]["samples"])
     clips = [i // per_clip for i in range(len(per_frame))]
-    row = {"name": args.name, "profile": cfg.profile, "set": assignments(args.set), "model": assignments(args.model),
+    row = {"name": args.name, "profile": cfg.profile, **settings,
            "steps": result.step, "train_s": round(seconds, 1), "step_s": round(seconds / max(1, result.step), 3),
            "decoder_parameters": sum(p.numel() for p in model.tokenizer.decoder.parameters()),
            "rfid": fid, "frames": len(per_frame), "clips": len(set(clips)), **metrics,

@@ -20,6 +20,18 @@ def mse_reconstruction(recon: torch.Tensor, target: torch.Tensor) -> torch.Tenso
     return (recon - target).square().mean()
 
 
+def feature_distance(maps_a: list[torch.Tensor], maps_b: list[torch.Tensor]) -> torch.Tensor:
+    """LPIPS's distance without its learned channel weights (Zhang et al. 2018's unweighted variant): per map,
+    features unit-normalised over channels at each position, their squared difference summed over channels and
+    averaged over positions and batch; the maps' terms summed."""
+    total = torch.zeros((), device=maps_a[0].device)
+    for a, b in zip(maps_a, maps_b, strict=True):
+        a = a / (a.norm(dim=1, keepdim=True) + 1e-10)
+        b = b / (b.norm(dim=1, keepdim=True) + 1e-10)
+        total = total + (a - b).square().sum(1).mean()
+    return total
+
+
 def hinge_d_loss(logits_real: torch.Tensor, logits_fake: torch.Tensor) -> torch.Tensor:
     """Discriminator hinge loss (taming): 0.5 * (E[relu(1 - D(x))] + E[relu(1 + D(x_hat))])."""
     return 0.5 * (F.relu(1.0 - logits_real).mean() + F.relu(1.0 + logits_fake).mean())

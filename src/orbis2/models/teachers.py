@@ -69,6 +69,43 @@ class InceptionTeacher(_FrozenTeacher):
         return x
 
 
+PERCEPTUAL_TAPS = ("conv_2", "conv_4", "mixed_2")  # 64, 192 and 288 channels at 1/2, 1/4 and 1/8 of the frame
+
+
+class InceptionPerceptual(_FrozenTeacher):
+    """InceptionV3 (the FID network) as a perceptual network: its maps at ``taps``, with gradients to the input.
+
+    The paper's detail tokenizer trains with LPIPS, whose VGG weights are not available offline; this is the same
+    recipe on the one ImageNet network we have (post-ReLU maps at three scales, compared by
+    :func:`orbis2.losses.feature_distance`). Measured as a lever (``tools/tokenizer_levers.py --perceptual``).
+    """
+
+    def __init__(self, path: str | Path, taps: tuple[str, ...] = PERCEPTUAL_TAPS):
+        super().__init__()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            scripted = torch.jit.load(str(path), map_location="cpu")
+        children = list(scripted.net.layers.named_children())
+        names = [name for name, _ in children]
+        if missing := [t for t in taps if t not in names]:
+            raise ValueError(f"{path}: no layer {missing} in net.layers (found {names})")
+        last = max(names.index(t) for t in taps)
+        self.names = names[: last + 1]
+        self.taps = taps
+        self.layers = nn.ModuleList(module for _, module in children[: last + 1])
+        self._freeze()
+
+    def forward(self, images: torch.Tensor) -> list[torch.Tensor]:
+        low, high = _INCEPTION_RANGE
+        x = ((images + 1) / 2).clamp(0, 1) * (high - low) + low
+        maps = []
+        for name, layer in zip(self.names, self.layers):
+            x = layer(x)
+            if name in self.taps:
+                maps.append(x)
+        return maps
+
+
 class LayerScale(nn.Module):
     def __init__(self, dim: int):
         super().__init__()

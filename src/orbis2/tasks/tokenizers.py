@@ -276,13 +276,11 @@ class DetailTokenizerTask(_TokenizerTask):
         cfg = self.cfg
         gan = step >= cfg.disc_start
         recon, vq, logits_fake = model(images, gan=gan)
-        l1, mse = l1_reconstruction(recon, images), mse_reconstruction(recon, images)
-        rec = cfg.l1_weight * l1 + cfg.mse_weight * mse
+        rec, metrics = self.reconstruction_loss(recon, images)
         loss = rec + vq.vq_loss + entropy_weight(step, cfg.entropy_start, cfg.entropy_end,
                                                  cfg.entropy_decay_steps) * vq.entropy_loss
-        metrics = {"l1": l1.detach(), "mse": mse.detach(), "codebook": vq.codebook_loss.detach(),
-                   "commitment": vq.commitment_loss.detach(), "entropy": vq.entropy_loss.detach(),
-                   "perplexity": vq.perplexity, "used_fraction": vq.used_fraction}
+        metrics.update(codebook=vq.codebook_loss.detach(), commitment=vq.commitment_loss.detach(),
+                       entropy=vq.entropy_loss.detach(), perplexity=vq.perplexity, used_fraction=vq.used_fraction)
         if gan:
             g_loss = generator_gan_loss(logits_fake)
             weight = adaptive_gan_weight(rec, g_loss, unwrap(model).tokenizer.last_layer, cfg.gan_scale)
@@ -290,6 +288,11 @@ class DetailTokenizerTask(_TokenizerTask):
             metrics.update(g_loss=g_loss.detach(), gan_weight=weight)
             self._fake = (step, recon.detach())  # the discriminator scores this step's reconstructions
         return loss, metrics
+
+    def reconstruction_loss(self, recon: torch.Tensor, images: torch.Tensor) -> tuple[torch.Tensor, dict[str, Any]]:
+        """The reconstruction terms (taming's nll, which the adaptive GAN weight balances) and their metrics."""
+        l1, mse = l1_reconstruction(recon, images), mse_reconstruction(recon, images)
+        return self.cfg.l1_weight * l1 + self.cfg.mse_weight * mse, {"l1": l1.detach(), "mse": mse.detach()}
 
     def disc_loss(self, model: nn.Module, images: torch.Tensor, step: int) -> tuple[torch.Tensor, dict] | None:
         """Hinge loss on this step's images and reconstructions; skipped before ``disc_start``."""
