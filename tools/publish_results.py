@@ -68,7 +68,8 @@ def stage_times(folder: Path) -> pd.DataFrame:
 def git_state(root: Path) -> dict:
     def git(*args: str) -> str:
         return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True).stdout.strip()
-    changed = [line[3:] for line in git("status", "--porcelain").splitlines()]
+    # dvc.lock is what the run itself wrote (its DVC record), not a change to the code that made it
+    changed = [line[3:] for line in git("status", "--porcelain").splitlines() if line[3:] != "dvc.lock"]
     return {"commit": git("rev-parse", "HEAD") or None, "uncommitted": sorted(changed)}
 
 
