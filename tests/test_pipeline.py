@@ -184,9 +184,10 @@ def test_tokenizer_levers_measure_a_change_against_a_baseline(smoke_project, tmp
     bad = subprocess.run([*tool, "bad", *common, "--set", "no_such_key=1"], cwd=tmp_path, capture_output=True,
                          text=True, env=project_env(tmp_path))
     assert bad.returncode != 0 and "no_such_key" in bad.stderr
-    out = run([*tool, "percept", *common, "--perceptual", "1.0", "--against", "base"], tmp_path)
+    run([*tool, "percept", *common, "--perceptual", "1.0", "--perceptual-taps", "conv_1,conv_2"], tmp_path)
     percept = json.loads((tmp_path / "reports/tokenizer_levers.jsonl").read_text().splitlines()[-1])
-    assert percept["perceptual"] == 1.0 and percept["psnr_per_frame"] != rows[0]["psnr_per_frame"]
+    assert percept["perceptual"] == 1.0 and percept["perceptual_taps"] == ["conv_1", "conv_2"]
+    assert percept["psnr_per_frame"] != rows[0]["psnr_per_frame"]
     other = subprocess.run([*tool, "percept", *common], cwd=tmp_path, capture_output=True, text=True,
                            env=project_env(tmp_path))  # the folder holds a training with other settings
     assert other.returncode != 0 and "started with" in other.stderr

@@ -4,17 +4,18 @@
     python tools/tokenizer_levers.py lr1e3 --set train.lr=0.001
     python tools/tokenizer_levers.py lr1e3_mse --set train.lr=0.001 --set mse_weight=1.0 --against base
     python tools/tokenizer_levers.py wide --model decoder_channels=32 --against base
-    python tools/tokenizer_levers.py percept --perceptual 0.1 --against base
+    python tools/tokenizer_levers.py percept --perceptual 0.25 --against base
+    python tools/tokenizer_levers.py percept_half_res --perceptual 0.75 --perceptual-taps conv_1,conv_2 --against base
 
 Trains on the existing shards (``data/shards``) with the shared training loop in
 ``data/runs/tokenizer_levers/<name>/`` (resumable), then measures what the ``tokenizer_detail`` stage
 reports: val PSNR through the continuous latent (what the predictors' latents decode like) and
 through the codebook, SSIM, and the reconstruction FID, plus training seconds per step. ``--set``
 changes a key of the ``tokenizer_detail`` section (``train.<key>`` for its training settings),
-``--model`` a field of the tokenizer's size preset; values are read as YAML. ``--perceptual W`` adds W times an
-LPIPS-style distance on the Inception FID network's maps (``InceptionPerceptual``; the paper's LPIPS weights are
-not available offline) to the reconstruction terms. A training folder refuses other settings than those it was
-started with. Each run appends one
+``--model`` a field of the tokenizer's size preset; values are read as YAML. ``--perceptual W`` adds W times
+an LPIPS-style distance on the Inception FID network's maps named by ``--perceptual-taps``
+(``InceptionPerceptual``; the paper's LPIPS weights are not available offline) to the reconstruction
+terms. A training folder refuses settings other than those it was started with. Each run appends one
 JSON row to ``--out`` (default ``reports/tokenizer_levers.jsonl``) with the per-frame continuous
 PSNRs and their clips; ``--against NAME`` adds the paired difference to that earlier row with a
 clip-bootstrap interval. Time nothing beside another torch process: the seconds are the machine's.
@@ -41,7 +42,7 @@ from orbis2.eval.metrics.stats import paired_difference
 from orbis2.losses import feature_distance, psnr
 from orbis2.models.discriminator import build_discriminator
 from orbis2.models.sizes import tokenizer_config
-from orbis2.models.teachers import InceptionPerceptual
+from orbis2.models.teachers import PERCEPTUAL_TAPS, InceptionPerceptual
 from orbis2.models.tokenizer import build_detail_tokenizer
 from orbis2.tasks.tokenizers import DetailGAN, DetailTokenizerTask, _final_model, frame_batches, reconstruction_fid
 from orbis2.train import train
@@ -111,6 +112,8 @@ def main() -> None:
                         help="a field of the tokenizer size preset (e.g. decoder_channels=32)")
     parser.add_argument("--perceptual", type=float, default=0.0, metavar="W",
                         help="weight of the Inception perceptual distance among the reconstruction terms")
+    parser.add_argument("--perceptual-taps", default=",".join(PERCEPTUAL_TAPS), metavar="LAYERS",
+                        help="the Inception layers the perceptual distance compares, comma-separated")
     parser.add_argument("--against", help="an earlier row's name: the paired PSNR difference to it")
     parser.add_argument("--profile", default=None, help="params.yaml's profile unless given")
     parser.add_argument("--shards", type=Path, default=Path("data/shards"))
@@ -126,14 +129,16 @@ def main() -> None:
         raise SystemExit(f"--model: {err}") from err
     inception = asset_path(args.assets, "inception_v3")
     work = Path("data/runs/tokenizer_levers") / args.name
-    settings = {"set": assignments(args.set), "model": assignments(args.model), "perceptual": args.perceptual}
+    taps = tuple(args.perceptual_taps.split(","))
+    settings = {"set": assignments(args.set), "model": assignments(args.model), "perceptual": args.perceptual,
+                **({"perceptual_taps": list(taps)} if args.perceptual else {})}
     record = work / "lever.json"
     if record.is_file() and json.loads(record.read_text()) != settings:
         raise SystemExit(f"{work}: started with {record.read_text()}, not {json.dumps(settings)}; "
                          f"choose another name or delete the folder")
     work.mkdir(parents=True, exist_ok=True)
     record.write_text(json.dumps(settings))
-    task = (PerceptualLeverTask(section, args.shards, work, sizes, conv_layout(InceptionPerceptual(inception)),
+    task = (PerceptualLeverTask(section, args.shards, work, sizes, conv_layout(InceptionPerceptual(inception, taps)),
                                 args.perceptual)
             if args.perceptual else LeverTask(section, args.shards, work, sizes))
     start = time.perf_counter()
