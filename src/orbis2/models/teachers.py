@@ -35,6 +35,24 @@ class _FrozenTeacher(nn.Module):
         return super().train(False)
 
 
+def _inception_layers(path: str | Path, wanted: tuple[str, ...]) -> list[tuple[str, nn.Module]]:
+    """The FID network's ``net.layers`` children, named, up to the last of ``wanted``."""
+    with warnings.catch_warnings():  # the FID network only exists as TorchScript; its deprecation is moot here
+        warnings.simplefilter("ignore", DeprecationWarning)
+        scripted = torch.jit.load(str(path), map_location="cpu")
+    children = list(scripted.net.layers.named_children())
+    names = [name for name, _ in children]
+    if missing := [name for name in wanted if name not in names]:
+        raise ValueError(f"{path}: no layer {', '.join(map(repr, missing))} in net.layers (found {names})")
+    return children[: max(names.index(name) for name in wanted) + 1]
+
+
+def _inception_input(images: torch.Tensor) -> torch.Tensor:
+    """Images in [-1, 1] mapped to the TF-slim range the FID network was trained with."""
+    low, high = _INCEPTION_RANGE
+    return ((images + 1) / 2).clamp(0, 1) * (high - low) + low
+
+
 class InceptionTeacher(_FrozenTeacher):
     """InceptionV3 (the FID network, TorchScript) cut after ``layer``: a 768-channel map.
 
@@ -50,20 +68,12 @@ class InceptionTeacher(_FrozenTeacher):
         super().__init__()
         if layer not in INCEPTION_LAYERS:
             raise ValueError(f"teacher_layer {layer!r} must be one of {INCEPTION_LAYERS}")
-        with warnings.catch_warnings():  # the FID network only exists as TorchScript; its deprecation is moot here
-            warnings.simplefilter("ignore", DeprecationWarning)
-            scripted = torch.jit.load(str(path), map_location="cpu")
-        children = list(scripted.net.layers.named_children())
-        names = [name for name, _ in children]
-        if layer not in names:
-            raise ValueError(f"{path}: no layer {layer!r} in net.layers (found {names})")
-        self.layers = nn.ModuleList(module for _, module in children[: names.index(layer) + 1])
+        self.layers = nn.ModuleList(module for _, module in _inception_layers(path, (layer,)))
         self._freeze()
 
     @torch.no_grad()
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        low, high = _INCEPTION_RANGE
-        x = ((images + 1) / 2).clamp(0, 1) * (high - low) + low
+        x = _inception_input(images)
         for layer in self.layers:
             x = layer(x)
         return x
@@ -82,22 +92,14 @@ class InceptionPerceptual(_FrozenTeacher):
 
     def __init__(self, path: str | Path, taps: tuple[str, ...] = PERCEPTUAL_TAPS):
         super().__init__()
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", DeprecationWarning)
-            scripted = torch.jit.load(str(path), map_location="cpu")
-        children = list(scripted.net.layers.named_children())
-        names = [name for name, _ in children]
-        if missing := [t for t in taps if t not in names]:
-            raise ValueError(f"{path}: no layer {missing} in net.layers (found {names})")
-        last = max(names.index(t) for t in taps)
-        self.names = names[: last + 1]
+        children = _inception_layers(path, taps)
+        self.names = [name for name, _ in children]
         self.taps = taps
-        self.layers = nn.ModuleList(module for _, module in children[: last + 1])
+        self.layers = nn.ModuleList(module for _, module in children)
         self._freeze()
 
     def forward(self, images: torch.Tensor) -> list[torch.Tensor]:
-        low, high = _INCEPTION_RANGE
-        x = ((images + 1) / 2).clamp(0, 1) * (high - low) + low
+        x = _inception_input(images)
         maps = []
         for name, layer in zip(self.names, self.layers):
             x = layer(x)
