@@ -23,8 +23,8 @@ import torch
 from torch import nn
 
 from orbis2.assets import ASSETS, AssetError, ensure_asset, sha256_file
-from orbis2.models.i3d import InceptionI3d, _same_pad, convert_i3d_pickle, load_i3d
 from orbis2.losses import feature_distance
+from orbis2.models.i3d import InceptionI3d, _same_pad, convert_i3d_pickle, load_i3d
 from orbis2.models.teachers import DinoV2Teacher, InceptionPerceptual, InceptionTeacher, build_teacher
 
 REPO = Path(__file__).resolve().parents[1]

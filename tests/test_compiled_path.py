@@ -27,6 +27,7 @@ from orbis2.flow import (
     teacher_forcing_draws,
     teacher_forcing_from_draws,
 )
+from orbis2.models.meta import materialize
 from orbis2.models.sizes import stdit_config
 from orbis2.models.stdit import build_stdit
 from orbis2.rollout import cascaded_rollout
@@ -47,7 +48,8 @@ ROLLOUT_GRAPHS, WITH_WINDOW_GRAPHS = 3, 4
 
 def randomized(model: torch.nn.Module, seed: int) -> torch.nn.Module:
     """Every weight drawn anew, fast at 500M parameters: matrices uniform at 1/sqrt(fan-in), norm weights
-    near 1, the rest small (adaLN-Zero's zeros would make every block the identity)."""
+    near 1, the rest small (adaLN-Zero's zeros would make every block the identity). Every parameter and buffer
+    must then be finite: a tensor nothing filled after :func:`materialize` is NaN and stops the test here."""
     gen = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         for name, p in model.named_parameters():
@@ -57,6 +59,8 @@ def randomized(model: torch.nn.Module, seed: int) -> torch.nn.Module:
                 p.uniform_(0.9, 1.1, generator=gen)
             else:
                 p.uniform_(-0.05, 0.05, generator=gen)
+    unset = [name for name, t in (*model.named_parameters(), *model.named_buffers()) if not t.isfinite().all()]
+    assert not unset, f"not initialised: {unset}"
     return model
 
 
@@ -70,7 +74,7 @@ def build(preset: str, level: str, seed: int) -> torch.nn.Module:
         else:
             model = build_stdit(stdit_config("paper", **size, subgoal_shift=True), C, causal=False,
                                 abstract_channels=C)
-    return randomized(model.to_empty(device="cpu"), seed)
+    return randomized(materialize(model, "cpu"), seed)
 
 
 def inputs(seed: int = 0) -> dict[str, torch.Tensor]:
@@ -185,7 +189,7 @@ def test_compiled_training_step_of_each_predictor_stage_at_paper_depth(fresh_dyn
                                                                                  "abstract_channels": C}
         with torch.device("meta"):
             model = build_stdit(stdit_config("paper", **size), C, **options)
-        models[level] = randomized(model.to_empty(device="cpu"), seed).train()
+        models[level] = randomized(materialize(model, "cpu"), seed).train()
     graphs = {}
     for stage, level in stages.items():
         eager = copy.deepcopy(models[level])

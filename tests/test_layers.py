@@ -3,11 +3,15 @@
 The layers, lowest first; a module may import its own layer and those below.
 MLflow tracking and the stage helpers (orbis2.tracking, orbis2.stage) sit above the
 library proper: the models, data, tasks and evaluation code is pure functions and
-classes that know nothing of MLflow. Stage scripts (stages/) and the DAG sit above them all.
+classes that know nothing of MLflow. The commands sit above them: orbis2 play's drive,
+its web server, then the command line, which no library module imports. Stage scripts
+(stages/) and the DAG sit above them all. Nor does any module import, however lazily,
+one that imports it back.
 """
 
 import ast
 import sys
+from collections import deque
 from pathlib import Path
 
 from conftest import ROOT
@@ -26,8 +30,11 @@ LAYERS = (
     ("orbis2.eval.protocols",),
     ("orbis2.eval.report",),
     ("orbis2.tasks",),
+    ("orbis2.inference",),  # trained models in use: what orbis2 rollout and orbis2 play share
     ("orbis2.tracking", "orbis2.stage"),  # the MLflow run and what stage scripts share
-    ("orbis2.cli", "orbis2.dag", "orbis2.drive", "orbis2.play", "orbis2.mlflow_app"),  # play; MLflow app
+    ("orbis2.drive",),  # orbis2 play: the step-wise drive
+    ("orbis2.play",),  # and its web server
+    ("orbis2.cli", "orbis2.dag", "orbis2.mlflow_app"),  # the orbis2 command; the DAG; the MLflow app
 )
 # Library packages that must not know about experiment tracking, even through a lazy import.
 PURE = ("orbis2.models", "orbis2.data", "orbis2.tasks", "orbis2.eval")
@@ -89,8 +96,60 @@ def violations(src: Path = SRC) -> list[str]:
     return out
 
 
+def import_graph(src: Path = SRC) -> dict[str, set[str]]:
+    """Each orbis2 module and the other orbis2 modules it imports anywhere in its body (``from package import
+    submodule`` counts as importing the package, whose ``__init__`` runs first)."""
+    files = {module_name(file, src): file for file in sorted(src.rglob("*.py"))}
+    return {name: {t for t in imports(file) if t in files and t != name} for name, file in files.items()}
+
+
+def import_cycles(src: Path = SRC) -> list[str]:
+    """``a -> b -> a`` for the shortest import cycle through each module on one, each cycle once."""
+    graph = import_graph(src)
+    found = set()
+    for start in sorted(graph):
+        came_from, queue = {start: start}, deque([start])
+        while queue:
+            module = queue.popleft()
+            if start in graph[module]:
+                cycle = [module]
+                while cycle[-1] != start:
+                    cycle.append(came_from[cycle[-1]])
+                cycle.reverse()
+                first = cycle.index(min(cycle))
+                cycle = cycle[first:] + cycle[:first]
+                found.add(" -> ".join(cycle + cycle[:1]))
+                break
+            for target in sorted(graph[module] - came_from.keys()):
+                came_from[target] = module
+                queue.append(target)
+    return sorted(found)
+
+
 def test_lower_layers_never_import_higher_ones():
     assert violations() == []
+
+
+def test_no_module_imports_one_that_imports_it_back():
+    assert import_cycles() == []
+
+
+def test_an_import_cycle_is_found(tmp_path):
+    """A lazy import closes a cycle too; a module that only imports into one is not on it."""
+    (tmp_path / "orbis2" / "sub").mkdir(parents=True)
+    (tmp_path / "orbis2" / "a.py").write_text("from orbis2.sub.b import f\n")
+    (tmp_path / "orbis2" / "sub" / "b.py").write_text("def f():\n    import orbis2.a\n")
+    (tmp_path / "orbis2" / "c.py").write_text("from orbis2.a import g\nimport orbis2.sub.b\n")
+    (tmp_path / "orbis2" / "d.py").write_text("import orbis2.e\n")
+    (tmp_path / "orbis2" / "e.py").write_text("from orbis2.f import h\n")
+    (tmp_path / "orbis2" / "f.py").write_text("import orbis2.d\nimport orbis2.c\n")
+    assert import_cycles(tmp_path) == ["orbis2.a -> orbis2.sub.b -> orbis2.a",
+                                       "orbis2.d -> orbis2.e -> orbis2.f -> orbis2.d"]
+
+
+def test_no_library_module_imports_the_command_line():
+    """orbis2.cli parses the command's options and calls the library; only tests and ``python -m`` import it."""
+    assert [module_name(f) for f in sorted(SRC.rglob("*.py")) if "orbis2.cli" in imports(f)] == []
 
 
 def test_library_code_knows_nothing_of_mlflow():

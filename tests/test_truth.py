@@ -159,6 +159,16 @@ def test_horizons_and_psnr():
     np.testing.assert_allclose(psnr(other, frames)[0], [100.0, 10 * np.log10(255 ** 2 / 100)])
 
 
+def test_psnr_one_start_at_a_time_equals_all_at_once_bit_for_bit():
+    """The memory-bounded PSNR (a start at a time) against the all-at-once float64 formula it replaced."""
+    rng = np.random.default_rng(0)
+    generated, truth = (rng.integers(0, 256, (5, 7, 24, 40, 3), dtype=np.uint8) for _ in range(2))
+    diff = generated.astype(np.float64) - truth.astype(np.float64)
+    mse = (diff ** 2).reshape(*diff.shape[:2], -1).mean(-1)
+    whole = np.minimum(10.0 * np.log10(255.0 ** 2 / np.maximum(mse, 1e-10)), 100.0)
+    assert np.array_equal(psnr(generated, truth), whole)
+
+
 def _clip(smoke_cfg, town_seed=11, ego_seed=3, start_frame=10, frames=40):
     """A town clip as the shards hold it (metadata and recorded poses; its frames are not read)."""
     track = simulate_ego(Town.generate("default", town_seed), ego_seed, smoke_cfg.town.episode_seconds["val"], FPS)

@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # The GPU measurement: one script of at most 6 minutes; everything it measures ends up in two files,
 # $OUT/summary.json (each figure, its repeats and each part's status) and $OUT/results.tar.gz (every part's
-# JSON and log), so a machine that returns few files returns all of it.
+# JSON and log), so a machine that returns few files returns all of it. Nothing else is written under $OUT:
+# the lent machine returns at most 8 of its files, chosen by it, so the parts write to a working folder
+# outside it (a new temporary folder, removed at the end; its files are the archive's work/).
 #
 #   OUT=/path/to/results bash tools/gpu_run.sh          # from the repository root, on the GPU machine
 #   REHEARSE=1 OUT=/tmp/rehearsal bash tools/gpu_run.sh  # every part on the CPU, inductor, smoke preset
@@ -30,14 +32,17 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:?set OUT to the folder that receives summary.json and results.tar.gz}
 PY=${PYTHON:-python3}
-WORK="$OUT/work"
-rm -rf "$WORK" && mkdir -p "$WORK"
+mkdir -p "$OUT"
+OUT=$(cd "$OUT" && pwd)
+WORK=$(mktemp -d)/work
+mkdir -p "$WORK"
 log() { echo "[$(date -u +%H:%M:%S)] $*" | tee -a "$WORK/gpu_run.log"; }
 
 pack() {  # whatever happened: the summary and one archive of every file written
   "$PY" benchmarks/gpu_suite.py summary --out "$WORK" --summary "$OUT/summary.json" >> "$WORK/gpu_run.log" 2>&1 \
     || echo "{\"error\": \"summary failed; see results.tar.gz work/gpu_run.log\"}" > "$OUT/summary.json"
-  tar -czf "$OUT/results.tar.gz" -C "$OUT" work
+  tar -czf "$OUT/results.tar.gz" -C "$(dirname "$WORK")" work
+  rm -rf "$(dirname "$WORK")"
 }
 trap pack EXIT
 

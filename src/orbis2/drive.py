@@ -28,9 +28,11 @@ import pyarrow.parquet as pq
 import torch
 
 from orbis2.accel import cast_for_inference, inference_autocast, set_tf32
-from orbis2.cli import (
+from orbis2.config.params import PipelineConfig
+from orbis2.data.importer import find_videos
+from orbis2.errors import OrbisError
+from orbis2.inference import (
     abstract_predictor_path,
-    check_pairing,
     compile_models,
     compose,
     decode_latents,
@@ -40,9 +42,6 @@ from orbis2.cli import (
     sampler_settings,
     write_outputs,
 )
-from orbis2.config.params import PipelineConfig
-from orbis2.data.importer import find_videos
-from orbis2.errors import OrbisError
 from orbis2.io import atomic_file
 from orbis2.kinematics import integrate_odometry
 from orbis2.latents import encode_frames
@@ -72,7 +71,7 @@ def scene_of(video: Path) -> Scene:
     """A scene from a video with odometry beside it (``<stem>.csv`` or the town's ``<stem>.parquet``)."""
     if not video.is_file():
         raise OrbisError(f"{video}: video not found; pass an existing video")
-    odometry, path = load_steering(argparse.Namespace(trajectory=None), video)
+    odometry, path = load_steering(None, video)
     if odometry is None:
         raise OrbisError(f"{video}: no odometry beside it; add {video.with_suffix('.csv')} with columns timestamp, "
                          f"speed, yaw_rate (the import layout) to drive from it")
@@ -135,7 +134,7 @@ class Models:
     abstract_pred: PredictorFile
     detail_pred: PredictorFile
     device: torch.device
-    abstract_nfe: int  # the sampler (orbis2.cli.sampler_settings)
+    abstract_nfe: int  # the sampler (orbis2.inference.sampler_settings)
     detail_nfe: int
     guidance: float
     summary: str  # which profile and sampler, and why
@@ -147,10 +146,9 @@ def load_models(args: argparse.Namespace) -> Models:
     cfg, which = resolve_profile(args.params, args.profile, [
         args.detail_tokenizer, args.abstract_tokenizer, abstract_predictor_path(args.abstract_predictor),
         args.detail_predictor])
-    detail_tok, abstract_tok, abstract_path, abstract_pred, detail_pred = load_checkpoints(args, cfg)
-    check_pairing(abstract_pred, abstract_path, abstract_tok, "abstract", args.abstract_tokenizer)
-    check_pairing(detail_pred, args.detail_predictor, detail_tok, "detail", args.detail_tokenizer)
-    check_pairing(detail_pred, args.detail_predictor, abstract_tok, "abstract", args.abstract_tokenizer)
+    detail_tok, abstract_tok, abstract_path, abstract_pred, detail_pred = load_checkpoints(
+        args.detail_tokenizer, args.abstract_tokenizer, args.abstract_predictor, args.detail_predictor, args.device,
+        cfg, args.params)
     if abstract_pred.model.steering is None or "steering" not in abstract_pred.meta:
         raise OrbisError(f"{abstract_path}: not a steered predictor, so it cannot be driven; pass the action "
                          f"stage's predictor (--abstract-predictor) or train it (python stages/predictor.py action)")
@@ -161,7 +159,9 @@ def load_models(args: argparse.Namespace) -> Models:
         cast_for_inference(predictor.model, device, args.precision)
     if args.compile:
         compile_models(abstract_pred, detail_pred, detail_tok)
-    abstract_nfe, detail_nfe, guidance, sampler = sampler_settings(args, cfg, detail_pred, steered=True)
+    abstract_nfe, detail_nfe, guidance, sampler = sampler_settings(args.abstract_nfe, args.detail_nfe,
+                                                                   args.steering_guidance, cfg, detail_pred,
+                                                                   steered=True)
     return Models(args, cfg, detail_tok, abstract_tok, abstract_pred, detail_pred, device, abstract_nfe, detail_nfe,
                   guidance, f"{which}; {sampler}")
 

@@ -84,8 +84,15 @@ class SteeringShift(nn.Module):
         super().__init__()
         self.patch_size, self.yaw_feature = patch_size, yaw_feature
         self.embed = nn.Linear(len(self.RATES) * patch_size * patch_size * latent_channels, hidden_size)
-        self.register_buffer("rates", torch.tensor(self.RATES), persistent=False)  # on the model's device
+        self.register_buffer("rates", torch.empty(len(self.RATES)), persistent=False)  # on the model's device
+        self.reset_buffers()
         self.reset_parameters()
+
+    def reset_buffers(self) -> None:
+        """The fixed rates; run again when the network is allocated from the meta device
+        (:func:`orbis2.models.meta.materialize`), since the rates are not in the state dict."""
+        with torch.no_grad():
+            self.rates.copy_(torch.tensor(self.RATES))
 
     def reset_parameters(self) -> None:
         nn.init.zeros_(self.embed.weight)
