@@ -339,7 +339,9 @@ def test_cli_end_to_end_writes_mp4_and_gif(make_video, tmp_path, checkpoints, ca
     assert codec_of(out) == "VP90"  # plays in a browser
     frames = read_video(out)
     assert frames.shape == (5 + 10, 72, 256, 3)  # 5 context + 2 steps of 5, real | generated
-    assert frames[-1, :, :128].max() < 10  # the 25-frame video has no real frame 30: shown black
+    # The 25-frame video has no real frame 30: shown black, up to the lossy codec's filtering at the edge it
+    # shares with the generated half.
+    assert frames[-1, :, :120].max() < 10 and frames[-1, :, :128].mean() < 2
     with Image.open(out.with_suffix(".gif")) as gif:
         assert gif.n_frames == 15 and gif.size == (256, 72)
 

@@ -21,6 +21,7 @@ encodes fast and which every OpenCV build reads, but which browsers do not play.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from fractions import Fraction
 from pathlib import Path
 from typing import Iterable, Iterator
 
@@ -35,9 +36,13 @@ from orbis2.errors import OrbisError
 MAX_PLAUSIBLE_FRAMES = 10**8
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
-# FourCC of the codec written: for people (browsers play it) and for the dataset (fast, any OpenCV reads it).
-PLAYABLE_CODEC, DATASET_CODEC = "vp09", "mp4v"  # read back, OpenCV names them VP90 and FMP4
-PLAYABLE_SUFFIXES = (".mp4", ".webm")  # the containers VP9 is written into
+# FourCC of the codec OpenCV writes for the dataset (fast, any OpenCV reads it; read back, OpenCV names it FMP4).
+DATASET_CODEC = "mp4v"
+PLAYABLE_SUFFIXES = (".mp4", ".webm")  # the containers VP9 is written into (read back, OpenCV names it VP90)
+# VP9 for people (browsers play it), encoded by libvpx through PyAV at its real-time speed setting and a constant
+# quality: OpenCV's writer offers no speed setting, and its default took 7x longer for the evaluation's sample
+# videos (1536 x 288 at the smoke profile) at the same quality (PSNR within 1 dB on a worst-case texture).
+PLAYABLE_OPTIONS = {"deadline": "realtime", "cpu-used": "8", "crf": "20", "b": "0"}
 
 
 class VideoError(OrbisError):
@@ -346,7 +351,9 @@ def write_video(path: Path, frames: Iterable[np.ndarray], fps: float, playable: 
     if playable and Path(path).suffix.lower() not in PLAYABLE_SUFFIXES:
         raise VideoError(f"{printable(path)}: a video to watch is written as .mp4 or .webm (VP9); "
                          f"change the file name's suffix")
-    codec = "FFV1" if lossless else PLAYABLE_CODEC if playable else DATASET_CODEC
+    if playable:
+        return _write_playable(path, frames, fps)
+    codec = "FFV1" if lossless else DATASET_CODEC
     writer = None
     count = 0
     try:
@@ -367,6 +374,25 @@ def write_video(path: Path, frames: Iterable[np.ndarray], fps: float, playable: 
     return count
 
 
+def _write_playable(path: Path, frames: Iterable[np.ndarray], fps: float) -> int:
+    """VP9 (``PLAYABLE_OPTIONS``) in the container the suffix names; returns the number of frames written."""
+    count = 0
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with av.open(_opencv_name(path), "w") as container:
+        stream = None
+        for frame in frames:
+            if stream is None:
+                stream = container.add_stream("libvpx-vp9", rate=Fraction(fps).limit_denominator(1001),
+                                               options=PLAYABLE_OPTIONS)
+                stream.height, stream.width = frame.shape[:2]
+                stream.pix_fmt, stream.thread_count = "yuv420p", 1
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format="rgb24")))
+            count += 1
+        if stream is not None:
+            container.mux(stream.encode())
+    return count
+
+
 def codec_of(path: Path) -> str:
     """The FourCC of a video's codec as OpenCV reports it (``VP90``, ``mp4v``, ``avc1``, ...)."""
     cap = open_capture(path)
@@ -379,13 +405,17 @@ def codec_of(path: Path) -> str:
 
 def write_gif(path: Path, frames: Iterable[np.ndarray], fps: float, width: int | None = None) -> int:
     """Write RGB frames as a looping GIF (a thumbnail that plays wherever an image shows),
-    scaled down to ``width`` pixels when given. The caller makes the write atomic."""
+    scaled down to ``width`` pixels when given. The caller makes the write atomic.
+
+    Each frame gets its own 256-colour palette by Pillow's fast octree: its default (median cut) took 9x as long
+    for the evaluation's sample videos, for 0.6 dB more PSNR against the RGB frames (36.4 against 35.8 dB).
+    """
     images = []
     for frame in frames:
         image = Image.fromarray(frame)
         if width and image.width > width:
             image = image.resize((width, max(1, round(image.height * width / image.width))), Image.Resampling.LANCZOS)
-        images.append(image)
+        images.append(image.quantize(256, method=Image.Quantize.FASTOCTREE))
     if not images:
         raise VideoError(f"{printable(path)}: no frames to write")
     images[0].save(path, format="GIF", save_all=True, append_images=images[1:], duration=round(1000 / fps), loop=0)
