@@ -307,8 +307,24 @@ def _destroy_group() -> None:
         dist.destroy_process_group()
 
 
+def _updates(task: Task, model: nn.Module) -> list[Update]:
+    """The task's main update (every trainable parameter no extra update claims) and its extra ones."""
+    extras = list(task.extra_updates(model)) if hasattr(task, "extra_updates") else []
+    claimed = {id(p) for update in extras for p in update.params}
+    if len(claimed) != sum(len(update.params) for update in extras):
+        raise ValueError("extra_updates must not share parameters")
+    main = [p for p in model.parameters() if p.requires_grad and id(p) not in claimed]
+    updates = [Update("main", main, task.loss), *extras]
+    names = [update.name for update in updates]
+    if len(set(names)) != len(names):
+        raise ValueError(f"update names must be unique and not 'main', got {names}")
+    return updates
+
+
 class _Run:
-    """One call to :func:`train` on one rank."""
+    """One call to :func:`train` on one rank: built (model, updates, optimizers, DDP, EMA) in ``__init__``, then
+    :meth:`run` resumes if a checkpoint is there and loops :meth:`train_step` and :meth:`after_step` (logging,
+    evaluation, periodic checkpoints) to ``cfg.steps``; the checkpoint and weight files are written last."""
 
     def __init__(self, task: Task, cfg: TrainConfig, out_dir: Path, logger: Any, env: _Env):
         if cfg.batch_size % env.world_size:
@@ -323,22 +339,14 @@ class _Run:
             set_tf32(cfg.tf32)
         if cfg.activation_checkpointing:
             set_checkpointing(self.raw, cfg.activation_checkpointing, cfg.checkpoint_policy)
-        extras = list(task.extra_updates(self.raw)) if hasattr(task, "extra_updates") else []
-        claimed = {id(p) for update in extras for p in update.params}
-        if len(claimed) != sum(len(update.params) for update in extras):
-            raise ValueError("extra_updates must not share parameters")
-        main = [p for p in self.raw.parameters() if p.requires_grad and id(p) not in claimed]
-        self.updates = [Update("main", main, task.loss), *extras]
-        names = [update.name for update in self.updates]
-        if len(set(names)) != len(names):
-            raise ValueError(f"update names must be unique and not 'main', got {names}")
+        self.updates = _updates(task, self.raw)
         self.optimizers = {u.name: _optimizer(u.params, cfg, env.device) for u in self.updates}
         self.model: nn.Module = self.raw
         if env.world_size > 1:
             # Alternating updates leave the other part without gradients on each backward.
             cuda = env.device.type == "cuda"
             self.model = DistributedDataParallel(self.raw, device_ids=[env.device] if cuda else None,
-                                                 find_unused_parameters=bool(extras))
+                                                 find_unused_parameters=len(self.updates) > 1)
         self.ema = None if cfg.ema_decay is None else copy.deepcopy(self.raw).requires_grad_(False).eval()
         if cfg.compile:
             compile_for_training(self.raw)  # in place: the state dict keeps its names; the EMA copy stays eager
