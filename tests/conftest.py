@@ -3,9 +3,7 @@ smoke-profile project run through the main job and `reports/all` for the whole s
 
 The smoke project takes most of the suite's time, so it is built in the background (tests/smoke_build.py)
 from the moment a test that needs it is collected, once for all pytest-xdist workers, and the tests that
-read it run last: the other tests run meanwhile. Those that read the main job's outputs (``smoke_project``)
-start as soon as it is done, while ``reports/all`` is built; those that read everything
-(``smoke_project_all``) come last."""
+read it run last: the other tests run meanwhile."""
 
 from __future__ import annotations
 
@@ -106,7 +104,6 @@ def run(cmd: list[str], cwd: Path) -> str:
 
 
 SMOKE = "smoke_project"  # the fixture, and its folder in the session's shared temporary folder
-SMOKE_ALL = "smoke_project_all"  # the fixture of the project after reports/all too
 BUILD_TIMEOUT_S = 3600
 BUILDER = pytest.StashKey[subprocess.Popen]()  # the build, in the process that started it
 
@@ -119,15 +116,9 @@ def shared_temp(config: pytest.Config) -> Path:
 
 @pytest.hookimpl(trylast=True)  # after -k / -m deselection
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """The smoke project's readers run last, those of reports/all after those of the main job: the other tests
-    run while it is built."""
-    main = [item for item in items if reads_smoke(item) and SMOKE_ALL not in item.fixturenames]
-    full = [item for item in items if SMOKE_ALL in getattr(item, "fixturenames", ())]
-    items[:] = [item for item in items if not reads_smoke(item)] + main + full
-
-
-def reads_smoke(item: pytest.Item) -> bool:
-    return bool({SMOKE, SMOKE_ALL} & set(getattr(item, "fixturenames", ())))
+    """The smoke project's readers run last: the other tests run while it is built."""
+    readers = [item for item in items if SMOKE in getattr(item, "fixturenames", ())]
+    items[:] = [item for item in items if item not in readers] + readers
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
@@ -135,7 +126,7 @@ def pytest_collection_finish(session: pytest.Session) -> None:
     project's build if a test to run reads it (once per session, whichever xdist worker gets here first)."""
     freeze_imports()
     config = session.config
-    if config.option.collectonly or not any(reads_smoke(i) for i in session.items):
+    if config.option.collectonly or not any(SMOKE in getattr(i, "fixturenames", ()) for i in session.items):
         return
     folder = shared_temp(config) / SMOKE
     with FileLock(str(folder) + ".lock"):
@@ -156,27 +147,16 @@ def pytest_unconfigure(config: pytest.Config) -> None:
         proc.wait(timeout=60)
 
 
-def wait_for_build(config: pytest.Config, marker: str) -> Path:
-    """The smoke build's folder once it has written ``marker`` (tests/smoke_build.py)."""
-    folder = shared_temp(config) / SMOKE
+@pytest.fixture(scope="session")
+def smoke_project(request) -> Path:
+    """A fresh copy run as the README says, at the smoke scale: the main job, then every ablation
+    (tests/smoke_build.py). Tests copy it before they change anything: several workers read it at once."""
+    folder = shared_temp(request.config) / SMOKE
     started = time.monotonic()
-    while not (folder / marker).exists():
+    while not (folder / "built").exists():
         if (folder / "failed").exists():
             pytest.fail(f"the smoke project's build failed:\n{(folder / 'failed').read_text()[-6000:]}")
         if time.monotonic() - started > BUILD_TIMEOUT_S:
             pytest.fail(f"the smoke project was not built within {BUILD_TIMEOUT_S} s: {folder / 'build.log'}")
         time.sleep(2)
-    return folder
-
-
-@pytest.fixture(scope="session")
-def smoke_project(request) -> Path:
-    """A fresh copy run as the README says, at the smoke scale, through the main job (`snakemake --cores 2`)
-    (tests/smoke_build.py). Tests copy it before they change anything: several workers read it at once."""
-    return wait_for_build(request.config, "main_built") / "main"
-
-
-@pytest.fixture(scope="session")
-def smoke_project_all(request) -> Path:
-    """The smoke project after the main job and then every ablation (`reports/all`); copy it before a change."""
-    return wait_for_build(request.config, "built") / "project"
+    return folder / "project"

@@ -1,11 +1,9 @@
 """Build the session's smoke project: a fresh copy of the repository run through the main job and `reports/all`.
 
 Started in the background by conftest as soon as a collected test needs it, so that the DAG runs while the
-other tests do; the tests that read it wait for it. Usage: ``python tests/smoke_build.py FOLDER``; writes
-FOLDER/project through the main job, copies it to FOLDER/main and writes FOLDER/main_built (what
-``conftest.smoke_project`` waits for: the readers of the main job start while the rest is built), then runs
-``reports/all`` in FOLDER/project and writes FOLDER/built (``conftest.smoke_project_all``); on failure,
-FOLDER/failed with the failing command's output. FOLDER/build.log has the Snakemake runs' output.
+other tests do; the tests that read it wait for it (``conftest.smoke_project``). Usage:
+``python tests/smoke_build.py FOLDER``; writes FOLDER/project, then FOLDER/built or, on failure,
+FOLDER/failed with the failing command's output; FOLDER/build.log has the Snakemake runs' output.
 
 The DAG is the README's (`snakemake --cores 2`, then `reports/all`) with one scheduling change: the jobs
 get one thread each (Snakemake sets ``OMP_NUM_THREADS`` to a job's threads), so that the DAG's independent
@@ -16,7 +14,6 @@ stages compute the same things (the numbers differ from a two-thread run in the 
 from __future__ import annotations
 
 import os
-import shutil
 import sys
 import traceback
 from pathlib import Path
@@ -30,12 +27,8 @@ def build(folder: Path) -> None:
     root = folder / "project"
     root.mkdir(parents=True)
     project_copy(root)
-    print(run(["snakemake", "--cores", JOBS, "--max-threads", "1"], root), flush=True)
-    # The main job's project as it stands, for its readers, while reports/all goes on writing into `project`.
-    shutil.copytree(root, folder / "main.partial", symlinks=True)
-    (folder / "main.partial").rename(folder / "main")
-    (folder / "main_built").touch()
-    print(run(["snakemake", "reports/all", "--cores", JOBS, "--max-threads", "1"], root), flush=True)
+    for target in ([], ["reports/all"]):
+        print(run(["snakemake", *target, "--cores", JOBS, "--max-threads", "1"], root), flush=True)
 
 
 if __name__ == "__main__":

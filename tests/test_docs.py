@@ -218,8 +218,8 @@ def test_every_group_has_commands_to_run():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("group", sorted({*GROUPS.values(), "docs"}))
-def test_documented_commands_run_in_a_finished_smoke_project(smoke_project_all, tmp_path, group):
-    root = Path(shutil.copytree(smoke_project_all, tmp_path / "project", symlinks=True))
+def test_documented_commands_run_in_a_finished_smoke_project(smoke_project, tmp_path, group):
+    root = Path(shutil.copytree(smoke_project, tmp_path / "project", symlinks=True))
     failures, ran, seen, times = [], 0, set(), []
     for command in ALL:
         if command.not_run or group_of(command) != group:

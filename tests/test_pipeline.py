@@ -139,14 +139,14 @@ def set_param(root: Path, section: str, key: str, value) -> None:
     (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
 
 
-def test_snakemake_smoke_dag(smoke_project_all, tmp_path):
+def test_snakemake_smoke_dag(smoke_project, tmp_path):
     """The session's smoke project: the README's main job (`snakemake --cores 2`, the default target),
     then `reports/all`. Each invocation is one MLflow parent run; every stage ran once, under one of them.
     Then, in a copy, a param edit: the main job's plan is the edited stage and what reads it, nothing else,
     and running the stage is one more invocation. (The stages that read it ran in the build; running them
     again would only show the same code working twice.)"""
-    check_outputs(smoke_project_all)
-    root = Path(shutil.copytree(smoke_project_all, tmp_path / "project", symlinks=True))
+    check_outputs(smoke_project)
+    root = Path(shutil.copytree(smoke_project, tmp_path / "project", symlinks=True))
     runs = mlflow_runs(root / "mlflow.db")
     parents = {r for r, _, p in runs if p is None}
     assert len(parents) == 2 and sorted(n for _, n, p in runs if p in parents) == STAGES
