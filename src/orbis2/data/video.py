@@ -71,7 +71,7 @@ def open_capture(path: Path) -> cv2.VideoCapture:
     UTF-8 (OpenCV's Python binding crashes the process on it), a missing file, a
     folder, a file OpenCV cannot decode.
     """
-    name = _opencv_name(path)
+    name = _video_name(path)
     if not Path(path).is_file():
         problem = "is a folder" if Path(path).is_dir() else "does not exist"
         raise VideoError(f"{name}: {problem}; pass an existing video file")
@@ -83,14 +83,15 @@ def open_capture(path: Path) -> cv2.VideoCapture:
     return cap
 
 
-def _opencv_name(path: Path) -> str:
-    """``str(path)``, refused if not valid UTF-8: OpenCV's Python binding crashes the process on such names."""
+def _video_name(path: Path) -> str:
+    """``str(path)``, refused if not valid UTF-8: OpenCV's Python binding crashes the process on such names, and
+    PyAV's writer cannot encode them either."""
     name = str(path)
     try:
         name.encode("utf-8")
     except UnicodeEncodeError:
-        raise VideoError(f"{printable(path)}: the file name is not valid UTF-8, which OpenCV cannot handle; rename "
-                         f"the file (e.g. convmv -f latin1 -t utf8 --notest)") from None
+        raise VideoError(f"{printable(path)}: the file name is not valid UTF-8, which OpenCV and PyAV cannot handle; "
+                         f"rename the file (e.g. convmv -f latin1 -t utf8 --notest)") from None
     return name
 
 
@@ -101,7 +102,7 @@ def plausible_count(frames: float) -> int:
 
 def probe(path: Path) -> VideoInfo:
     """Rate, size, codec and announced frame count; through PyAV when OpenCV cannot open the file."""
-    _opencv_name(path)  # a name that is not UTF-8 is refused for every reader alike
+    _video_name(path)  # a name that is not UTF-8 is refused for every reader alike
     try:
         cap = open_capture(path)
     except VideoError:
@@ -170,7 +171,7 @@ def iter_timed_frames(path: Path) -> Iterator[tuple[float, np.ndarray]]:
     names the codec. A time that does not increase (a container without timestamps) is
     replaced by the previous one plus one period of the announced rate.
     """
-    _opencv_name(path)
+    _video_name(path)
     try:
         cap = open_capture(path)
     except VideoError:
@@ -351,6 +352,7 @@ def write_video(path: Path, frames: Iterable[np.ndarray], fps: float, playable: 
     if playable and Path(path).suffix.lower() not in PLAYABLE_SUFFIXES:
         raise VideoError(f"{printable(path)}: a video to watch is written as .mp4 or .webm (VP9); "
                          f"change the file name's suffix")
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     if playable:
         return _write_playable(path, frames, fps)
     codec = "FFV1" if lossless else DATASET_CODEC
@@ -360,8 +362,7 @@ def write_video(path: Path, frames: Iterable[np.ndarray], fps: float, playable: 
         for frame in frames:
             if writer is None:
                 h, w = frame.shape[:2]
-                Path(path).parent.mkdir(parents=True, exist_ok=True)
-                writer = cv2.VideoWriter(_opencv_name(path), cv2.VideoWriter_fourcc(*codec), float(fps), (w, h))
+                writer = cv2.VideoWriter(_video_name(path), cv2.VideoWriter_fourcc(*codec), float(fps), (w, h))
                 if not writer.isOpened():
                     raise VideoError(f"{printable(path)}: OpenCV cannot write {codec} video here (its build has no "
                                      f"such encoder, or the folder is not writable); install the "
@@ -377,8 +378,7 @@ def write_video(path: Path, frames: Iterable[np.ndarray], fps: float, playable: 
 def _write_playable(path: Path, frames: Iterable[np.ndarray], fps: float) -> int:
     """VP9 (``PLAYABLE_OPTIONS``) in the container the suffix names; returns the number of frames written."""
     count = 0
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    with av.open(_opencv_name(path), "w") as container:
+    with av.open(_video_name(path), "w") as container:
         stream = None
         for frame in frames:
             if stream is None:
