@@ -1,9 +1,12 @@
 # Raw episodes (the embedded town or your videos) -> shards; pretrained assets.
 
 from orbis2.data.importer import input_files
+from orbis2.data.parts import part_name
+from orbis2.interfaces import PART
 
 SOURCE = section("data")["source"]
 TOWN, IMPORT, SHARDS, ASSETS = (INTERFACES[kind] for kind in ("town", "import", "shards", "assets"))
+PARTS = [part_name(i, config["parts"]) for i in range(config["parts"])]  # params.yaml `parts`, or --config parts=N
 
 
 rule town:
@@ -40,7 +43,31 @@ rule import_videos:
         command(IMPORT)
 
 
-# A checkpoint: the rules that read the shards list its files once it has run (folder_files).
+# One job per part of the shards (an array on Slurm): part I of N writes the I-th block of every split's
+# episodes into data/runs/ (resumable) and its part manifest. Snakemake's only: DVC's `shards` runs every part.
+rule shards_part:
+    threads: PART.threads
+    priority: SHARDS.priority
+    resources: **requests(PART.scheduler(), lambda: workflow.local_exec)
+    input:
+        code_inputs(SHARDS.script),
+        raw=stage_paths(SHARDS, SOURCE)["raw"],
+    output:
+        part=P("shard_parts", "{part}"),
+    wildcard_constraints:
+        part=r"\d{4}-of-\d{4}",
+    params:
+        **stage_params(SHARDS, stage_paths(SHARDS, SOURCE)),
+        args=lambda wildcards, output: f" --part {int(wildcards.part[:4])} --part-manifest {output.part}",
+    log: log("shards_part_{part}")
+    benchmark: bench("shards_part_{part}")
+    shell:
+        f"python {SHARDS.script} --profile {{params.profile}} --raw {{input.raw}} --parts {{config[parts]}}"
+        "{params.args} 2>&1 | tee {log}"
+
+
+# A checkpoint: the rules that read the shards list its files once it has run (folder_files). With every part
+# written it only gathers them (hard links and the manifest).
 checkpoint shards:
     threads: SHARDS.resources.threads
     priority: SHARDS.priority
@@ -48,14 +75,16 @@ checkpoint shards:
     input:
         code_inputs(SHARDS.script),
         **inputs(SHARDS, stage_paths(SHARDS, SOURCE)),  # the configured source's raw folder
+        parts=lambda wildcards: [P("shard_parts", part) for part in PARTS],  # a function: DVC's stage runs them
     output:
         **outputs(SHARDS, stage_paths(SHARDS, SOURCE)),
     params:
         **stage_params(SHARDS, stage_paths(SHARDS, SOURCE)),
+        parts=config["parts"],
     log: log("shards")
     benchmark: bench("shards")
     shell:
-        command(SHARDS)
+        command(SHARDS, head=" --parts {config[parts]}")
 
 
 rule assets:

@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> None:
     media = args.media or INTERFACE.option("media").path(name)
     with open_stage(f"eval_fvd_{name}", args, INTERFACE) as stage:
         cfg, run = stage.cfg, stage.run
-        verify_shards(args.shards)  # before any read; see verify_shards for why
+        verify_shards(args.shards, cfg.evaluation.fvd_splits)  # the splits it reads, before any read
         ev, dev = cfg.evaluation, default_device()
 
         latents = latent_paths(args, SYSTEMS[name].latents)

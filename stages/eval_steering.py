@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     with open_stage("eval_steering", args, INTERFACES["eval_steering"]) as stage:
         cfg, run = stage.cfg, stage.run
-        verify_shards(args.shards)  # before any read; see verify_shards for why
+        verify_shards(args.shards, [cfg.evaluation.steering_split])  # the split it reads, before any read
         ev, data = cfg.evaluation, cfg.data
         if data.detail_stride != 1:
             raise OrbisError(f"data.{cfg.profile}: the steering evaluation compares odometry at the video rate and "

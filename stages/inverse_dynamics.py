@@ -4,7 +4,7 @@
 Trains on the train split's frame pairs, and on those of train clips the town drives again along
 counterfactual paths (``counterfactual_clips``, ``counterfactual_scales``: the turns and off-road views
 the steering evaluation's commands lead to), with the shared loop; checkpoints live in
-data/runs/ (see `training_dir`): a killed run resumes there. Val R^2 on real
+data/runs/ (see `work_dir`): a killed run resumes there. Val R^2 on real
 pairs, on the detail tokenizer's reconstructions of them and on shuffled pairs
 (the control); see :mod:`orbis2.eval.metrics.inverse_dynamics`.
 """
@@ -24,7 +24,7 @@ from orbis2.eval.metrics.inverse_dynamics import (
 )
 from orbis2.interfaces import INTERFACES
 from orbis2.io import atomic_dir, write_json
-from orbis2.stage import TOKENIZER_FILE, copy_curves, open_stage, stage_parser, training_dir
+from orbis2.stage import TOKENIZER_FILE, copy_curves, open_stage, stage_parser, work_dir
 from orbis2.tasks.instrument import counterfactual_train_clips, train_instrument
 
 INTERFACE = INTERFACES["inverse_dynamics"]
@@ -36,10 +36,10 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     with open_stage("inverse_dynamics", args, INTERFACE) as stage:
         cfg, run = stage.cfg, stage.run
-        verify_shards(args.shards)  # before any read; see verify_shards for why
+        verify_shards(args.shards, ["train", "val"])  # the splits it reads, before any read (see verify_shards)
         ic, fps, dev = cfg.inverse_dynamics, float(cfg.data.fps), default_device()
 
-        work = training_dir("inverse_dynamics", cfg, SECTIONS, {"shards": args.shards / "manifest.json"})
+        work = work_dir("inverse_dynamics", cfg, SECTIONS, {"shards": args.shards / "manifest.json"})
         recorded = load_clips(args.shards, "train", ic.scale, ic.max_train_clips)
         driven, counterfactual = counterfactual_train_clips(args.shards, cfg, cfg.truth.workers or os.cpu_count() or 1)
         train = ClipFrames(recorded.frames + driven.frames, recorded.odometry + driven.odometry,

@@ -25,11 +25,11 @@ def main(argv: list[str] | None = None) -> None:
     name = args.name
     with open_stage(name, args, INTERFACES["latents"]) as stage:
         cfg, run = stage.cfg, stage.run
-        verify_shards(args.shards)  # before any read; see verify_shards for why
         paths = latent_paths(args, VARIANTS[name])
         out = args.out or paths.root
         skip = registry().latent_sets[VARIANTS[name]].skip_splits
         splits = [s for s in load_manifest(args.shards)["splits"] if s not in skip] if skip else None
+        verify_shards(args.shards, splits)  # the splits it encodes, before any read (see verify_shards)
 
         meta = build_latent_cache(args.shards, out, paths.tokenizers["detail"], paths.tokenizers["abstract"],
                                   cfg.latents.batch_size, splits)

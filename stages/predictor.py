@@ -7,7 +7,7 @@ The predictor names are the keys of ``orbis2.tasks.predictors.STAGES`` (each
 with its params.yaml section of the same name): abstract_df, abstract_tf,
 detail, action, and the ablations abstract_tf_only, flat_detail,
 flat_abstract, top_detail, detail_on_detail. Checkpoints live in data/runs/
-(see ``orbis2.stage.training_dir``), in a folder keyed by the params, the code and
+(see ``orbis2.stage.work_dir``), in a folder keyed by the params, the code and
 the upstream files (the latent cache's meta, which names the tokenizers and
 shards, and the ``init_from`` predictor): a killed run resumes there, while a
 retrained upstream starts a fresh run instead of resuming one that trained on
@@ -25,7 +25,7 @@ from orbis2.stage import (
     open_stage,
     publish_training,
     stage_parser,
-    training_dir,
+    work_dir,
 )
 from orbis2.tasks.predictors import STAGES, tokenizer_checksums, train_predictor
 
@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> None:
                                  f"`{pc.init_from}` first")
             inputs[pc.init_from] = init_file
 
-        work = training_dir(name, cfg, sections, inputs)
+        work = work_dir(name, cfg, sections, inputs)
         metrics = train_predictor(name, cfg, cache, work, run, init_file)
         if not metrics:
             stage.summary = "training rank done; rank 0 writes the outputs"

@@ -5,7 +5,7 @@ reports/tokenizer_abstract.json.
     python stages/tokenizer_abstract.py tokenizer_abstract_full    # compression ablation (compress: false)
 
 Trained against the frozen teacher; tokenizer.pt is saved with its latent scale.
-Checkpoints live in data/runs/ (see `training_dir`): a killed run resumes there;
+Checkpoints live in data/runs/ (see `work_dir`): a killed run resumes there;
 tokenizer.pt, the samples and the report are published atomically at the end.
 """
 
@@ -21,7 +21,7 @@ from orbis2.stage import (
     open_stage,
     publish_training,
     stage_parser,
-    training_dir,
+    work_dir,
 )
 from orbis2.tasks.tokenizers import train_abstract_tokenizer
 
@@ -40,11 +40,11 @@ def main(argv: list[str] | None = None) -> None:
     sections = INTERFACE.sections_with([name])  # the entry's own section
     with open_stage(name, args, INTERFACE, sections) as stage:
         cfg, run = stage.cfg, stage.run
-        verify_shards(args.shards)  # before any read; see verify_shards for why
+        verify_shards(args.shards, ["train", "val"])  # the splits it reads, before any read (see verify_shards)
         assets = args.assets or Path(cfg.assets.dir)
         teacher = asset_path(assets, TEACHER_ASSETS[cfg.section(name).teacher])
         inputs = {"shards": args.shards / "manifest.json", "teacher": teacher}
-        work = training_dir(name, cfg, sections, inputs)
+        work = work_dir(name, cfg, sections, inputs)
         metrics = train_abstract_tokenizer(cfg, args.shards, work, assets, run, name)
         if not metrics:
             stage.summary = "training rank done; rank 0 writes the outputs"

@@ -1,7 +1,7 @@
 """Stage `tokenizer_detail`: train the VQ detail tokenizer -> data/tokenizers/detail, reports/tokenizer_detail.json.
 
 The VQGAN objective; the stage measures the result and saves tokenizer.pt with its
-latent scale. Checkpoints live in data/runs/ (see `training_dir`): a killed run
+latent scale. Checkpoints live in data/runs/ (see `work_dir`): a killed run
 resumes there; tokenizer.pt, the samples and the report are published atomically
 at the end.
 """
@@ -16,7 +16,7 @@ from orbis2.stage import (
     open_stage,
     publish_training,
     stage_parser,
-    training_dir,
+    work_dir,
 )
 from orbis2.tasks.tokenizers import train_detail_tokenizer
 
@@ -33,9 +33,9 @@ def main(argv: list[str] | None = None) -> None:
     report = args.report or INTERFACE.option("report").path(ENTRY)
     with open_stage("tokenizer_detail", args, INTERFACE, SECTIONS) as stage:
         cfg, run = stage.cfg, stage.run
-        verify_shards(args.shards)  # before any read; see verify_shards for why
+        verify_shards(args.shards, ["train", "val"])  # the splits it reads, before any read (see verify_shards)
         assets = args.assets or Path(cfg.assets.dir)
-        work = training_dir("tokenizer_detail", cfg, SECTIONS, {"shards": args.shards / "manifest.json"})
+        work = work_dir("tokenizer_detail", cfg, SECTIONS, {"shards": args.shards / "manifest.json"})
         metrics = train_detail_tokenizer(cfg, args.shards, work, assets, run)
         if not metrics:
             stage.summary = "training rank done; rank 0 writes the outputs"

@@ -476,7 +476,7 @@ def test_a_25_fps_source_plays_through_shards_latents_and_evaluate(smoke_project
     assert (root / "data/latents").is_dir()
     cfg = load_config(root / "params.yaml", "smoke")
     start = first_context_end(cfg.data) - (cfg.data.detail_context - 1)  # the rollout's first detail-context frame
-    for episode in ("import_val_00000", "import_val_00001"):
+    for episode in sorted(e["stem"] for e in index["episodes"] if e["split"] == "val"):
         video = root / "data/raw/import/val" / f"{episode}.mp4"
         run([sys.executable, "-m", "orbis2.cli", "rollout", "--video", str(video), "--seconds", "2", "--out",
              f"rollouts/generated/{episode}.mp4"], root)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from orbis2.data.episodes import RawIndex, read_odometry
-from orbis2.data.importer import ImportProblem, import_videos
+from orbis2.data.importer import ImportProblem, episode_stem, import_videos
 from orbis2.data.video import VideoError, read_video
 
 from conftest import ROOT
@@ -125,8 +125,17 @@ def test_skip_bad_reports_and_keeps_the_good(tmp_path, make_video, smoke_cfg):
     index, skipped = run_import(src, out, smoke_cfg, skip_bad=True)
     assert [e.frames for e in index.episodes] == [40, 30]
     assert sorted(s.path.rsplit("/", 1)[1] for s in skipped) == ["rate.mp4", "zz.mp4"]
-    assert sorted(p.name for p in (out / "train").iterdir()) == ["import_train_00000.mp4",
-                                                                 "import_train_00000.parquet"]
+    stem = episode_stem(src, "train", src / "train" / "good.mp4")  # named by its path: not by what was skipped
+    assert sorted(p.name for p in (out / "train").iterdir()) == [f"{stem}.mp4", f"{stem}.parquet"]
+    assert [e.stem for e in index.episodes] == [stem, episode_stem(src, "val", src / "val" / "v.mp4")]
+
+
+def test_an_episode_is_named_by_its_path_in_the_input_folder(tmp_path):
+    names = {episode_stem(tmp_path, "train", tmp_path / "train" / f"{n}.mp4") for n in ("a", "b", "c")}
+    assert len(names) == 3 and all(n.startswith("import_train_") and len(n) == len("import_train_") + 12
+                                   for n in names)
+    assert episode_stem(tmp_path, "train", tmp_path / "train/a.mp4") == episode_stem(
+        tmp_path / "elsewhere", "train", tmp_path / "elsewhere/train/a.mp4")  # the folder's own place is not in it
 
 
 def stage_env(tmp_path):

@@ -43,12 +43,13 @@ def opened_stage(script: Path, argv: list[str], monkeypatch) -> Opened:
 def rule_commands(root: Path = ROOT) -> dict[str, tuple[list[str], list[str]]]:
     """Every rule's command as the shell runs it (a wildcard rule's job-time args left out)
     and the params.yaml sections of its ``params:``."""
-    launcher = load_params(root / "params.yaml")["train_launcher"]
+    raw = load_params(root / "params.yaml")
     out = {}
     for rule in dag.snakemake_rules(root):
         params = SimpleNamespace(**{k: "" if callable(v) else v for k, v in rule.params.items()})
         cmd = snakemake_format(rule.shellcmd.split(" 2>&1 | tee")[0], input=rule.input, output=rule.output,
-                               params=params, rule=rule.name, config={"train_launcher": launcher})
+                               params=params, rule=rule.name,
+                               config={"train_launcher": raw["train_launcher"], "parts": raw["parts"]})
         out[rule.name] = (shlex.split(cmd), [k for k in rule.params.keys() if k not in dag.NOT_SECTIONS])
     return out
 
@@ -84,7 +85,7 @@ def test_each_rule_reads_the_sections_its_stage_opens_and_passes_options_it_acce
         at = next(i for i, w in enumerate(words) if w.startswith("stages/"))
         interface = by_script[words[at]]
         options = {w for w in words[at + 1:] if w.startswith("--")}
-        assert options <= {o.option for o in interface.paths} | {"--profile"}, name
+        assert options <= {o.option for o in interface.paths} | {"--profile", *interface.options}, name
         try:
             run = opened_stage(ROOT / words[at], words[at + 1:], monkeypatch)
         except SystemExit as err:  # argparse: an option or value the script does not accept

@@ -96,7 +96,7 @@ DECLARED_ENV = "ORBIS2_DECLARED_RESOURCES"  # set while the rules are read to ge
 # Rule params that are not params.yaml sections.
 # Those set when the rule is defined and passed in its command (see the Snakefile's _passed_from).
 PASSED = ("script", "scope", "args")
-NOT_SECTIONS = ("profile", "spec", *PASSED)
+NOT_SECTIONS = ("profile", "spec", "parts", *PASSED)
 
 
 # --------------------------------------------------------------------------- code inputs
@@ -190,7 +190,7 @@ def dvc_command(rule, dep=lambda path: path) -> str:
 
     cmd = PLACEHOLDER.sub(paths, cmd)
     return (cmd.replace("{params.profile}", "${profile}").replace("{rule}", rule.name)
-            .replace("{config[train_launcher]}", "${train_launcher}"))
+            .replace("{config[train_launcher]}", "${train_launcher}").replace("{config[parts]}", "${parts}"))
 
 
 def _out_entry(out: str, assets: str) -> Any:
@@ -228,6 +228,8 @@ def dvc_stage(rule, raw: dict, raw_dir: str, assets: str) -> dict:
             continue
         for section in section_chain(raw, key):
             params += [f"{section}.all", f"{section}.${{profile}}"]
+    if "parts" in rule.params.keys():  # how many parts a data stage runs in: where its shards end follows it
+        params.append("parts")
     params = list(dict.fromkeys(params))
     if "spec" in rule.params.keys():  # a predictor's registry.yaml entry
         params.append({"registry.yaml": [f"predictors.{rule.name}"]})

@@ -43,6 +43,10 @@ LIGHT = Resources(threads=1, gpu=0, mem_mb=4000, runtime=60)
 CPU = Resources(threads=16, gpu=0, mem_mb=32000, runtime=600)
 TRAIN = Resources(threads=16, gpu=8, mem_mb=480000, runtime=2880)
 GPU = Resources(threads=16, gpu=1, mem_mb=64000, runtime=600)
+# One part of a data stage (orbis2.data.parts): one core, memory bounded by a clip (~0.4 GB measured). At the
+# paper's corpus with parts=256, 0.8 M frames a part: about 16 min at the shards' measured 850 frames/s
+# (docs/scale.md); the limits leave room for slower disks and fewer parts.
+PART = Resources(threads=1, gpu=0, mem_mb=4000, runtime=600)
 # A frozen network's features and small heads: little memory, but every core. The main target's single
 # probe would otherwise run last and alone on one thread (1.8x slower on 2 cores); reports/all's probes
 # queue instead of sharing, at the same throughput.
@@ -106,6 +110,7 @@ class Interface:
     priority: int  # FIRST, LONG or SHORT
     record: str | None = None  # the orbis2.eval.records model it writes, by name
     rules: str | None = None  # the rules/*.smk file that makes its rules; None: made from this declaration alone
+    options: tuple[str, ...] = ()  # options other than paths that its rules pass (how many parts, which one)
 
     @property
     def launcher(self) -> str:
@@ -155,7 +160,8 @@ INTERFACES: dict[str, Interface] = _declare(
     Interface("shards", "stages/shards.py", (
         PathOption("raw", "--raw", "raw episodes folder", "raw", name="{name}", folder=True),
         PathOption("shards", "--out", "shards folder", "shards", output=True, folder=True),
-    ), ("data", "shards"), CPU, FIRST, rules="rules/data.smk"),
+    ), ("data", "shards"), LIGHT, FIRST, rules="rules/data.smk",  # the gather; the parts run as PART
+        options=("--parts", "--part", "--part-manifest")),
     Interface("assets", "stages/assets.py", (
         PathOption("assets", "--out", "assets folder", "assets", output=True, folder=True, fallback="assets.dir"),
     ), ("assets",), LIGHT, FIRST, rules="rules/data.smk"),

@@ -213,8 +213,9 @@ def profile_witness(interface: Interface, args: argparse.Namespace) -> Path | No
     return Path(getattr(args, "shards", None) or layout_path("shards")) / SHARD_MANIFEST
 
 
-def training_dir(name: str, cfg: PipelineConfig, sections: list[str], inputs: dict[str, Path]) -> Path:
-    """Where a training stage keeps checkpoints: ``data/runs/<stage>-<profile>-<key>``.
+def work_dir(name: str, cfg: PipelineConfig, sections: list[str], inputs: dict[str, Path]) -> Path:
+    """Where a resumable stage keeps its work (a training stage's checkpoints, the shards' parts):
+    ``data/runs/<stage>-<profile>-<key>``.
 
     Outside the stage's declared outputs, because Snakemake and DVC delete those
     before re-running a stage. The key covers everything that decides the weights,

@@ -50,7 +50,7 @@ from orbis2.typecheck import MissingKeyError, build
 PROFILES = ("smoke", "default", "gpu", "paper")
 SECTION_PARTS = ("all", *PROFILES)
 # Top-level keys that are not sections: the profile, and how training stages start.
-SETTINGS = ("profile", "train_launcher")
+SETTINGS = ("profile", "train_launcher", "parts")
 
 # Section names in params.yaml whose Python attribute differs (``import`` is a keyword).
 SECTION_ATTRS = {"import": "import_"}
@@ -220,6 +220,10 @@ def parse_config(raw: dict[str, Any], profile: str | None = None, source: str = 
     if not isinstance(raw.get("train_launcher"), str):
         raise ConfigError(f"{source}: train_launcher = {raw.get('train_launcher')!r} must be a command "
                           f"(python, or a torchrun command line); add `train_launcher: python` at the top level")
+    parts = raw.get("parts")
+    if not isinstance(parts, int) or isinstance(parts, bool) or parts < 1:
+        raise ConfigError(f"{source}: parts = {parts!r} must be a whole number >= 1 (how many jobs each data stage "
+                          f"splits into); add `parts: 1` at the top level")
     types_ = section_types()
     unknown = {key for key in raw if not key.startswith("_")} - {*SETTINGS, *types_}
     if unknown:

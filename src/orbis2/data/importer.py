@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import codecs
 import csv
+import hashlib
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -222,6 +223,14 @@ def import_one(video: Path, split: str, stem: str, root: Path, data: DataConfig,
                          timing_error_ms=round(resampled.max_error_s * 1000, 3))
 
 
+def episode_stem(folder: Path, split: str, video: Path) -> str:
+    """``import_<split>_<digest>``: named by the video's path inside the input folder (its first 12 hex digits
+    of SHA-256), never by how many videos came before it, so that an episode keeps its name (and its clips
+    their keys) whatever else is imported, skipped, or imported by another part."""
+    relative = Path(video).relative_to(folder).as_posix().encode("utf-8", "surrogateescape")
+    return f"import_{split}_{hashlib.sha256(relative).hexdigest()[:12]}"
+
+
 def import_videos(folder: Path, root: Path, data: DataConfig, cfg: ImportConfig,
                   skip_bad: bool) -> tuple[RawIndex, list[Skipped]]:
     """Import every video; stop at the first bad one unless ``skip_bad`` (then list what was skipped).
@@ -231,7 +240,7 @@ def import_videos(folder: Path, root: Path, data: DataConfig, cfg: ImportConfig,
     records, skipped = [], []
     counters: dict[str, int] = {}
     for split, video in tqdm(find_videos(folder), desc="import: videos", unit="video"):
-        stem = f"import_{split}_{counters.get(split, 0):05d}"
+        stem = episode_stem(folder, split, video)
         try:
             records.append(import_one(video, split, stem, root, data, cfg))
             counters[split] = counters.get(split, 0) + 1

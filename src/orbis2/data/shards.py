@@ -25,13 +25,17 @@ frame with the default 10 Hz / 2 Hz / 5-frame settings).
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import hashlib
+import itertools
 import json
 import os
+import shutil
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any, Callable, Iterable, Iterator
 
 import cv2
 import numpy as np
@@ -40,8 +44,9 @@ from torch.utils.data import IterableDataset, get_worker_info
 from tqdm import tqdm
 
 from orbis2.config.sections import SPLITS, DataConfig, ShardsConfig
-from orbis2.data.episodes import RawIndex, read_odometry
-from orbis2.data.video import read_video
+from orbis2.data.episodes import EpisodeRecord, RawIndex, read_odometry
+from orbis2.data.parts import part_name, part_slice
+from orbis2.data.video import iter_frames
 from orbis2.errors import OrbisError
 from orbis2.hierarchy import anchor_range, window_indices, window_span
 from orbis2.io import load_npy, load_npz, npy_bytes, npz_bytes, sha256_file, write_json
@@ -57,29 +62,84 @@ class ShardError(OrbisError):
 
 
 class ShardWriter:
-    """``webdataset.ShardWriter`` into ``<prefix>-000000.tar``..., rolling over at ``max_bytes`` of
-    payload, with fixed headers (mtime 0, uid/gid 0, owner ``orbis2``, mode 0644, USTAR) so that
-    the same samples give the same bytes; records each shard's path and sample count."""
+    """WebDataset shards ``<prefix>-000000.tar``... in ``folder``, rolling over once a shard holds ``max_bytes``
+    of payload (``webdataset.ShardWriter``'s rule), with fixed headers (mtime 0, uid/gid 0, owner ``orbis2``,
+    mode 0644, USTAR) so that the same samples give the same bytes.
 
-    def __init__(self, folder: Path, prefix: str, max_bytes: int):
-        pattern = str(folder).replace("%", "%%") + f"/{prefix}-%06d.tar"
+    Each shard is written as ``<name>.partial`` and hashed as it is written, then flushed to disk and renamed:
+    a ``.tar`` that exists is whole, and its SHA-256 costs no second read. ``on_shard(record)`` is called once a
+    shard is in place; ``shards`` lists the records (``path``, ``samples``, ``bytes``, ``sha256``, ``frames``
+    and the ``last`` tag written, see :meth:`write`). Numbering starts at ``start`` (a resumed writer).
+    """
+
+    def __init__(self, folder: Path, prefix: str, max_bytes: int, start: int = 0,
+                 on_shard: Callable[[dict[str, Any]], None] | None = None):
+        self.folder, self.prefix, self.max_bytes = Path(folder), prefix, max_bytes
+        self.next, self.on_shard = start, on_shard
         self.shards: list[dict[str, Any]] = []
-        self._writer: wds.ShardWriter | None = None
-        self._args = dict(pattern=pattern, maxsize=max_bytes, maxcount=10**9, verbose=0, encoder=False,
-                          mtime=0, user="orbis2", group="orbis2", mode=0o644)
+        self._tar: wds.TarWriter | None = None
+        self._file: _HashingFile | None = None
+        self._open: dict[str, Any] = {}
 
-    def write(self, key: str, members: dict[str, bytes]) -> None:
-        if self._writer is None:  # opened lazily: a split without clips leaves no empty shard
-            self._writer = wds.ShardWriter(**self._args)
-        self._writer.write({"__key__": key, **members})
-        if not self.shards or self.shards[-1]["path"] != Path(self._writer.fname):
-            self.shards.append({"path": Path(self._writer.fname), "samples": 0})
-        self.shards[-1]["samples"] += 1
+    def write(self, key: str, members: dict[str, bytes], frames: int = 0, tag: Any = None) -> None:
+        """Add one sample; ``frames`` and ``tag`` (e.g. where in the input it came from) go into its shard's record."""
+        if self._tar is not None and self._open["size"] >= self.max_bytes:
+            self._close_shard()
+        if self._tar is None:  # opened lazily: a split without clips leaves no empty shard
+            path = self.folder / f"{self.prefix}-{self.next:06d}.tar"
+            self.folder.mkdir(parents=True, exist_ok=True)
+            self._file = _HashingFile(path.with_name(path.name + PARTIAL))
+            self._tar = wds.TarWriter(self._file, encoder=False, mtime=0, user="orbis2", group="orbis2",
+                                      mode=0o644)
+            self._open = {"path": path, "samples": 0, "size": 0, "frames": 0}
+            self.next += 1
+        self._open["size"] += self._tar.write({"__key__": key, **members})
+        self._open["samples"] += 1
+        self._open["frames"] += frames
+        self._open["last"] = tag
 
     def close(self) -> None:
-        if self._writer is not None:
-            self._writer.close()
-            self._writer = None
+        if self._tar is not None:
+            self._close_shard()
+
+    def _close_shard(self) -> None:
+        assert self._tar is not None and self._file is not None
+        self._tar.close()
+        size, digest = self._file.finish()
+        path = self._open["path"]
+        os.replace(self._file.path, path)
+        record = {"path": path, "samples": self._open["samples"], "bytes": size, "sha256": digest,
+                  "frames": self._open["frames"], "last": self._open.get("last")}
+        self._tar = self._file = None
+        self.shards.append(record)
+        if self.on_shard is not None:
+            self.on_shard(record)
+
+
+PARTIAL = ".partial"  # a shard still being written (removed when a part resumes)
+
+
+class _HashingFile:
+    """A binary file that hashes and counts what is written to it; ``finish`` syncs it to disk and closes it."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self._file = open(path, "wb")  # noqa: SIM115 (closed by finish)
+        self._digest, self._size = hashlib.sha256(), 0
+
+    def write(self, data: bytes) -> int:
+        self._digest.update(data)
+        self._size += len(data)
+        return self._file.write(data)
+
+    def flush(self) -> None:
+        self._file.flush()
+
+    def finish(self) -> tuple[int, str]:
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self._file.close()
+        return self._size, self._digest.hexdigest()
 
 
 def clip_starts(n_frames: int, clip_frames: int, min_frames: int) -> list[tuple[int, int]]:
@@ -89,53 +149,225 @@ def clip_starts(n_frames: int, clip_frames: int, min_frames: int) -> list[tuple[
     return [(0, n_frames)] if n_frames >= min_frames else []
 
 
-def write_shards(raw_root: Path, out_root: Path, data: DataConfig, cfg: ShardsConfig) -> dict[str, Any]:
-    """Cut every raw episode into clips and write per-split shards plus the manifest."""
+# --------------------------------------------------------------------------- parts
+
+PART_LOG = "done.jsonl"  # one line per shard in place, one per split finished, one when the part is done
+WORK_KEY = "key.json"
+
+
+class _PartLog:
+    """A part's progress: ``done.jsonl`` in its folder, one JSON line appended (and synced) per event.
+
+    A shard is logged after it is renamed into place, so a kill loses at most the shard being
+    written (its ``.partial`` file is removed on the next start) and the line being appended
+    (a torn last line is ignored: its shard is written again, to the same bytes)."""
+
+    def __init__(self, folder: Path):
+        self.folder = folder
+        folder.mkdir(parents=True, exist_ok=True)
+        for stale in folder.rglob(f"*{PARTIAL}"):
+            stale.unlink()
+        self.path = folder / PART_LOG
+        self.events: list[dict[str, Any]] = []
+        if self.path.is_file():
+            for line in self.path.read_text().splitlines():
+                try:
+                    self.events.append(json.loads(line))
+                except ValueError:
+                    break  # torn by a kill: this and anything after it is redone
+            self.path.write_text("".join(json.dumps(e, sort_keys=True) + "\n" for e in self.events))
+
+    def add(self, event: dict[str, Any]) -> None:
+        with open(self.path, "a") as f:
+            f.write(json.dumps(event, sort_keys=True) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        self.events.append(event)
+
+    def shards(self, split: str) -> list[dict[str, Any]]:
+        return [e for e in self.events if e.get("shard") and e["split"] == split]
+
+    def finished(self, split: str) -> bool:
+        return any(e.get("finished") == split for e in self.events)
+
+    @property
+    def done(self) -> bool:
+        return any(e.get("done") for e in self.events)
+
+
+def _checked_index(raw_root: Path, data: DataConfig) -> RawIndex:
     index = RawIndex.read(raw_root)
     if (index.fps, index.width, index.height) != (data.fps, data.width, data.height):
         raise ShardError(f"{raw_root / 'index.json'}: episodes are {index.width}x{index.height} at {index.fps} fps "
                          f"but params.yaml asks for {data.width}x{data.height} at {data.fps} fps; "
                          f"re-run the town/import stage")
-    manifest: dict[str, Any] = {"source": index.source, "fps": index.fps, "width": index.width,
-                                "height": index.height, "camera": index.camera, "splits": {}}
+    return index
+
+
+def write_part(raw_root: Path, work: Path, data: DataConfig, cfg: ShardsConfig, part: int = 0,
+               parts: int = 1) -> dict[str, Any]:
+    """Write part ``part`` of ``parts`` (a contiguous block of every split's episodes) as shards in
+    ``work/<part_name>/<split>/``; return the part's manifest (its splits' shards, in order).
+
+    Resumes where it stopped: shards already in place (``done.jsonl``) are kept, and writing
+    restarts at the clip after the last one they hold, which gives the same shards, byte for byte,
+    as a run that was never stopped. ``work`` must belong to these inputs (see :func:`write_shards`).
+    Frames stream from the decoder: a part holds one clip's frames at a time, whatever the
+    length of the video.
+    """
+    with one_core():
+        return _write_part(raw_root, work, data, cfg, part, parts)
+
+
+@contextlib.contextmanager
+def one_core() -> Iterator[None]:
+    """OpenCV on one thread for the block: a part is one core's work (parts, not threads, use the others), and
+    OpenCV's own threads would make parts side by side contend (measured: 1.5 cores busy for 5 % more speed)."""
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(threads)
+
+
+def _write_part(raw_root: Path, work: Path, data: DataConfig, cfg: ShardsConfig, part: int,
+                parts: int) -> dict[str, Any]:
+    index = _checked_index(raw_root, data)
+    folder = work / part_name(part, parts)
+    log = _PartLog(folder)
     encode = [int(cv2.IMWRITE_JPEG_QUALITY), cfg.jpeg_quality]
     for split in SPLITS:
         episodes = index.split(split)
-        if not episodes:
+        if not episodes or log.finished(split) or log.done:
+            continue
+        episodes = episodes[part_slice(len(episodes), part, parts)]
+        done = log.shards(split)
+        after = tuple(done[-1]["last"]) if done else (-1, -1)  # (episode, clip) of the last clip in place
+        writer = ShardWriter(folder / split, split, int(cfg.max_shard_mb * 2**20), start=len(done),
+                             on_shard=lambda r, split=split: log.add(
+                                 {"shard": True, "split": split, "path": str(r["path"].relative_to(folder)),
+                                  **{k: r[k] for k in ("samples", "bytes", "sha256", "frames", "last")}}))
+        for e, ep in enumerate(tqdm(episodes, desc=f"shards {part_name(part, parts)}: {split}", unit="ep")):
+            if e < after[0]:
+                continue
+            skip = after[1] if e == after[0] else -1
+            for c, members in episode_clips(raw_root, ep, index, data, cfg, encode, skip):
+                writer.write(f"{ep.stem}_{c:04d}", members, frames=members_frames(members), tag=[e, c])
+        writer.close()
+        log.add({"finished": split})
+    if not log.done:
+        log.add({"done": True})
+    return part_manifest(log, index)
+
+
+def part_manifest(log: _PartLog, index: RawIndex) -> dict[str, Any]:
+    """A finished part's splits and shards (paths relative to the part's folder)."""
+    splits = {}
+    for split in SPLITS:
+        if not index.split(split):
+            continue
+        splits[split] = [{k: e[k] for k in ("path", "samples", "bytes", "sha256", "frames")} for e in log.shards(split)]
+    return {"folder": str(log.folder), "splits": splits}
+
+
+def members_frames(members: dict[str, bytes]) -> int:
+    return sum(1 for name in members if name.endswith(".jpg"))
+
+
+def episode_clips(raw_root: Path, ep: EpisodeRecord, index: RawIndex, data: DataConfig, cfg: ShardsConfig,
+                  encode: list[int], skip: int = -1) -> Iterator[tuple[int, dict[str, bytes]]]:
+    """``(clip index, members)`` of one episode's clips after clip ``skip``.
+
+    Frames stream from the decoder and are encoded clip by clip; the frames after the last clip
+    are not decoded, nor are any when every clip is at or before ``skip``."""
+    odo = read_odometry(ep.odometry(raw_root))
+    n = min(ep.frames, len(odo["frame"]))
+    clip_frames = round(cfg.clip_seconds[ep.split] * data.fps)
+    clips = clip_starts(n, clip_frames, data.window_span_frames)
+    if len(clips) <= skip + 1:
+        return
+    labels = load_npz(ep.labels(raw_root).read_bytes()) if ep.label_frames else None
+    video = ep.video(raw_root)
+    frames = iter_frames(video)
+    for c, (start, length) in enumerate(clips):
+        pixels = list(itertools.islice(frames, length))
+        if len(pixels) < length:
+            raise ShardError(f"{video}: decoded {start + len(pixels)} frames, but {raw_root / 'index.json'} says "
+                             f"{ep.frames}; the video is truncated or the index is stale: re-run the town/import stage")
+        if c <= skip:
+            continue
+        members = {f"{i:04d}.jpg": _jpeg(frame, encode) for i, frame in enumerate(pixels)}
+        sl = slice(start, start + length)
+        members["odometry.npy"] = npy_bytes(np.stack([odo["speed"][sl], odo["yaw_rate"][sl]], 1).astype(np.float32))
+        members["pose.npy"] = npy_bytes(np.stack([odo["x"][sl], odo["y"][sl], odo["yaw"][sl]], 1))
+        if labels is not None:
+            keep = (labels["frames"] >= start) & (labels["frames"] < start + length)
+            members["labels.npz"] = npz_bytes(frames=labels["frames"][keep] - start,
+                                              depth=labels["depth"][keep], semantic=labels["semantic"][keep])
+        members["json"] = json.dumps({
+            "source": index.source, "split": ep.split, "episode": ep.stem, "origin": ep.origin,
+            "fps": data.fps, "start_frame": start, "start_time": start / data.fps, "frames": length,
+            "width": data.width, "height": data.height, "camera": index.camera,
+            "has_odometry": ep.has_odometry, "has_pose": ep.has_pose}, sort_keys=True).encode()
+        yield c, members
+
+
+def gather_parts(raw_root: Path, parts_written: list[dict[str, Any]], out_root: Path) -> dict[str, Any]:
+    """The shards of every part, in part order, linked into ``out_root/<split>/<split>-NNNNNN.tar`` (numbered
+    across parts), and ``manifest.json``. Hard links: the shards are not copied (a copy where the work folder
+    is on another file system)."""
+    index = RawIndex.read(raw_root)
+    manifest: dict[str, Any] = {"source": index.source, "fps": index.fps, "width": index.width,
+                                "height": index.height, "camera": index.camera, "splits": {}}
+    for split in SPLITS:
+        if not index.split(split):
             continue
         (out_root / split).mkdir(parents=True, exist_ok=True)
-        writer = ShardWriter(out_root / split, split, int(cfg.max_shard_mb * 2**20))
-        clip_frames = round(cfg.clip_seconds[split] * data.fps)
-        frames_total = 0
-        for ep in tqdm(episodes, desc=f"shards: {split}", unit="ep"):
-            frames = read_video(ep.video(raw_root))
-            odo = read_odometry(ep.odometry(raw_root))
-            n = min(len(frames), len(odo["frame"]))
-            labels = load_npz(ep.labels(raw_root).read_bytes()) if ep.label_frames else None
-            for c, (start, length) in enumerate(clip_starts(n, clip_frames, data.window_span_frames)):
-                members = {f"{i:04d}.jpg": _jpeg(frames[start + i], encode) for i in range(length)}
-                sl = slice(start, start + length)
-                members["odometry.npy"] = npy_bytes(np.stack([odo["speed"][sl], odo["yaw_rate"][sl]], 1)
-                                                    .astype(np.float32))
-                members["pose.npy"] = npy_bytes(np.stack([odo["x"][sl], odo["y"][sl], odo["yaw"][sl]], 1))
-                if labels is not None:
-                    keep = (labels["frames"] >= start) & (labels["frames"] < start + length)
-                    members["labels.npz"] = npz_bytes(frames=labels["frames"][keep] - start,
-                                                      depth=labels["depth"][keep], semantic=labels["semantic"][keep])
-                members["json"] = json.dumps({
-                    "source": index.source, "split": split, "episode": ep.stem, "origin": ep.origin,
-                    "fps": data.fps, "start_frame": start, "start_time": start / data.fps, "frames": length,
-                    "width": data.width, "height": data.height, "camera": index.camera,
-                    "has_odometry": ep.has_odometry, "has_pose": ep.has_pose}, sort_keys=True).encode()
-                writer.write(f"{ep.stem}_{c:04d}", members)
-                frames_total += length
-        writer.close()
-        shards = [{"path": str(s["path"].relative_to(out_root)), "samples": s["samples"],
-                   "bytes": s["path"].stat().st_size, "sha256": sha256_file(s["path"])} for s in writer.shards]
-        manifest["splits"][split] = {"samples": sum(s["samples"] for s in shards), "frames": frames_total,
+        shards = []
+        for written in parts_written:
+            for shard in written["splits"][split]:
+                name = f"{split}/{split}-{len(shards):06d}.tar"
+                _link(Path(written["folder"]) / shard["path"], out_root / name)
+                shards.append({"path": name, **{k: shard[k] for k in ("samples", "bytes", "sha256")}})
+        manifest["splits"][split] = {"samples": sum(s["samples"] for s in shards),
+                                     "frames": sum(s["frames"] for w in parts_written for s in w["splits"][split]),
                                      "shards": shards}
     write_json(out_root / MANIFEST, manifest)
     return manifest
+
+
+def _link(source: Path, target: Path) -> None:
+    try:
+        os.link(source, target)
+    except OSError:  # another file system, or links not allowed
+        shutil.copyfile(source, target)
+
+
+def shards_key(raw_root: Path, data: DataConfig, cfg: ShardsConfig) -> dict[str, Any]:
+    """What a part's shards are made from: the raw index (the town and import stages write it with the videos,
+    atomically) and the settings. A work folder made from another key is not resumed."""
+    return {"index": sha256_file(Path(raw_root) / "index.json"), "data": dataclasses.asdict(data),
+            "shards": dataclasses.asdict(cfg)}
+
+
+def write_shards(raw_root: Path, out_root: Path, data: DataConfig, cfg: ShardsConfig, parts: int = 1,
+                 work: Path | None = None) -> dict[str, Any]:
+    """Cut every raw episode into clips and write per-split shards plus the manifest into ``out_root``.
+
+    Each of ``parts`` parts is written (or resumed, or found finished) in ``work`` (default:
+    ``<out_root>.parts`` beside it), then gathered. ``work`` holds a key of its inputs; one made
+    from other inputs is emptied first. The samples and their order do not depend on ``parts``;
+    where shards end does.
+    """
+    work = Path(work) if work is not None else out_root.with_name(out_root.name + ".parts")
+    key = shards_key(raw_root, data, cfg)
+    if (work / WORK_KEY).is_file() and json.loads((work / WORK_KEY).read_text()) != key:
+        shutil.rmtree(work)
+    work.mkdir(parents=True, exist_ok=True)
+    write_json(work / WORK_KEY, key)
+    written = [write_part(raw_root, work, data, cfg, part, parts) for part in range(parts)]
+    return gather_parts(raw_root, written, out_root)
 
 
 def _jpeg(frame: np.ndarray, params: list[int]) -> bytes:
