@@ -25,6 +25,28 @@ rule town:
         command(TOWN)
 
 
+# One job per part of your videos (an array on Slurm), imported into data/runs/ (resumable per video), then the
+# gather. Snakemake's only: DVC's `import` stage imports every part itself.
+rule import_part:
+    threads: PART.threads
+    priority: IMPORT.priority
+    resources: **requests(PART.scheduler(), lambda: workflow.local_exec)
+    input:
+        code_inputs(IMPORT.script),
+        *input_files(section("import")["videos"]),  # every video file, so a changed one re-imports
+    output:
+        part=P("import_parts", "{part}"),
+    wildcard_constraints:
+        part=r"\d{4}-of-\d{4}",
+    params:
+        **stage_params(IMPORT, stage_paths(IMPORT)),
+        args=lambda wildcards, output: f" --part {int(wildcards.part[:4])} --part-manifest {output.part}",
+    log: log("import_part_{part}")
+    benchmark: bench("import_part_{part}")
+    shell:
+        f"python {IMPORT.script} --profile {{params.profile}} --parts {{config[parts]}}{{params.args}} 2>&1 | tee {{log}}"
+
+
 rule import_videos:
     name: "import"
     threads: IMPORT.resources.threads
@@ -33,14 +55,16 @@ rule import_videos:
     input:
         code_inputs(IMPORT.script),
         *input_files(section("import")["videos"]),  # every video file, so a changed one re-imports
+        parts=lambda wildcards: [P("import_parts", part) for part in PARTS],  # a function: DVC's stage runs them
     output:
         **outputs(IMPORT, stage_paths(IMPORT)),
     params:
         **stage_params(IMPORT, stage_paths(IMPORT)),
+        parts=config["parts"],
     log: log("import")
     benchmark: bench("import")
     shell:
-        command(IMPORT)
+        command(IMPORT, head=" --parts {config[parts]}")
 
 
 # One job per part of the shards (an array on Slurm): part I of N writes the I-th block of every split's

@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> None:
                              f"{split}_mb": sum(s["bytes"] for s in info["shards"]) / 2**20})
         run.log_artifact(args.out / "manifest.json")
         counts = {split: info["samples"] for split, info in manifest["splits"].items()}
-        stage.summary = f"clips per split {counts} from {parts} part(s) -> {args.out}"
+        stage.summary = f"clips per split {counts}{f' in {parts} parts' if parts > 1 else ''} -> {args.out}"
 
 
 if __name__ == "__main__":

@@ -83,6 +83,11 @@ depend on `parts`; where shards end does (tested: `tests/test_shard_parts.py`).
   the other cores. Measured at {bench['resolution']}: **{rate:,.0f} frames/s** for one part
   ({bench['one_part_cores']:.2f} cores busy), {bench['two_parts_frames_per_s']:,.0f} frames/s for two parts
   side by side (**{bench['two_parts_speedup']:.2f}x**).
+- **The import in parts too.** A part of `import` takes its block of your videos (in path order),
+  streams each from the decoder to the writer (two frames in memory, whatever the video's length) and
+  records its outcome (the episode, or why it was skipped, with the video's size and time) in
+  `done/<stem>.json`: a killed part loses at most the video it was importing, and a changed video is
+  imported again alone. Episodes are named by their path in the input folder, never by order.
 - **Checksums from the writer.** Each shard's SHA-256 is computed as it is written (no second read of
   {tb(bench['shard_bytes_per_frame']):,.1f} TB) and the manifest carries it for the readers.
 
@@ -122,8 +127,9 @@ and that efficiency holds past two cores: what only a real cluster can confirm.
 
 ## Not yet in parts
 
-The `town`, `import` and `convert` stages, the latent cache and the evaluation's generate-and-featurise
-pass still run as one job each; their parts follow the same design (`orbis2.data.parts`).
+The `town` and `convert` stages, the latent cache and the evaluation's generate-and-featurise pass still
+run as one job each; their parts would follow the same design (`orbis2.data.parts`). Every reader
+still checks each shard of the splits it reads before it starts, rather than each shard as it reads it.
 
 ## Redo this page
 

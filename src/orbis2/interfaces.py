@@ -156,7 +156,8 @@ INTERFACES: dict[str, Interface] = _declare(
     ), ("data", "town"), CPU, FIRST, rules="rules/data.smk"),
     Interface("import", "stages/import.py", (
         PathOption("raw", "--out", "raw episodes folder", "raw", name="import", output=True, folder=True),
-    ), ("data", "import"), LIGHT, FIRST, rules="rules/data.smk"),
+    ), ("data", "import"), LIGHT, FIRST, rules="rules/data.smk",  # the gather; the parts run as PART
+        options=("--parts", "--part", "--part-manifest")),
     Interface("shards", "stages/shards.py", (
         PathOption("raw", "--raw", "raw episodes folder", "raw", name="{name}", folder=True),
         PathOption("shards", "--out", "shards folder", "shards", output=True, folder=True),

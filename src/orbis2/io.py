@@ -114,6 +114,16 @@ def atomic_file(target: Path) -> Iterator[Path]:
     os.replace(tmp, target)
 
 
+def link(source: Path, target: Path) -> None:
+    """``target`` as a hard link to ``source`` (a part's output gathered without a second copy), replacing what
+    was there; a copy where links cannot be made (another file system)."""
+    Path(target).unlink(missing_ok=True)
+    try:
+        os.link(source, target)
+    except OSError:
+        shutil.copyfile(source, target)
+
+
 def sha256_file(path: str | Path) -> str:
     digest = hashlib.sha256()
     with open(path, "rb") as handle:

@@ -11,7 +11,7 @@ is read as ``train`` only, so it stops for want of ``val``). Next to
 
 Videos at any frame rate at or above ``data.fps`` (23.976, 24, 25, 29.97, 30, 50,
 60 ...) are resampled to ``data.fps`` by timestamps, each slot taking the nearest
-source frame (:func:`orbis2.data.video.read_resampled`); the largest timing error
+source frame (:func:`orbis2.data.video.iter_resampled`); the largest timing error
 goes into the index (``timing_error_ms``, with ``source_fps``). Frames are resized
 to cover the configured resolution and centre-cropped. Odometry is interpolated
 linearly at the kept frames' own source times (the clock the pictures were taken
@@ -29,17 +29,21 @@ from __future__ import annotations
 import codecs
 import csv
 import hashlib
+import json
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any, Iterator
 
 import numpy as np
 from tqdm import tqdm
 
 from orbis2.config.sections import SPLITS, DataConfig, ImportConfig
 from orbis2.data.episodes import EpisodeRecord, RawIndex, write_odometry
-from orbis2.data.video import VIDEO_SUFFIXES, VideoError, probe, read_resampled, write_video
+from orbis2.data.parts import keyed_work, part_name, part_slice
+from orbis2.data.video import VIDEO_SUFFIXES, VideoError, iter_resampled, probe, write_video
 from orbis2.errors import OrbisError
+from orbis2.io import atomic_file, link, write_json
 from orbis2.kinematics import integrate_odometry
 
 CSV_COLUMNS = ("timestamp", "speed", "yaw_rate")
@@ -190,37 +194,56 @@ def check_time_unit(path: Path, timestamps: np.ndarray, video_seconds: float) ->
 
 
 def import_one(video: Path, split: str, stem: str, root: Path, data: DataConfig, cfg: ImportConfig) -> EpisodeRecord:
+    """Import one video (and its CSV) as episode ``stem`` in ``root/<split>/``, frames streamed from the decoder to
+    the writer (two frames in memory, whatever the video's length). On any problem the files it began are removed
+    and the error names the input."""
     info = probe(video)
-    resampled = read_resampled(video, data.fps, (data.width, data.height))
-    frames, t = resampled.frames, resampled.source_times
-    if info.frames and resampled.source_frames < 0.9 * info.frames:
-        raise VideoError(f"{video}: truncated: the container announces {info.frames} frames but only "
-                         f"{resampled.source_frames} could be decoded; re-encode or replace the file")
     csv_path = video.with_suffix(".csv")
-    speed = yaw_rate = None
-    if csv_path.exists():
-        odo = read_odometry_csv(csv_path)
-        check_time_unit(csv_path, odo["timestamp"], resampled.source_frames / resampled.source_fps)
-        covered = t <= odo["timestamp"][-1] + 1e-9
-        if t[0] < odo["timestamp"][0] - 1e-9:
-            raise ImportProblem(f"{csv_path}: starts at {odo['timestamp'][0]:.3f} s but the video starts at 0 s")
-        frames, t = frames[covered], t[covered]
-        speed = np.interp(t, odo["timestamp"], odo["speed"])
-        yaw_rate = np.interp(t, odo["timestamp"], odo["yaw_rate"])
-    if len(frames) < data.window_span_frames:
-        raise ImportProblem(f"{video}: {len(frames)} frames at {data.fps} fps (after resampling"
-                            f"{' and cutting to the odometry' if speed is not None else ''}) is shorter than one "
-                            f"training window ({data.window_span_frames} frames)", reason="too short")
+    odo = read_odometry_csv(csv_path) if csv_path.exists() else None
+    stats: dict[str, float] = {}
+    times: list[float] = []  # the source time of every frame written
+    late = []  # the odometry starts after the video's first frame (said once the whole video is checked)
+
+    def frames() -> Iterator[np.ndarray]:
+        for t, frame in iter_resampled(video, data.fps, (data.width, data.height), stats):
+            if odo is not None:
+                if not times and t < odo["timestamp"][0] - 1e-9:
+                    late.append(t)
+                if late or t > odo["timestamp"][-1] + 1e-9:
+                    continue  # outside the odometry: read (the timing check covers the whole video), not written
+            times.append(t)
+            yield frame
+
     folder = root / split
     folder.mkdir(parents=True, exist_ok=True)
-    write_video(folder / f"{stem}.mp4", frames, data.fps)
-    nan = np.full(len(frames), np.nan)
-    pose = integrate_odometry(speed, yaw_rate, data.fps) if speed is not None else None
-    write_odometry(folder / f"{stem}.parquet", data.fps, nan if speed is None else speed,
-                   nan if yaw_rate is None else yaw_rate, pose)
-    return EpisodeRecord(split, stem, len(frames), has_odometry=speed is not None, has_pose=speed is not None,
-                         origin=str(video), source_fps=round(resampled.source_fps, 3),
-                         timing_error_ms=round(resampled.max_error_s * 1000, 3))
+    try:
+        write_video(folder / f"{stem}.mp4", frames(), data.fps)
+        if info.frames and stats["source_frames"] < 0.9 * info.frames:
+            raise VideoError(f"{video}: truncated: the container announces {info.frames} frames but only "
+                             f"{stats['source_frames']} could be decoded; re-encode or replace the file")
+        speed = yaw_rate = None
+        if odo is not None:
+            check_time_unit(csv_path, odo["timestamp"], stats["source_frames"] / stats["source_fps"])
+            if late:
+                raise ImportProblem(f"{csv_path}: starts at {odo['timestamp'][0]:.3f} s but the video starts at 0 s")
+            t = np.array(times)
+            speed = np.interp(t, odo["timestamp"], odo["speed"])
+            yaw_rate = np.interp(t, odo["timestamp"], odo["yaw_rate"])
+        if len(times) < data.window_span_frames:
+            raise ImportProblem(f"{video}: {len(times)} frames at {data.fps} fps (after resampling"
+                                f"{' and cutting to the odometry' if speed is not None else ''}) is shorter than "
+                                f"one training window ({data.window_span_frames} frames)", reason="too short")
+        nan = np.full(len(times), np.nan)
+        pose = integrate_odometry(speed, yaw_rate, data.fps) if speed is not None else None
+        write_odometry(folder / f"{stem}.parquet", data.fps, nan if speed is None else speed,
+                       nan if yaw_rate is None else yaw_rate, pose)
+    except BaseException:
+        for begun in folder.glob(f"{stem}.*"):
+            begun.unlink()
+        raise
+    return EpisodeRecord(split, stem, len(times), has_odometry=speed is not None, has_pose=speed is not None,
+                         origin=str(video), source_fps=round(stats["source_fps"], 3),
+                         timing_error_ms=round(stats["max_error_s"] * 1000, 3))
 
 
 def episode_stem(folder: Path, split: str, video: Path) -> str:
@@ -231,29 +254,87 @@ def episode_stem(folder: Path, split: str, video: Path) -> str:
     return f"import_{split}_{hashlib.sha256(relative).hexdigest()[:12]}"
 
 
-def import_videos(folder: Path, root: Path, data: DataConfig, cfg: ImportConfig,
-                  skip_bad: bool) -> tuple[RawIndex, list[Skipped]]:
-    """Import every video; stop at the first bad one unless ``skip_bad`` (then list what was skipped).
+def import_videos(folder: Path, root: Path, data: DataConfig, cfg: ImportConfig, skip_bad: bool, parts: int = 1,
+                  work: Path | None = None) -> tuple[RawIndex, list[Skipped]]:
+    """Import every video into ``root``; stop at the first bad one unless ``skip_bad`` (then list what was skipped).
 
-    Every split in ``REQUIRED_SPLITS`` must end up with at least one video.
+    Each of ``parts`` parts is imported (or resumed, see :func:`import_part`) in ``work`` (default:
+    ``<root>.parts`` beside it), then gathered (:func:`gather_import`). Every split in
+    ``REQUIRED_SPLITS`` must end up with at least one video.
     """
-    records, skipped = [], []
-    counters: dict[str, int] = {}
-    for split, video in tqdm(find_videos(folder), desc="import: videos", unit="video"):
+    work = keyed_work(Path(work) if work is not None else root.with_name(root.name + ".parts"),
+                      {"data": asdict(data), "import": asdict(cfg)})
+    written = [import_part(folder, work, data, cfg, skip_bad, part, parts) for part in range(parts)]
+    return gather_import(folder, written, root, data)
+
+
+def fingerprint(video: Path) -> list[int | None]:
+    """What says a video (and its CSV) is the one a recorded outcome was made from: sizes and modification times
+    (reading terabytes of video again to hash them would cost as much as importing them)."""
+    out: list[int | None] = []
+    for path in (video, video.with_suffix(".csv")):
+        stat = path.stat() if path.exists() else None
+        out += [stat.st_size, stat.st_mtime_ns] if stat else [None, None]
+    return out
+
+
+def import_part(folder: Path, work: Path, data: DataConfig, cfg: ImportConfig, skip_bad: bool, part: int = 0,
+                parts: int = 1) -> dict[str, Any]:
+    """Import part ``part`` of ``parts`` (a contiguous block of the videos, in :func:`find_videos`' order) into
+    ``work/<part_name>/``: each video's episode files, then its outcome in ``done/<stem>.json`` (its record, or
+    why it was skipped, and the :func:`fingerprint` of its inputs), written atomically.
+
+    Resumes: a video whose outcome is recorded for the same inputs is not read again; one stopped half-way is
+    imported again from the start. Returns the part's outcomes in order.
+    """
+    videos = find_videos(folder)
+    dest = work / part_name(part, parts)
+    (dest / "done").mkdir(parents=True, exist_ok=True)
+    outcomes = []
+    for split, video in tqdm(videos[part_slice(len(videos), part, parts)],
+                             desc=f"import {part_name(part, parts)}", unit="video"):
         stem = episode_stem(folder, split, video)
-        try:
-            records.append(import_one(video, split, stem, root, data, cfg))
-            counters[split] = counters.get(split, 0) + 1
-        except OrbisError as err:
-            if not skip_bad:
-                raise
-            for leftover in (root / split).glob(f"{stem}.*"):
-                leftover.unlink()
-            skipped.append(Skipped(str(video), reason_of(err), str(err)))
+        marker, mark = dest / "done" / f"{stem}.json", fingerprint(video)
+        saved = json.loads(marker.read_text()) if marker.is_file() else None
+        if saved is None or saved["fingerprint"] != mark:
+            saved = {"fingerprint": mark, **_import_outcome(video, split, stem, dest, data, cfg, skip_bad)}
+            with atomic_file(marker) as tmp:
+                write_json(tmp, saved)
+        elif "skipped" in saved and not skip_bad:  # skipped by a run that allowed it; this one does not
+            raise ImportProblem(saved["skipped"]["problem"], saved["skipped"]["reason"])
+        outcomes.append(saved)
+    return {"folder": str(dest), "outcomes": outcomes}
+
+
+def _import_outcome(video: Path, split: str, stem: str, dest: Path, data: DataConfig, cfg: ImportConfig,
+                    skip_bad: bool) -> dict[str, Any]:
+    try:
+        return {"record": asdict(import_one(video, split, stem, dest, data, cfg))}
+    except OrbisError as err:
+        if not skip_bad:
+            raise
+        return {"skipped": asdict(Skipped(str(video), reason_of(err), str(err)))}
+
+
+def gather_import(folder: Path, parts_written: list[dict[str, Any]], root: Path,
+                  data: DataConfig) -> tuple[RawIndex, list[Skipped]]:
+    """The parts' episodes, in part order, linked into ``root`` (hard links; copies across file systems) with
+    ``index.json``; the videos skipped. Fails when no usable video is left for a required split."""
+    records, skipped = [], []
+    for written in parts_written:
+        for outcome in written["outcomes"]:
+            if "skipped" in outcome:
+                skipped.append(Skipped(**outcome["skipped"]))
+                continue
+            record = EpisodeRecord(**outcome["record"])
+            (root / record.split).mkdir(parents=True, exist_ok=True)
+            for source in (record.video(Path(written["folder"])), record.odometry(Path(written["folder"]))):
+                link(source, root / record.split / source.name)
+            records.append(record)
     if not records:
         problems = "\n".join(f"  {s.path}: {s.problem}" for s in skipped)
         raise ImportProblem(f"{folder}: every video was skipped:\n{problems}")
-    absent = [split for split in REQUIRED_SPLITS if split not in counters]
+    absent = [split for split in REQUIRED_SPLITS if not any(r.split == split for r in records)]
     if absent:
         flat = not any((folder / split).is_dir() for split in SPLITS)
         why = " (a folder without split sub-folders imports everything as train)" if flat else ""

@@ -31,7 +31,6 @@ import hashlib
 import itertools
 import json
 import os
-import shutil
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,11 +44,11 @@ from tqdm import tqdm
 
 from orbis2.config.sections import SPLITS, DataConfig, ShardsConfig
 from orbis2.data.episodes import EpisodeRecord, RawIndex, read_odometry
-from orbis2.data.parts import part_name, part_slice
+from orbis2.data.parts import keyed_work, part_name, part_slice
 from orbis2.data.video import iter_frames
 from orbis2.errors import OrbisError
 from orbis2.hierarchy import anchor_range, window_indices, window_span
-from orbis2.io import load_npy, load_npz, npy_bytes, npz_bytes, sha256_file, write_json
+from orbis2.io import link, load_npy, load_npz, npy_bytes, npz_bytes, sha256_file, write_json
 
 MANIFEST = "manifest.json"
 
@@ -152,7 +151,6 @@ def clip_starts(n_frames: int, clip_frames: int, min_frames: int) -> list[tuple[
 # --------------------------------------------------------------------------- parts
 
 PART_LOG = "done.jsonl"  # one line per shard in place, one per split finished, one when the part is done
-WORK_KEY = "key.json"
 
 
 class _PartLog:
@@ -221,8 +219,9 @@ def write_part(raw_root: Path, work: Path, data: DataConfig, cfg: ShardsConfig, 
 
 @contextlib.contextmanager
 def one_core() -> Iterator[None]:
-    """OpenCV on one thread for the block: a part is one core's work (parts, not threads, use the others), and
-    OpenCV's own threads would make parts side by side contend (measured: 1.5 cores busy for 5 % more speed)."""
+    """OpenCV on one thread for the block: a part is one core's work (parts, not threads, use the others). With
+    OpenCV's own threads a part kept 1.5 cores busy at no more frames/s, and two parts side by side reached
+    1.6x one part instead of 1.9x (512x288, 2 cores; benchmarks/bench_shards.py)."""
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
     try:
@@ -252,8 +251,8 @@ def _write_part(raw_root: Path, work: Path, data: DataConfig, cfg: ShardsConfig,
             if e < after[0]:
                 continue
             skip = after[1] if e == after[0] else -1
-            for c, members in episode_clips(raw_root, ep, index, data, cfg, encode, skip):
-                writer.write(f"{ep.stem}_{c:04d}", members, frames=members_frames(members), tag=[e, c])
+            for c, length, members in episode_clips(raw_root, ep, index, data, cfg, encode, skip):
+                writer.write(f"{ep.stem}_{c:04d}", members, frames=length, tag=[e, c])
         writer.close()
         log.add({"finished": split})
     if not log.done:
@@ -271,13 +270,9 @@ def part_manifest(log: _PartLog, index: RawIndex) -> dict[str, Any]:
     return {"folder": str(log.folder), "splits": splits}
 
 
-def members_frames(members: dict[str, bytes]) -> int:
-    return sum(1 for name in members if name.endswith(".jpg"))
-
-
 def episode_clips(raw_root: Path, ep: EpisodeRecord, index: RawIndex, data: DataConfig, cfg: ShardsConfig,
-                  encode: list[int], skip: int = -1) -> Iterator[tuple[int, dict[str, bytes]]]:
-    """``(clip index, members)`` of one episode's clips after clip ``skip``.
+                  encode: list[int], skip: int = -1) -> Iterator[tuple[int, int, dict[str, bytes]]]:
+    """``(clip index, frames, members)`` of one episode's clips after clip ``skip``.
 
     Frames stream from the decoder and are encoded clip by clip; the frames after the last clip
     are not decoded, nor are any when every clip is at or before ``skip``."""
@@ -310,7 +305,7 @@ def episode_clips(raw_root: Path, ep: EpisodeRecord, index: RawIndex, data: Data
             "fps": data.fps, "start_frame": start, "start_time": start / data.fps, "frames": length,
             "width": data.width, "height": data.height, "camera": index.camera,
             "has_odometry": ep.has_odometry, "has_pose": ep.has_pose}, sort_keys=True).encode()
-        yield c, members
+        yield c, length, members
 
 
 def gather_parts(raw_root: Path, parts_written: list[dict[str, Any]], out_root: Path) -> dict[str, Any]:
@@ -328,20 +323,13 @@ def gather_parts(raw_root: Path, parts_written: list[dict[str, Any]], out_root: 
         for written in parts_written:
             for shard in written["splits"][split]:
                 name = f"{split}/{split}-{len(shards):06d}.tar"
-                _link(Path(written["folder"]) / shard["path"], out_root / name)
+                link(Path(written["folder"]) / shard["path"], out_root / name)
                 shards.append({"path": name, **{k: shard[k] for k in ("samples", "bytes", "sha256")}})
         manifest["splits"][split] = {"samples": sum(s["samples"] for s in shards),
                                      "frames": sum(s["frames"] for w in parts_written for s in w["splits"][split]),
                                      "shards": shards}
     write_json(out_root / MANIFEST, manifest)
     return manifest
-
-
-def _link(source: Path, target: Path) -> None:
-    try:
-        os.link(source, target)
-    except OSError:  # another file system, or links not allowed
-        shutil.copyfile(source, target)
 
 
 def shards_key(raw_root: Path, data: DataConfig, cfg: ShardsConfig) -> dict[str, Any]:
@@ -360,12 +348,8 @@ def write_shards(raw_root: Path, out_root: Path, data: DataConfig, cfg: ShardsCo
     from other inputs is emptied first. The samples and their order do not depend on ``parts``;
     where shards end does.
     """
-    work = Path(work) if work is not None else out_root.with_name(out_root.name + ".parts")
-    key = shards_key(raw_root, data, cfg)
-    if (work / WORK_KEY).is_file() and json.loads((work / WORK_KEY).read_text()) != key:
-        shutil.rmtree(work)
-    work.mkdir(parents=True, exist_ok=True)
-    write_json(work / WORK_KEY, key)
+    work = keyed_work(Path(work) if work is not None else out_root.with_name(out_root.name + ".parts"),
+                      shards_key(raw_root, data, cfg))
     written = [write_part(raw_root, work, data, cfg, part, parts) for part in range(parts)]
     return gather_parts(raw_root, written, out_root)
 

@@ -272,47 +272,57 @@ class Resampled:
 
 
 def read_resampled(path: Path, fps: float, size: tuple[int, int] | None = None) -> Resampled:
-    """The video at ``fps`` by timestamps: for each slot k / fps up to the last frame, the nearest source frame.
+    """The video at ``fps`` by timestamps, all in memory (:func:`iter_resampled`, which streams it)."""
+    stats: dict[str, float] = {}
+    pairs = list(iter_resampled(path, fps, size, stats))
+    return Resampled(np.stack([frame for _, frame in pairs]), np.array([t for t, _ in pairs]),
+                     int(stats["source_frames"]), stats["source_fps"], stats["max_error_s"])
+
+
+def iter_resampled(path: Path, fps: float, size: tuple[int, int] | None = None,
+                   stats: dict[str, float] | None = None) -> Iterator[tuple[float, np.ndarray]]:
+    """The video at ``fps`` by timestamps, slot by slot: for each slot k / fps up to the last frame, the
+    nearest source frame, as (its source time, RGB resized to ``size``). Holds two frames at a time.
 
     Nearest frame rather than blending neighbours: a blend is a picture no camera took
     (ghosted edges the tokenizer would learn), while the nearest frame is off in time by at
     most half a source period (20 ms at 25 fps), which is recorded. Works for any source
     rate at or above ``fps`` (23.976, 24, 25, 29.97, 30, 50, 60 ...) and for variable
     rates; a source slower than ``fps``, or a gap of more than one slot, would repeat
-    frames and is refused.
+    frames and is refused, once the whole video is read (the error ends the iteration).
+    When it ends, ``stats`` holds ``source_frames`` (decoded), ``source_fps`` (from the
+    decoded timestamps) and ``max_error_s`` (the largest |source time - k / fps|).
     """
-    kept, times, decoded = [], [], 0
+    stats = {} if stats is None else stats
     previous: tuple[float, np.ndarray] | None = None
-    k = 0
+    k = decoded = 0
+    worst = (0.0, 0, 0.0)  # error, slot, source time
 
-    def keep(t: float, frame: np.ndarray) -> None:
-        kept.append(frame if size is None else resize_cover(frame, size))
-        times.append(t)
+    def keep(t: float, frame: np.ndarray) -> tuple[float, np.ndarray]:
+        nonlocal worst
+        error = abs(t - k / fps)
+        if error > worst[0]:
+            worst = (error, k, t)
+        return t, frame if size is None else resize_cover(frame, size)
 
     for t, frame in iter_timed_frames(path):
         decoded += 1
         while k / fps <= t + 1e-9:
             target = k / fps
-            if previous is not None and target - previous[0] <= t - target:
-                keep(*previous)
-            else:
-                keep(t, frame)
+            yield keep(*previous) if previous is not None and target - previous[0] <= t - target else keep(t, frame)
             k += 1
         previous = (t, frame)
-    if not kept:
+    if k == 0:
         raise VideoError(f"{printable(path)}: no frame could be decoded (empty or truncated video)")
-    source_times = np.array(times)
-    error = np.abs(source_times - np.arange(len(source_times)) / fps)
     last_t = previous[0] if previous is not None else 0.0
     source_fps = (decoded - 1) / last_t if decoded > 1 and last_t > 0 else fps
-    if len(kept) > 1 and error.max() > 0.5 / fps + 1e-6:
-        worst = int(np.argmax(error))
+    stats.update(source_frames=decoded, source_fps=source_fps, max_error_s=worst[0])
+    if k > 1 and worst[0] > 0.5 / fps + 1e-6:
         why = (f"the source runs at {source_fps:.3f} fps, slower than {fps:g}" if source_fps < fps * 0.99 else
-               f"the source has a gap near {source_times[worst]:.2f} s")
-        raise VideoError(f"{printable(path)}: {why}: the frame for {worst / fps:.2f} s would be "
-                         f"{error.max() * 1000:.0f} ms off (over half a period at {fps:g} fps) and frames would "
+               f"the source has a gap near {worst[2]:.2f} s")
+        raise VideoError(f"{printable(path)}: {why}: the frame for {worst[1] / fps:.2f} s would be "
+                         f"{worst[0] * 1000:.0f} ms off (over half a period at {fps:g} fps) and frames would "
                          f"repeat; use a source at {fps:g} fps or faster, or lower data.fps")
-    return Resampled(np.stack(kept), source_times, decoded, source_fps, float(error.max()))
 
 
 def read_video(path: Path, stride: int = 1, size: tuple[int, int] | None = None) -> np.ndarray:
