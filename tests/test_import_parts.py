@@ -55,6 +55,8 @@ class Killed(BaseException):
 
 def test_a_stopped_import_resumes_and_a_changed_video_is_imported_again(videos, smoke_cfg, tmp_path,
                                                                          monkeypatch):
+    """Killed after a video's files were written but before its outcome was recorded: the restart reads only
+    that video and those after it."""
     calls, kill_at = [], [5]
     real = importer.import_one
 
@@ -75,14 +77,23 @@ def test_a_stopped_import_resumes_and_a_changed_video_is_imported_again(videos, 
     fresh, _ = import_videos(videos, tmp_path / "fresh", smoke_cfg.data, smoke_cfg.import_, False, parts=2)
     assert episodes(tmp_path / "raw", resumed) == episodes(tmp_path / "fresh", fresh)
 
+    # A part stopped, then started again after a video changed: that video alone is imported again.
+    work = tmp_path / "work"
+    for part in range(2):
+        importer.import_part(videos, work, smoke_cfg.data, smoke_cfg.import_, False, part, 2)
     changed = videos / "train" / "drive_2.csv"
     write_csv(changed, np.linspace(0, 3.0, 31), 9 * np.ones(31), np.zeros(31))
     os.utime(changed, ns=(changed.stat().st_atime_ns, changed.stat().st_mtime_ns + 10**9))
     calls.clear()
-    again, _ = import_videos(videos, tmp_path / "raw", smoke_cfg.data, smoke_cfg.import_, False, parts=2)
+    written = [importer.import_part(videos, work, smoke_cfg.data, smoke_cfg.import_, False, part, 2)
+               for part in range(2)]
     assert calls == ["drive_2.mp4"]
+    importer.gather_import(videos, written, tmp_path / "again", smoke_cfg.data)
     stem = episode_stem(videos, "train", videos / "train" / "drive_2.mp4")
-    assert np.allclose(read_odometry(tmp_path / "raw/train" / f"{stem}.parquet")["speed"], 9)
+    assert np.allclose(read_odometry(tmp_path / "again/train" / f"{stem}.parquet")["speed"], 9)
+    calls.clear()  # gathered: the parts' episodes were moved out, so asking for the parts again imports again
+    importer.import_part(videos, work, smoke_cfg.data, smoke_cfg.import_, False, 0, 2)
+    assert len(calls) == 4
 
 
 def test_streamed_import_writes_the_frames_of_the_whole_video_path(videos, smoke_cfg, tmp_path):

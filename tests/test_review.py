@@ -29,6 +29,11 @@ def test_config_drift_names_what_dvc_cannot_see():
 
 def test_no_commit_when_the_run_differs_from_params_yaml(tmp_path, capfd, monkeypatch):
     (tmp_path / ".dvc").mkdir()
+    params = load_params(ROOT / "params.yaml")
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump({**params, "profile": "paper"}))
+    assert not dag.commit_to_dvc(["town", "shards"], [], tmp_path)  # terabytes: not hashed on the submit host
+    assert "at the paper profile the outputs are terabytes" in capfd.readouterr().err
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
     assert not dag.commit_to_dvc(["town", "shards"], ["profile"], tmp_path)
     assert "dvc.lock not updated" in capfd.readouterr().err and not (tmp_path / "dvc.lock").exists()
     monkeypatch.setenv(dag.COMMIT_ENV, "0")

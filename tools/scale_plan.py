@@ -65,8 +65,8 @@ dvc exp run -S profile=paper -S parts=256                              # DVC: on
 
 Part *i* of *N* takes the *i*-th contiguous block of every split's episodes (`orbis2.data.parts`),
 writes its shards into `data/runs/shards-<profile>-<key>/<i>-of-<N>/` and its part manifest into
-`data/shard_parts/<i>-of-<N>.json`; the gather (the `shards` stage itself) links every part's shards
-into `data/shards/` in part order and writes the manifest. The samples and their order do not
+`data/shard_parts/<i>-of-<N>.json`; the gather (the `shards` stage itself) moves every part's shards
+into `data/shards/` in part order (no copy) and writes the manifest. The samples and their order do not
 depend on `parts`; where shards end does (tested: `tests/test_shard_parts.py`).
 
 - **Resume at the shard.** Each shard is written as `.partial` while it is hashed, flushed to disk,
@@ -86,8 +86,8 @@ depend on `parts`; where shards end does (tested: `tests/test_shard_parts.py`).
 - **The import in parts too.** A part of `import` takes its block of your videos (in path order),
   streams each from the decoder to the writer (two frames in memory, whatever the video's length) and
   records its outcome (the episode, or why it was skipped, with the video's size and time) in
-  `done/<stem>.json`: a killed part loses at most the video it was importing, and a changed video is
-  imported again alone. Episodes are named by their path in the input folder, never by order.
+  `done/<stem>.json`: a killed part loses at most the video it was importing, and a video changed before
+  the restart is imported again. Episodes are named by their path in the input folder, never by order.
 - **Checksums from the writer.** Each shard's SHA-256 is computed as it is written (no second read of
   {tb(bench['shard_bytes_per_frame']):,.1f} TB) and the manifest carries it for the readers.
 
@@ -97,8 +97,8 @@ depend on `parts`; where shards end does (tested: `tests/test_shard_parts.py`).
 |---|---|---|---|
 {storage}
 
-The part folders hold the same shards as `data/shards/` (hard links: no second copy where both are on
-one file system); delete `data/runs/shards-*` once the shards are gathered to drop the links.
+The gather moves the parts' files (no second copy where both are on one file system); a part asked for
+again after its files were gathered writes them again.
 
 ## The shards' wall time
 
@@ -114,6 +114,15 @@ These assume the input videos are read as fast as the cores encode (at {rate:,.0
 reads {rate * bench['raw_video_bytes_per_frame'] / 1e6:,.1f} MB/s of video and writes
 {rate * bench['shard_bytes_per_frame'] / 1e6:,.1f} MB/s of shards; {CORES_PER_NODE} cores, {node_rate:,.2f} GB/s a node)
 and that efficiency holds past two cores: what only a real cluster can confirm.
+
+## DVC at this size
+
+The terabyte outputs are described by their own manifests (every shard's size and SHA-256, hashed as it
+is written; every latent array's SHA-256 in the cache's `meta.json`), not by DVC: after a Snakemake run
+at the paper profile, `dvc.lock` is not updated (`dvc commit` would hash, and copy into `.dvc/cache`, about
+{tb(bench['shard_bytes_per_frame']) + tb(latent_frame):,.0f} TB on the submit host), and the run says so.
+`dvc repro` hashes every output it writes: use it at the laptop's and the GPU profile's scale, and
+Snakemake (`--workflow-profile profiles/slurm`) at the paper's.
 
 ## Anchors
 

@@ -320,6 +320,7 @@ def generate(root: Path = ROOT) -> dict[Path, str]:
 
 IMPORT_STAGE = "pipelines/import/dvc.yaml:import"
 COMMIT_ENV = "ORBIS2_DVC_COMMIT"  # 0: a Snakemake run leaves dvc.lock alone
+UNCOMMITTED_PROFILES = ("paper",)  # their outputs are not hashed into dvc.lock after a run (docs/scale.md)
 
 
 def config_drift(config: dict[str, Any], params_file: Path | str = "params.yaml") -> list[str]:
@@ -405,11 +406,18 @@ def commit_to_dvc(rules: list[str], drift: list[str], root: Path | str = ".") ->
 
     ``rules`` are every job of the run's DAG (run or found up to date), so a stage outside the targets, whose
     outputs may be older than its params, is never recorded. Skipped, with a line saying why, when
-    ``drift`` names config keys DVC would not see (``--config``), when ``ORBIS2_DVC_COMMIT=0``, or outside a
-    DVC project; a failed commit only warns: the run itself succeeded.
+    ``drift`` names config keys DVC would not see (``--config``), at the paper profile (terabytes to hash on
+    the submit host: :data:`UNCOMMITTED_PROFILES`), when ``ORBIS2_DVC_COMMIT=0``, or outside a DVC project;
+    a failed commit only warns: the run itself succeeded.
     """
     root = Path(root)
     if os.environ.get(COMMIT_ENV, "1") == "0" or not (root / ".dvc").is_dir():
+        return False
+    if load_params(root / "params.yaml")["profile"] in UNCOMMITTED_PROFILES:
+        print("dvc.lock not updated: at the paper profile the outputs are terabytes, which `dvc commit` would hash "
+              "(and copy into .dvc/cache) on this host; the stages' own manifests and checksums describe them "
+              "(docs/scale.md). Record them yourself with `dvc commit --force` if that is what you want.",
+              file=sys.stderr)
         return False
     if drift:
         print(f"dvc.lock not updated: this run's config differs from params.yaml in {', '.join(drift)} "

@@ -114,14 +114,13 @@ def atomic_file(target: Path) -> Iterator[Path]:
     os.replace(tmp, target)
 
 
-def link(source: Path, target: Path) -> None:
-    """``target`` as a hard link to ``source`` (a part's output gathered without a second copy), replacing what
-    was there; a copy where links cannot be made (another file system)."""
-    Path(target).unlink(missing_ok=True)
+def move_into(source: Path, target: Path) -> None:
+    """Move a part's finished file into the output being gathered, replacing what was there: a rename (no copy,
+    a new inode for no one: DVC and Snakemake see the file the part wrote), a copy across file systems."""
     try:
-        os.link(source, target)
+        os.replace(source, target)
     except OSError:
-        shutil.copyfile(source, target)
+        shutil.move(source, target)
 
 
 def sha256_file(path: str | Path) -> str:

@@ -43,7 +43,7 @@ from orbis2.data.episodes import EpisodeRecord, RawIndex, write_odometry
 from orbis2.data.parts import keyed_work, part_name, part_slice
 from orbis2.data.video import VIDEO_SUFFIXES, VideoError, iter_resampled, probe, write_video
 from orbis2.errors import OrbisError
-from orbis2.io import atomic_file, link, write_json
+from orbis2.io import atomic_file, move_into, write_json
 from orbis2.kinematics import integrate_odometry
 
 CSV_COLUMNS = ("timestamp", "speed", "yaw_rate")
@@ -296,7 +296,8 @@ def import_part(folder: Path, work: Path, data: DataConfig, cfg: ImportConfig, s
         stem = episode_stem(folder, split, video)
         marker, mark = dest / "done" / f"{stem}.json", fingerprint(video)
         saved = json.loads(marker.read_text()) if marker.is_file() else None
-        if saved is None or saved["fingerprint"] != mark:
+        gathered = saved is not None and "record" in saved and not (dest / split / f"{stem}.mp4").is_file()
+        if saved is None or saved["fingerprint"] != mark or gathered:  # (a gather moves the episodes out)
             saved = {"fingerprint": mark, **_import_outcome(video, split, stem, dest, data, cfg, skip_bad)}
             with atomic_file(marker) as tmp:
                 write_json(tmp, saved)
@@ -318,19 +319,17 @@ def _import_outcome(video: Path, split: str, stem: str, dest: Path, data: DataCo
 
 def gather_import(folder: Path, parts_written: list[dict[str, Any]], root: Path,
                   data: DataConfig) -> tuple[RawIndex, list[Skipped]]:
-    """The parts' episodes, in part order, linked into ``root`` (hard links; copies across file systems) with
-    ``index.json``; the videos skipped. Fails when no usable video is left for a required split."""
-    records, skipped = [], []
+    """The parts' episodes, in part order, moved into ``root`` (see :func:`orbis2.data.shards.gather_parts` for
+    why moved) with ``index.json``; the videos skipped. Fails when no usable video is left for a required split
+    (the episodes then stay in the parts)."""
+    records, skipped, sources = [], [], []
     for written in parts_written:
         for outcome in written["outcomes"]:
             if "skipped" in outcome:
                 skipped.append(Skipped(**outcome["skipped"]))
                 continue
-            record = EpisodeRecord(**outcome["record"])
-            (root / record.split).mkdir(parents=True, exist_ok=True)
-            for source in (record.video(Path(written["folder"])), record.odometry(Path(written["folder"]))):
-                link(source, root / record.split / source.name)
-            records.append(record)
+            records.append(EpisodeRecord(**outcome["record"]))
+            sources.append(Path(written["folder"]))
     if not records:
         problems = "\n".join(f"  {s.path}: {s.problem}" for s in skipped)
         raise ImportProblem(f"{folder}: every video was skipped:\n{problems}")
@@ -341,6 +340,10 @@ def gather_import(folder: Path, parts_written: list[dict[str, Any]], root: Path,
         problems = "".join(f"\n  skipped: {s.problem}" for s in skipped)
         raise ImportProblem(f"{folder}: no {' or '.join(absent)} videos{why}; training needs both: put videos into "
                             f"{' and '.join(str(folder / split) + '/' for split in REQUIRED_SPLITS)}{problems}")
+    for record, folder_of_part in zip(records, sources):
+        (root / record.split).mkdir(parents=True, exist_ok=True)
+        for source in (record.video(folder_of_part), record.odometry(folder_of_part)):
+            move_into(source, root / record.split / source.name)
     index = RawIndex("import", data.fps, data.width, data.height, None, records)
     index.write(root)
     return index, skipped

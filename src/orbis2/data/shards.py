@@ -31,6 +31,7 @@ import hashlib
 import itertools
 import json
 import os
+import shutil
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,7 +49,7 @@ from orbis2.data.parts import keyed_work, part_name, part_slice
 from orbis2.data.video import iter_frames
 from orbis2.errors import OrbisError
 from orbis2.hierarchy import anchor_range, window_indices, window_span
-from orbis2.io import link, load_npy, load_npz, npy_bytes, npz_bytes, sha256_file, write_json
+from orbis2.io import load_npy, load_npz, move_into, npy_bytes, npz_bytes, sha256_file, write_json
 
 MANIFEST = "manifest.json"
 
@@ -162,9 +163,6 @@ class _PartLog:
 
     def __init__(self, folder: Path):
         self.folder = folder
-        folder.mkdir(parents=True, exist_ok=True)
-        for stale in folder.rglob(f"*{PARTIAL}"):
-            stale.unlink()
         self.path = folder / PART_LOG
         self.events: list[dict[str, Any]] = []
         if self.path.is_file():
@@ -173,7 +171,13 @@ class _PartLog:
                     self.events.append(json.loads(line))
                 except ValueError:
                     break  # torn by a kill: this and anything after it is redone
-            self.path.write_text("".join(json.dumps(e, sort_keys=True) + "\n" for e in self.events))
+        if any(not (folder / e["path"]).is_file() for e in self.events if e.get("shard")):
+            shutil.rmtree(folder)  # gathered already (the gather moves the shards out): written again
+            self.events = []
+        folder.mkdir(parents=True, exist_ok=True)
+        for stale in folder.rglob(f"*{PARTIAL}"):
+            stale.unlink()
+        self.path.write_text("".join(json.dumps(e, sort_keys=True) + "\n" for e in self.events))
 
     def add(self, event: dict[str, Any]) -> None:
         with open(self.path, "a") as f:
@@ -309,9 +313,10 @@ def episode_clips(raw_root: Path, ep: EpisodeRecord, index: RawIndex, data: Data
 
 
 def gather_parts(raw_root: Path, parts_written: list[dict[str, Any]], out_root: Path) -> dict[str, Any]:
-    """The shards of every part, in part order, linked into ``out_root/<split>/<split>-NNNNNN.tar`` (numbered
-    across parts), and ``manifest.json``. Hard links: the shards are not copied (a copy where the work folder
-    is on another file system)."""
+    """The shards of every part, in part order, moved into ``out_root/<split>/<split>-NNNNNN.tar`` (numbered
+    across parts), and ``manifest.json``. Moved, not copied or linked: no second copy, and the files stay the
+    ones the parts wrote (a hard link would let a tool that replaces one name, as ``dvc commit`` does, give
+    the other a new time). A part whose shards were gathered is written again if it is asked for again."""
     index = RawIndex.read(raw_root)
     manifest: dict[str, Any] = {"source": index.source, "fps": index.fps, "width": index.width,
                                 "height": index.height, "camera": index.camera, "splits": {}}
@@ -323,7 +328,7 @@ def gather_parts(raw_root: Path, parts_written: list[dict[str, Any]], out_root: 
         for written in parts_written:
             for shard in written["splits"][split]:
                 name = f"{split}/{split}-{len(shards):06d}.tar"
-                link(Path(written["folder"]) / shard["path"], out_root / name)
+                move_into(Path(written["folder"]) / shard["path"], out_root / name)
                 shards.append({"path": name, **{k: shard[k] for k in ("samples", "bytes", "sha256")}})
         manifest["splits"][split] = {"samples": sum(s["samples"] for s in shards),
                                      "frames": sum(s["frames"] for w in parts_written for s in w["splits"][split]),
