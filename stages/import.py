@@ -18,14 +18,11 @@ import json
 from dataclasses import asdict
 from pathlib import Path
 
-from orbis2.config.params import load_params
 from orbis2.data.importer import check_outside, gather_import, import_part, summary_of
 from orbis2.data.parts import part_name
-from orbis2.errors import OrbisError
 from orbis2.interfaces import INTERFACES
-from orbis2.io import atomic_dir, atomic_file, write_json
-from orbis2.registry import layout_path
-from orbis2.stage import open_stage, stage_parser, work_dir
+from orbis2.io import atomic_dir
+from orbis2.stage import add_part_options, open_stage, parts_of, stage_parser, work_dir, write_part_manifest
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -35,18 +32,12 @@ def main(argv: list[str] | None = None) -> None:
                         help="skip unusable videos and list them in <out>/skipped.json (default: import.skip_bad)")
     parser.add_argument("--strict", dest="skip_bad", action="store_false",
                         help="stop at the first unusable video instead")
-    parser.add_argument("--parts", type=int, default=None, help="how many parts (default: params.yaml `parts`)")
-    parser.add_argument("--part", type=int, default=None, metavar="I",
-                        help="import part I (0-based) only, and write its part manifest (--part-manifest)")
-    parser.add_argument("--part-manifest", type=Path, default=None, metavar="FILE",
-                        help="where --part writes its manifest (default: data/import_parts/<I>-of-<N>.json)")
+    add_part_options(parser, "import_parts")
     args = parser.parse_args(argv)
-    parts = args.parts if args.parts is not None else load_params(args.params)["parts"]
+    parts = parts_of(parser, args)
     name = "import" if args.part is None else f"import_part_{part_name(args.part, parts)}"
     with open_stage(name, args, INTERFACES["import"]) as stage:
         cfg, run = stage.cfg, stage.run
-        if parts < 1 or (args.part is not None and not 0 <= args.part < parts):
-            raise OrbisError(f"--part {args.part} --parts {parts}: parts must be >= 1 and 0 <= part < parts")
         folder = args.videos or Path(cfg.import_.videos)
         check_outside(folder, args.out)
         skip_bad = cfg.import_.skip_bad if args.skip_bad is None else args.skip_bad
@@ -54,8 +45,7 @@ def main(argv: list[str] | None = None) -> None:
 
         if args.part is not None:
             written = import_part(folder, work, cfg.data, cfg.import_, skip_bad, args.part, parts)
-            with atomic_file(args.part_manifest or layout_path("import_parts", part_name(args.part, parts))) as tmp:
-                write_json(tmp, written)
+            write_part_manifest(args, "import_parts", parts, written)
             imported = sum("record" in o for o in written["outcomes"])
             run.log_metrics({"episodes": imported})
             stage.summary = (f"part {part_name(args.part, parts)}: {imported} of {len(written['outcomes'])} videos "

@@ -11,40 +11,28 @@ killed part resumes at the shard it was writing. The samples and their order do 
 ``parts``; where shards end does.
 """
 
-from pathlib import Path
-
-from orbis2.config.params import load_params
 from orbis2.data.parts import part_name
 from orbis2.data.shards import write_part, write_shards
-from orbis2.errors import OrbisError
 from orbis2.interfaces import INTERFACES
-from orbis2.io import atomic_dir, atomic_file, write_json
+from orbis2.io import atomic_dir
 from orbis2.registry import layout_path
-from orbis2.stage import open_stage, stage_parser, work_dir
+from orbis2.stage import add_part_options, open_stage, parts_of, stage_parser, work_dir, write_part_manifest
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = stage_parser(INTERFACES["shards"], __doc__)  # --raw: default the raw folder of data.source
-    parser.add_argument("--parts", type=int, default=None, help="how many parts (default: params.yaml `parts`)")
-    parser.add_argument("--part", type=int, default=None, metavar="I",
-                        help="write part I (0-based) only, and its part manifest (--part-manifest)")
-    parser.add_argument("--part-manifest", type=Path, default=None, metavar="FILE",
-                        help="where --part writes its manifest (default: data/shard_parts/<I>-of-<N>.json)")
+    add_part_options(parser, "shard_parts")
     args = parser.parse_args(argv)
-    parts = args.parts if args.parts is not None else load_params(args.params)["parts"]
+    parts = parts_of(parser, args)
     name = "shards" if args.part is None else f"shards_part_{part_name(args.part, parts)}"
     with open_stage(name, args, INTERFACES["shards"]) as stage:
         cfg, run = stage.cfg, stage.run
-        if parts < 1 or (args.part is not None and not 0 <= args.part < parts):
-            raise OrbisError(f"--part {args.part} --parts {parts}: parts must be >= 1 and 0 <= part < parts")
         raw = args.raw or layout_path("raw", cfg.data.source)
         work = work_dir("shards", cfg, ["data", "shards"], {"index": raw / "index.json"})
 
         if args.part is not None:
             written = write_part(raw, work, cfg.data, cfg.shards, args.part, parts)
-            target = args.part_manifest or layout_path("shard_parts", part_name(args.part, parts))
-            with atomic_file(target) as tmp:
-                write_json(tmp, written)
+            write_part_manifest(args, "shard_parts", parts, written)
             samples = sum(s["samples"] for shards in written["splits"].values() for s in shards)
             run.log_metrics({"samples": samples})
             stage.summary = f"part {part_name(args.part, parts)}: {samples} clips -> {work}"

@@ -165,19 +165,20 @@ class _PartLog:
         self.folder = folder
         self.path = folder / PART_LOG
         self.events: list[dict[str, Any]] = []
-        if self.path.is_file():
-            for line in self.path.read_text().splitlines():
-                try:
-                    self.events.append(json.loads(line))
-                except ValueError:
-                    break  # torn by a kill: this and anything after it is redone
+        lines = self.path.read_text().splitlines() if self.path.is_file() else []
+        for line in lines:
+            try:
+                self.events.append(json.loads(line))
+            except ValueError:
+                break  # torn by a kill: this and anything after it is redone
         if any(not (folder / e["path"]).is_file() for e in self.events if e.get("shard")):
             shutil.rmtree(folder)  # gathered already (the gather moves the shards out): written again
             self.events = []
         folder.mkdir(parents=True, exist_ok=True)
         for stale in folder.rglob(f"*{PARTIAL}"):
             stale.unlink()
-        self.path.write_text("".join(json.dumps(e, sort_keys=True) + "\n" for e in self.events))
+        if len(self.events) != len(lines):  # drop the torn line, so that appends follow whole ones
+            self.path.write_text("".join(json.dumps(e, sort_keys=True) + "\n" for e in self.events))
 
     def add(self, event: dict[str, Any]) -> None:
         with open(self.path, "a") as f:

@@ -157,8 +157,8 @@ def write_truth(out: Path, rendered: Iterable[tuple[str, dict[str, bytes], dict[
         counts["off_road"] += summary["off_road"]
         samples += 1
     writer.close()
-    shards = [{"path": str(s["path"].relative_to(out)), "samples": s["samples"], "bytes": s["path"].stat().st_size,
-               "sha256": sha256_file(s["path"])} for s in writer.shards]
+    shards = [{"path": str(s["path"].relative_to(out)), **{k: s[k] for k in ("samples", "bytes", "sha256")}}
+              for s in writer.shards]  # the writer hashed each shard as it wrote it
     manifest = {**header, "available": True, "samples": samples, "events": events, "shards": shards}
     write_json(out / MANIFEST, manifest)
     return manifest
