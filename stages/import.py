@@ -19,10 +19,10 @@ from dataclasses import asdict
 from pathlib import Path
 
 from orbis2.data.importer import check_outside, gather_import, import_part, summary_of
-from orbis2.data.parts import part_name
+from orbis2.data.parts import add_part_options, part_name, parts_of, write_part_manifest
 from orbis2.interfaces import INTERFACES
 from orbis2.io import atomic_dir
-from orbis2.stage import add_part_options, open_stage, parts_of, stage_parser, work_dir, write_part_manifest
+from orbis2.stage import open_stage, stage_parser, work_dir
 
 
 def main(argv: list[str] | None = None) -> None:

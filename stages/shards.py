@@ -11,12 +11,12 @@ killed part resumes at the shard it was writing. The samples and their order do 
 ``parts``; where shards end does.
 """
 
-from orbis2.data.parts import part_name
+from orbis2.data.parts import add_part_options, part_name, parts_of, write_part_manifest
 from orbis2.data.shards import write_part, write_shards
 from orbis2.interfaces import INTERFACES
 from orbis2.io import atomic_dir
 from orbis2.registry import layout_path
-from orbis2.stage import add_part_options, open_stage, parts_of, stage_parser, work_dir, write_part_manifest
+from orbis2.stage import open_stage, stage_parser, work_dir
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -37,7 +37,7 @@ from orbis2.config.params import PipelineConfig, as_dict
 from orbis2.config.training import BOOKKEEPING_FIELDS
 from orbis2.errors import OrbisError
 from orbis2.interfaces import Interface, PathOption
-from orbis2.io import atomic_dir, atomic_file, sha256_file, write_json
+from orbis2.io import atomic_dir, sha256_file, write_json
 from orbis2.registry import layout_path, registry
 from orbis2.run_profile import SHARD_MANIFEST, resolve_profile
 from orbis2.tracking import StageRun, stage_run
@@ -83,35 +83,6 @@ def add_name_argument(parser: argparse.ArgumentParser, names: Sequence[str], pre
     parser.add_argument("name", type=short, choices=names, metavar="name", default=default,
                         nargs="?" if default is not None else None,
                         help=f"one of {', '.join(names)}" + (f" (default: {default})" if default else ""))
-
-
-def add_part_options(parser: argparse.ArgumentParser, layout: str) -> None:
-    """``--parts N``, ``--part I`` and ``--part-manifest FILE`` of a data stage run in parts (orbis2.data.parts):
-    without ``--part`` the stage does every part not yet done and gathers them; with it, that part only, and
-    writes its part manifest (default: the ``layout`` path of ``<I>-of-<N>``)."""
-    parser.add_argument("--parts", type=int, default=None, help="how many parts (default: params.yaml `parts`)")
-    parser.add_argument("--part", type=int, default=None, metavar="I",
-                        help="do part I (0-based) only, and write its part manifest (--part-manifest)")
-    parser.add_argument("--part-manifest", type=Path, default=None, metavar="FILE",
-                        help=f"where --part writes its manifest (default: {layout_path(layout, '<I>-of-<N>')})")
-
-
-def parts_of(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
-    """How many parts the run has (``--parts``, else params.yaml's ``parts``), ``--part`` checked against it."""
-    from orbis2.config.params import load_params
-
-    parts = args.parts if args.parts is not None else load_params(args.params)["parts"]
-    if parts < 1 or (args.part is not None and not 0 <= args.part < parts):
-        parser.error(f"--part {args.part} --parts {parts}: parts must be >= 1 and 0 <= part < parts")
-    return parts
-
-
-def write_part_manifest(args: argparse.Namespace, layout: str, parts: int, written: dict) -> None:
-    """A part's manifest, atomically, at ``--part-manifest`` or the layout's path: what the DAG's gather waits on."""
-    from orbis2.data.parts import part_name
-
-    with atomic_file(args.part_manifest or layout_path(layout, part_name(args.part, parts))) as tmp:
-        write_json(tmp, written)
 
 
 # The file a tokenizer or predictor stage publishes in its output folder (the folder is what the DAG passes).

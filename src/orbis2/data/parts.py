@@ -3,15 +3,20 @@
 Part ``i`` of ``N`` takes the i-th contiguous block of the items in their fixed order, so that the
 parts' outputs, concatenated in part order, are in the order one part would write them. Names
 are ``0003-of-0064``: a part's folder, its Snakemake wildcard and its part manifest. Kept free of
-heavy imports: the Snakefile reads it.
+heavy imports: the Snakefile reads it. The stages run in parts share their options here.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import shutil
 from pathlib import Path
 from typing import Any
+
+from orbis2.config.params import load_params
+from orbis2.io import atomic_file, write_json
+from orbis2.registry import layout_path
 
 WORK_KEY = "key.json"
 
@@ -37,3 +42,28 @@ def keyed_work(work: Path, key: dict[str, Any]) -> Path:
     work.mkdir(parents=True, exist_ok=True)
     (work / WORK_KEY).write_text(json.dumps(key, sort_keys=True))
     return work
+
+
+def add_part_options(parser: argparse.ArgumentParser, layout: str) -> None:
+    """``--parts N``, ``--part I`` and ``--part-manifest FILE`` of a data stage run in parts (orbis2.data.parts):
+    without ``--part`` the stage does every part not yet done and gathers them; with it, that part only, and
+    writes its part manifest (default: the ``layout`` path of ``<I>-of-<N>``)."""
+    parser.add_argument("--parts", type=int, default=None, help="how many parts (default: params.yaml `parts`)")
+    parser.add_argument("--part", type=int, default=None, metavar="I",
+                        help="do part I (0-based) only, and write its part manifest (--part-manifest)")
+    parser.add_argument("--part-manifest", type=Path, default=None, metavar="FILE",
+                        help=f"where --part writes its manifest (default: {layout_path(layout, '<I>-of-<N>')})")
+
+
+def parts_of(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """How many parts the run has (``--parts``, else params.yaml's ``parts``), ``--part`` checked against it."""
+    parts = args.parts if args.parts is not None else load_params(args.params)["parts"]
+    if parts < 1 or (args.part is not None and not 0 <= args.part < parts):
+        parser.error(f"--part {args.part} --parts {parts}: parts must be >= 1 and 0 <= part < parts")
+    return parts
+
+
+def write_part_manifest(args: argparse.Namespace, layout: str, parts: int, written: dict) -> None:
+    """A part's manifest, atomically, at ``--part-manifest`` or the layout's path: what the DAG's gather waits on."""
+    with atomic_file(args.part_manifest or layout_path(layout, part_name(args.part, parts))) as tmp:
+        write_json(tmp, written)
