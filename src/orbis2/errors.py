@@ -11,3 +11,17 @@ class OrbisError(ValueError):
 
 class ConfigError(OrbisError):
     """A params.yaml value (or a model size) is missing, unknown, mistyped or impossible."""
+
+
+# The exit status of a stage stopped at a checkpoint by SIGUSR1 or SIGTERM: sysexits' EX_TEMPFAIL ("a temporary
+# failure; the user is invited to retry"). Running the stage again resumes it where it stopped.
+REQUEUE_EXIT = 75
+
+
+class TrainingStopped(Exception):
+    """Training stopped at a step boundary on a signal (a scheduler's time limit or preemption), after writing
+    its checkpoint: not an error; the stage exits with :data:`REQUEUE_EXIT` and a re-run resumes it."""
+
+    def __init__(self, message: str, signal_name: str, step: int):
+        super().__init__(message)
+        self.signal_name, self.step = signal_name, step

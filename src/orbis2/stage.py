@@ -35,7 +35,7 @@ from typing import Iterable, Iterator, Sequence
 import orbis2
 from orbis2.config.params import PipelineConfig, as_dict
 from orbis2.config.training import BOOKKEEPING_FIELDS
-from orbis2.errors import OrbisError
+from orbis2.errors import REQUEUE_EXIT, OrbisError, TrainingStopped
 from orbis2.interfaces import Interface, PathOption
 from orbis2.io import atomic_dir, sha256_file, write_json
 from orbis2.registry import layout_path, registry
@@ -195,6 +195,11 @@ def open_stage(name: str, args: argparse.Namespace, interface: Interface,
             yield stage
             seconds = time.perf_counter() - started
             run.log_metrics({"wall_seconds": seconds})  # the parent's tables/stage_times.csv (report_main)
+    except TrainingStopped as err:
+        print(f"[{name}] {err} (exit {REQUEUE_EXIT})", file=sys.stderr)
+        if err.signal_name == "SIGUSR1":
+            requeue_slurm_job(name)
+        sys.exit(REQUEUE_EXIT)
     except OrbisError as err:
         print(f"[{name}] error: {err}", file=sys.stderr)
         sys.exit(2)

@@ -9,6 +9,14 @@ holds model, EMA, optimisers, step, data position and every rank's RNG state,
 behind a checksum (:func:`load_checkpoint`); a re-run resumes from it,
 bit-identically on CPU. The schedule is a pure function
 of the step (:func:`lr_at`), so the step is the whole scheduler state.
+
+SIGUSR1 (a scheduler's warning before a time limit) and SIGTERM (preemption, a cancel) stop the run at the
+next step boundary: every rank agrees on the signal, rank 0 writes the checkpoint while the others wait, and
+:func:`train` raises :class:`~orbis2.errors.TrainingStopped` (a stage then exits with ``REQUEUE_EXIT``, 75);
+the next run resumes there, bit-identically. A run may resume with another number of processes when its task
+draws every batch from the global sample order (``Task.global_order``); see :meth:`_Run.resume` for what is
+then not bit-identical.
+
 ``out_dir/model.pt`` holds ``{"model": EMA weights if EMA is on else raw, "raw",
 "ema", "step", "config"}``; read it with :func:`load_weights`. Beside it,
 ``out_dir/curves/train.csv`` and ``curves/eval.csv`` hold every logged row (``step`` +
@@ -30,9 +38,11 @@ import math
 import os
 import pickle
 import random
+import signal
 import socket
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,7 +60,7 @@ from tqdm import tqdm
 
 from orbis2.accel import compile_for_training, set_tf32
 from orbis2.config.training import CHECKPOINT_POLICIES, TrainConfig
-from orbis2.errors import ConfigError, OrbisError
+from orbis2.errors import ConfigError, OrbisError, TrainingStopped
 from orbis2.io import atomic_file
 
 # The loss and its metrics (0-dim tensors or numbers; tensors are read only when the metrics are logged).
@@ -82,7 +92,9 @@ class DataSpec:
     ``seed`` is the config seed, shared by all ranks, so a task can draw one global
     stream and keep its ``rank``-th slice (or use ``rank_seed(seed, rank)``). ``start``
     is how many batches this rank has already consumed: the iterator must begin there
-    (a resume after a kill), and must not draw from the global RNGs.
+    (a resume after a kill), and must not draw from the global RNGs. Every step consumes
+    one batch on every rank, so ``start`` also counts the global batches, whatever the
+    number of processes that consumed them.
     """
 
     rank: int
@@ -120,6 +132,10 @@ class Task(Protocol):
       EMA is on, in eval mode; the training RNG streams are restored afterwards.
     - ``extra_updates(model) -> list[Update]``: more optimisers over parts of the
       unwrapped model, stepped in order after the main loss each step.
+
+    An optional attribute ``global_order = True`` says that global batch ``b`` (the
+    ranks' ``b``-th batches together) is the same samples for any ``world_size`` dividing
+    the batch size: the task's checkpoints may then resume with another number of processes.
     """
 
     def build_model(self) -> nn.Module: ...
@@ -282,6 +298,7 @@ class _Env:
     rank: int
     world_size: int
     device: torch.device
+    control: Any = None  # the process group of the host-side stop flag (None: the default group)
 
 
 def _start_distributed() -> _Env:
@@ -298,8 +315,16 @@ def _start_distributed() -> _Env:
         dist.init_process_group("nccl" if cuda else "gloo", device_id=device if cuda else None)
         atexit.register(_destroy_group)
     if dist.is_initialized():
-        return _Env(dist.get_rank(), dist.get_world_size(), device)
+        control = _host_group() if dist.get_backend() != "gloo" else None
+        return _Env(dist.get_rank(), dist.get_world_size(), device, control)
     return _Env(0, 1, device)
+
+
+@functools.cache
+def _host_group() -> Any:
+    """A gloo group beside NCCL's, for the per-step stop flag: a host tensor reduced on the host, so asking
+    whether any rank was signalled does not wait for the GPU (an NCCL reduction read on the host would)."""
+    return dist.new_group(backend="gloo")
 
 
 def _destroy_group() -> None:
@@ -351,13 +376,12 @@ class _Run:
         if cfg.compile:
             compile_for_training(self.raw)  # in place: the state dict keeps its names; the EMA copy stays eager
         self.step = self.start_step = self.position = 0
+        self.checkpointed: int | None = None  # the step of the checkpoint on disk, once this run has read or written it
+        self.resumed_from: int | None = None  # how many processes wrote the checkpoint this run resumed
         self.metrics: dict[str, float] = {}
         self.history: list[tuple[int, dict[str, float]]] = []
         self.curves: dict[str, list[dict[str, float]]] = {name: [] for name in CURVES}
-        seed = rank_seed(cfg.seed, env.rank)  # a resume replaces these streams with the saved ones
-        random.seed(seed)
-        np.random.seed(seed)
-        torch.manual_seed(seed)
+        _seed_global_streams(rank_seed(cfg.seed, env.rank))  # a resume replaces these streams with the saved ones
 
     def run(self) -> TrainResult:
         self.resume()
@@ -369,7 +393,7 @@ class _Run:
         started = time.perf_counter()
         bar = tqdm(total=cfg.steps, initial=self.step, unit="step", desc=self.out_dir.name, dynamic_ncols=True,
                    disable=env.rank != 0, mininterval=0.5 if sys.stderr.isatty() else 30.0)
-        with bar:
+        with bar, _StopSignals() as stop:
             while self.step < cfg.steps:
                 batch = next(batches, _EXHAUSTED)
                 if batch is _EXHAUSTED:
@@ -378,11 +402,13 @@ class _Run:
                 self.train_step(batch, meter)
                 bar.update()
                 self.after_step(meter, bar)
+                if self.step < cfg.steps:
+                    self.stop_if_signalled(stop.received)
         if self.step > self.start_step:
             self.save_checkpoint()
         if env.rank == 0 and (self.step > self.start_step or not (self.out_dir / "model.pt").exists()):
             self.save_weights()
-        _barrier(env)
+        _barrier(env, env.control)
         seconds = time.perf_counter() - started
         if env.rank == 0:
             print(self.summary(seconds), flush=True)
@@ -431,6 +457,26 @@ class _Run:
         if step % cfg.checkpoint_every == 0 and not last:
             self.save_checkpoint()
 
+    def stop_if_signalled(self, received: int) -> None:
+        """At a step boundary: if any rank has received a stop signal (``received`` is this rank's, 0 if none),
+        every rank stops here, after rank 0 has written the checkpoint of this step.
+
+        The ranks agree through a reduction of the signal numbers (SIGTERM outranks SIGUSR1), so they stop at the
+        same step: a rank that stopped alone would leave the others waiting in the next collective.
+        """
+        signum = received
+        if self.env.world_size > 1:
+            flag = torch.tensor([received], dtype=torch.int32)
+            dist.all_reduce(flag, op=dist.ReduceOp.MAX, group=self.env.control)
+            signum = int(flag.item())
+        if not signum:
+            return
+        if self.checkpointed != self.step:
+            self.save_checkpoint()
+        name = signal.Signals(signum).name
+        raise TrainingStopped(f"stopped by {name} at step {self.step} of {self.cfg.steps}, checkpoint "
+                              f"{self.checkpoint_path} written; run the stage again to resume", name, self.step)
+
     def autocast(self) -> contextlib.AbstractContextManager:
         if self.cfg.mixed_precision == "bf16" and self.env.device.type == "cuda":
             return torch.autocast("cuda", dtype=torch.bfloat16)
@@ -443,6 +489,15 @@ class _Run:
             self.logger.log_metrics(metrics, self.step)
 
     def resume(self) -> None:
+        """Continue from ``checkpoints/last.pt`` if there is one.
+
+        With the number of processes that wrote it, each rank gets its RNG streams back and the run continues
+        bit for bit (on CPU). With another number (tasks with ``global_order`` only) the run consumes the same
+        global batches in the same order, with the same weights, optimiser state and schedule, but is not
+        bit-identical to an uninterrupted run: the gradient is averaged over another split of the batch (another
+        reduction order), and noise drawn per rank (a task's ``(seed, rank, step)`` generators, the global
+        streams here) is drawn for other samples.
+        """
         path = self.checkpoint_path
         if not path.exists():
             return
@@ -454,9 +509,11 @@ class _Run:
             raise ResumeError(f"{path} was written with a different training config ({changed}); resuming it "
                               f"would mix two runs. Delete {path} to start this stage over, or restore the old "
                               f"config to resume")
-        if saved["world_size"] != self.env.world_size:
-            raise ResumeError(f"{path} was written by {saved['world_size']} processes, this run has "
-                              f"{self.env.world_size}; resume with {saved['world_size']} or delete {path}")
+        written_by = saved["world_size"]
+        if written_by != self.env.world_size and not getattr(self.task, "global_order", False):
+            raise ResumeError(f"{path} was written by {written_by} processes, this run has {self.env.world_size}, "
+                              f"and this task's batches depend on the number of processes; resume with "
+                              f"{written_by} or delete {path}")
         try:
             self.raw.load_state_dict(saved["model"])
             if self.ema is not None:
@@ -465,10 +522,17 @@ class _Run:
                 optimizer.load_state_dict(saved["optimizers"][name])
         except (KeyError, RuntimeError, ValueError) as err:
             raise ResumeError(f"{path} does not fit this model ({err}); delete it to start this stage over") from err
-        self.step = self.start_step = saved["step"]
+        self.step = self.start_step = self.checkpointed = saved["step"]
         self.position = saved["data_position"]
         self.curves = saved["curves"]
-        _set_rng_state(saved["rng"][self.env.rank], self.env.device)
+        self.resumed_from = written_by
+        if written_by == self.env.world_size:
+            _set_rng_state(saved["rng"][self.env.rank], self.env.device)
+        else:
+            # Rank r's streams of the old run have no counterpart in the new one: each rank starts its own,
+            # a pure function of (seed, rank, step), so a resume at this size is repeatable.
+            _seed_global_streams(int(np.random.SeedSequence([self.cfg.seed, self.env.rank, self.step])
+                                     .generate_state(1)[0]))
 
     def save_checkpoint(self) -> None:
         rng = _all_gather(_rng_state(self.env.device), self.env)
@@ -480,7 +544,8 @@ class _Run:
                 "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()}, "rng": rng,
                 "curves": self.curves,
             }, self.checkpoint_path)
-        _barrier(self.env)
+        self.checkpointed = self.step
+        _barrier(self.env, self.env.control)  # on the host: the others wait out a long write without a GPU timeout
 
     def save_weights(self) -> None:
         final = self.ema if self.ema is not None else self.raw
@@ -495,7 +560,9 @@ class _Run:
         ran, weights = self.step - self.start_step, self.out_dir / "model.pt"
         if ran == 0:
             return f"train {self.out_dir}: already complete at step {self.step}; weights {weights}"
-        resumed = f" (resumed at {self.start_step})" if self.start_step else ""
+        other = self.resumed_from not in (None, self.env.world_size)
+        resumed = (f" (resumed at {self.start_step}" + (f", written by {self.resumed_from} processes" if other else "")
+                   + ")") if self.start_step else ""
         return (f"train {self.out_dir}: {ran} steps to {self.step}{resumed} in {seconds:.1f} s ({ran / seconds:.2f}"
                 f" steps/s), loss {self.metrics.get('loss', math.nan):.4g}; weights {weights}")
 
@@ -621,9 +688,9 @@ def _all_gather(obj: Any, env: _Env) -> list[Any]:
     return gathered
 
 
-def _barrier(env: _Env) -> None:
+def _barrier(env: _Env, group: Any = None) -> None:
     if env.world_size > 1:
-        dist.barrier()
+        dist.barrier(group=group)
 
 
 def _save_checkpoint(obj: Any, path: Path) -> None:
@@ -638,3 +705,40 @@ def _save_checkpoint(obj: Any, path: Path) -> None:
 def _atomic_save(obj: Any, path: Path) -> None:
     with atomic_file(path) as tmp, open(tmp, "wb") as handle:
         torch.save(obj, handle)  # through a handle: the bytes must not depend on the temp file's name
+
+
+def _seed_global_streams(seed: int) -> None:
+    """Python's, NumPy's and torch's global RNGs, all from ``seed``."""
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+# The signals that stop training at the next step boundary: a scheduler's warning ahead of a time limit
+# (Slurm's `--signal=B:USR1@<seconds>`) and termination (preemption, a cancel, the time limit itself).
+STOP_SIGNALS = (signal.SIGUSR1, signal.SIGTERM)
+
+
+class _StopSignals:
+    """While training runs, :data:`STOP_SIGNALS` are noted (``received``: the first one's number, 0 for none)
+    instead of acted on; the loop stops at the next step boundary (:meth:`_Run.stop_if_signalled`).
+
+    Python runs handlers in the main thread only, so elsewhere (a test's worker thread) nothing is installed.
+    The handlers in place before come back on exit.
+    """
+
+    def __init__(self) -> None:
+        self.received = 0
+        self.previous: dict[int, Any] = {}
+
+    def __enter__(self) -> _StopSignals:
+        if threading.current_thread() is threading.main_thread():
+            self.previous = {sig: signal.signal(sig, self.note) for sig in STOP_SIGNALS}
+        return self
+
+    def note(self, signum: int, frame: Any) -> None:
+        self.received = self.received or signum
+
+    def __exit__(self, *exc: Any) -> None:
+        for sig, handler in self.previous.items():
+            signal.signal(sig, handler)
