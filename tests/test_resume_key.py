@@ -40,11 +40,52 @@ def test_key_follows_input_files_and_code(smoke_cfg, tmp_path, monkeypatch):
         work_dir("abstract_df", smoke_cfg, ["data"], {"latents": tmp_path / "missing.json"})
 
 
-def test_code_version_hashes_every_module(tmp_path):
-    (tmp_path / "pkg" / "sub").mkdir(parents=True)
+MODEL = '''"""A model."""
+
+import torch
+
+
+class Net(torch.nn.Module):
+    """Two layers."""
+
+    def forward(self, x):
+        if x.isnan().any():
+            raise ValueError(f"NaN input of shape {x.shape}")
+        print(f"forward {x.shape}", flush=True)
+        return torch.tanh(x) * 2.0
+'''
+
+
+def key_of(tmp_path, model: str) -> str:
+    (tmp_path / "pkg" / "sub").mkdir(parents=True, exist_ok=True)
+    (tmp_path / "pkg" / "sub" / "net.py").write_text(model)
     (tmp_path / "pkg" / "a.py").write_text("x = 1\n")
-    (tmp_path / "pkg" / "sub" / "b.py").write_text("y = 2\n")
-    first = code_version(tmp_path / "pkg")
-    (tmp_path / "pkg" / "sub" / "b.py").write_text("y = 3\n")
-    assert code_version.__wrapped__(tmp_path / "pkg") != first
+    return code_version.__wrapped__(tmp_path / "pkg")
+
+
+@pytest.mark.parametrize("change", [
+    ('"""Two layers."""', '"""Two layers, documented better."""'),  # a docstring
+    ('"""A model."""\n', ""),  # the module's docstring, gone
+    ("return torch.tanh(x) * 2.0", "return torch.tanh(x) * 2.0  # scaled, as the paper does"),  # a comment
+    ('print(f"forward {x.shape}", flush=True)', 'print(f"forward pass on {x.shape}",\n              flush=True)'),
+    ('f"NaN input of shape {x.shape}"', 'f"the input holds NaN (shape {x.shape}); check the data"'),  # a message
+])
+def test_a_change_to_docs_comments_or_messages_keeps_the_key(tmp_path, change):
+    before = key_of(tmp_path, MODEL)
+    assert MODEL.count(change[0]) == 1
+    assert key_of(tmp_path, MODEL.replace(*change)) == before
+
+
+@pytest.mark.parametrize("change", [
+    ("* 2.0", "* 3.0"),  # a constant
+    ("torch.tanh(x)", "torch.sigmoid(x)"),  # the model
+    ("x.isnan().any()", "x.isinf().any()"),  # a condition, even one that only raises
+    ("{x.shape}\", flush", "{x.sum().item()}\", flush"),  # an expression inside a message is code
+])
+def test_a_change_to_what_the_code_computes_changes_the_key(tmp_path, change):
+    before = key_of(tmp_path, MODEL)
+    assert MODEL.count(change[0]) == 1
+    assert key_of(tmp_path, MODEL.replace(*change)) != before
+    (tmp_path / "pkg" / "a.py").write_text("x = 2\n")  # any module of the package
+    assert code_version.__wrapped__(tmp_path / "pkg") != before
     assert len(code_version()) == 64

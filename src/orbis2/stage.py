@@ -19,13 +19,16 @@ registry.yaml's ``layout``, so the library only ever receives paths.
 from __future__ import annotations
 
 import argparse
+import ast
 import atexit
 import contextlib
 import functools
 import gc
 import hashlib
 import json
+import os
 import shutil
+import subprocess
 import sys
 import time
 from dataclasses import dataclass
@@ -179,8 +182,10 @@ def open_stage(name: str, args: argparse.Namespace, interface: Interface,
     as its rule passes it); they are logged as the run's parameters. On leaving the block the wall time is
     logged as ``wall_seconds`` (the parent's ``tables/stage_times.csv`` collects them) and
     ``[<name>] <summary> (<s> s, profile <p>)`` printed. A user-fixable problem (:class:`OrbisError`) prints
-    ``[<name>] error: ...`` and exits with status 2. Run by hand without ``--profile``, the stage takes the
-    profile of the data it works on (:func:`profile_witness`) and says so.
+    ``[<name>] error: ...`` and exits with status 2. Training stopped by a signal (:class:`TrainingStopped`,
+    its checkpoint written) exits with ``REQUEUE_EXIT`` (75), after asking Slurm to requeue the job on SIGUSR1
+    (:func:`requeue_slurm_job`). Run by hand without ``--profile``, the stage takes the profile of the data it
+    works on (:func:`profile_witness`) and says so.
     """
     started = time.perf_counter()
     freeze_imports()  # the script's own imports
@@ -206,6 +211,24 @@ def open_stage(name: str, args: argparse.Namespace, interface: Interface,
     print(f"[{name}] {stage.summary} ({time.perf_counter() - started:.1f} s, profile {cfg.profile})")
 
 
+def requeue_slurm_job(name: str) -> None:
+    """Put this Slurm batch job back in the queue (``scontrol requeue``); rank 0 only, the checkpoint written.
+
+    SIGUSR1 is Slurm's warning ahead of the time limit (``--signal=USR1@<seconds>``, which profiles/slurm asks
+    for on every training rule, with ``--requeue``): the requeued job runs the stage again, and it resumes. Like
+    Lightning's and submitit's Slurm handling, the stage asks for the requeue itself, as only it knows that its
+    checkpoint is written. Outside a Slurm job nothing happens; a refusal (a job without ``--requeue``) is
+    printed, and running the stage again resumes it all the same.
+    """
+    job = os.environ.get("SLURM_JOB_ID")
+    if job is None or int(os.environ.get("RANK", "0")) != 0:
+        return
+    proc = subprocess.run(["scontrol", "requeue", job], capture_output=True, text=True)
+    outcome = ("requeued: it resumes when Slurm starts it again" if proc.returncode == 0 else
+               f"not requeued ({proc.stderr.strip() or proc.returncode}): submit it again to resume")
+    print(f"[{name}] Slurm job {job} {outcome}", file=sys.stderr)
+
+
 # Stages that make the data (or need none): a run's profile is what they are told, not what they find.
 MAKE_THE_DATA = ("town", "import", "shards", "assets")
 
@@ -227,7 +250,8 @@ def work_dir(name: str, cfg: PipelineConfig, sections: list[str], inputs: dict[s
     so a killed run resumes while anything else starts afresh: the resolved params
     of ``sections`` (without bookkeeping such as ``checkpoint_every``, which a resume
     may change), the SHA-256 of every file in ``inputs`` (the shards manifest,
-    upstream weights, the teacher) and :func:`code_version`. Without the last two, a
+    upstream weights, the teacher) and :func:`code_version` (what the package computes:
+    a docstring, comment or message changed resumes). Without the last two, a
     re-run after new data or a bug fix would find the old run finished and publish
     its stale weights.
     """
@@ -252,15 +276,51 @@ def _without_bookkeeping(section: dict) -> dict:
 
 @functools.cache
 def code_version(root: Path = Path(orbis2.__file__).parent) -> str:
-    """SHA-256 over the ``*.py`` files of the orbis2 package (relative paths and bytes).
+    """SHA-256 over what the ``*.py`` files of the orbis2 package compute: each module's relative path and
+    syntax tree, without its docstrings and without the text of its messages (:func:`computing_tree`).
 
-    The whole package rather than the modules a stage imports: a stage reaches most of
-    it indirectly, and a spurious fresh start costs less than resuming stale code.
+    The resume key of long runs (:func:`work_dir`): a fix to a docstring, a comment, the layout or the wording
+    of a log line or an error message must not restart days of training; any other change (a model, a loss,
+    a sampler, a constant) starts a new run. The whole package rather than the modules a stage imports: a stage
+    reaches most of it indirectly, and a spurious fresh start costs less than resuming stale code. A new
+    Python version may parse the same source into another tree: that, too, starts afresh.
     """
     digest = hashlib.sha256()
     for path in sorted(root.rglob("*.py")):
-        digest.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+        digest.update(str(path.relative_to(root)).encode() + b"\0" + computing_tree(path.read_text()).encode() + b"\0")
     return digest.hexdigest()
+
+
+# Calls whose string arguments are messages for people: print(...), warnings.warn(...), a logger's methods.
+MESSAGE_CALLS = frozenset({"print", "warn", "debug", "info", "warning", "error", "exception", "critical"})
+
+
+def computing_tree(source: str) -> str:
+    """``source``'s syntax tree as text (``ast.dump``: no comments, no layout, no line numbers) with every
+    docstring removed and every string literal in a message blanked: the arguments of :data:`MESSAGE_CALLS`
+    and of the exception a ``raise`` constructs. Expressions inside those messages (an f-string's values)
+    stay: they are code."""
+    tree = ast.parse(source)
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body
+                and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant)
+                and isinstance(body[0].value.value, str)):
+            node.body = body[1:] or [ast.Pass()]
+        if isinstance(node, ast.Raise) and isinstance(node.exc, ast.Call):
+            _blank_strings(node.exc.args + [k.value for k in node.exc.keywords])
+        if isinstance(node, ast.Call):
+            name = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", None)
+            if name in MESSAGE_CALLS:
+                _blank_strings(node.args + [k.value for k in node.keywords])
+    return ast.dump(tree)
+
+
+def _blank_strings(nodes: list[ast.expr]) -> None:
+    for top in nodes:
+        for node in ast.walk(top):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str):
+                node.value = ""
 
 
 # The losses drawn beside each training run's curves, one PNG each (``curves/<metric>.png``) on its own y scale:

@@ -45,6 +45,8 @@ FLOW_CHUNK = 1024  # pairs whose frames are stacked at once to compute their flo
 class InstrumentTask:
     """Flow fields of random train pairs -> standardised (speed, yaw rate), mean squared error."""
 
+    global_order = True  # each global batch is drawn whole and sliced per rank (batches)
+
     def __init__(self, data: ClipFrames, cfg: InverseDynamicsConfig):
         self.cfg = cfg
         self.index = pair_index(data)

@@ -188,21 +188,27 @@ def window_index_batches(n_windows: int, spec: DataSpec, split: str,
     """Endless window indices of this rank's train batches from batch ``spec.start`` on; a pure function of the spec.
 
     Each epoch is a permutation drawn from ``(seed, epoch)``, shared by all ranks, of
-    the windows with window i listed ``repeats[i]`` times (once without ``repeats``),
-    of which each rank keeps every ``world_size``-th entry; skipping to ``start``
-    reads no windows.
+    the windows with window i listed ``repeats[i]`` times (once without ``repeats``).
+    Global batch ``g`` of the epoch is its entries ``g * B`` to ``(g + 1) * B - 1``
+    (``B = batch_size * world_size``, the configured global batch) and rank ``r`` keeps
+    every ``world_size``-th of them from the ``r``-th: the global batches, and the
+    number of them in an epoch (the whole ones, ``len(pool) // B``), do not depend on
+    how many processes share them, so a run may resume with another number, and within
+    an epoch no window repeats or goes missing (but the last ``len(pool) % B``, drawn
+    anew each epoch). Only ``len(dataset)`` is needed, and skipping to ``start`` reads
+    no windows.
     """
     pool = np.arange(n_windows) if repeats is None else np.repeat(np.arange(n_windows), repeats)
-    n = len(pool)
-    per_epoch = (n // spec.world_size) // spec.batch_size
+    n, size = len(pool), spec.batch_size * spec.world_size
+    per_epoch = n // size
     if per_epoch == 0:
-        raise OrbisError(f"the {split} split gives {n} windows, fewer than one batch of {spec.batch_size} "
-                         f"per process; lower the batch size or anchor_stride, or add data")
+        raise OrbisError(f"the {split} split gives {n} windows, fewer than one global batch of {size}; "
+                         f"lower the batch size or anchor_stride, or add data")
     first_epoch, offset = divmod(spec.start, per_epoch)
     for epoch in itertools.count(first_epoch):
-        order = pool[np.random.default_rng([spec.seed, epoch]).permutation(n)][spec.rank::spec.world_size]
-        for b in range(offset, per_epoch):
-            yield [int(i) for i in order[b * spec.batch_size:(b + 1) * spec.batch_size]]
+        order = pool[np.random.default_rng([spec.seed, epoch]).permutation(n)]
+        for g in range(offset, per_epoch):
+            yield [int(i) for i in order[g * size:(g + 1) * size][spec.rank::spec.world_size]]
         offset = 0
 
 
@@ -246,6 +252,8 @@ def step_generator(seed: int, rank: int, step: int, device: torch.device) -> tor
 
 class PredictorTask:
     """One predictor stage: model (optionally initialised from another stage), batches, loss, validation."""
+
+    global_order = True  # window_index_batches: the same global batches for any number of processes
 
     def __init__(self, stage: str, cfg: PredictorConfig, data: DataConfig, cache: LatentCache,
                  init_state: dict[str, torch.Tensor] | None = None):
