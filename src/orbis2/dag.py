@@ -28,6 +28,7 @@ from typing import Any, Callable
 import yaml
 
 from orbis2.config.params import load_params, section_chain
+from orbis2.interfaces import TRAIN
 from orbis2.registry import layout_path, registry
 from orbis2.stage import LOSS_PLOTS
 
@@ -80,7 +81,9 @@ SLURM_HEADER = """\
 # profile for SLURM clusters (snakemake-executor-plugin-slurm):
 #   pip install snakemake-executor-plugin-slurm
 #   snakemake --workflow-profile profiles/slurm --config profile=paper \\
-#       train_launcher="torchrun --standalone --nproc_per_node 8"
+#       train_launcher=tools/slurm_torchrun.sh
+# Training rules span nodes (orbis2.interfaces TRAIN), one torchrun per node, and are warned
+# ahead of their time limit to checkpoint and requeue (docs/gpus-and-clusters.md).
 # Adjust partitions, accounts and limits to your cluster.
 """
 SLURM_BASE = {"executor": "slurm", "jobs": 50,
@@ -162,6 +165,8 @@ def snakemake_rules(root: Path, profile: str | None = None) -> list:
 
 # A rule's named input or output in its shell command.
 PLACEHOLDER = re.compile(r"\{(input|output)\.(\w+)\}")
+# The training rules' placeholder for how they start (params.yaml `train_launcher`).
+LAUNCHER = "{config[train_launcher]}"
 
 
 def _named_files(rule, kind: str, name: str) -> list[str]:
@@ -190,7 +195,7 @@ def dvc_command(rule, dep=lambda path: path) -> str:
 
     cmd = PLACEHOLDER.sub(paths, cmd)
     return (cmd.replace("{params.profile}", "${profile}").replace("{rule}", rule.name)
-            .replace("{config[train_launcher]}", "${train_launcher}").replace("{config[parts]}", "${parts}"))
+            .replace(LAUNCHER, "${train_launcher}").replace("{config[parts]}", "${parts}"))
 
 
 def _out_entry(out: str, assets: str) -> Any:
@@ -286,14 +291,40 @@ def requests(declared: dict[str, int], runs_here: Callable[[], bool]) -> dict[st
 
 def slurm_resources(rule) -> dict:
     """A rule's SLURM request: GPU rules on the gpu partition, one task with the rule's threads (the rules as
-    :func:`snakemake_rules` reads them: with the declared GPUs and memory, not this machine's)."""
+    :func:`snakemake_rules` reads them: with the declared GPUs and memory, not this machine's); a training rule
+    (one that starts through ``train_launcher``) spans ``TRAIN.nodes`` nodes (:func:`multi_node`)."""
     value = {name: int(rule.resources[name].value) for name in ("gpu", "_cores", "mem_mb", "runtime")}
     gpus = value["gpu"]
     out = {"slurm_partition": "gpu" if gpus else "cpu", "cpus_per_task": value["_cores"],
            "mem_mb": value["mem_mb"], "runtime": value["runtime"]}
     if gpus:
         out["gres"] = f"gpu:{gpus}"
+    if LAUNCHER in rule.shellcmd and TRAIN.nodes > 1:
+        out.update(multi_node(TRAIN.nodes))
     return out
+
+# Slurm's warning to a training job ahead of its time limit: time to finish the step under way and write the
+# checkpoint (orbis2.train) before the limit's SIGTERM and, KillWait later, SIGKILL.
+STOP_WARNING_S = 600
+
+
+def multi_node(nodes: int) -> dict:
+    """The request of a training job over ``nodes`` nodes, for snakemake-executor-plugin-slurm (its sbatch call is
+    checked in tests/test_multinode.py): ``mem_mb``, ``gres`` (the GPUs) and ``cpus_per_task`` hold per node, one
+    task per node, in which ``tools/slurm_torchrun.sh`` starts one torchrun.
+
+    - ``mpi``: the plugin runs the rule's command in the job's batch step, whose own ``srun`` (the launcher's)
+      starts the tasks. Without it the plugin wraps the command in a one-task step, whose Snakemake process
+      SIGUSR1 would reach and kill; the plugin allows it from 2 tasks on.
+    - ``tasks`` with ``tasks_per_gpu: 0`` and ``gpu: 0``: ``--ntasks`` only (the plugin otherwise derives a
+      ``--ntasks-per-gpu`` from ``tasks`` and adds a job-wide ``--gpus`` beside the per-node ``--gres``).
+    - ``slurm_extra``: one task per node; ``--signal=USR1@<STOP_WARNING_S>``, sent to every process of the
+      job's steps (``B:`` would signal the batch shell alone, which dies of it), so the training processes
+      checkpoint and the job requeues itself (:func:`orbis2.stage.requeue_slurm_job`), which ``--requeue``
+      allows.
+    """
+    return {"nodes": nodes, "mpi": "srun", "tasks": nodes, "tasks_per_gpu": 0, "gpu": 0,
+            "slurm_extra": f"--ntasks-per-node=1 --signal=USR1@{STOP_WARNING_S} --requeue"}
 
 
 def generate(root: Path = ROOT) -> dict[Path, str]:

@@ -27,12 +27,15 @@ from orbis2.registry import layout_path
 class Resources:
     """A rule's machine needs. threads are capped at --cores, so a rule asking for more than the machine
     has runs alone; gpu, mem_mb and runtime (minutes) are for schedulers (profiles/slurm) and are the
-    paper profile's needs."""
+    paper profile's needs. ``nodes``: how many nodes a job spans, each with ``threads``, ``gpu`` and
+    ``mem_mb`` (a training job of profiles/slurm, one torchrun per node); Snakemake itself schedules one
+    node's worth, so a run on one machine is unaffected."""
 
     threads: int
     gpu: int
     mem_mb: int
     runtime: int
+    nodes: int = 1
 
     def scheduler(self) -> dict[str, int]:
         """Snakemake's ``resources:`` (everything but threads)."""
@@ -41,7 +44,8 @@ class Resources:
 
 LIGHT = Resources(threads=1, gpu=0, mem_mb=4000, runtime=60)
 CPU = Resources(threads=16, gpu=0, mem_mb=32000, runtime=600)
-TRAIN = Resources(threads=16, gpu=8, mem_mb=480000, runtime=2880)
+# The paper's training: 8 nodes of 8 GPUs (64 GPUs; the paper profile's global batches split over them, docs/scale.md).
+TRAIN = Resources(threads=16, gpu=8, mem_mb=480000, runtime=2880, nodes=8)
 GPU = Resources(threads=16, gpu=1, mem_mb=64000, runtime=600)
 # One part of a data stage (orbis2.data.parts): one core, memory bounded by a clip (~0.4 GB measured). At the
 # paper's corpus with parts=256, 0.8 M frames a part: about 16 min at the shards' measured 850 frames/s

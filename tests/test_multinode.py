@@ -1,0 +1,138 @@
+"""Training over several nodes: the generated Slurm request and what the Slurm executor submits of it, the
+launcher (tools/slurm_torchrun.sh), and a rehearsal on this machine: two simulated nodes (two torchrun agents
+meeting through a c10d rendezvous, gloo) against one node of two processes, and SIGUSR1 sent mid-run."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import torch
+import yaml
+from test_predictors import SPAN, write_cache
+
+from orbis2.interfaces import TRAIN
+from orbis2.train import load_checkpoint, load_weights
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = Path(__file__).with_name("multinode_train.py")
+LAUNCHER = ROOT / "tools" / "slurm_torchrun.sh"
+
+# Slurm's commands as the launcher uses them, for a job of two nodes that are both this machine.
+FAKE_SLURM = {
+    "squeue": 'echo "localhost 2"\n',  # squeue --noheader --jobs JOB --format "%N %D"
+    "scontrol": "echo localhost\n",  # scontrol show hostnames NODELIST
+    # srun: the command once per node, side by side; its arguments are recorded.
+    "srun": """echo "$*" >> "$SRUN_LOG"
+nodes=1
+while [[ $# -gt 0 && $1 == --* ]]; do
+    case $1 in
+        --nodes) nodes=$2; shift 2 ;;
+        --*=*) shift ;;
+        *) shift 2 ;;
+    esac
+done
+pids=()
+for _ in $(seq "$nodes"); do "$@" & pids+=($!); done
+status=0
+for pid in "${pids[@]}"; do wait "$pid" || status=$?; done
+exit $status
+""",
+    "torchrun": f'exec {sys.executable} -m torch.distributed.run "$@"\n',  # this interpreter's
+}
+
+
+def test_the_slurm_profile_spans_nodes_for_training_and_asks_for_the_warning():
+    """Training rules (and only they) get TRAIN's nodes, one task a node with the node's GPUs, SIGUSR1 ahead of
+    the time limit and --requeue; the sbatch call the executor plugin makes of that says so, and nothing that
+    contradicts it (a job-wide --gpus, tasks per GPU)."""
+    slurm = yaml.safe_load((ROOT / "profiles/slurm/config.yaml").read_text())["set-resources"]
+    spanning = sorted(name for name, request in slurm.items() if "nodes" in request)
+    assert {"tokenizer_detail", "tokenizer_abstract", "abstract_df", "detail", "action", "detail_distill"} <= set(
+        spanning)
+    assert not {"latents", "inverse_dynamics", "eval_fvd_hierarchical", "town"} & set(spanning)
+    assert TRAIN.nodes == 8
+    assert slurm["detail"] == {
+        "slurm_partition": "gpu", "cpus_per_task": TRAIN.threads, "mem_mb": TRAIN.mem_mb, "runtime": TRAIN.runtime,
+        "gres": f"gpu:{TRAIN.gpu}", "nodes": TRAIN.nodes, "mpi": "srun", "tasks": TRAIN.nodes, "tasks_per_gpu": 0,
+        "gpu": 0, "slurm_extra": "--ntasks-per-node=1 --signal=USR1@600 --requeue"}
+
+    submit = pytest.importorskip("snakemake_executor_plugin_slurm.submit_string")
+    from snakemake_executor_plugin_slurm.utils import set_gres_string
+    from snakemake_executor_plugin_slurm.validation import validate_slurm_extra
+
+    class Resources(dict):
+        __getattr__ = dict.__getitem__
+
+    job = SimpleNamespace(resources=Resources({"gpu": TRAIN.gpu, **slurm["detail"]}), threads=TRAIN.threads)
+    validate_slurm_extra(job)
+    params = {"run_uuid": "job", "slurm_logfile": "log", "comment_str": "detail", "account": "",
+              "partition": "-p gpu", "workdir": "."}
+    call = submit.get_submit_command(job, params) + set_gres_string(job)
+    words = call.split()
+    for expected in ("--nodes=8", "--ntasks=8", "--ntasks-per-node=1", "--cpus-per-task=16", "--gres=gpu:8",
+                     "--signal=USR1@600", "--requeue", "480000"):
+        assert expected in words, (expected, call)
+    assert not [w for w in words if w.startswith(("--gpus", "--ntasks-per-gpu"))], call
+
+
+def test_the_launcher_refuses_to_run_outside_slurm():
+    env = {k: v for k, v in os.environ.items() if k != "SLURM_JOB_ID"}
+    proc = subprocess.run([str(LAUNCHER), "stages/predictor.py"], env=env, capture_output=True, text=True)
+    assert proc.returncode != 0
+    assert "not inside a Slurm job; on one machine use: torchrun --standalone" in proc.stderr
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def launch(cmd: list, env: dict, expect_ok: bool = True) -> str:
+    proc = subprocess.run([str(c) for c in cmd], env=env, capture_output=True, text=True, timeout=300)
+    text = proc.stdout + proc.stderr
+    assert (proc.returncode == 0) == expect_ok, text[-4000:]
+    return text
+
+
+@pytest.mark.slow
+def test_two_simulated_nodes_train_bit_identically_to_one_node_and_survive_sigusr1(tmp_path):
+    """The generated launcher over two simulated nodes equals `torchrun --standalone` with two processes, bit
+    for bit; SIGUSR1 to rank 1 and its torchrun mid-run stops both ranks at the next step with a checkpoint, and
+    the requeued run ends with the same weights."""
+    cache = write_cache(tmp_path / "cache", {"train": [SPAN + 7], "val": [SPAN + 5]})  # 2 global batches of 4
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), str(ROOT / "tests")]),
+           "OMP_NUM_THREADS": "1"}
+    env.pop("SLURM_JOB_ID", None)
+    launch([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", SCRIPT,
+            cache.root, tmp_path / "one"], env)
+
+    fake = tmp_path / "bin"
+    fake.mkdir()
+    for name, body in FAKE_SLURM.items():
+        (fake / name).write_text("#!/usr/bin/env bash\n" + body)
+        (fake / name).chmod(0o755)
+    port = free_port()
+    nodes = {**env, "PATH": f"{fake}{os.pathsep}{env['PATH']}", "SLURM_JOB_ID": "4242", "RDZV_PORT": str(port),
+             "NPROC_PER_NODE": "1", "SRUN_LOG": str(tmp_path / "srun.log")}
+    launch([LAUNCHER, SCRIPT, cache.root, tmp_path / "two"], nodes)
+    srun = (tmp_path / "srun.log").read_text().splitlines()[0]
+    assert srun.startswith("--nodes 2 --ntasks 2 --ntasks-per-node 1 --kill-on-bad-exit=1 bash -c")
+    assert (f"torchrun --nnodes 2 --nproc_per_node 1 --rdzv_backend c10d --rdzv_endpoint localhost:{port} "
+            f"--rdzv_id 4242 {SCRIPT}") in srun
+    one, two = (load_weights(tmp_path / name / "model.pt") for name in ("one", "two"))
+    assert one.keys() == two.keys() and all(torch.equal(one[k], two[k]) for k in one)
+
+    text = launch([LAUNCHER, SCRIPT, cache.root, tmp_path / "stopped", 4], nodes, expect_ok=False)
+    assert text.count("stopped by SIGUSR1 at step 5 of 12") == 2, text[-4000:]  # both ranks, the same step
+    assert load_checkpoint(tmp_path / "stopped" / "checkpoints" / "last.pt")["step"] == 5
+    assert not (tmp_path / "stopped" / "model.pt").exists()
+    launch([LAUNCHER, SCRIPT, cache.root, tmp_path / "stopped"], nodes)  # the requeued job
+    stopped = load_weights(tmp_path / "stopped" / "model.pt")
+    assert all(torch.equal(one[k], stopped[k]) for k in one)
