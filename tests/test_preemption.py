@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import multiprocessing
 import os
 import signal
 from collections import Counter
@@ -11,11 +13,12 @@ import numpy as np
 import pytest
 import torch
 import torch.distributed as dist
+from test_predictors import SPAN, tiny_cfg, write_cache
 from test_train import DIM, Regression, assert_states_equal, config, saved_state
 from torch import nn
 
 from orbis2.errors import TrainingStopped
-from orbis2.tasks.predictors import window_index_batches
+from orbis2.tasks.predictors import PredictorTask, window_index_batches
 from orbis2.train import (
     DataSpec,
     ResumeError,
@@ -195,3 +198,33 @@ def test_no_window_repeats_or_goes_missing_within_an_epoch_for_any_number_of_pro
         resumed = [window_index_batches(n, DataSpec(r, world, size // world, 4, start, 0), "train", repeats)
                    for r in range(world)]
         assert [sorted(i for stream in resumed for i in next(stream)) for _ in range(3)] == batches[start:start + 3]
+
+
+class SignalledLoading(PredictorTask):
+    """Sends SIGUSR1 during step ``at`` to its process and to its DataLoader's workers, as Slurm signals every
+    process of a job step."""
+
+    def __init__(self, *args, at: int):
+        super().__init__(*args)
+        self.at = at
+
+    def loss(self, model, batch, step):
+        if step == self.at:
+            workers = multiprocessing.active_children()
+            assert workers, "no DataLoader workers to signal"
+            for pid in [os.getpid(), *(worker.pid for worker in workers)]:
+                os.kill(pid, signal.SIGUSR1)
+        return super().loss(model, batch, step)
+
+
+def test_data_loader_workers_outlive_the_signal_and_the_resume_is_bit_identical(tmp_path, smoke_cfg):
+    cache = write_cache(tmp_path / "cache", {"train": [SPAN + 7], "val": [SPAN + 5]})
+    cfg = tiny_cfg(smoke_cfg, "abstract_tf")
+    cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, steps=8, eval_every=0, num_workers=1))
+    args = ("abstract_tf", cfg, smoke_cfg.data, cache)
+    train(PredictorTask(*args), cfg.train, tmp_path / "straight")
+    with pytest.raises(TrainingStopped, match="stopped by SIGUSR1 at step 4 of 8"):
+        train(SignalledLoading(*args, at=3), cfg.train, tmp_path / "stopped")
+    assert train(PredictorTask(*args), cfg.train, tmp_path / "stopped").start_step == 4
+    straight, stopped = (load_weights(tmp_path / name / "model.pt") for name in ("straight", "stopped"))
+    assert all(torch.equal(straight[k], stopped[k]) for k in straight)

@@ -376,7 +376,7 @@ class _Run:
         if cfg.compile:
             compile_for_training(self.raw)  # in place: the state dict keeps its names; the EMA copy stays eager
         self.step = self.start_step = self.position = 0
-        self.checkpointed: int | None = None  # the step of the checkpoint on disk, once this run has read or written it
+        self.checkpointed: int | None = None  # the step of the checkpoint this run last read or wrote
         self.resumed_from: int | None = None  # how many processes wrote the checkpoint this run resumed
         self.metrics: dict[str, float] = {}
         self.history: list[tuple[int, dict[str, float]]] = []
@@ -560,9 +560,10 @@ class _Run:
         ran, weights = self.step - self.start_step, self.out_dir / "model.pt"
         if ran == 0:
             return f"train {self.out_dir}: already complete at step {self.step}; weights {weights}"
-        other = self.resumed_from not in (None, self.env.world_size)
-        resumed = (f" (resumed at {self.start_step}" + (f", written by {self.resumed_from} processes" if other else "")
-                   + ")") if self.start_step else ""
+        resumed = ""
+        if self.start_step:
+            other = f", written by {self.resumed_from} processes" if self.resumed_from != self.env.world_size else ""
+            resumed = f" (resumed at {self.start_step}{other})"
         return (f"train {self.out_dir}: {ran} steps to {self.step}{resumed} in {seconds:.1f} s ({ran / seconds:.2f}"
                 f" steps/s), loss {self.metrics.get('loss', math.nan):.4g}; weights {weights}")
 
@@ -715,7 +716,7 @@ def _seed_global_streams(seed: int) -> None:
 
 
 # The signals that stop training at the next step boundary: a scheduler's warning ahead of a time limit
-# (Slurm's `--signal=B:USR1@<seconds>`) and termination (preemption, a cancel, the time limit itself).
+# (Slurm's `--signal=USR1@<seconds>`) and termination (preemption, a cancel, the time limit itself).
 STOP_SIGNALS = (signal.SIGUSR1, signal.SIGTERM)
 
 
@@ -742,3 +743,14 @@ class _StopSignals:
     def __exit__(self, *exc: Any) -> None:
         for sig, handler in self.previous.items():
             signal.signal(sig, handler)
+
+
+def ignore_stop_signals(worker_id: int) -> None:
+    """A DataLoader's ``worker_init_fn``: its workers ignore :data:`STOP_SIGNALS`.
+
+    Slurm signals every process of a job step, the loader's workers included; one that died of SIGUSR1 would
+    fail the next batch before the training process reaches its step boundary and checkpoint. The training
+    process alone decides when to stop; its loader shuts the workers down when it exits.
+    """
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)

@@ -82,7 +82,7 @@ from orbis2.models.deviations import TURN_SEARCH, best_sideways_shift, translate
 from orbis2.models.files import load_predictor, save_predictor
 from orbis2.models.stdit import build_stdit_from
 from orbis2.registry import PredictorSpec, registry
-from orbis2.train import DataSpec, load_weights, train
+from orbis2.train import DataSpec, ignore_stop_signals, load_weights, train
 
 # Offset of the validation generator's seed from the training seed: a different stream, fixed across steps.
 VAL_SEED_OFFSET = 7919
@@ -236,7 +236,7 @@ def window_batches(dataset: LatentWindowDataset, spec: DataSpec,
         return (collate([dataset[i] for i in batch]) for batch in indices)
     loader = DataLoader(dataset, batch_sampler=_IndexBatches(indices), collate_fn=collate,
                         num_workers=spec.num_workers, pin_memory=spec.pin_memory,
-                        prefetch_factor=2 if spec.num_workers else None)
+                        prefetch_factor=2 if spec.num_workers else None, worker_init_fn=ignore_stop_signals)
     return iter(loader)
 
 
