@@ -25,7 +25,7 @@ LAUNCHER = ROOT / "tools" / "slurm_torchrun.sh"
 
 # Slurm's commands as the launcher uses them, for a job of two nodes that are both this machine.
 FAKE_SLURM = {
-    "squeue": 'echo "localhost 2"\n',  # squeue --noheader --jobs JOB --format "%N %D"
+    "squeue": 'echo "localhost 2 4"\n',  # squeue --noheader --jobs JOB --format "%N %D %C"
     "scontrol": "echo localhost\n",  # scontrol show hostnames NODELIST
     # srun: the command once per node, side by side; its arguments are recorded.
     "srun": """echo "$*" >> "$SRUN_LOG"
@@ -123,7 +123,7 @@ def test_two_simulated_nodes_train_bit_identically_to_one_node_and_survive_sigus
              "NPROC_PER_NODE": "1", "SRUN_LOG": str(tmp_path / "srun.log")}
     launch([LAUNCHER, SCRIPT, cache.root, tmp_path / "two"], nodes)
     srun = (tmp_path / "srun.log").read_text().splitlines()[0]
-    assert srun.startswith("--nodes 2 --ntasks 2 --ntasks-per-node 1 --kill-on-bad-exit=1 bash -c")
+    assert srun.startswith("--nodes 2 --ntasks 2 --ntasks-per-node 1 --cpus-per-task 2 --kill-on-bad-exit=1 bash")
     assert (f"torchrun --nnodes 2 --nproc_per_node 1 --rdzv_backend c10d --rdzv_endpoint localhost:{port} "
             f"--rdzv_id 4242 {SCRIPT}") in srun
     one, two = (load_weights(tmp_path / name / "model.pt") for name in ("one", "two"))

@@ -6,10 +6,11 @@
 #   snakemake --workflow-profile profiles/slurm ... --config profile=paper train_launcher=tools/slurm_torchrun.sh
 #   tools/slurm_torchrun.sh stages/predictor.py detail --profile paper     # inside `salloc -N 2 ...`, by hand
 #
-# The arguments are the training script's. Node list and count come from Slurm (`squeue`): Snakemake's
-# job step hands the rule's command only SLURM_JOB_ID. Every node must reach the first one on
-# RDZV_PORT (default 20000 + job id mod 10000, so that two jobs sharing a node do not meet);
-# NPROC_PER_NODE (default `gpu`: one process per visible GPU) sets the processes per node.
+# The arguments are the training script's. Node list, node count and CPUs come from Slurm (`squeue`):
+# Snakemake's job step hands the rule's command only SLURM_JOB_ID, and a step gets one CPU a task
+# unless it asks for the node's. Every node must reach the first one on RDZV_PORT (default
+# 20000 + job id mod 10000, so that two jobs sharing a node do not meet); NPROC_PER_NODE
+# (default `gpu`: one process per visible GPU) sets the processes per node.
 #
 # torchrun itself ignores SIGUSR1 (it would otherwise die of it and take the workers with it): Slurm's
 # `--signal=USR1@<seconds>` reaches every process of the step, and only the training processes act on it
@@ -17,11 +18,12 @@
 set -euo pipefail
 
 job=${SLURM_JOB_ID:?"not inside a Slurm job; on one machine use: torchrun --standalone --nproc_per_node N"}
-read -r nodelist nodes < <(squeue --noheader --jobs "$job" --format "%N %D")
-head=$(scontrol show hostnames "$nodelist" | head -n 1)
+read -r nodelist nodes cpus < <(squeue --noheader --jobs "$job" --format "%N %D %C")
+head=$(scontrol show hostnames "$nodelist" | sed -n 1p)
 port=${RDZV_PORT:-$((20000 + job % 10000))}
 
-exec srun --nodes "$nodes" --ntasks "$nodes" --ntasks-per-node 1 --kill-on-bad-exit=1 \
+exec srun --nodes "$nodes" --ntasks "$nodes" --ntasks-per-node 1 --cpus-per-task $((cpus / nodes)) \
+    --kill-on-bad-exit=1 \
     bash -c 'trap "" USR1; exec "$@"' launcher \
     torchrun --nnodes "$nodes" --nproc_per_node "${NPROC_PER_NODE:-gpu}" \
     --rdzv_backend c10d --rdzv_endpoint "$head:$port" --rdzv_id "$job" "$@"
