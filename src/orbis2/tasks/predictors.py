@@ -193,10 +193,10 @@ def window_index_batches(n_windows: int, spec: DataSpec, split: str,
     (``B = batch_size * world_size``, the configured global batch) and rank ``r`` keeps
     every ``world_size``-th of them from the ``r``-th: the global batches, and the
     number of them in an epoch (the whole ones, ``len(pool) // B``), do not depend on
-    how many processes share them, so a run may resume with another number, and within
-    an epoch no window repeats or goes missing (but the last ``len(pool) % B``, drawn
-    anew each epoch). Only ``len(dataset)`` is needed, and skipping to ``start`` reads
-    no windows.
+    how many processes share them, so a run may resume with another number; within
+    an epoch no window repeats or goes missing, but for the permutation's last
+    ``len(pool) % B`` entries, which the epoch leaves out. Only ``len(dataset)`` is
+    needed, and skipping to ``start`` reads no windows.
     """
     pool = np.arange(n_windows) if repeats is None else np.repeat(np.arange(n_windows), repeats)
     n, size = len(pool), spec.batch_size * spec.world_size
