@@ -297,9 +297,9 @@ MESSAGE_CALLS = frozenset({"print", "warn", "debug", "info", "warning", "error",
 
 def computing_tree(source: str) -> str:
     """``source``'s syntax tree as text (``ast.dump``: no comments, no layout, no line numbers) with every
-    docstring removed and every string literal in a message blanked: the arguments of :data:`MESSAGE_CALLS`
-    and of the exception a ``raise`` constructs. Expressions inside those messages (an f-string's values)
-    stay: they are code."""
+    docstring removed and the text of every message left out: the string literals in the arguments of
+    :data:`MESSAGE_CALLS` and of the exception a ``raise`` constructs. Expressions inside those messages
+    (an f-string's values) stay: they are code."""
     tree = ast.parse(source)
     for node in ast.walk(tree):
         body = getattr(node, "body", None)
@@ -317,9 +317,12 @@ def computing_tree(source: str) -> str:
 
 
 def _blank_strings(nodes: list[ast.expr]) -> None:
+    """The text of messages out: an f-string keeps only its values, a plain string becomes empty."""
     for top in nodes:
         for node in ast.walk(top):
-            if isinstance(node, ast.Constant) and isinstance(node.value, str):
+            if isinstance(node, ast.JoinedStr):
+                node.values = [value for value in node.values if not isinstance(value, ast.Constant)]
+            elif isinstance(node, ast.Constant) and isinstance(node.value, str):
                 node.value = ""
 
 
