@@ -133,3 +133,36 @@ def test_two_simulated_nodes_stopped_by_sigusr1_and_requeued_end_as_one_node_of_
     launch([LAUNCHER, SCRIPT, cache.root, tmp_path / "two"], nodes)  # the requeued job
     one, two = (load_weights(tmp_path / name / "model.pt") for name in ("one", "two"))
     assert one.keys() == two.keys() and all(torch.equal(one[k], two[k]) for k in one)
+
+
+@pytest.mark.parametrize("signal_name, requeued", [("SIGUSR1", True), ("SIGTERM", False)])
+def test_a_stopped_stage_exits_75_and_requeues_its_slurm_job_on_sigusr1(tmp_path, monkeypatch, capfd, signal_name,
+                                                                        requeued):
+    """SIGUSR1 is the warning ahead of the time limit: the stage asks Slurm to requeue its job; SIGTERM (a cancel,
+    a preemption) does not. Either way the stage exits with REQUEUE_EXIT."""
+    import argparse
+    import contextlib
+
+    from orbis2 import stage
+    from orbis2.errors import REQUEUE_EXIT, TrainingStopped
+    from orbis2.interfaces import INTERFACES
+
+    (tmp_path / "scontrol").write_text('#!/usr/bin/env bash\necho "$*" >> "$SCONTROL_LOG"\n')
+    (tmp_path / "scontrol").chmod(0o755)
+    monkeypatch.setenv("PATH", f"{tmp_path}{os.pathsep}{os.environ['PATH']}")
+    monkeypatch.setenv("SCONTROL_LOG", str(tmp_path / "scontrol.log"))
+    monkeypatch.setenv("SLURM_JOB_ID", "77")
+    monkeypatch.setattr(stage, "stage_run", lambda *args: contextlib.nullcontext(None))  # no MLflow run
+    args = argparse.Namespace(params=str(ROOT / "params.yaml"), profile="smoke")
+    with pytest.raises(SystemExit) as end:
+        with stage.open_stage("train_something", args, INTERFACES["town"]):
+            raise TrainingStopped(f"stopped by {signal_name} at step 5 of 12, checkpoint c written; run the stage "
+                                  "again to resume", signal_name, 5)
+    assert end.value.code == REQUEUE_EXIT == 75
+    err = capfd.readouterr().err
+    assert f"[train_something] stopped by {signal_name} at step 5 of 12" in err
+    if requeued:
+        assert (tmp_path / "scontrol.log").read_text() == "requeue 77\n"
+        assert "[train_something] Slurm job 77 requeued: it resumes when Slurm starts it again" in err
+    else:
+        assert not (tmp_path / "scontrol.log").exists()
