@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> None:
         folder = args.videos or Path(cfg.import_.videos)
         check_outside(folder, args.out)
         skip_bad = cfg.import_.skip_bad if args.skip_bad is None else args.skip_bad
-        work = work_dir("import", cfg, ["data", "import"], {})
+        work = work_dir("import", cfg, ["data", "import"], {}, __file__)
 
         if args.part is not None:
             written = import_part(folder, work, cfg.data, cfg.import_, skip_bad, args.part, parts)

@@ -39,7 +39,7 @@ def main(argv: list[str] | None = None) -> None:
         verify_shards(args.shards, ["train", "val"])  # the splits it reads, before any read (see verify_shards)
         ic, fps, dev = cfg.inverse_dynamics, float(cfg.data.fps), default_device()
 
-        work = work_dir("inverse_dynamics", cfg, SECTIONS, {"shards": args.shards / "manifest.json"})
+        work = work_dir("inverse_dynamics", cfg, SECTIONS, {"shards": args.shards / "manifest.json"}, __file__)
         recorded = load_clips(args.shards, "train", ic.scale, ic.max_train_clips)
         driven, counterfactual = counterfactual_train_clips(args.shards, cfg, cfg.truth.workers or os.cpu_count() or 1)
         train = ClipFrames(recorded.frames + driven.frames, recorded.odometry + driven.odometry,

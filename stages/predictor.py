@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> None:
                                  f"`{pc.init_from}` first")
             inputs[pc.init_from] = init_file
 
-        work = work_dir(name, cfg, sections, inputs)
+        work = work_dir(name, cfg, sections, inputs, __file__)
         metrics = train_predictor(name, cfg, cache, work, run, init_file)
         if not metrics:
             stage.summary = "training rank done; rank 0 writes the outputs"

@@ -28,7 +28,7 @@ def main(argv: list[str] | None = None) -> None:
     with open_stage(name, args, INTERFACES["shards"]) as stage:
         cfg, run = stage.cfg, stage.run
         raw = args.raw or layout_path("raw", cfg.data.source)
-        work = work_dir("shards", cfg, ["data", "shards"], {"index": raw / "index.json"})
+        work = work_dir("shards", cfg, ["data", "shards"], {"index": raw / "index.json"}, __file__)
 
         if args.part is not None:
             written = write_part(raw, work, cfg.data, cfg.shards, args.part, parts)

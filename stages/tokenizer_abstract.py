@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> None:
         assets = args.assets or Path(cfg.assets.dir)
         teacher = asset_path(assets, TEACHER_ASSETS[cfg.section(name).teacher])
         inputs = {"shards": args.shards / "manifest.json", "teacher": teacher}
-        work = work_dir(name, cfg, sections, inputs)
+        work = work_dir(name, cfg, sections, inputs, __file__)
         metrics = train_abstract_tokenizer(cfg, args.shards, work, assets, run, name)
         if not metrics:
             stage.summary = "training rank done; rank 0 writes the outputs"

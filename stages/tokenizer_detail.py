@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> None:
         cfg, run = stage.cfg, stage.run
         verify_shards(args.shards, ["train", "val"])  # the splits it reads, before any read (see verify_shards)
         assets = args.assets or Path(cfg.assets.dir)
-        work = work_dir("tokenizer_detail", cfg, SECTIONS, {"shards": args.shards / "manifest.json"})
+        work = work_dir("tokenizer_detail", cfg, SECTIONS, {"shards": args.shards / "manifest.json"}, __file__)
         metrics = train_detail_tokenizer(cfg, args.shards, work, assets, run)
         if not metrics:
             stage.summary = "training rank done; rank 0 writes the outputs"

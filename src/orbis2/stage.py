@@ -241,7 +241,7 @@ def profile_witness(interface: Interface, args: argparse.Namespace) -> Path | No
     return Path(getattr(args, "shards", None) or layout_path("shards")) / SHARD_MANIFEST
 
 
-def work_dir(name: str, cfg: PipelineConfig, sections: list[str], inputs: dict[str, Path]) -> Path:
+def work_dir(name: str, cfg: PipelineConfig, sections: list[str], inputs: dict[str, Path], script: str) -> Path:
     """Where a resumable stage keeps its work (a training stage's checkpoints, the shards' parts):
     ``data/runs/<stage>-<profile>-<key>``.
 
@@ -250,17 +250,18 @@ def work_dir(name: str, cfg: PipelineConfig, sections: list[str], inputs: dict[s
     so a killed run resumes while anything else starts afresh: the resolved params
     of ``sections`` (without bookkeeping such as ``checkpoint_every``, which a resume
     may change), the SHA-256 of every file in ``inputs`` (the shards manifest,
-    upstream weights, the teacher) and :func:`code_version` (what the package computes:
-    a docstring, comment or message changed resumes). Without the last two, a
-    re-run after new data or a bug fix would find the old run finished and publish
-    its stale weights.
+    upstream weights, the teacher) and :func:`code_version` of the stage ``script``
+    (the stage's ``__file__``): what it and the modules it imports compute, so a
+    docstring, comment or message changed resumes. Without the last two, a re-run
+    after new data or a bug fix would find the old run finished and publish its
+    stale weights.
     """
     key: dict = {s: _without_bookkeeping(as_dict(cfg.section(s))) for s in sections}
     missing = [str(path) for path in inputs.values() if not Path(path).is_file()]
     if missing:
         raise OrbisError(f"{', '.join(missing)}: not found; stage `{name}` reads it, run the stages before it first")
     key["inputs"] = {label: sha256_file(path) for label, path in sorted(inputs.items())}
-    key["code"] = code_version()
+    key["code"] = code_version(script)
     blob = json.dumps(key, sort_keys=True).encode()
     # Scratch space of the stage itself, not a DAG input or output: where it lives stays the layout's.
     return layout_path("runs") / f"{name}-{cfg.profile}-{hashlib.sha256(blob).hexdigest()[:12]}"
@@ -274,20 +275,72 @@ def _without_bookkeeping(section: dict) -> dict:
     return {**section, "train": {k: v for k, v in train.items() if k not in BOOKKEEPING_FIELDS}}
 
 
-@functools.cache
-def code_version(root: Path = Path(orbis2.__file__).parent) -> str:
-    """SHA-256 over what the ``*.py`` files of the orbis2 package compute: each module's relative path and
-    syntax tree, without its docstrings and without the text of its messages (:func:`computing_tree`).
+# The folder holding the orbis2 package (a checkout's src/): where its modules' files are.
+PACKAGE_HOME = Path(orbis2.__file__).resolve().parents[1]
 
-    The resume key of long runs (:func:`work_dir`): a fix to a docstring, a comment, the layout or the wording
-    of a log line or an error message must not restart days of training; any other change (a model, a loss,
-    a sampler, a constant) starts a new run. The whole package rather than the modules a stage imports: a stage
-    reaches most of it indirectly, and a spurious fresh start costs less than resuming stale code. A new
-    Python version may parse the same source into another tree: that, too, starts afresh.
+
+def _module_file(module: str) -> Path | None:
+    base = PACKAGE_HOME / Path(*module.split("."))
+    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+@functools.lru_cache(maxsize=None)
+def _imports(file: Path) -> frozenset[Path]:
+    """The orbis2 modules ``file`` imports anywhere in its body (lazy imports included)."""
+    found = set()
+    for node in ast.walk(ast.parse(file.read_text())):
+        names = []
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+        for name in names:
+            if name == "orbis2" or name.startswith("orbis2."):
+                target = _module_file(name)
+                if target is not None:
+                    found.add(target)
+    return frozenset(found)
+
+
+def module_closure(script: Path | str) -> list[Path]:
+    """``script`` and every orbis2 module it reaches through imports (lazy ones included), sorted: the code a
+    stage runs, which both the DAG (:func:`orbis2.dag.code_inputs`: when a rule re-runs) and a training run's
+    resume key (:func:`code_version`) follow."""
+    seen, todo = set(), [Path(script).resolve()]
+    while todo:
+        file = todo.pop()
+        if file in seen:
+            continue
+        seen.add(file)
+        todo.extend(_imports(file) - seen)
+    return sorted(seen)
+
+
+@functools.cache
+def code_version(script: Path | str) -> str:
+    """The resume key's code (:func:`work_dir`): :func:`source_digest` of the stage ``script`` and the orbis2
+    modules it reaches through imports (lazy ones included: :func:`module_closure`, the import graph that also
+    decides when the DAG re-runs the stage).
+
+    The modules a stage's numbers come from, and only what they compute: a fix to a docstring, a comment, the
+    layout or the wording of a log line or an error message, or any change to a module the stage does not
+    import (an evaluation, a report), must not restart days of training; any other change to its modules (a
+    model, a loss, a sampler, a constant) starts a new run.
     """
+    return source_digest(module_closure(script))
+
+
+def source_digest(files: Iterable[Path]) -> str:
+    """SHA-256 over each file's name (relative to the folder holding the orbis2 package, else its own name)
+    and its :func:`computing_tree`: docstrings, comments, layout and the text of messages do not count. A new
+    Python version may parse the same source into another tree: that, too, gives another digest."""
     digest = hashlib.sha256()
-    for path in sorted(root.rglob("*.py")):
-        digest.update(str(path.relative_to(root)).encode() + b"\0" + computing_tree(path.read_text()).encode() + b"\0")
+    for path in sorted(Path(f).resolve() for f in files):
+        name = path.relative_to(PACKAGE_HOME) if PACKAGE_HOME in path.parents else Path(path.name)
+        digest.update(str(name).encode() + b"\0" + computing_tree(path.read_text()).encode() + b"\0")
     return digest.hexdigest()
 
 
