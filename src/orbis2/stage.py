@@ -309,7 +309,7 @@ def module_closure(script: Path | str) -> list[Path]:
     """``script`` and every orbis2 module it reaches through imports (lazy ones included), sorted: the code a
     stage runs, which both the DAG (:func:`orbis2.dag.code_inputs`: when a rule re-runs) and a training run's
     resume key (:func:`code_version`) follow."""
-    seen, todo = set(), [Path(script).resolve()]
+    seen, todo = set(), [Path(script).absolute()]
     while todo:
         file = todo.pop()
         if file in seen:
