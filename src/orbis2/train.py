@@ -298,7 +298,7 @@ class _Env:
     rank: int
     world_size: int
     device: torch.device
-    control: Any = None  # the process group of the host-side stop flag (None: the default group)
+    control: Any = None  # the host-side group (_host_group) when there are several processes
 
 
 def _start_distributed() -> _Env:
@@ -315,15 +315,16 @@ def _start_distributed() -> _Env:
         dist.init_process_group("nccl" if cuda else "gloo", device_id=device if cuda else None)
         atexit.register(_destroy_group)
     if dist.is_initialized():
-        control = _host_group() if dist.get_backend() != "gloo" else None
-        return _Env(dist.get_rank(), dist.get_world_size(), device, control)
+        return _Env(dist.get_rank(), dist.get_world_size(), device, _host_group())
     return _Env(0, 1, device)
 
 
 @functools.cache
 def _host_group() -> Any:
-    """A gloo group beside NCCL's, for the per-step stop flag: a host tensor reduced on the host, so asking
-    whether any rank was signalled does not wait for the GPU (an NCCL reduction read on the host would)."""
+    """A gloo group beside the default one, for the per-step stop flag and the waits while rank 0 writes: a
+    host tensor reduced on the host, so asking whether any rank was signalled does not wait for the GPU (an
+    NCCL reduction read on the host would), and a long write is not an NCCL timeout. Made under gloo too
+    (the CPU runs and tests), so that they take the same path as NCCL runs."""
     return dist.new_group(backend="gloo")
 
 
