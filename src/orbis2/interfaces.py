@@ -118,7 +118,8 @@ class Interface:
 
     @property
     def launcher(self) -> str:
-        """How the rule starts the script: training stages through ``train_launcher`` (torchrun on a node)."""
+        """How the rule starts the script: training stages through ``train_launcher`` (torchrun on a node,
+        tools/slurm_torchrun.sh over the nodes of a Slurm job)."""
         return "{config[train_launcher]}" if self.resources == TRAIN else "python"
 
     def option(self, key: str) -> PathOption:
