@@ -1,4 +1,5 @@
-"""Kill a training stage with SIGKILL at random moments and check that resuming loses nothing.
+"""Kill a training stage with SIGKILL (or stop it with SIGUSR1 / SIGTERM) at random moments and check that
+resuming loses nothing.
 
 For one training stage of a profile (default: ``tokenizer_detail`` on ``smoke``,
 which needs only ``data/shards`` and ``data/assets``; build them first, e.g.
@@ -8,7 +9,9 @@ which needs only ``data/shards`` and ``data/assets``; build them first, e.g.
 2. N times, in a fresh workspace: start the stage with ``checkpoint_every: 1``
    (bookkeeping: it must not change the resume key or the weights), kill its
    process group with SIGKILL at a random moment of a random training step, run
-   it again to the end;
+   it again to the end; with ``--signal USR1`` or ``TERM`` the signal instead
+   (a scheduler's warning or preemption): the stage must stop at the next step
+   with a checkpoint and exit with status 75 (``orbis2.errors.REQUEUE_EXIT``);
 3. check the published weights are bit-identical to the reference, and that the
    killed MLflow run ended KILLED or FAILED (the next start ends it), not RUNNING.
 
@@ -17,6 +20,7 @@ and the stage's own output, so nothing of the project is written. Exit status 1
 if any trial fails. From the repository root:
 
     python tools/kill_resume_check.py --trials 5
+    python tools/kill_resume_check.py --trials 3 --signal USR1
     python tools/kill_resume_check.py --stage abstract_df --trials 5   # needs data/latents
 """
 
@@ -40,6 +44,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
 from orbis2.config.params import load_config, load_yaml  # noqa: E402
+from orbis2.errors import REQUEUE_EXIT  # noqa: E402
 from orbis2.tasks.predictors import STAGES as PREDICTOR_STAGES  # noqa: E402
 
 
@@ -89,11 +94,11 @@ def start(cmd: list[str], ws: Path, db: Path, pipeline: str) -> subprocess.Popen
     return subprocess.Popen(cmd, cwd=ws, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
 
 
-def finish(proc: subprocess.Popen, ws: Path, pipeline: str) -> str:
+def finish(proc: subprocess.Popen, ws: Path, pipeline: str, expected: int = 0) -> str:
     code = proc.wait()
     text = (ws / f"{pipeline}.log").read_text()
-    if code != 0:
-        raise SystemExit(f"{pipeline} exited with {code}:\n{text[-3000:]}")
+    if code != expected:
+        raise SystemExit(f"{pipeline} exited with {code}, not {expected}:\n{text[-3000:]}")
     return text
 
 
@@ -105,8 +110,9 @@ def identical(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> bool:
     return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
 
-def kill_during_step(proc: subprocess.Popen, ws: Path, step: int, rng: random.Random) -> bool:
-    """SIGKILL the stage's process group at a random moment after its ``step``-th checkpoint write.
+def kill_during_step(proc: subprocess.Popen, ws: Path, step: int, rng: random.Random,
+                     sig: signal.Signals = signal.SIGKILL) -> bool:
+    """Send ``sig`` to the stage's process group at a random moment after its ``step``-th checkpoint write.
 
     With ``checkpoint_every: 1`` the checkpoint is rewritten after every step, so the
     kill lands anywhere in the next step: mid-update, mid-save or mid-rename.
@@ -123,8 +129,7 @@ def kill_during_step(proc: subprocess.Popen, ws: Path, step: int, rng: random.Ra
             stamp = now
             if seen == step:
                 time.sleep(rng.uniform(0.0, 1.0) * (min(gaps[1:]) if len(gaps) > 1 else 1.0))
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
+                os.killpg(proc.pid, sig)
                 return True
         time.sleep(0.05)
     return False
@@ -151,9 +156,12 @@ def main() -> None:
     parser.add_argument("--profile", default="smoke")
     parser.add_argument("--trials", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0, help="seeds the kill steps and moments")
+    parser.add_argument("--signal", choices=("KILL", "USR1", "TERM"), default="KILL",
+                        help="SIGKILL (default), or the signal of a time limit's warning (USR1) or a preemption")
     parser.add_argument("--keep", action="store_true", help="keep the workspaces (printed) for inspection")
     args = parser.parse_args()
     cmd, out = stage_command(args.stage, args.profile)
+    sig = signal.Signals[f"SIG{args.signal}"]
     cfg = load_config(ROOT / "params.yaml", args.profile)
     steps = cfg.section(args.stage).train.steps
     rng = random.Random(args.seed)
@@ -171,9 +179,14 @@ def main() -> None:
     for trial in range(args.trials):
         name = f"trial{trial}"
         ws = workspace(base, name, out, args.stage, checkpoint_every=1)
-        kill_step = rng.randint(1, steps - 1)
+        # A stop signal must land in a step before the last (then the run ends instead); SIGKILL anywhere.
+        kill_step = rng.randint(1, steps - 1 if sig == signal.SIGKILL else max(1, steps - 3))
         proc = start(cmd, ws, db, name)
-        killed = kill_during_step(proc, ws, kill_step, rng)
+        killed = kill_during_step(proc, ws, kill_step, rng, sig)
+        if killed and sig != signal.SIGKILL:  # stopped at the next step boundary, its checkpoint written
+            stopped = re.search(rf"stopped by {sig.name} at step (\d+)", finish(proc, ws, name, REQUEUE_EXIT))
+            killed = stopped is not None
+        proc.wait()
         text = finish(start(cmd, ws, db, name + "-resume"), ws, name + "-resume")
         resumed = re.search(r"resumed at (\d+)", text)
         same = identical(reference, weights(ws / out))
@@ -181,10 +194,11 @@ def main() -> None:
         status_ok = statuses[-1:] == ["FINISHED"] and all(s in ("KILLED", "FAILED") for s in statuses[:-1])
         ok = same and status_ok and killed
         failures += not ok
-        print(f"{name}: killed during step {kill_step + 1}: {killed}; resumed at step "
+        print(f"{name}: {sig.name} during step {kill_step + 1}: {killed}; resumed at step "
               f"{resumed.group(1) if resumed else 0}; weights bit-identical: {same}; MLflow runs "
               f"{' -> '.join(statuses)}: {'ok' if ok else 'FAIL'}", flush=True)
-    print(f"{args.trials - failures}/{args.trials} trials passed ({args.stage}, profile {args.profile})")
+    print(f"{args.trials - failures}/{args.trials} trials passed ({args.stage}, profile {args.profile}, "
+          f"{sig.name})")
     if args.keep:
         print(f"workspaces in {base}")
     else:
