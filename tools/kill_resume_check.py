@@ -13,7 +13,8 @@ which needs only ``data/shards`` and ``data/assets``; build them first, e.g.
    (a scheduler's warning or preemption): the stage must stop at the next step
    with a checkpoint and exit with status 75 (``orbis2.errors.REQUEUE_EXIT``);
 3. check the published weights are bit-identical to the reference, and that the
-   killed MLflow run ended KILLED or FAILED (the next start ends it), not RUNNING.
+   killed MLflow run ended KILLED or FAILED (the next start ends it), not RUNNING
+   (a stopped one KILLED, as the stage ends it).
 
 Each workspace sees the project's ``data/`` through symlinks, except ``data/runs``
 and the stage's own output, so nothing of the project is written. Exit status 1
@@ -191,7 +192,9 @@ def main() -> None:
         resumed = re.search(r"resumed at (\d+)", text)
         same = identical(reference, weights(ws / out))
         statuses = run_statuses(db, name, args.stage) + run_statuses(db, name + "-resume", args.stage)
-        status_ok = statuses[-1:] == ["FINISHED"] and all(s in ("KILLED", "FAILED") for s in statuses[:-1])
+        # A stopped stage ends its run KILLED itself; a SIGKILLed one is ended by the next start (KILLED or FAILED).
+        ended = ("KILLED", "FAILED") if sig == signal.SIGKILL else ("KILLED",)
+        status_ok = statuses[-1:] == ["FINISHED"] and all(s in ended for s in statuses[:-1])
         ok = same and status_ok and killed
         failures += not ok
         print(f"{name}: {sig.name} during step {kill_step + 1}: {killed}; resumed at step "

@@ -49,7 +49,7 @@ from urllib.parse import unquote, urlparse
 from filelock import FileLock
 
 from orbis2.config.params import flatten
-from orbis2.errors import OrbisError
+from orbis2.errors import OrbisError, TrainingStopped
 
 DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
 PIPELINE_ENV = "ORBIS2_PIPELINE_ID"
@@ -322,7 +322,8 @@ def stage_run(stage: str, params: dict[str, Any], pipeline: dict[str, Any] | Non
 
     ``pipeline`` is the whole resolved config (default ``params``): the parent's
     profile and params digest when this stage is the one that creates it.
-    Under torchrun only rank 0 logs; the other ranks get a :class:`StageRun` that does nothing.
+    Under torchrun only rank 0 logs; the other ranks get a :class:`StageRun` that does nothing. The run ends
+    FINISHED, FAILED on an exception, or KILLED when training stopped on a signal (:class:`TrainingStopped`).
     """
     if int(os.environ.get("RANK", "0")) != 0:
         yield StageRun(None, None)
@@ -359,6 +360,9 @@ def stage_run(stage: str, params: dict[str, Any], pipeline: dict[str, Any] | Non
         try:
             yield logger
             status = "FINISHED"
+        except TrainingStopped:
+            status = "KILLED"  # stopped by a scheduler's signal with its checkpoint written: a re-run resumes it
+            raise
         finally:
             mlflow.end_run(status=status)
             _settle_parent(client, experiment.experiment_id, parent_id)
