@@ -241,7 +241,8 @@ def profile_witness(interface: Interface, args: argparse.Namespace) -> Path | No
     return Path(getattr(args, "shards", None) or layout_path("shards")) / SHARD_MANIFEST
 
 
-def work_dir(name: str, cfg: PipelineConfig, sections: list[str], inputs: dict[str, Path], script: str) -> Path:
+def work_dir(name: str, cfg: PipelineConfig, sections: list[str], inputs: dict[str, Path],
+             script: Path | str) -> Path:
     """Where a resumable stage keeps its work (a training stage's checkpoints, the shards' parts):
     ``data/runs/<stage>-<profile>-<key>``.
 
