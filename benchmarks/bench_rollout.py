@@ -140,7 +140,7 @@ def rollout_worker(args: argparse.Namespace) -> dict:
     tokenizer.requires_grad_(False)
     if args.compile:
         for net in nets:
-            compile_predictor(net)
+            compile_predictor(net, backend=args.predictor_backend)
         compile_decoder(tokenizer)
 
     @torch.no_grad()
@@ -196,6 +196,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--precision", choices=("bf16", "fp32"), default="bf16", help="bf16 autocast on CUDA only")
     parser.add_argument("--compile", action="store_true",
                         help="torch.compile predictors (by region; CUDA graphs on CUDA) and decoder")
+    parser.add_argument("--predictor-backend", default="inductor",
+                        help="with --compile: torch.compile's backend for the predictors (the decoder's is inductor); "
+                             "aot_eager traces the same graphs without generating code (tools/gpu_run.sh's CPU "
+                             "rehearsal: tests/test_compiled_path.py runs the predictors' inductor code)")
     parser.add_argument("--compile-cache", type=Path, default=None,
                         help="with --compile: directory keeping the compiled artifacts between runs")
     parser.add_argument("--no-kv-cache", dest="kv_cache", action="store_false")
@@ -234,8 +238,8 @@ def main(argv: list[str] | None = None) -> None:
         if args.json is None:
             return
         record = {"device": device_name, "preset": args.preset, "grid": list(args.grid), "precision": args.precision,
-                  "compile": args.compile, "kv_cache": args.kv_cache, "seconds": args.seconds, "batch": 1,
-                  "repeats": args.repeats,
+                  "compile": args.compile and args.predictor_backend, "kv_cache": args.kv_cache,
+                  "seconds": args.seconds, "batch": 1, "repeats": args.repeats,
                   "decoding_included": True, "systems": results, "ratios": ratios()}
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(record, indent=2))

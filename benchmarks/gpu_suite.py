@@ -20,8 +20,8 @@ PART is one of:
 * ``summary``: every part's JSON and exit status in one summary file.
 
 Every part writes ``DIR/PART.json`` after each measurement, so a part cut short by its time
-limit still leaves what it measured. ``--rehearse`` runs on the CPU at the ``smoke`` preset with
-inductor (no CUDA graphs) and the DAG part as a Snakemake dry run: the same code paths, for the tests.
+limit still leaves what it measured. ``--rehearse`` runs on the CPU at the ``smoke`` preset, compiled
+without CUDA graphs, and the DAG part as a Snakemake dry run: the same code paths, for the tests.
 """
 
 from __future__ import annotations

@@ -292,7 +292,7 @@ def _module_file(module: str) -> Path | None:
 def _imports(file: Path) -> frozenset[Path]:
     """The orbis2 modules ``file`` imports anywhere in its body (lazy imports included)."""
     found = set()
-    for node in ast.walk(ast.parse(file.read_text())):
+    for node in _statements(ast.parse(file.read_text()).body):
         names = []
         if isinstance(node, ast.Import):
             names = [a.name for a in node.names]
@@ -304,6 +304,17 @@ def _imports(file: Path) -> frozenset[Path]:
                 if target is not None:
                     found.add(target)
     return frozenset(found)
+
+
+def _statements(body: list[ast.stmt]) -> Iterator[ast.stmt]:
+    """Every statement of ``body`` and of the blocks nested in it: where imports are, without visiting the
+    expressions (``ast.walk``'s bulk) of a module read at every Snakemake start."""
+    for node in body:
+        yield node
+        for block in ("body", "orelse", "finalbody", "handlers", "cases"):
+            nested = getattr(node, block, None)
+            if isinstance(nested, list):
+                yield from _statements(nested)
 
 
 def module_closure(script: Path | str) -> list[Path]:
