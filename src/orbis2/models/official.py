@@ -39,8 +39,8 @@ import yaml
 
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_dir, sha256_file, write_json
-from orbis2.models.files import save_predictor, save_tokenizer
 from orbis2.models import split_build
+from orbis2.models.files import save_predictor, save_tokenizer
 from orbis2.models.sizes import TOKENIZER_PRESETS
 from orbis2.models.stdit import build_stdit_from
 from orbis2.models.stdit_layers import grid_positions
@@ -489,7 +489,8 @@ def _rename_decoder_tensor(rest: str, value: torch.Tensor, pending: dict[str, to
 def convert_tokenizer(state: dict[str, torch.Tensor], spec: TokenizerSpec, source: str
                       ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor], list[str]]:
     """Their tokenizer's state dict -> (our detail tokenizer's, our abstract tokenizer's, what was left out)."""
-    detail_map = {"encoder.encoder.": "encoder.", "quant_conv.": "quant_conv.", "post_quant_conv.": "decoder.latent_in.",
+    detail_map = {"encoder.encoder.": "encoder.", "quant_conv.": "quant_conv.",
+                  "post_quant_conv.": "decoder.latent_in.",
                   **_decoder_keys("decoder.", "decoder.", spec.decoder_levels, spec.decoder_blocks)}
     abstract_map = {"encoder2.encoder.": "encoder.", "quant_conv2.": "quant_conv.",
                     "post_quant_conv_sem.": "decoder.latent_in.", "post_quant_conv_distill.": "projection.",
@@ -644,7 +645,8 @@ def import_release(folder: Path, out: Path, causal_mask: str = "hard") -> dict:
     l1_config = folder / "L1" / "config.yaml"
     detail = read_network(l1_config, folder, causal_mask, folder / "L1" / "checkpoints" / "last.ckpt")
     networks = {"detail": detail}
-    for name, config_file in (("abstract_tf", l1_config), ("abstract_distilled", folder / "L1" / "config_distill.yaml")):
+    distill_config = folder / "L1" / "config_distill.yaml"
+    for name, config_file in (("abstract_tf", l1_config), ("abstract_distilled", distill_config)):
         if name == "abstract_distilled" and not config_file.is_file():
             continue
         top = detail if config_file == l1_config else read_network(config_file, folder, causal_mask, None)
