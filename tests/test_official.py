@@ -94,7 +94,9 @@ def write_release(root: Path, authors: dict, note: dict) -> Path:
     l2_sampler = {"target": "modules.fm_samplers.FlowMatchingSamplerEuler",
                   "params": {"timescale": 1000.0, "timestep_conditioning": "global"}}
     for name, target, sampler, extra in (
-        ("L2", f"{module}.PredictorModule", l2_sampler, {"num_pred_frames": 1}),
+        ("L2", f"{module}.PredictorModule", l2_sampler, {"num_pred_frames": 1, "condition_preprocessor_config": {
+            "target": "models.second_stage.fm_conditions_v2.SpeedYawDirectConditionPreprocessor",
+            "params": {"steering_offsets": [5, 10, 15], "odometry_steps_per_image_frame": 5}}}),
         ("L2_distill", "models.second_stage.cd_model_v2.ConsistencyDistillPredictorModule",
          cfg["l2_distill_sampler"], {"num_pred_frames": 1, "teacher_ckpt_path": "L2/checkpoints/last.ckpt",
                                      "cd_ema_mu": 0.999}),
@@ -172,6 +174,8 @@ def test_abstract_predictor_reproduces_the_authors_forward_and_consistency_sampl
                                     torch.Generator(), noises=cd["noises"])
     close(sample, cd["out"])
     assert distilled.meta["sampling"]["method"] == "consistency" and standard.meta["sampling"]["method"] == "euler"
+    assert standard.meta["authors_steering"]["preprocessor"]["steering_offsets"] == [5, 10, 15]
+    assert "steering" not in standard.meta  # our rollout must not feed it our steering features
 
 
 def test_detail_predictor_reproduces_the_authors_forward_and_euler_sampler(imported, authors):

@@ -299,7 +299,7 @@ def test_preset_overrides_are_checked():
     cfg = stdit_config("smoke", depth=3, mlp_ratio=2)
     assert (cfg.depth, cfg.mlp_ratio, cfg.hidden_size) == (3, 2.0, STDIT_PRESETS["smoke"].hidden_size)
     assert isinstance(cfg.mlp_ratio, float) and STDIT_PRESETS["smoke"].depth == 2  # a copy; presets stay
-    with pytest.raises(ValueError, match=r"ST-DiT: unknown key 'hiden_size' \(known: abstract_positions, causal_mask, "):
+    with pytest.raises(ValueError, match=r"ST-DiT: unknown key 'hiden_size' \(known: abstract_positions, "):
         stdit_config("smoke", hiden_size=3)
     with pytest.raises(ValueError, match=r"ST-DiT: depth must be int, got 2.5 \(float\)"):
         stdit_config("smoke", depth=2.5)

@@ -536,8 +536,10 @@ PREDICTOR_MODULES = tuple(f"models.second_stage.{name}" for name in (
 MODULE_TRAINING_ONLY = ("objective_config", "adjust_lr_to_batch_size", "warmup_steps", "min_lr_multiplier",
                         "use_precomputed_training_inputs", "init_weights_path", "allow_different_resolution_checkpoint",
                         "teacher_ckpt_path", "cd_ema_mu", "cd_weight_decay")
-PREPROCESSORS = ("models.second_stage.fm_conditions_v2.ConditionPreprocessor",
-                 "models.second_stage.fm_conditions_v2.L2EndpointConditionPreprocessor")
+STEERING_PREPROCESSORS = ("L2SteeringEndpointConditionPreprocessor", "SpeedYawDirectConditionPreprocessor",
+                          "SpeedYawMovingGoalConditionPreprocessor")
+PREPROCESSORS = tuple(f"models.second_stage.fm_conditions_v2.{name}" for name in (
+    "ConditionPreprocessor", "L2EndpointConditionPreprocessor", *STEERING_PREPROCESSORS))
 FIRST_STAGE = tuple(f"models.second_stage.fm_model_v2.{name}" for name in (
     "FirstStageHandler", "IFSelectBranchFirstStageHandler"))
 BRANCHES = {"rec": "rec", "x0": "rec", "h": "rec", 0: "rec", "sem": "sem", "x1": "sem", "h2": "sem", 1: "sem"}
@@ -586,12 +588,17 @@ def read_network(config_file: Path, root: Path, causal_mask: str, checkpoint: Pa
         handler.done()
     preprocessor: dict = {}
     if params.get("condition_preprocessor_config") is not None:
-        _, pre = target_of(params.sub("condition_preprocessor_config"), PREPROCESSORS)
+        kind, pre = target_of(params.sub("condition_preprocessor_config"), PREPROCESSORS)
+        if kind in STEERING_PREPROCESSORS:  # how their raw speed and yaw rate become the steering input: recorded
+            preprocessor["steering"] = {"preprocessor": kind, **_jsonable(pre.params)}
+            pre.used.update(pre.params)
         if "l2_predictor_config" in pre.params:
             preprocessor["l2"] = network_files(pre.sub("l2_predictor_config"), root)
         for key in ("l2_predictor_frame_rate", "l2_pred_NFE", "num_context_frames"):
             if key in pre.params:
                 preprocessor[key] = pre.get(key)
+        pre.expect("use_z_l2_start", (True,), True)  # the last context latent at the last context frame, as ours
+        pre.ignore("l2_context_latent")  # whether their rollout is given latents or frames
         pre.done()
     scales = {"detail": float(params.get("enc_scale", DEFAULT_SCALES["detail"])),
               "abstract": float(params.get("enc_scale_dino", DEFAULT_SCALES["abstract"]))}
@@ -707,7 +714,9 @@ def _write_release(out: Path, folder: Path, causal_mask: str, configs: dict[str,
             meta["condition_slots"] = [n_context - 1, n_context + net.num_pred_frames - 1]
             meta["abstract_frame_rate"] = detail.preprocessor.get("l2_predictor_frame_rate")
         if net.spec.build["steering"]:
-            meta["steering"] = {"inputs": "the authors' preprocessing (not converted)", "steps": net.spec.steering_len}
+            # Not "steering": our rollout would feed it our steering features, which are not their inputs.
+            meta["authors_steering"] = {"steps": net.spec.steering_len,
+                                        "preprocessor": net.preprocessor.get("steering")}
         path = out / "predictors" / name / "predictor.pt"
         save_predictor(path, model, net.spec.build, meta)
         written[f"predictors/{name}"] = str(path.relative_to(out))
