@@ -19,6 +19,7 @@ import torch
 import yaml
 
 from orbis2.cli import main
+from orbis2.data.video import read_video
 from orbis2.flow import consistency_sample, euler_sample
 from orbis2.models.files import load_predictor, load_tokenizer
 from orbis2.models.official import (
@@ -35,6 +36,9 @@ from orbis2.models.official import (
     tokenizer_spec,
 )
 from orbis2.models.stdit import build_stdit_from
+from orbis2.models.stdit_layers import grid_positions
+
+from conftest import ROOT
 
 FIXTURES = Path(__file__).parent / "fixtures" / "official"
 ROOT_VAR = "${oc.env:ORBIS2_MODELS_DIR}"
@@ -74,8 +78,13 @@ def predictor_checkpoint(state: dict[str, torch.Tensor], tokenizer: dict[str, to
 
 def write_release(root: Path, authors: dict, note: dict) -> Path:
     """A release folder in the authors' layout (tokenizer, L2, its distilled version, L1) from the fixture."""
-    cfg = note["configs"]
-    tok_state = dict(authors["tokenizer"]["state_dict"])
+    states = {name: authors[name]["state_dict"] for name in ("tokenizer", "l2", "l1")}
+    return release_folder(root, note["configs"], states, pred_frames=2)
+
+
+def release_folder(root: Path, cfg: dict, states: dict[str, dict[str, torch.Tensor]], pred_frames: int) -> Path:
+    """A release folder in the authors' layout from their configs and state dicts; L1 predicts ``pred_frames``."""
+    tok_state = dict(states["tokenizer"])
     tok_state["distill.cls_token"] = torch.zeros(1, 1, 8)  # their frozen teacher and losses: not converted
     tok_state["loss.discriminator.main.0.weight"] = torch.zeros(4, 3, 4, 4)
     write_checkpoint(root / "tokenizer" / "checkpoints" / "last.ckpt", tok_state)
@@ -103,22 +112,22 @@ def write_release(root: Path, authors: dict, note: dict) -> Path:
     ):
         folder = root / name
         write_checkpoint(folder / "checkpoints" / "last.ckpt",
-                         predictor_checkpoint(authors["l2"]["state_dict"], authors["tokenizer"]["state_dict"]))
+                         predictor_checkpoint(states["l2"], states["tokenizer"]))
         config = predictor_config(target, cfg["l2"], sampler, "sem", extra)
         config["data"] = {"params": {"validation": {"params": {"frame_rate": 2}}}}
         (folder / "config.yaml").write_text(yaml.safe_dump(config))
 
     write_checkpoint(root / "L1" / "checkpoints" / "last.ckpt",
-                     predictor_checkpoint(authors["l1"]["state_dict"], authors["tokenizer"]["state_dict"]))
+                     predictor_checkpoint(states["l1"], states["tokenizer"]))
     for file, l2 in (("config.yaml", "L2"), ("config_distill.yaml", "L2_distill")):
         preprocessor = {"target": "models.second_stage.fm_conditions_v2.L2EndpointConditionPreprocessor",
                         "params": {"l2_predictor_config": {"folder": f"{ROOT_VAR}/{l2}", "ckpt_path": None},
                                    "l2_predictor_frame_rate": 2, "l2_pred_NFE": 4 if l2 == "L2_distill" else 10,
-                                   "num_context_frames": 3}}
+                                   "num_context_frames": cfg["l1"]["params"]["num_context_frames"]}}
         config = predictor_config(f"{module}.L1L2PredL2PredictorModule", cfg["l1"], cfg["l1_sampler"], "rec",
-                                  {"num_pred_frames": 2, "condition_preprocessor_config": preprocessor,
+                                  {"num_pred_frames": pred_frames, "condition_preprocessor_config": preprocessor,
                                    "objective_config": {"target": f"{module}.FlowMatchingObjectiveTeacherForcing"}})
-        config["data"] = {"params": {"validation": {"params": {"frame_rate": 10, "size": [8, 16]}}}}
+        config["data"] = {"params": {"validation": {"params": {"frame_rate": 10}}}}
         (root / "L1" / file).write_text(yaml.safe_dump(config))
     return root
 
@@ -288,3 +297,35 @@ def test_decoder_key_map_covers_every_level():
 def test_release_errors_are_user_errors():
     with pytest.raises(ReleaseError, match="checkpoint not found"):
         read_checkpoint(Path("/nonexistent/last.ckpt"))
+
+
+def smoke_release(root: Path, note: dict) -> Path:
+    """A release in the authors' layout at the smoke profile's geometry (72x128 frames, 5 + 5 detail and 5 + 1
+    abstract frames): their keys and shapes there (``authors_smoke_shapes.json``), seeded random weights, their
+    fixed position tables."""
+    layout = json.loads((FIXTURES / "authors_smoke_shapes.json").read_text())
+    generator = torch.Generator().manual_seed(0)
+    states = {name: {k: torch.randn(shape, generator=generator) * 0.05 for k, shape in shapes.items()}
+              for name, shapes in layout["shapes"].items()}
+    for name in ("l2", "l1"):
+        params = layout["configs"][name]["params"]
+        (h, w), p = params["input_size"], params["patch_size"]
+        states[name]["pos_embed"] = grid_positions(params["hidden_size"], h // p, w // p, torch.device("cpu"))[None]
+    configs = {**layout["configs"], **{k: note["configs"][k] for k in ("l2_distill_sampler", "l1_sampler")}}
+    return release_folder(root, configs, states, pred_frames=5)
+
+
+def test_an_imported_release_rolls_out_with_our_command(tmp_path, note, make_video):
+    release = smoke_release(tmp_path / "release", note)
+    out = tmp_path / "official"
+    main(["import-weights", str(release), "--out", str(out)])
+    video = make_video("clip.mp4", 40, 10.0, width=128, height=72)
+    rollout = tmp_path / "rollout.mp4"
+    main(["rollout", "--video", str(video), "--out", str(rollout), "--seconds", "3", "--profile", "smoke",
+          "--params", str(ROOT / "params.yaml"), "--device", "cpu",
+          "--detail-tokenizer", str(out / "tokenizers" / "detail" / "tokenizer.pt"),
+          "--abstract-tokenizer", str(out / "tokenizers" / "abstract" / "tokenizer.pt"),
+          "--abstract-predictor", str(out / "predictors" / "abstract_tf" / "predictor.pt"),
+          "--detail-predictor", str(out / "predictors" / "detail" / "predictor.pt")])
+    frames = read_video(rollout, 1, (128, 72))
+    assert len(frames) == 5 + 3 * 10 and rollout.with_suffix(".gif").is_file()

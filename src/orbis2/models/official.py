@@ -46,6 +46,7 @@ from orbis2.models.stdit import build_stdit_from
 from orbis2.models.stdit_layers import grid_positions
 from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer
 
+OFFICIAL_SOURCE = "the authors' release"  # meta["source"] of an imported file
 ENV_ROOT = "ORBIS2_MODELS_DIR"  # their configs name the other networks' folders through this variable
 DEFAULT_SCALES = {"detail": 4.0, "abstract": 3.45062}  # their PredictorModule's enc_scale and enc_scale_dino
 DEFAULT_CONSISTENCY_GRIDS = {1: [0.99], 2: [0.99, 0.8333], 4: [0.99, 0.9375, 0.8333, 0.625]}
@@ -699,13 +700,13 @@ def _write_release(out: Path, folder: Path, causal_mask: str, configs: dict[str,
         model = _tokenizer_builder(kind)(build)
         model.load_state_dict(state, strict=True)
         save_tokenizer(tok_paths[kind], kind, model, detail.scales[kind], build,
-                       extra={"source": "the authors' release", "checkpoint": _relative(tok_checkpoint, folder)})
+                       extra={"source": OFFICIAL_SOURCE, "checkpoint": _relative(tok_checkpoint, folder)})
     checksums = {kind: sha256_file(path) for kind, path in tok_paths.items()}
     written = {f"tokenizers/{kind}": str(path.relative_to(out)) for kind, path in tok_paths.items()}
     for name, net in configs.items():
         model = build_stdit_from(net.spec.build)
         model.load_state_dict(net.state, strict=True)
-        meta = {"source": "the authors' release", "level": "detail" if name == "detail" else "abstract",
+        meta = {"source": OFFICIAL_SOURCE, "level": "detail" if name == "detail" else "abstract",
                 "tokenizers": {kind: {"checksum": checksums[kind]} for kind in ("detail", "abstract")},
                 "frame_rate": net.frame_rate, "latent_grid": list(net.spec.grid),
                 "num_pred_frames": net.num_pred_frames, "sampling": net.spec.sampling}
