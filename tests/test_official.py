@@ -37,6 +37,7 @@ from orbis2.models.official import (
 )
 from orbis2.models.stdit import build_stdit_from
 from orbis2.models.stdit_layers import grid_positions
+from orbis2.rollout import sample_frames
 
 from conftest import ROOT
 
@@ -315,17 +316,31 @@ def smoke_release(root: Path, note: dict) -> Path:
     return release_folder(root, configs, states, pred_frames=5)
 
 
-def test_an_imported_release_rolls_out_with_our_command(tmp_path, note, make_video):
+def test_an_imported_release_rolls_out_with_our_command(tmp_path, note, make_video, capsys):
     release = smoke_release(tmp_path / "release", note)
     out = tmp_path / "official"
     main(["import-weights", str(release), "--out", str(out)])
     video = make_video("clip.mp4", 40, 10.0, width=128, height=72)
+    files = ["--detail-tokenizer", str(out / "tokenizers" / "detail" / "tokenizer.pt"),
+             "--abstract-tokenizer", str(out / "tokenizers" / "abstract" / "tokenizer.pt"),
+             "--detail-predictor", str(out / "predictors" / "detail" / "predictor.pt"),
+             "--profile", "smoke", "--params", str(ROOT / "params.yaml"), "--device", "cpu", "--video", str(video)]
     rollout = tmp_path / "rollout.mp4"
-    main(["rollout", "--video", str(video), "--out", str(rollout), "--seconds", "3", "--profile", "smoke",
-          "--params", str(ROOT / "params.yaml"), "--device", "cpu",
-          "--detail-tokenizer", str(out / "tokenizers" / "detail" / "tokenizer.pt"),
-          "--abstract-tokenizer", str(out / "tokenizers" / "abstract" / "tokenizer.pt"),
-          "--abstract-predictor", str(out / "predictors" / "abstract_tf" / "predictor.pt"),
-          "--detail-predictor", str(out / "predictors" / "detail" / "predictor.pt")])
-    frames = read_video(rollout, 1, (128, 72))
-    assert len(frames) == 5 + 3 * 10 and rollout.with_suffix(".gif").is_file()
+    main(["rollout", *files, "--out", str(rollout), "--seconds", "3",
+          "--abstract-predictor", str(out / "predictors" / "abstract_tf" / "predictor.pt")])
+    assert len(read_video(rollout, 1, (128, 72))) == 5 + 3 * 10 and rollout.with_suffix(".gif").is_file()
+    distilled = tmp_path / "distilled.mp4"  # the consistency-distilled abstract predictor: its own 4 steps
+    main(["rollout", *files, "--out", str(distilled), "--seconds", "1",
+          "--abstract-predictor", str(out / "predictors" / "abstract_distilled" / "predictor.pt")])
+    assert len(read_video(distilled, 1, (128, 72))) == 5 + 10
+    assert "consistency-distilled: 4 steps at [0.99, 0.9375, 0.8333, 0.625]" in capsys.readouterr().err
+
+
+def test_a_rollout_step_samples_a_consistency_predictor_on_its_grid(authors):
+    """``sample_frames`` with a grid is ``consistency_sample``: the same draws from the same generator."""
+    net = build_stdit_from({"preset": "smoke", "latent_channels": 4, "causal": True})
+    context = authors["l2"]["x"][:, :3]
+    grid = [0.99, 0.8333]
+    ours = sample_frames(net, context, 1, 30, torch.Generator().manual_seed(3), grid=grid, frame_rate=2.0)
+    again = consistency_sample(net, context, 1, grid, torch.Generator().manual_seed(3), frame_rate=2.0)
+    assert torch.equal(ours, again)

@@ -42,6 +42,7 @@ from orbis2.inference import (
     abstract_predictor_path,
     compile_models,
     compose,
+    consistency_grid,
     decode_latents,
     load_checkpoints,
     load_steering,
@@ -115,13 +116,17 @@ def rollout_command(args: argparse.Namespace) -> str:
     abstract_nfe, detail_nfe, guidance, line = sampler_settings(args.abstract_nfe, args.detail_nfe,
                                                                 args.steering_guidance, cfg, detail_pred,
                                                                 steering is not None)
+    grid = consistency_grid(abstract_pred, abstract_path, args.abstract_nfe)
+    if grid is not None:
+        line += f"; the abstract predictor is consistency-distilled: {len(grid)} steps at {grid}"
     print(f"orbis2 rollout: {line}", file=sys.stderr)
     with tqdm(total=steps, desc="rollout", unit="step") as bar, inference_autocast(device, args.precision):
         details, _ = cascaded_rollout(
             abstract_pred.model, detail_pred.model, detail_ctx[None].to(device), abstract_ctx[None].to(device),
             steps, generator, abstract_nfe=abstract_nfe, detail_nfe=detail_nfe,
             abstract_hz=data.abstract_hz, detail_hz=data.detail_hz, steering=steering,
-            on_step=lambda _: bar.update(1), kv_cache=not args.no_kv_cache, steering_guidance=guidance)
+            on_step=lambda _: bar.update(1), kv_cache=not args.no_kv_cache, steering_guidance=guidance,
+            abstract_grid=grid)
 
     context_frames = frames[list(first.detail_context)]
     video = np.concatenate([context_frames, decode_latents(detail_tok, details[0], device, args.precision)])

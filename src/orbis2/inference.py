@@ -134,6 +134,20 @@ def sampler_settings(abstract_nfe: int | None, detail_nfe: int | None, guidance:
     return abstract_nfe, detail_nfe, guidance, line
 
 
+def consistency_grid(predictor: PredictorFile, path: Path, nfe: int | None) -> list[float] | None:
+    """The noise levels a consistency-distilled predictor (the authors' distilled abstract one) samples ``nfe``
+    steps on (None: its own count), from the grids its file records; None for a predictor sampled with Euler."""
+    sampling = predictor.meta.get("sampling", {})
+    if sampling.get("method") != "consistency":
+        return None
+    steps = str(nfe or sampling.get("nfe", 4))
+    grids = sampling["grids"]
+    if steps not in grids:
+        raise OrbisError(f"{path}: a consistency-distilled predictor with grids for {', '.join(grids)} steps, not "
+                         f"{steps}; pass --abstract-nfe with one of them")
+    return [float(level) for level in grids[steps]]
+
+
 # --------------------------------------------------------------------------- context and steering
 
 
