@@ -19,7 +19,8 @@ import torch
 import yaml
 
 from orbis2.cli import main
-from orbis2.data.video import read_video
+from orbis2.config.params import load_config
+from orbis2.data.video import read_video, write_video
 from orbis2.flow import consistency_sample, euler_sample
 from orbis2.models.files import load_predictor, load_tokenizer
 from orbis2.models.official import (
@@ -37,7 +38,7 @@ from orbis2.models.official import (
 )
 from orbis2.models.stdit import build_stdit_from
 from orbis2.models.stdit_layers import grid_positions
-from orbis2.rollout import sample_frames
+from orbis2.rollout import first_context_end, rollout_schedule, sample_frames
 
 from conftest import ROOT
 
@@ -316,24 +317,57 @@ def smoke_release(root: Path, note: dict) -> Path:
     return release_folder(root, configs, states, pred_frames=5)
 
 
-def test_an_imported_release_rolls_out_with_our_command(tmp_path, note, make_video, capsys):
+class PooledPixels(torch.nn.Module):
+    """A fast stand-in for I3D (the FVD's features): colour means over a coarse space-time grid."""
+
+    def __init__(self):
+        super().__init__()
+        self.anchor = torch.nn.Parameter(torch.zeros(()))  # where the features are computed
+
+    def forward(self, video: torch.Tensor) -> torch.Tensor:
+        return torch.nn.functional.adaptive_avg_pool3d(video, (4, 2, 2)).flatten(1) + self.anchor
+
+
+def test_an_imported_release_rolls_out_and_is_scored_with_our_commands(tmp_path, note, make_video, capsys,
+                                                                       monkeypatch):
+    """Imported, the release rolls out 3 s on the CPU with ``orbis2 rollout`` (Euler and, for the distilled
+    abstract predictor, its consistency grid) and its rollouts are scored by ``orbis2 evaluate``."""
     release = smoke_release(tmp_path / "release", note)
     out = tmp_path / "official"
     main(["import-weights", str(release), "--out", str(out)])
-    video = make_video("clip.mp4", 40, 10.0, width=128, height=72)
+    video = make_video("clip.mp4", 60, 10.0, width=128, height=72)
     files = ["--detail-tokenizer", str(out / "tokenizers" / "detail" / "tokenizer.pt"),
              "--abstract-tokenizer", str(out / "tokenizers" / "abstract" / "tokenizer.pt"),
              "--detail-predictor", str(out / "predictors" / "detail" / "predictor.pt"),
              "--profile", "smoke", "--params", str(ROOT / "params.yaml"), "--device", "cpu", "--video", str(video)]
-    rollout = tmp_path / "rollout.mp4"
-    main(["rollout", *files, "--out", str(rollout), "--seconds", "3",
-          "--abstract-predictor", str(out / "predictors" / "abstract_tf" / "predictor.pt")])
-    assert len(read_video(rollout, 1, (128, 72))) == 5 + 3 * 10 and rollout.with_suffix(".gif").is_file()
+    standard = ["--abstract-predictor", str(out / "predictors" / "abstract_tf" / "predictor.pt")]
+    for seed in range(3):
+        main(["rollout", *files, *standard, "--out", str(tmp_path / "generated" / f"{seed}.mp4"), "--seconds", "3",
+              "--seed", str(seed)])
+    rollout = read_video(tmp_path / "generated" / "0.mp4", 1, (128, 72))
+    assert len(rollout) == 5 + 3 * 10 and (tmp_path / "generated" / "0.gif").is_file()
     distilled = tmp_path / "distilled.mp4"  # the consistency-distilled abstract predictor: its own 4 steps
     main(["rollout", *files, "--out", str(distilled), "--seconds", "1",
           "--abstract-predictor", str(out / "predictors" / "abstract_distilled" / "predictor.pt")])
     assert len(read_video(distilled, 1, (128, 72))) == 5 + 10
     assert "consistency-distilled: 4 steps at [0.99, 0.9375, 0.8333, 0.625]" in capsys.readouterr().err
+
+    data = load_config(ROOT / "params.yaml", "smoke").data
+    context_end = first_context_end(data)
+    schedule = rollout_schedule(data, context_end, 6)
+    indices = list(schedule[0].detail_context) + [i for step in schedule for i in step.detail_target]
+    real = read_video(video, 1, (128, 72))[indices]
+    for seed in range(3):
+        write_video(tmp_path / "real" / f"{seed}.mkv", real, 10.0, lossless=True)
+    monkeypatch.setattr("orbis2.eval.protocols.evaluate_videos.load_i3d", lambda path: PooledPixels())
+    monkeypatch.setattr("orbis2.eval.metrics.fvd.I3D_SIZE", 32)
+    (tmp_path / "i3d.pt").write_bytes(b"stand-in")
+    main(["evaluate", "--generated", str(tmp_path / "generated"), "--real", str(tmp_path / "real"),
+          "--context-frames", "5", "--generated-has-context", "--i3d", str(tmp_path / "i3d.pt"),
+          "--params", str(ROOT / "params.yaml"), "--profile", "smoke", "--out", str(tmp_path / "record.json")])
+    record = json.loads((tmp_path / "record.json").read_text())
+    assert (record["pairing"]["videos"], record["fvd"]["clips"]) == (3, 3)
+    assert record["fvd"]["low"] <= record["fvd"]["fvd"] <= record["fvd"]["high"] and record["fvd"]["fvd"] > 0
 
 
 def test_a_rollout_step_samples_a_consistency_predictor_on_its_grid(authors):
