@@ -21,7 +21,9 @@ import yaml
 from orbis2.cli import main
 from orbis2.config.params import load_config
 from orbis2.data.video import read_video, write_video
+from orbis2.errors import OrbisError
 from orbis2.flow import consistency_sample, euler_sample
+from orbis2.inference import check_imported
 from orbis2.models.files import load_predictor, load_tokenizer
 from orbis2.models.official import (
     ReleaseError,
@@ -378,3 +380,11 @@ def test_a_rollout_step_samples_a_consistency_predictor_on_its_grid(authors):
     ours = sample_frames(net, context, 1, 30, torch.Generator().manual_seed(3), grid=grid, frame_rate=2.0)
     again = consistency_sample(net, context, 1, grid, torch.Generator().manual_seed(3), frame_rate=2.0)
     assert torch.equal(ours, again)
+
+
+def test_a_rollout_refuses_imported_networks_whose_windows_differ_from_the_profile(imported):
+    """The tiny release's detail predictor predicts 2 frames after 3; the smoke profile's rollout 5 after 5."""
+    out, manifest = imported
+    path = out / manifest["written"]["predictors/detail"]
+    with pytest.raises(OrbisError, match="the authors' config gives num_pred_frames = 2, but profile smoke uses 5"):
+        check_imported(load_predictor(path), path, load_config(ROOT / "params.yaml", "smoke"), "detail")
