@@ -70,9 +70,6 @@ class _Placeholder:
     def __setstate__(self, state: Any) -> None:
         self.state = state
 
-    def __call__(self, *args: Any, **kwargs: Any) -> _Placeholder:
-        return _Placeholder(*args, **kwargs)
-
 
 _UNSUPPORTED_GLOBAL = re.compile(r"(?:Unsupported global: GLOBAL|Unsupported class) ([\w.]+)")
 
