@@ -388,3 +388,14 @@ def test_a_rollout_refuses_imported_networks_whose_windows_differ_from_the_profi
     path = out / manifest["written"]["predictors/detail"]
     with pytest.raises(OrbisError, match="the authors' config gives num_pred_frames = 2, but profile smoke uses 5"):
         check_imported(load_predictor(path), path, load_config(ROOT / "params.yaml", "smoke"), "detail")
+
+
+def test_a_heun_sampler_is_recorded_with_the_weights(tmp_path, authors, note):
+    release = write_release(tmp_path / "release", authors, note)
+    schedule = [{"solver": "heun", "num_steps": 2, "step_size": 0.4}, {"solver": "euler", "step_size": 0.2}]
+    _edit(release / "L1" / "config.yaml", ["model", "params", "sampler_config"],
+          {"target": "modules.fm_samplers.FlowMatchingSamplerHeunPlusEuler",
+           "params": {"timescale": 1000.0, "step_schedule": schedule}})
+    import_release(release, tmp_path / "ours")
+    sampling = load_predictor(tmp_path / "ours" / "predictors" / "detail" / "predictor.pt").meta["sampling"]
+    assert sampling["method"] == "heun_then_euler" and sampling["authors_sampler"]["step_schedule"] == schedule

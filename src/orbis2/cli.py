@@ -119,6 +119,9 @@ def rollout_command(args: argparse.Namespace) -> str:
     grid = consistency_grid(abstract_pred, abstract_path, args.abstract_nfe)
     if grid is not None:
         line += f"; the abstract predictor is consistency-distilled: {len(grid)} steps at {grid}"
+    for name, predictor in (("abstract", abstract_pred), ("detail", detail_pred)):
+        if predictor.meta.get("sampling", {}).get("method", "").startswith("heun"):
+            line += f"; the authors sample the {name} predictor with Heun steps, this rollout with Euler steps"
     print(f"orbis2 rollout: {line}", file=sys.stderr)
     with tqdm(total=steps, desc="rollout", unit="step") as bar, inference_autocast(device, args.precision):
         details, _ = cascaded_rollout(

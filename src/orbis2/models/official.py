@@ -204,7 +204,8 @@ STEERING_CONDITIONERS = tuple(f"networks.DiT.dit_v2.{name}" for name in (
     "SequenceGlobalAdditiveConditioner", "PerFrameSequenceGlobalAdditiveConditioner"))
 GENERATORS = ("networks.DiT.dit_v2.DiT", "networks.DiT.dit_v2.SpatialL2CtxAndLastDiT")
 BLOCKS = ("modules.dit.STDiTBlock", "modules.dit.STDiTBlockWithSpatialL2")
-SAMPLERS = ("modules.fm_samplers.FlowMatchingSamplerEuler",
+SAMPLERS = ("modules.fm_samplers.FlowMatchingSamplerEuler", "modules.fm_samplers.FlowMatchingSamplerHeun",
+            "modules.fm_samplers.FlowMatchingSamplerHeunPlusEuler",
             "models.second_stage.cd_model_v2.ConsistencyDistillationSampler")
 DIT_TRAINING_ONLY = ("dropout", "ctx_noise_aug_ratio", "ctx_noise_aug_prob", "drop_ctx_rate", "log_adaln_mean_abs",
                      "log_adaln_grad", "adaln_gate_init_std", "train_steering_adaln_only")
@@ -287,6 +288,10 @@ def predictor_spec(generator: Section, sampler: Section, causal_mask: str) -> Pr
         grids = {**DEFAULT_CONSISTENCY_GRIDS, **{int(k): [float(t) for t in v] for k, v in
                                                   (sampler_params.get("sample_t_grids") or {}).items()}}
         sampling = {"method": "consistency", "grids": {str(k): v for k, v in sorted(grids.items())}}
+    elif sampler_kind != "FlowMatchingSamplerEuler":  # recorded: our rollouts take Euler steps (docs)
+        sampling = {"method": "heun" if sampler_kind == "FlowMatchingSamplerHeun" else "heun_then_euler",
+                    "authors_sampler": _jsonable({"target": sampler_kind, **sampler_params.params})}
+        sampler_params.get("step_schedule")
     sampler_params.done()
     build = {"preset": "paper", **options, "latent_channels": latent_channels, "causal": causal,
              "abstract_channels": sem_channels, "steering": conditioner is not None}
