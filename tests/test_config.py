@@ -78,7 +78,7 @@ def test_profile_key_selects_values(tmp_path):
     (lambda r: r["detail"]["smoke"].update(preset="huge"), "detail.smoke.preset = 'huge' must be one of"),
     (lambda r: r["tokenizer_detail"]["smoke"].update(preset="huge"), "tokenizer_detail.smoke.preset = 'huge' must be"),
     (lambda r: r["detail"]["smoke"].update(model={"hiden_size": 64}),
-     "detail.smoke.model: ST-DiT: unknown key 'hiden_size' (known: cond_dim, depth, hidden_size,"),
+     "detail.smoke.model: ST-DiT: unknown key 'hiden_size' (known: abstract_positions, causal_mask, cond_dim,"),
     (lambda r: r["detail"]["smoke"].update(model={"depth": 2.5}),
      "detail.smoke.model: ST-DiT: depth must be int, got 2.5"),
     (lambda r: r["detail"]["smoke"].update(model={"num_heads": 3}),

@@ -299,7 +299,7 @@ def test_preset_overrides_are_checked():
     cfg = stdit_config("smoke", depth=3, mlp_ratio=2)
     assert (cfg.depth, cfg.mlp_ratio, cfg.hidden_size) == (3, 2.0, STDIT_PRESETS["smoke"].hidden_size)
     assert isinstance(cfg.mlp_ratio, float) and STDIT_PRESETS["smoke"].depth == 2  # a copy; presets stay
-    with pytest.raises(ValueError, match=r"ST-DiT: unknown key 'hiden_size' \(known: cond_dim, depth, "):
+    with pytest.raises(ValueError, match=r"ST-DiT: unknown key 'hiden_size' \(known: abstract_positions, "):
         stdit_config("smoke", hiden_size=3)
     with pytest.raises(ValueError, match=r"ST-DiT: depth must be int, got 2.5 \(float\)"):
         stdit_config("smoke", depth=2.5)
@@ -345,3 +345,26 @@ def test_smoke_model_overfits_a_fixed_batch_with_teacher_forcing():
         optimizer.step()
     final = evaluate()
     assert math.isfinite(final) and final < 0.3 * initial, (initial, final)
+
+
+def test_authors_options_are_checked():
+    """The settings of the authors' released networks (orbis2.models.official) refuse values they do not know."""
+    with pytest.raises(ValueError, match="ST-DiT: qk_norm = 'group' must be one of rms, layer"):
+        stdit_config("smoke", qk_norm="group")
+    with pytest.raises(ValueError, match=r"ST-DiT: rate_range = \(15.0, 2.0\) must be \(low, high\)"):
+        stdit_config("smoke", rate_range=(15, 2))
+
+
+def test_additive_causal_mask_leaks_the_future_and_the_hard_one_does_not():
+    """The authors' "causal" float mask adds +1 to the allowed scores: later frames still reach earlier ones."""
+    torch.manual_seed(0)
+    hard = randomized(build_stdit("smoke", C, causal=True)).eval()
+    leaky = build_stdit(stdit_config("smoke", causal_mask="additive"), C, causal=True).eval()
+    leaky.load_state_dict(hard.state_dict())
+    x, tau = latents(1, 4, 2), torch.rand(1, 4)
+    changed = x.clone()
+    changed[:, -1] += 1.0
+    with torch.no_grad():
+        assert torch.equal(hard(x, tau)[:, :3], hard(changed, tau)[:, :3])
+        assert (leaky(x, tau)[:, :3] - leaky(changed, tau)[:, :3]).abs().max() > 1e-4
+    assert not leaky.uses_kv_cache(True) and hard.uses_kv_cache(True)

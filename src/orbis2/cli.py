@@ -6,7 +6,8 @@ browser (:mod:`orbis2.play`). ``orbis2 evaluate`` scores any model's rollouts
 against the real videos they continue, through the code the
 ``eval_fvd`` stages run (:mod:`orbis2.eval.protocols.evaluate`). ``orbis2 convert``
 turns nuPlan, PhysicalAI-AV, BDD100K or OpenDV-YouTube into the import layout
-(:mod:`orbis2.data.datasets`). User-fixable problems (short video,
+(:mod:`orbis2.data.datasets`); ``orbis2 import-weights`` converts the authors' released
+weights into our files (:mod:`orbis2.models.official`). User-fixable problems (short video,
 bad trajectory CSV, missing or mismatched checkpoints) print one message naming
 the file and the fix and exit with status 2.
 
@@ -41,6 +42,7 @@ from orbis2.inference import (
     abstract_predictor_path,
     compile_models,
     compose,
+    consistency_grid,
     decode_latents,
     load_checkpoints,
     load_steering,
@@ -114,13 +116,20 @@ def rollout_command(args: argparse.Namespace) -> str:
     abstract_nfe, detail_nfe, guidance, line = sampler_settings(args.abstract_nfe, args.detail_nfe,
                                                                 args.steering_guidance, cfg, detail_pred,
                                                                 steering is not None)
+    grid = consistency_grid(abstract_pred, abstract_path, args.abstract_nfe)
+    if grid is not None:
+        line += f"; the abstract predictor is consistency-distilled: {len(grid)} steps at {grid}"
+    for name, predictor in (("abstract", abstract_pred), ("detail", detail_pred)):
+        if predictor.meta.get("sampling", {}).get("method", "").startswith("heun"):
+            line += f"; the authors sample the {name} predictor with Heun steps, this rollout with Euler steps"
     print(f"orbis2 rollout: {line}", file=sys.stderr)
     with tqdm(total=steps, desc="rollout", unit="step") as bar, inference_autocast(device, args.precision):
         details, _ = cascaded_rollout(
             abstract_pred.model, detail_pred.model, detail_ctx[None].to(device), abstract_ctx[None].to(device),
             steps, generator, abstract_nfe=abstract_nfe, detail_nfe=detail_nfe,
             abstract_hz=data.abstract_hz, detail_hz=data.detail_hz, steering=steering,
-            on_step=lambda _: bar.update(1), kv_cache=not args.no_kv_cache, steering_guidance=guidance)
+            on_step=lambda _: bar.update(1), kv_cache=not args.no_kv_cache, steering_guidance=guidance,
+            abstract_grid=grid)
 
     context_frames = frames[list(first.detail_context)]
     video = np.concatenate([context_frames, decode_latents(detail_tok, details[0], device, args.precision)])
@@ -358,6 +367,30 @@ def add_play_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=play_command)
 
 
+# --------------------------------------------------------------------------- import-weights command
+
+
+def import_weights_command(args: argparse.Namespace) -> str:
+    """Convert the authors' released networks into our checkpoint files (docs/official-weights.md)."""
+    from orbis2.models.official import import_release
+
+    start = time.perf_counter()
+    manifest = import_release(args.folder, args.out, "additive" if args.authors_causal_mask else "hard")
+    written = ", ".join(sorted(manifest["written"]))
+    return (f"imported {len(manifest['files'])} files of {args.folder} -> {args.out} ({written}) in "
+            f"{time.perf_counter() - start:.1f} s; manifest: {args.out / 'manifest.json'}")
+
+
+def add_import_weights_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("import-weights", help="convert the authors' released Orbis 2 weights into our files")
+    p.add_argument("folder", type=Path, help="the downloaded release (hf download sud0301/orbis2 --local-dir F)")
+    p.add_argument("--out", type=Path, default=Path("data/official"), help="where to write (default: %(default)s)")
+    p.add_argument("--authors-causal-mask", action="store_true",
+                   help="keep their abstract predictor's temporal mask, which adds +1 to the allowed scores and lets "
+                        "the future leak in (their outputs exactly); default: our hard causal mask")
+    p.set_defaults(run=import_weights_command)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="orbis2", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -365,6 +398,7 @@ def main(argv: list[str] | None = None) -> None:
     add_evaluate_parser(sub)
     add_convert_parser(sub)
     add_play_parser(sub)
+    add_import_weights_parser(sub)
     args = parser.parse_args(argv)
     freeze_imports()
     try:

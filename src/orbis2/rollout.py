@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from orbis2.config.sections import DataConfig
-from orbis2.flow import ModelFn, euler_grid, euler_sample, guided_velocity
+from orbis2.flow import ModelFn, consistency_sample, euler_grid, euler_sample, guided_velocity
 from orbis2.hierarchy import condition_frames, scale_steering, steering_rows, window_indices
 
 StepCallback = Callable[[int], None]
@@ -134,7 +134,7 @@ def unsteered_modulations(model: ModelFn, context: torch.Tensor, n_target: int, 
 
 def sample_frames(model: ModelFn, context: torch.Tensor, n_target: int, nfe: int, generator: torch.Generator,
                   kv_cache: bool = True, guidance: float = 1.0, modulations: list | None = None,
-                  **cond) -> torch.Tensor:
+                  grid: list[float] | None = None, **cond) -> torch.Tensor:
     """``euler_sample``, with what stays fixed over its Euler steps computed once per call
     (:func:`target_velocity`): the context's temporal keys/values where exact, the conditioning, the
     modulations (``modulations``: precomputed for an unsteered call, :func:`unsteered_modulations`).
@@ -142,7 +142,13 @@ def sample_frames(model: ModelFn, context: torch.Tensor, n_target: int, nfe: int
     ``guidance`` != 1 with a ``steering`` input: classifier-free guidance on the steering
     (:func:`orbis2.flow.guided_velocity`), the unsteered velocity from the same model given no steering
     (its dropout embedding); two evaluations per Euler step, the same noise.
+    ``grid``: a consistency-distilled predictor's noise levels (the authors' distilled abstract predictor):
+    :func:`orbis2.flow.consistency_sample` instead, one network call per level (``nfe`` unused).
     """
+    if grid is not None:
+        if cond.get("steering") is not None and guidance != 1.0:
+            raise ValueError("steering guidance needs an Euler sampler; a consistency-distilled predictor has none")
+        return consistency_sample(model, context, n_target, grid, generator, **cond)
     if cond.get("steering") is not None and guidance != 1.0:
         steered = target_velocity(model, context, n_target, nfe, kv_cache, cond)
         free = target_velocity(model, context, n_target, nfe, kv_cache,
@@ -198,6 +204,7 @@ def cascaded_steps(
     kv_cache: bool = True,
     subgoals: torch.Tensor | None = None,
     steering_guidance: float = 1.0,
+    abstract_grid: list[float] | None = None,
 ) -> Generator[RolloutChunk | None, torch.Tensor | None, None]:
     """The hierarchical rollout one 0.5 s step at a time, for a caller that decides each step's steering as it
     goes (``orbis2 play``) as well as for :func:`cascaded_rollout`, which loops over it.
@@ -205,14 +212,15 @@ def cascaded_steps(
     Start it with ``next()`` (it yields None once set up); then each ``send(steering)`` runs one step and
     returns its chunk (detail latents [B, frames_per_step, ...], top frames [B, top_frames_per_step, ...]).
     ``steering`` [B, S, K] conditions that step's top prediction; send None throughout when not ``steered``.
-    ``subgoals``: the top's frames given, consumed ``top_frames_per_step`` a step. Everything else as in
-    :func:`cascaded_rollout`.
+    ``subgoals``: the top's frames given, consumed ``top_frames_per_step`` a step. ``abstract_grid``: the top
+    predictor's consistency grid, when it is consistency-distilled (:func:`sample_frames`). Everything else as
+    in :func:`cascaded_rollout`.
     """
     n_context = detail_context.shape[1]
     frames_per_step = detail_frames_per_step(detail_hz, abstract_hz, top_frames_per_step)
     detail_table = unsteered_modulations(detail_model, detail_context, frames_per_step, detail_nfe, kv_cache)
     top_table = None
-    if not steered and subgoals is None:
+    if not steered and subgoals is None and abstract_grid is None:
         top_table = unsteered_modulations(abstract_model, abstract_context, top_frames_per_step, abstract_nfe,
                                           kv_cache)
     steering = yield None
@@ -221,7 +229,7 @@ def cascaded_steps(
         if subgoals is None:
             cond = {} if steering is None else {"steering": steering}
             top = sample_frames(abstract_model, abstract_context, top_frames_per_step, abstract_nfe, generator,
-                                kv_cache, steering_guidance, top_table, frame_rate=abstract_hz, **cond)
+                                kv_cache, steering_guidance, top_table, abstract_grid, frame_rate=abstract_hz, **cond)
         else:
             top = subgoals[:, k * top_frames_per_step:(k + 1) * top_frames_per_step]
         cond_frames, cond_mask = condition_frames(abstract_context[:, -1], top[:, -1], n_context, frames_per_step)
@@ -253,6 +261,7 @@ def cascaded_rollout(
     kv_cache: bool = True,
     subgoals: torch.Tensor | None = None,
     steering_guidance: float = 1.0,
+    abstract_grid: list[float] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Hierarchical rollout; returns detail latents [B, frames_per_step * steps, ...] and the top
     predictor's frames [B, top_frames_per_step * steps, ...]: ``steps`` steps of :func:`cascaded_steps`.
@@ -273,7 +282,8 @@ def cascaded_rollout(
     ``kv_cache``: cache a causal top predictor's context keys/values (:func:`sample_frames`).
     ``subgoals`` [B, top_frames_per_step * steps, ...]: the top's frames given, not sampled (the real
     future abstract latents: the bottom level's reference rollout). ``steering_guidance``: classifier-free
-    guidance on the top's steering (:func:`sample_frames`; 1 = none, the paper's sampler).
+    guidance on the top's steering (:func:`sample_frames`; 1 = none, the paper's sampler). ``abstract_grid``:
+    the top's consistency grid when it is consistency-distilled (:func:`sample_frames`).
     """
     b = detail_context.shape[0]
     detail_frames_per_step(detail_hz, abstract_hz, top_frames_per_step)  # refuse bad rates before any check below
@@ -282,7 +292,8 @@ def cascaded_rollout(
     stepper = cascaded_steps(abstract_model, detail_model, detail_context, abstract_context, generator,
                              abstract_nfe, detail_nfe, abstract_hz=abstract_hz, detail_hz=detail_hz,
                              steered=steering is not None, top_frames_per_step=top_frames_per_step,
-                             kv_cache=kv_cache, subgoals=subgoals, steering_guidance=steering_guidance)
+                             kv_cache=kv_cache, subgoals=subgoals, steering_guidance=steering_guidance,
+                             abstract_grid=abstract_grid)
     next(stepper)
     details, tops = [], []
     for k in range(steps):

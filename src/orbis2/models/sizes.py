@@ -39,6 +39,12 @@ class TokenizerConfig(ModelConfig):
     entropy_temperature: float = 0.01
     mlp_ratio: float = 4.0
     learn_pos_embed: bool = False
+    # The authors' released tokenizer (orbis2.models.official): a CLS token in each ViT encoder (with its own
+    # learned position; dropped after the last block) and a 1x1 conv from the latent to this many channels before
+    # each decoder's first conv (0: none, ours).
+    cls_token: bool = False
+    decoder_in_channels: int = 0
+    abstract_decoder_in_channels: int = 0
     disc_channels: int = 64
     disc_layers: int = 3
     disc_norm: str = "group"
@@ -92,6 +98,14 @@ def tokenizer_config(preset: str, **overrides) -> TokenizerConfig:
     return preset_config(TOKENIZER_PRESETS, preset, overrides)
 
 
+# The values of the STDiTConfig options below (the first of each is ours).
+QK_NORMS = ("rms", "layer")
+CAUSAL_MASKS = ("hard", "additive")
+RATE_ENCODINGS = ("geometric", "interleaved")
+TIMESTEPS = ("per_frame", "global")
+STEERING_POOLS = ("head_mean", "sum", "mean")
+
+
 @dataclass(frozen=True)
 class STDiTConfig(ModelConfig):
     """An ST-DiT's size: what :func:`build_stdit` needs besides the latents and the level's wiring."""
@@ -109,13 +123,31 @@ class STDiTConfig(ModelConfig):
     steering_len: int = 16
     steering_shift: bool = False  # steered predictor only: SteeringShift (a deviation from the paper)
     subgoal_shift: bool = False  # detail predictor only: SubgoalShift (a deviation from the paper)
+    # Choices the paper leaves open, in which the authors' released networks differ from ours: our choice is each
+    # default, theirs what orbis2.models.official records when it imports their weights (docs/official-weights.md).
+    qk_norm: str = "rms"  # query/key norm per head: "rms" (RMSNorm) | "layer" (LayerNorm with bias, theirs)
+    causal_mask: str = "hard"  # "hard" | "additive" (theirs: +1 on the allowed scores, the future leaks in)
+    time_attn_norm: bool = True  # False (theirs): the temporal attention reads the residual stream un-normalised
+    cross_attention: bool = True  # detail predictor: the gated cross-attention to the abstract tokens (theirs: none)
+    abstract_positions: bool = True  # detail predictor: 2-D sin-cos positions on the abstract tokens (theirs: none)
+    rate_encoding: str = "geometric"  # frame-rate features: "geometric" (of Hz) | "interleaved" (theirs)
+    rate_range: tuple[float, float] = (2.0, 15.0)  # "interleaved": the rates mapped to [0, 1]
+    tau_scale: float = 1000.0  # the noise-level features are of tau_scale * tau (theirs: the sampler's timescale)
+    timestep: str = "per_frame"  # "per_frame" | "global" (theirs: every frame gets the last frame's noise level)
+    steering_pool: str = "head_mean"  # steering tokens: "head_mean" (SiLU, linear, mean) | "sum" | "mean" (theirs)
 
     def check(self) -> None:
         self.positive("hidden_size", "depth", "num_heads", "cond_dim", "mlp_ratio", "patch_size", "max_frames",
-                      "steering_features", "steering_len")
+                      "steering_features", "steering_len", "tau_scale")
         for name in ("hidden_size", "cond_dim"):
             self.divisible(name, "num_heads")
             self.divisible(name, 4)  # 2-D sin-cos positions
+        for name, allowed in (("qk_norm", QK_NORMS), ("causal_mask", CAUSAL_MASKS), ("rate_encoding", RATE_ENCODINGS),
+                              ("timestep", TIMESTEPS), ("steering_pool", STEERING_POOLS)):
+            if getattr(self, name) not in allowed:
+                self.fail(f"{name} = {getattr(self, name)!r} must be one of {', '.join(allowed)}")
+        if self.rate_range[1] <= self.rate_range[0]:
+            self.fail(f"rate_range = {self.rate_range} must be (low, high) with low < high")
 
 
 STDIT_PRESETS: dict[str, STDiTConfig] = {

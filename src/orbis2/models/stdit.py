@@ -76,25 +76,33 @@ class STDiTBlock(nn.Module):
     abstract conditioning (paper Appendix "Model details"): before the block,
     x += sigmoid(gate) * modulate(LN(x), shift, scale) with shift/scale/gate
     per token from the aligned conditioning tokens; after spatial attention, a
-    gated cross-attention to the sample's conditioning tokens, gate tanh(alpha).
+    gated cross-attention to the sample's conditioning tokens, gate tanh(alpha) (none with
+    ``cross_attention=False``, as in the authors' released detail predictor).
     """
 
-    def __init__(self, hidden_size: int, num_heads: int, mlp_ratio: float, cond_dim: int | None = None):
+    def __init__(self, hidden_size: int, num_heads: int, mlp_ratio: float, cond_dim: int | None = None,
+                 qk_norm: str = "rms", causal_mask: str = "hard", time_attn_norm: bool = True,
+                 cross_attention: bool = True):
         super().__init__()
         mlp_hidden = int(hidden_size * mlp_ratio)
         self.space_norm, self.space_mlp_norm = adaln_norm(hidden_size), adaln_norm(hidden_size)
-        self.time_norm, self.time_mlp_norm = adaln_norm(hidden_size), adaln_norm(hidden_size)
-        self.space_attn = Attention(hidden_size, num_heads)
+        # time_attn_norm=False: the temporal attention reads the residual stream itself (the authors' released
+        # blocks without their temporal adaLN); its shift/scale/gate rows are then the constants 0, 0, 1.
+        self.time_norm = adaln_norm(hidden_size) if time_attn_norm else nn.Identity()
+        self.time_mlp_norm = adaln_norm(hidden_size)
+        self.space_attn = Attention(hidden_size, num_heads, qk_norm, causal_mask)
         self.space_mlp = Mlp(hidden_size, mlp_hidden)
-        self.time_attn = Attention(hidden_size, num_heads)
+        self.time_attn = Attention(hidden_size, num_heads, qk_norm, causal_mask)
         self.time_mlp = Mlp(hidden_size, mlp_hidden)
         self.adaLN_modulation = nn.Sequential(nn.SiLU(), nn.Linear(hidden_size, 12 * hidden_size))
         self.has_cond = cond_dim is not None
+        self.has_cross = self.has_cond and cross_attention
         if self.has_cond:
             self.cond_norm = adaln_norm(hidden_size)
             self.cond_modulation = nn.Sequential(nn.SiLU(), nn.Linear(cond_dim, 3 * hidden_size))
+        if self.has_cross:
             self.cross_norm = adaln_norm(hidden_size)
-            self.cross_attn = CrossAttention(hidden_size, cond_dim, num_heads)
+            self.cross_attn = CrossAttention(hidden_size, cond_dim, num_heads, qk_norm)
             self.cross_gate = nn.Parameter(torch.zeros(hidden_size))
 
     def modulation(self, c: torch.Tensor) -> torch.Tensor:
@@ -109,7 +117,8 @@ class STDiTBlock(nn.Module):
         if cond_tokens is None:
             return None
         shift, scale, gate = self.cond_modulation(cond_tokens).chunk(3, dim=-1)
-        keys, values = self.cross_attn.keys_values(cond_context) if cond_context is not None else (None, None)
+        keys, values = (self.cross_attn.keys_values(cond_context) if self.has_cross and cond_context is not None
+                        else (None, None))
         return BlockConditioning(shift, scale, torch.sigmoid(gate), keys, values)
 
     def forward(
@@ -185,6 +194,12 @@ class STDiT(nn.Module):
     max_frames - F + i, as in the reference code), so the predicted frame has
     the same embedding whatever the context length, including the linear-probe
     protocol's context-free input.
+
+    The options after ``subgoal_shift`` (sizes.STDiTConfig documents each) default to ours; other values
+    reproduce the authors' released networks (:mod:`orbis2.models.official`).
+    ``timestep="global"`` conditions every frame on the last frame's noise level (their sampler's "global"
+    timestep: the clean context sees the target's), which makes the context's features depend on the step,
+    so such a predictor never caches them (:meth:`uses_kv_cache`).
     """
 
     def __init__(
@@ -204,6 +219,16 @@ class STDiT(nn.Module):
         steering_len: int = 16,
         steering_shift: bool = False,
         subgoal_shift: bool = False,
+        qk_norm: str = "rms",
+        causal_mask: str = "hard",
+        time_attn_norm: bool = True,
+        cross_attention: bool = True,
+        abstract_positions: bool = True,
+        rate_encoding: str = "geometric",
+        rate_range: tuple[float, float] = (2.0, 15.0),
+        tau_scale: float = 1000.0,
+        timestep: str = "per_frame",
+        steering_pool: str = "head_mean",
     ):
         super().__init__()
         self.latent_channels = latent_channels
@@ -217,22 +242,28 @@ class STDiT(nn.Module):
         self.patch_size = patch_size
         self.max_frames = max_frames
         self.causal = causal
+        self.causal_mask = causal_mask
+        self.rate_encoding = rate_encoding
+        self.rate_range = tuple(rate_range)
+        self.timestep = timestep
         self.abstract_channels = abstract_channels
         block_cond_dim = None
         if abstract_channels is not None:
             block_cond_dim = cond_dim or hidden_size
-            self.abstract = AbstractConditioner(abstract_channels, block_cond_dim, patch_size)
+            self.abstract = AbstractConditioner(abstract_channels, block_cond_dim, patch_size, abstract_positions)
         self.x_embedder = nn.Linear(patch_size * patch_size * latent_channels, hidden_size)
-        self.tau_embedder = NoiseLevelEmbedder(hidden_size)
+        self.tau_embedder = NoiseLevelEmbedder(hidden_size, scale=tau_scale)
         self.frame_embed = nn.Parameter(torch.zeros(max_frames, hidden_size))
-        self.steering = SteeringEmbedder(hidden_size, steering_features, steering_len) if steering else None
+        self.steering = (SteeringEmbedder(hidden_size, steering_features, steering_len, steering_pool) if steering
+                         else None)
         self.steering_shift = (SteeringShift(latent_channels, hidden_size, patch_size)
                                if steering and steering_shift else None)
         if subgoal_shift and abstract_channels is None:
             raise ValueError("subgoal_shift needs abstract conditioning (the detail predictor)")
         self.subgoal_shift = SubgoalShift(latent_channels, hidden_size, patch_size) if subgoal_shift else None
         self.blocks = nn.ModuleList(
-            STDiTBlock(hidden_size, num_heads, mlp_ratio, block_cond_dim) for _ in range(depth)
+            STDiTBlock(hidden_size, num_heads, mlp_ratio, block_cond_dim, qk_norm, causal_mask, time_attn_norm,
+                       cross_attention) for _ in range(depth)
         )
         self.final_layer = FinalLayer(hidden_size, patch_size, latent_channels)
         self._initialize()
@@ -259,7 +290,8 @@ class STDiT(nn.Module):
                 bias = block.cond_modulation[-1].bias
                 nn.init.zeros_(bias)
                 nn.init.constant_(bias[2 * self.hidden_size :], COND_GATE_BIAS)
-                nn.init.constant_(block.cross_gate, CROSS_GATE_INIT)
+                if block.has_cross:
+                    nn.init.constant_(block.cross_gate, CROSS_GATE_INIT)
         nn.init.zeros_(self.final_layer.adaLN_modulation[-1].weight)
         nn.init.zeros_(self.final_layer.adaLN_modulation[-1].bias)
         nn.init.zeros_(self.final_layer.linear.weight)
@@ -291,15 +323,17 @@ class STDiT(nn.Module):
         """Per-frame adaLN input [B, F, D]: the frame's tau embedding plus the steering embedding.
 
         A steered model given no steering uses the null (dropout) embedding,
-        i.e. it runs unconditionally.
+        i.e. it runs unconditionally. ``timestep="global"``: every frame gets the last frame's tau.
         """
+        if self.timestep == "global":
+            tau = tau[:, -1:].expand_as(tau)
         c = self.tau_embedder(tau)
         if self.steering is None:
             if steering is not None or steering_drop is not None:
                 raise ValueError("this predictor was built without steering (steering=False) but got a steering input")
             return c
         if steering is None:
-            return c + self.steering.null.to(c.dtype)
+            return c + self.steering.unconditional().to(c.dtype)
         return c + self.steering(steering, steering_drop)[:, None]
 
     def embed(self, x: torch.Tensor, constants: WindowConstants, total_frames: int | None = None,
@@ -338,7 +372,8 @@ class STDiT(nn.Module):
         b, _, _, h, w = frames.shape
         p = self.patch_size
         constants = WindowConstants(grid_positions(self.hidden_size, h // p, w // p, frames.device),
-                                    rate_embedding(frame_rate, b, self.hidden_size, frames.device))
+                                    rate_embedding(frame_rate, b, self.hidden_size, frames.device,
+                                                   self.rate_encoding, self.rate_range))
         if self.abstract_channels is None:
             if cond_frames is not None or cond_mask is not None:
                 raise ValueError("this predictor was built without abstract conditioning but got cond_frames")
@@ -438,12 +473,17 @@ class STDiT(nn.Module):
 
     def uses_kv_cache(self, kv_cache: bool) -> bool:
         """Whether sampling with ``kv_cache`` asked for caches the context: exact for a causal predictor
-        without abstract conditioning only."""
-        return kv_cache and self.causal and self.abstract_channels is None
+        (hard mask) without abstract conditioning whose context is conditioned on its own noise level only."""
+        return kv_cache and self._cacheable()
+
+    def _cacheable(self) -> bool:
+        return (self.causal and self.causal_mask == "hard" and self.timestep == "per_frame"
+                and self.abstract_channels is None)
 
     def _check_cacheable(self) -> None:
-        if not self.causal or self.abstract_channels is not None:
-            raise ValueError("the KV cache needs a causal predictor without abstract conditioning (the abstract one)")
+        if not self._cacheable():
+            raise ValueError("the KV cache needs a causal predictor (hard mask, per-frame noise levels) without "
+                             "abstract conditioning (the abstract one)")
 
     @torch.no_grad()
     def build_kv_cache(

@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from orbis2.models.sizes import STEERING_POOLS
 from orbis2.models.tokenizer import sincos_pos_embed_2d
 
 
@@ -31,15 +32,35 @@ def sinusoidal_embedding(values: torch.Tensor, dim: int, max_period: float = 100
     return torch.cat([torch.cos(angles), torch.sin(angles)], dim=-1)
 
 
-def rate_embedding(frame_rate: torch.Tensor | float | None, batch: int, dim: int,
-                   device: torch.device) -> torch.Tensor | None:
-    """Frame rate in Hz (a number or [B]) -> sinusoidal features [B, dim] built on ``device`` (no host copy)."""
+def interleaved_embedding(values: torch.Tensor, dim: int, value_range: tuple[float, float]) -> torch.Tensor:
+    """``values`` [B] -> [B, dim]: (v - lo) / (hi - lo) times 1 / 10000^(2 floor(i / 2) / dim), sine on the even
+    channels and cosine on the odd ones (the frame-rate encoding of the authors' released networks)."""
+    lo, hi = value_range
+    normalized = (values.float() - lo) / (hi - lo)
+    index = torch.arange(dim, device=values.device, dtype=torch.float32)
+    features = normalized[:, None] * (1 / (10000 ** (2 * (index // 2) / dim)))
+    out = torch.empty_like(features)
+    out[:, 0::2] = torch.sin(features[:, 0::2])
+    out[:, 1::2] = torch.cos(features[:, 1::2])
+    return out
+
+
+def rate_embedding(frame_rate: torch.Tensor | float | None, batch: int, dim: int, device: torch.device,
+                   encoding: str = "geometric", rate_range: tuple[float, float] = (2.0, 15.0)
+                   ) -> torch.Tensor | None:
+    """Frame rate in Hz (a number or [B]) -> features [B, dim] built on ``device`` (no host copy).
+
+    ``geometric``: DiT's timestep features of the rate in Hz (ours); ``interleaved``: :func:`interleaved_embedding`
+    of the rate normalised over ``rate_range`` (the authors' released networks).
+    """
     if frame_rate is None:
         return None
     if isinstance(frame_rate, torch.Tensor):
         rate = frame_rate.to(device=device, dtype=torch.float32).expand(batch)
     else:
         rate = torch.full((batch,), float(frame_rate), device=device, dtype=torch.float32)
+    if encoding == "interleaved":
+        return interleaved_embedding(rate, dim, rate_range)
     return sinusoidal_embedding(rate, dim)
 
 
@@ -84,22 +105,32 @@ def unpatchify(tokens: torch.Tensor, p: int, c: int, h: int, w: int) -> torch.Te
 # --------------------------------------------------------------------------- layers
 
 
-class Attention(nn.Module):
-    """Multi-head self-attention with qk-norm (RMSNorm per head), through SDPA (flash attention on GPU).
+def qk_norm(kind: str, head_dim: int) -> nn.Module:
+    """Query/key normalisation per head: ``rms`` (RMSNorm, ours) or ``layer`` (LayerNorm with bias and eps 1e-5,
+    what the authors' released networks use)."""
+    if kind == "layer":
+        return nn.LayerNorm(head_dim)
+    return nn.RMSNorm(head_dim, eps=1e-6)
 
-    ``causal`` is a hard mask (``is_causal=True``): the reference code's float
-    mask of ones only adds +1 to the scores and lets the future leak in.
+
+class Attention(nn.Module):
+    """Multi-head self-attention with qk-norm, through SDPA (flash attention on GPU).
+
+    ``causal`` is a hard mask (``is_causal=True``) with ``causal_mask="hard"``. ``"additive"`` reproduces the
+    authors' released networks, whose "causal" float mask of ones only adds +1 to the scores of the past and
+    present and lets the future leak in; it exists only to run those weights as they were trained.
     """
 
-    def __init__(self, dim: int, num_heads: int):
+    def __init__(self, dim: int, num_heads: int, norm: str = "rms", causal_mask: str = "hard"):
         super().__init__()
         if dim % num_heads:
             raise ValueError(f"dim = {dim} is not divisible by num_heads = {num_heads}")
         self.num_heads = num_heads
+        self.additive_causal = causal_mask == "additive"
         head_dim = dim // num_heads
         self.qkv = nn.Linear(dim, 3 * dim)
-        self.q_norm = nn.RMSNorm(head_dim, eps=1e-6)
-        self.k_norm = nn.RMSNorm(head_dim, eps=1e-6)
+        self.q_norm = qk_norm(norm, head_dim)
+        self.k_norm = qk_norm(norm, head_dim)
         self.proj = nn.Linear(dim, dim)
 
     def forward(self, x: torch.Tensor, causal: bool = False, past: tuple[torch.Tensor, torch.Tensor] | None = None,
@@ -118,6 +149,8 @@ class Attention(nn.Module):
             if causal and n > 1:  # query i sees every cached position and its own first i + 1
                 mask = torch.ones(n, n_past + n, dtype=torch.bool, device=x.device).tril(n_past)
             causal = False
+        elif causal and self.additive_causal:
+            mask, causal = torch.ones(n, n, dtype=q.dtype, device=x.device).tril(), False
         out = self.proj(F.scaled_dot_product_attention(q, k, v, attn_mask=mask, is_causal=causal)
                         .transpose(1, 2).reshape(b, n, d))
         return (out, own) if return_kv else out
@@ -126,7 +159,7 @@ class Attention(nn.Module):
 class CrossAttention(nn.Module):
     """Queries from the detail tokens, keys/values from the abstract conditioning tokens (qk-norm, SDPA)."""
 
-    def __init__(self, dim: int, context_dim: int, num_heads: int):
+    def __init__(self, dim: int, context_dim: int, num_heads: int, norm: str = "rms"):
         super().__init__()
         if context_dim % num_heads:
             raise ValueError(f"cond_dim = {context_dim} is not divisible by num_heads = {num_heads}")
@@ -134,8 +167,8 @@ class CrossAttention(nn.Module):
         head_dim = context_dim // num_heads
         self.q = nn.Linear(dim, context_dim)
         self.kv = nn.Linear(context_dim, 2 * context_dim)
-        self.q_norm = nn.RMSNorm(head_dim, eps=1e-6)
-        self.k_norm = nn.RMSNorm(head_dim, eps=1e-6)
+        self.q_norm = qk_norm(norm, head_dim)
+        self.k_norm = qk_norm(norm, head_dim)
         self.proj = nn.Linear(context_dim, dim)
 
     def keys_values(self, context: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -171,19 +204,21 @@ def adaln_norm(dim: int) -> nn.LayerNorm:
 
 
 class NoiseLevelEmbedder(nn.Module):
-    """tau in [0, 1] -> D: 256-d sinusoidal features of 1000 * tau, then an MLP (DiT's timestep embedder).
+    """tau in [0, 1] -> D: 256-d sinusoidal features of ``scale`` * tau, then an MLP (DiT's timestep embedder).
 
-    The 1000x puts tau on DiT's timestep scale so the geometric frequencies
-    resolve small differences in noise level.
+    Our scale 1000 puts tau on DiT's timestep scale so the geometric frequencies
+    resolve small differences in noise level; the authors' released networks
+    record theirs with the sampler (its ``timescale``).
     """
 
-    def __init__(self, hidden_size: int, frequency_dim: int = 256):
+    def __init__(self, hidden_size: int, frequency_dim: int = 256, scale: float = 1000.0):
         super().__init__()
         self.frequency_dim = frequency_dim
+        self.scale = scale
         self.mlp = nn.Sequential(nn.Linear(frequency_dim, hidden_size), nn.SiLU(), nn.Linear(hidden_size, hidden_size))
 
     def forward(self, tau: torch.Tensor) -> torch.Tensor:
-        features = sinusoidal_embedding(tau * 1000.0, self.frequency_dim)
+        features = sinusoidal_embedding(tau * self.scale, self.frequency_dim)
         return self.mlp(features.to(self.mlp[0].weight.dtype))
 
 
@@ -192,25 +227,32 @@ class SteeringEmbedder(nn.Module):
 
     Each element's token is the sum over features of a small MLP (1 -> D -> D)
     of that value, or of a learned "no value" embedding where it is NaN, plus a
-    learned position embedding. Tokens pass SiLU and a linear layer before the
-    mean over the sequence: a purely linear mean would reduce the position
-    embeddings to a constant and lose the order of the sequence. That output
-    layer starts at zero and the null embedding (steering dropout) at zero, so
-    an embedder added to a pre-trained unconditional predictor leaves it
-    unchanged at the start of the fine-tune (paper "Action-conditioning").
+    learned position embedding. With ``pool="head_mean"`` (ours) tokens pass SiLU
+    and a linear layer before the mean over the sequence: a purely linear mean
+    would reduce the position embeddings to a constant and lose the order of the
+    sequence. That output layer starts at zero and the null embedding (steering
+    dropout) at zero, so an embedder added to a pre-trained unconditional
+    predictor leaves it unchanged at the start of the fine-tune (paper
+    "Action-conditioning"). ``pool="sum"`` or ``"mean"`` is the authors' released
+    embedder: the tokens summed or averaged as they are, and no value at all
+    (every element missing, ``max_len`` long) as the unconditional input.
     Values should be roughly unit scale (normalise speed in m/s by the caller).
     """
 
-    def __init__(self, hidden_size: int, num_features: int, max_len: int):
+    def __init__(self, hidden_size: int, num_features: int, max_len: int, pool: str = "head_mean"):
         super().__init__()
+        if pool not in STEERING_POOLS:
+            raise ValueError(f"steering pool {pool!r} is not one of {', '.join(STEERING_POOLS)}")
+        self.pool = pool
         self.feature_mlps = nn.ModuleList(
             nn.Sequential(nn.Linear(1, hidden_size), nn.SiLU(), nn.Linear(hidden_size, hidden_size))
             for _ in range(num_features)
         )
         self.no_value = nn.Parameter(torch.zeros(num_features, hidden_size))
         self.position = nn.Parameter(torch.zeros(max_len, hidden_size))
-        self.out = nn.Linear(hidden_size, hidden_size)
-        self.null = nn.Parameter(torch.zeros(hidden_size))
+        if pool == "head_mean":
+            self.out = nn.Linear(hidden_size, hidden_size)
+            self.null = nn.Parameter(torch.zeros(hidden_size))
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -220,9 +262,10 @@ class SteeringEmbedder(nn.Module):
                 nn.init.zeros_(layer.bias)
         nn.init.normal_(self.no_value, std=0.02)
         nn.init.normal_(self.position, std=0.02)
-        nn.init.zeros_(self.out.weight)
-        nn.init.zeros_(self.out.bias)
-        nn.init.zeros_(self.null)
+        if self.pool == "head_mean":
+            nn.init.zeros_(self.out.weight)
+            nn.init.zeros_(self.out.bias)
+            nn.init.zeros_(self.null)
 
     def tokens(self, steering: torch.Tensor) -> torch.Tensor:
         """Per-element tokens [B, S, D] before pooling."""
@@ -231,7 +274,7 @@ class SteeringEmbedder(nn.Module):
             raise ValueError(f"steering has {k} features per step, the embedder expects {len(self.feature_mlps)}")
         if s > self.position.shape[0]:
             raise ValueError(f"steering has {s} steps, more than the embedder's max_len = {self.position.shape[0]}")
-        steering = steering.to(self.out.weight.dtype)
+        steering = steering.to(self.position.dtype)
         total = self.position[:s].expand(b, s, -1)
         for i, mlp in enumerate(self.feature_mlps):
             value = steering[..., i : i + 1]
@@ -239,10 +282,23 @@ class SteeringEmbedder(nn.Module):
             total = total + torch.where(missing, self.no_value[i], mlp(torch.nan_to_num(value, nan=0.0)))
         return total
 
+    def unconditional(self) -> torch.Tensor:
+        """The embedding [D] of no steering: the null embedding, or (pooled as released) no value anywhere."""
+        if self.pool == "head_mean":
+            return self.null
+        missing = torch.full((1, self.position.shape[0], len(self.feature_mlps)),
+                             float("nan"), device=self.position.device, dtype=self.position.dtype)
+        return self._pool(self.tokens(missing))[0]
+
+    def _pool(self, tokens: torch.Tensor) -> torch.Tensor:
+        if self.pool == "head_mean":
+            return self.out(F.silu(tokens)).mean(dim=1)
+        return tokens.sum(dim=1) if self.pool == "sum" else tokens.mean(dim=1)
+
     def forward(self, steering: torch.Tensor, drop: torch.Tensor | None = None) -> torch.Tensor:
-        embedding = self.out(F.silu(self.tokens(steering))).mean(dim=1)
+        embedding = self._pool(self.tokens(steering))
         if drop is not None:
-            embedding = torch.where(drop.reshape(-1, 1), self.null.to(embedding.dtype), embedding)
+            embedding = torch.where(drop.reshape(-1, 1), self.unconditional().to(embedding.dtype), embedding)
         return embedding
 
 
@@ -253,12 +309,14 @@ class AbstractConditioner(nn.Module):
     to the detail grid first if the grids differ), zero where ``cond_mask`` says
     the slot carries no latent, plus a learned frame-position MLP of i/(F-1) for
     every slot (the authors' code, "Hierarchy wiring") and the fixed 2-D sin-cos
-    position, so the cross-attention keys know where each token lies.
+    position, so the cross-attention keys know where each token lies (``positions=False``: none, as in the
+    authors' released detail predictor, which has no cross-attention).
     """
 
-    def __init__(self, abstract_channels: int, cond_dim: int, patch_size: int):
+    def __init__(self, abstract_channels: int, cond_dim: int, patch_size: int, positions: bool = True):
         super().__init__()
         self.patch_size = patch_size
+        self.positions = positions
         self.patchify = nn.Linear(patch_size * patch_size * abstract_channels, cond_dim)
         self.frame_position = nn.Sequential(nn.Linear(1, cond_dim), nn.SiLU(), nn.Linear(cond_dim, cond_dim))
 
@@ -275,9 +333,11 @@ class AbstractConditioner(nn.Module):
             keep[s] = 1.0
         tokens = tokens * keep[None, :, None, None]
         slot = torch.arange(f, device=tokens.device, dtype=tokens.dtype) / max(f - 1, 1)
+        tokens = tokens + self.frame_position(slot[:, None])[None, :, None]
+        if not self.positions:
+            return tokens
         p = self.patch_size
-        grid = grid_positions(tokens.shape[-1], h // p, w // p, tokens.device).to(tokens.dtype)
-        return tokens + self.frame_position(slot[:, None])[None, :, None] + grid
+        return tokens + grid_positions(tokens.shape[-1], h // p, w // p, tokens.device).to(tokens.dtype)
 
 
 # --------------------------------------------------------------------------- what a forward reads

@@ -113,10 +113,13 @@ class Block(nn.Module):
 class ViTEncoder(nn.Module):
     """ViT over a fixed (H, W) image returning patch tokens as [B, D, H/p, W/p].
 
-    No CLS token: only patch tokens are used downstream (the authors' code,
-    "Tokenizer"). The position embedding is the 2-D sin-cos table of the
-    (non-square) grid, frozen like MAE's unless ``learn_pos_embed``. Module
-    names follow MAE's checkpoint so ``load_mae_encoder`` is a near-identity map.
+    No CLS token by default: only patch tokens are used downstream (the authors'
+    code, "Tokenizer"). The position embedding is the 2-D sin-cos table of the
+    (non-square) grid, frozen like MAE's unless ``learn_pos_embed``. With
+    ``cls_token`` (the authors' released encoders, timm's MAE ViT) a learned CLS
+    token with its own position row takes part in attention and is dropped after
+    the last block. Module names follow MAE's checkpoint so ``load_mae_encoder``
+    is a near-identity map.
     """
 
     def __init__(
@@ -129,6 +132,7 @@ class ViTEncoder(nn.Module):
         mlp_ratio: float = 4.0,
         in_channels: int = 3,
         learn_pos_embed: bool = False,
+        cls_token: bool = False,
     ):
         super().__init__()
         height, width = image_size
@@ -139,9 +143,12 @@ class ViTEncoder(nn.Module):
         self.embed_dim = embed_dim
         self.grid_size = (height // patch_size, width // patch_size)
         self.patch_embed = PatchEmbed(patch_size, in_channels, embed_dim)
-        self.pos_embed = nn.Parameter(
-            sincos_pos_embed_2d(embed_dim, self.grid_size).unsqueeze(0), requires_grad=learn_pos_embed
-        )
+        positions = sincos_pos_embed_2d(embed_dim, self.grid_size)
+        self.prefix = 1 if cls_token else 0
+        if cls_token:
+            self.cls_token = nn.Parameter(torch.zeros(1, 1, embed_dim))
+            positions = torch.cat([torch.zeros(1, embed_dim), positions])
+        self.pos_embed = nn.Parameter(positions.unsqueeze(0), requires_grad=learn_pos_embed)
         self.blocks = nn.ModuleList(Block(embed_dim, num_heads, mlp_ratio) for _ in range(depth))
         self.norm = nn.LayerNorm(embed_dim, eps=1e-6)
         self._init_weights()
@@ -159,10 +166,13 @@ class ViTEncoder(nn.Module):
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         if tuple(images.shape[-2:]) != self.image_size:
             raise ValueError(f"expected images of size {self.image_size}, got {tuple(images.shape[-2:])}")
-        x = self.patch_embed(images) + self.pos_embed
+        x = self.patch_embed(images)
+        if self.prefix:
+            x = torch.cat([self.cls_token.expand(x.shape[0], -1, -1), x], dim=1)
+        x = x + self.pos_embed
         for block in self.blocks:
             x = block(x)
-        x = self.norm(x)
+        x = self.norm(x)[:, self.prefix:]
         h, w = self.grid_size
         return x.transpose(1, 2).reshape(x.shape[0], self.embed_dim, h, w)
 
@@ -173,8 +183,8 @@ def load_mae_encoder(encoder: ViTEncoder, path: str | Path) -> ViTEncoder:
     Accepts the facebookresearch/mae file (``{"model": state_dict}``) or a bare
     state dict with the same names (timm's MAE weights). Block, patch and norm
     keys map one to one; ``pos_embed`` loses its CLS row and its square grid is
-    bicubically resized to ours; ``cls_token``, ``mask_token`` and MAE's
-    ``decoder_*`` keys are ignored. Any missing or mis-shaped weight raises.
+    bicubically resized to ours (an encoder with ``cls_token`` keeps both); MAE's
+    ``mask_token`` and ``decoder_*`` keys are ignored. Any missing or mis-shaped weight raises.
     """
     state = torch.load(path, map_location="cpu", weights_only=True)
     state = state.get("model", state)
@@ -185,7 +195,8 @@ def load_mae_encoder(encoder: ViTEncoder, path: str | Path) -> ViTEncoder:
         raise ValueError(f"MAE pos_embed has {pos.shape[1]} patch positions, not a square grid")
     pos = pos.reshape(1, side, side, -1).permute(0, 3, 1, 2)
     pos = F.interpolate(pos.float(), size=encoder.grid_size, mode="bicubic", align_corners=False)
-    ours["pos_embed"] = pos.flatten(2).transpose(1, 2)
+    ours["pos_embed"] = torch.cat([state["pos_embed"][:, :encoder.prefix].float(), pos.flatten(2).transpose(1, 2)],
+                                  dim=1)
     encoder.load_state_dict(ours, strict=True)
     return encoder
 
@@ -378,6 +389,8 @@ class ConvDecoder(nn.Module):
     GroupNorm-SiLU-conv_out. Upscale factor = 2 ** (len(channel_mult) - 1).
     The reference builds num_res_blocks + 1 = 3 blocks per decoder level
     from its config value 2; our ``num_res_blocks`` is the literal count.
+    ``in_channels`` > 0 puts a 1x1 conv from the latent to that many channels
+    before conv_in (``latent_in``, the authors' released decoders' post_quant_conv).
     """
 
     def __init__(
@@ -388,12 +401,14 @@ class ConvDecoder(nn.Module):
         num_res_blocks: int = 3,
         out_channels: int = 3,
         dropout: float = 0.0,
+        in_channels: int = 0,
     ):
         super().__init__()
         widths = [base_channels * m for m in channel_mult]
         self.upscale = 2 ** (len(widths) - 1)
         ch = widths[-1]
-        self.conv_in = nn.Conv2d(latent_dim, ch, 3, padding=1)
+        self.latent_in = nn.Conv2d(latent_dim, in_channels, 1) if in_channels else nn.Identity()
+        self.conv_in = nn.Conv2d(in_channels or latent_dim, ch, 3, padding=1)
         self.mid = nn.Sequential(ResBlock(ch, ch, dropout), AttnBlock(ch), ResBlock(ch, ch, dropout))
         levels = []
         for i, width in reversed(list(enumerate(widths))):
@@ -416,7 +431,7 @@ class ConvDecoder(nn.Module):
         return self.conv_out.weight
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
-        h = self.up(self.mid(self.conv_in(z)))
+        h = self.up(self.mid(self.conv_in(self.latent_in(z))))
         return self.conv_out(F.silu(self.norm_out(h)))
 
 
@@ -520,6 +535,7 @@ def _encoder(cfg: TokenizerConfig) -> ViTEncoder:
         num_heads=cfg.num_heads,
         mlp_ratio=cfg.mlp_ratio,
         learn_pos_embed=cfg.learn_pos_embed,
+        cls_token=cfg.cls_token,
     )
 
 
@@ -533,7 +549,8 @@ def build_detail_tokenizer(config: TokenizerConfig | str = "default") -> DetailT
         bypass_prob=cfg.bypass_prob,
         entropy_temperature=cfg.entropy_temperature,
     )
-    decoder = ConvDecoder(cfg.latent_dim, cfg.decoder_channels, cfg.decoder_mult, cfg.decoder_res_blocks)
+    decoder = ConvDecoder(cfg.latent_dim, cfg.decoder_channels, cfg.decoder_mult, cfg.decoder_res_blocks,
+                          in_channels=cfg.decoder_in_channels)
     return conv_layout(DetailTokenizer(_encoder(cfg), quantizer, decoder))
 
 
@@ -544,6 +561,7 @@ def build_abstract_tokenizer(
     cfg = _config(config)
     latent_dim = cfg.latent_dim if compress else teacher_dim
     decoder = ConvDecoder(
-        latent_dim, cfg.abstract_decoder_channels, cfg.abstract_decoder_mult, cfg.abstract_decoder_res_blocks
+        latent_dim, cfg.abstract_decoder_channels, cfg.abstract_decoder_mult, cfg.abstract_decoder_res_blocks,
+        in_channels=cfg.abstract_decoder_in_channels,
     )
     return conv_layout(AbstractTokenizer(_encoder(cfg), decoder, teacher_dim, cfg.latent_dim, compress))
