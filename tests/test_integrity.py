@@ -1,8 +1,10 @@
-"""No silent corruption: a damaged shard or latent cache stops the stage that reads it (exit 2, the file named).
+"""No silent corruption: a damaged shard or latent cache stops the stage that reads it (exit 2, the file named); a
+cache's chunk is checked by whoever reads it, when it first does.
 
 The stage scripts run as subprocesses on small synthetic shards and a smoke-tokenizer cache built here.
 """
 
+import dataclasses
 import os
 import shutil
 import subprocess
@@ -26,11 +28,13 @@ from conftest import ROOT
 
 @pytest.fixture(scope="module")
 def project(tmp_path_factory, smoke_cfg):
-    """A project folder: params.yaml, shards (one train and one val clip), both tokenizers, the latent cache."""
+    """A project folder: params.yaml, shards (two train clips, a shard each, and one val clip), both tokenizers,
+    the latent cache (a chunk per shard)."""
     root = tmp_path_factory.mktemp("project")
     (root / "params.yaml").write_text((ROOT / "params.yaml").read_text())
-    make_raw(root / "raw", smoke_cfg, episodes=(("train", 1, 30), ("val", 1, 30)))
-    write_shards(root / "raw", root / "shards", smoke_cfg.data, smoke_cfg.shards)
+    make_raw(root / "raw", smoke_cfg, episodes=(("train", 2, 30), ("val", 1, 30)))
+    shards = dataclasses.replace(smoke_cfg.shards, max_shard_mb=0.05)  # a shard per clip
+    write_shards(root / "raw", root / "shards", smoke_cfg.data, shards)
     (root / "detail").mkdir()
     (root / "abstract").mkdir()
     save_detail(root / "detail" / "tokenizer.pt", seed=0)
@@ -119,9 +123,10 @@ def test_shards_read_from_a_url_are_verified_as_streamed(project, tmp_path):
     with pytest.raises(ShardError, match=f"pipe:cat {shards}/val/val-000000.tar: content does not match"):
         verify_shards(shards, base=base)
 
-def detail_array(cache):
-    path = cache / "train" / "detail.npy"
-    return path, np.load(path, mmap_mode="r").offset  # the first byte after the .npy header
+def detail_array(cache, split="train", chunk=0):
+    """A chunk's detail.npy and the offset of the first byte after its .npy header."""
+    path = cache / split / str(open_cache(cache).index(split).chunks["name"][chunk]) / "detail.npy"
+    return path, np.load(path, mmap_mode="r").offset
 
 
 def test_a_flipped_latent_byte_stops_the_predictor_stage(project, tmp_path):
@@ -132,24 +137,31 @@ def test_a_flipped_latent_byte_stops_the_predictor_stage(project, tmp_path):
                      "--detail-tokenizer", project / "detail", "--abstract-tokenizer", project / "abstract",
                      "--out", tmp_path / "predictor", "--report", tmp_path / "report.json")
     assert proc.returncode == 2, proc.stderr
-    assert f"{path}: content does not match the SHA-256 recorded in meta.json" in proc.stderr
+    assert f"{path}: content does not match the SHA-256 recorded in train/chunks.npy" in proc.stderr
     assert "re-run the `latents` stage" in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "predictor").exists() and not (tmp_path / "report.json").exists()
 
 
-def test_cache_files_are_checked_per_split_before_first_use(project, tmp_path, smoke_cfg):
+def test_cache_files_are_checked_per_chunk_when_first_read(project, tmp_path, smoke_cfg):
+    """A flipped byte in one chunk stops the reader of that chunk (naming the file) and no other: another
+    chunk's reader, another split's, or a reader of the split's tables goes on."""
     cache = copy_of(project, tmp_path, "latents")
-    LatentWindowDataset(cache, "val", smoke_cfg.data)  # intact
-    path, data_start = detail_array(cache)
+    assert len(open_cache(cache).index("train").chunks) == 2
+    path, data_start = detail_array(cache, "train", 1)
     flip(path, data_start)
     opened = open_cache(cache)
-    opened.arrays("val")  # another split's damage does not stop a reader of this one
-    for use in (lambda: opened.arrays("train"), lambda: LatentWindowDataset(cache, "train", smoke_cfg.data)):
-        with pytest.raises(LatentCacheError, match=f"{path}: content does not match"):
+    train = LatentWindowDataset(opened, "train", smoke_cfg.data)  # the tables are intact
+    train[0]  # the first chunk's windows: intact
+    opened.arrays("val")["detail"][:]  # another split's chunks: intact
+    for use in (lambda: train[len(train) - 1], lambda: opened.arrays("train")["detail"][:],
+                lambda: open_cache(cache).verify("train")):
+        with pytest.raises(LatentCacheError, match=f"{path}: content does not match the SHA-256 recorded in "
+                                                   f"train/chunks.npy"):
             use()
     flip(path, data_start)  # restored
-    (cache / "val" / "index.json").write_text("{}")
-    with pytest.raises(LatentCacheError, match="val/index.json: content does not match"):
+    clips = cache / "val" / "clips.npy"
+    flip(clips, clips.stat().st_size - 1)
+    with pytest.raises(LatentCacheError, match=f"{clips}: content does not match the SHA-256 recorded in meta.json"):
         open_cache(cache).index("val")
     flip(cache / "normalization.npz", 100)
     with pytest.raises(LatentCacheError, match="normalization.npz: content does not match"):

@@ -41,8 +41,9 @@ def mlflow_runs(db: Path) -> list[tuple[str, str, str | None]]:
 
 PREDICTORS = sorted(STAGE_SPECS)
 STAGES = sorted(name for name in dvc_stages() if name != "import")  # the whole DAG on the embedded town
-# The MLflow runs of a Snakemake build: every stage, and the shards' one part (a job of Snakemake's own).
-RUNS = sorted([*STAGES, f"shards_part_{part_name(0, 1)}"])
+# The MLflow runs of a Snakemake build: every stage, and the one part of the shards and of each latent cache (jobs
+# of Snakemake's own).
+RUNS = sorted([*STAGES, *(f"{stage}_part_{part_name(0, 1)}" for stage in ("shards", "latents", "latents_full"))])
 TARGETS = ["reports/main_table.csv", "reports/all"]
 
 

@@ -1,24 +1,25 @@
 """Predictor tasks: each overfits a tiny batch, hierarchy and steering inputs, initialisation, resume, DDP."""
 
 import dataclasses
-import json
 import math
+import warnings
 
 import numpy as np
 import pytest
 import torch
 
+from orbis2.data.motion import TURN_THRESHOLD
 from orbis2.errors import OrbisError
 from orbis2.hierarchy import (
     detail_condition,
     detail_condition_slots,
     rate_geometry,
     steering_features,
+    steering_interval,
     window_indices,
     window_span,
 )
-from orbis2.io import sha256_file
-from orbis2.latents import FORMAT, NORMALIZATION, LatentWindowDataset, open_cache
+from orbis2.latents import FORMAT, LatentWindowDataset, clip_table, open_cache, write_chunk, write_meta, write_split
 from orbis2.models.deviations import best_sideways_shift, translate_columns
 from orbis2.tasks.predictors import (
     STAGES,
@@ -36,34 +37,35 @@ C, H, W = 4, 3, 4
 SPAN = 26  # native frames of one training window (smoke data section)
 
 
-def write_cache(root, clips: dict[str, list[int]], odometry=None):
-    """A latent cache in the `latents` stage's format: smooth moving latents, odometry row r = (r, -r / 10)."""
-    meta = {"format": FORMAT, "dtype": "float16", "data": {"source": "town", "fps": 10, "width": 128, "height": 72},
+def write_cache(root, clips: dict[str, list[int]], odometry=None, per_chunk: int = 2):
+    """A latent cache in the `latents` stage's format: smooth moving latents, odometry row r = (r, -r / 10), rows
+    numbered across each split's chunks of ``per_chunk`` clips (the shards a cache is made from hold several)."""
+    meta = {"format": FORMAT, "dtype": "float16", "encoder": "cpu float32",
+            "data": {"source": "town", "fps": 10, "width": 128, "height": 72},
             "tokenizers": {kind: {"checksum": kind * 8, "file": None, "shape": [C, H, W]}
                            for kind in ("detail", "abstract")},
             "splits": {}}
     grid = np.arange(C * H * W).reshape(C, H, W) / (C * H * W)
     for split, lengths in clips.items():
-        frames, index, offset = sum(lengths), {}, 0
-        folder = root / split
-        folder.mkdir(parents=True)
+        frames = sum(lengths)
         t = np.arange(frames)[:, None, None, None]
-        for kind, phase in (("detail", 0.0), ("abstract", 1.0)):
-            np.save(folder / f"{kind}.npy", np.sin(0.3 * t + 6 * grid + phase).astype(np.float16))
+        arrays = {kind: np.sin(0.3 * t + 6 * grid + phase).astype(np.float16)
+                  for kind, phase in (("detail", 0.0), ("abstract", 1.0))}
         rows = np.arange(frames, dtype=np.float32)
-        np.save(folder / "odometry.npy", np.stack([rows, -rows / 10], 1) if odometry is None else odometry)
-        for i, length in enumerate(lengths):
-            index[f"{split}-{i:03d}"] = {"offset": offset, "length": length, "has_odometry": True, "episode": i,
-                                         "start_frame": 0}
-            offset += length
-        (folder / "index.json").write_text(json.dumps(index))
-        meta["splits"][split] = {"frames": frames, "clips": len(lengths),
-                                 "sha256": {f.name: sha256_file(f) for f in folder.iterdir()}}
-    np.savez(root / NORMALIZATION, **{f"{kind}_{part}": value for kind in ("detail", "abstract")
-                                      for part, value in (("shift", np.zeros((C, H, W), np.float32)),
-                                                          ("scale", np.ones((C, 1, 1), np.float32)))})
-    meta["normalization_sha256"] = sha256_file(root / NORMALIZATION)
-    (root / "meta.json").write_text(json.dumps(meta))
+        arrays["odometry"] = np.stack([rows, -rows / 10], 1) if odometry is None else odometry
+        starts = np.cumsum([0, *lengths])
+        chunks = []
+        for first in range(0, len(lengths), per_chunk):
+            last = min(first + per_chunk, len(lengths))
+            name, part = f"{split}-{first // per_chunk:06d}", slice(starts[first], starts[last])
+            table = clip_table([(f"{split}-{i:03d}", lengths[i], True, str(i), 0) for i in range(first, last)])
+            digests = write_chunk(root / split / name, {k: v[part] for k, v in arrays.items()}, table)
+            chunks.append({"chunk": name, "source": f"{split}/{name}.tar", "frames": int(starts[last] - starts[first]),
+                           "clips": last - first, "sha256": digests})
+        meta["splits"][split] = write_split(root / split, chunks)
+    write_meta(root, meta, normalization={f"{kind}_{part}": value for kind in ("detail", "abstract")
+                                          for part, value in (("shift", np.zeros((C, H, W), np.float32)),
+                                                              ("scale", np.ones((C, 1, 1), np.float32)))})
     return open_cache(root)
 
 
@@ -179,6 +181,39 @@ def test_batch_stream_resumes(tmp_path, smoke_cfg):
         assert all(torch.equal(got[k], expected[k]) for k in expected)
     epoch = torch.cat([b["odometry"][:, 0, 0] for b in head[:3]])  # every window once per epoch
     assert sorted(epoch.tolist()) == sorted(float(dataset.clips[c]["offset"] + a - 20) for c, a in dataset.items)
+
+
+def per_window_turn_repeats(dataset, data, cfg):
+    """turn_repeats as it was written before it was vectorised: one window at a time."""
+    steer = steering_interval(data)
+    before = slice(steer.start - (steer.stop - steer.start), steer.start)
+    offsets = window_span(*window_indices(data, 0))
+    odometry = dataset.cache.arrays(dataset.split)["odometry"]
+    repeats = np.ones(len(dataset), np.int64)
+    for i, (c, anchor) in enumerate(dataset.items):
+        yaw = odometry[dataset.clips[c]["offset"] + anchor + offsets, 1]
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            turning = max(abs(np.nanmean(yaw[steer])), abs(np.nanmean(yaw[before]))) > TURN_THRESHOLD
+        repeats[i] = cfg.turn_repeat if turning else 1
+    return repeats
+
+
+def test_turn_repeats_equal_the_per_window_loop(tmp_path, smoke_cfg):
+    """The vectorised turn_repeats gives the loop's repeats exactly: yaw rates around the threshold, unknown (NaN)
+    rows and whole unknown windows, over several chunks and blocks."""
+    lengths = [SPAN + 17, SPAN + 3, SPAN + 30, SPAN]
+    rng = np.random.default_rng(4)
+    odometry = np.stack([np.full(sum(lengths), 5.0), rng.normal(0, 2 * TURN_THRESHOLD, sum(lengths))], 1)
+    odometry[rng.random(sum(lengths)) < 0.2, 1] = np.nan
+    odometry[sum(lengths[:2]):sum(lengths[:2]) + 15, 1] = np.nan  # whole intervals unknown
+    cache = write_cache(tmp_path, {"train": lengths, "val": [SPAN]}, odometry.astype(np.float32), per_chunk=1)
+    dataset = LatentWindowDataset(cache, "train", smoke_cfg.data)
+    cfg = dataclasses.replace(smoke_cfg.section("action"), turn_repeat=4)
+    expected = per_window_turn_repeats(dataset, smoke_cfg.data, cfg)
+    assert 0 < (expected == 4).sum() < len(dataset)
+    for block in (1, 7, 1 << 16):
+        assert np.array_equal(turn_repeats(dataset, smoke_cfg.data, cfg, block=block), expected)
 
 
 @pytest.mark.parametrize("stage", ["action", "detail"])

@@ -139,11 +139,17 @@ def test_the_smoke_dag_in_3_parts_writes_the_smoke_shards(smoke_project, tmp_pat
 
 
 def test_the_scale_page_is_written_from_the_published_measurement(tmp_path):
-    """docs/scale.md is what tools/scale_plan.py writes from benchmarks/bench_shards.py's published figures."""
-    published = ROOT / "docs/results/scale/bench_shards.json"
-    subprocess.run([sys.executable, "tools/scale_plan.py", str(published.relative_to(ROOT)), "--out",
-                    str(tmp_path / "scale.md")], cwd=ROOT, check=True, capture_output=True)
+    """docs/scale.md is what tools/scale_plan.py writes from benchmarks/bench_shards.py's published figures (and
+    benchmarks/bench_latent_parts.py's, once published)."""
+    published, latents = (ROOT / "docs/results/scale" / name for name in ("bench_shards.json", "bench_latents.json"))
+    command = ["tools/scale_plan.py", str(published.relative_to(ROOT))]
+    command += ["--latents", str(latents.relative_to(ROOT))] if latents.is_file() else []
+    subprocess.run([sys.executable, *command, "--out", str(tmp_path / "scale.md")], cwd=ROOT, check=True,
+                   capture_output=True)
     assert (tmp_path / "scale.md").read_text() == (ROOT / "docs/scale.md").read_text(), (
-        "docs/scale.md is stale: python tools/scale_plan.py docs/results/scale/bench_shards.json --out docs/scale.md")
+        f"docs/scale.md is stale: python {' '.join(command)} --out docs/scale.md")
     bench = json.loads(published.read_text())
     assert bench["peak_ratio"] < 1.1 and bench["frames_scaled"] == bench["scale"] * bench["frames_1x"]
+    if latents.is_file():
+        bench = json.loads(latents.read_text())
+        assert bench["peak_ratio"] < 1.1 and bench["frames_scaled"] == bench["scale"] * bench["frames_1x"]

@@ -95,7 +95,7 @@ METRICS = re.compile(r"reports/headline\.json")
 DECLARED_ENV = "ORBIS2_DECLARED_RESOURCES"  # set while the rules are read to generate the SLURM profile
 # Rule params that are not params.yaml sections.
 # Those set when the rule is defined and passed in its command (see the Snakefile's _passed_from).
-PASSED = ("script", "scope", "args")
+PASSED = ("script", "scope", "stage", "args")
 NOT_SECTIONS = ("profile", "spec", "parts", *PASSED)
 
 

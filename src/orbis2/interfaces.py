@@ -51,6 +51,15 @@ GPU = Resources(threads=16, gpu=1, mem_mb=64000, runtime=600)
 # paper's corpus with parts=256, 0.8 M frames a part: about 16 min at the shards' measured 850 frames/s
 # (docs/scale.md); the limits leave room for slower disks and fewer parts.
 PART = Resources(threads=1, gpu=0, mem_mb=4000, runtime=600)
+# One part of the latent cache: one GPU, and cores for the processes that decode shards beside it (all but one,
+# orbis2.latents.decode_workers). Memory holds the two encoders and the shards in flight, one per decode worker (a
+# 256 MB shard's frames decoded one clip at a time and its latents, about 0.2 GB at the paper profile), whatever
+# the corpus.
+GPU_PART = Resources(threads=8, gpu=1, mem_mb=32000, runtime=600)
+# The latent cache's gather: moves the parts' chunks and writes the tables (the clip table through a memory map),
+# with both encoders loaded on the CPU for their latent shapes and normalisation (1 GB of weights at the paper
+# profile, twice that while loading).
+LATENT_GATHER = Resources(threads=1, gpu=0, mem_mb=8000, runtime=120)
 # A frozen network's features and small heads: little memory, but every core. The main target's single
 # probe would otherwise run last and alone on one thread (1.8x slower on 2 cores); reports/all's probes
 # queue instead of sharing, at the same throughput.
@@ -179,7 +188,8 @@ INTERFACES: dict[str, Interface] = _declare(
     Interface("latents", "stages/latents.py", (
         SHARDS, *TOKENIZERS,
         PathOption("latents", "--out", "the latent cache", "latents", name="{name}", output=True, folder=True),
-    ), ("data", "latents"), GPU, FIRST, rules="rules/tokenizers.smk"),
+    ), ("data", "latents"), LATENT_GATHER, FIRST, rules="rules/tokenizers.smk",  # the gather; parts: GPU_PART
+        options=("--parts", "--part", "--part-manifest")),
     # A predictor's own section (its name) comes with its registry.yaml entry.
     Interface("predictor", "stages/predictor.py", (
         LATENTS, *TOKENIZERS,

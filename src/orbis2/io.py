@@ -123,6 +123,30 @@ def move_into(source: Path, target: Path) -> None:
         shutil.move(source, target)
 
 
+class HashingFile:
+    """A binary file that hashes and counts what is written to it; ``finish`` syncs it to disk and closes it, so
+    that a writer has the file's SHA-256 without reading it again."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self._file = open(path, "wb")  # noqa: SIM115 (closed by finish)
+        self._digest, self._size = hashlib.sha256(), 0
+
+    def write(self, data: bytes) -> int:
+        self._digest.update(data)
+        self._size += len(data)
+        return self._file.write(data)
+
+    def flush(self) -> None:
+        self._file.flush()
+
+    def finish(self) -> tuple[int, str]:
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self._file.close()
+        return self._size, self._digest.hexdigest()
+
+
 def sha256_file(path: str | Path) -> str:
     digest = hashlib.sha256()
     with open(path, "rb") as handle:

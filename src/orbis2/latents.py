@@ -1,60 +1,97 @@
-"""The latent cache: both tokenizers encode every native frame of every clip once.
+"""The latent cache: both tokenizers encode every native frame of every clip once, in parts, one chunk per shard.
 
 Training the predictors re-reads the same frames for thousands of steps; decoding
 JPEGs and running two ViT encoders per step would cost far more than the predictor
 itself. The ``latents`` stage therefore encodes every frame once and stores
 
-    <root>/meta.json                   tokenizer checksums, shards manifest hash, geometry, file checksums
-    <root>/normalization.npz           each tokenizer's latent normalisation (shift, scale)
-    <root>/<split>/detail.npy          float16 [N_frames, C, h, w]     (unscaled detail latent)
-    <root>/<split>/abstract.npy        float16 [N_frames, C', h', w']  (unscaled abstract latent)
-    <root>/<split>/odometry.npy        float32 [N_frames, 2]           (speed, yaw rate)
-    <root>/<split>/index.json          shard key -> offset, length, has_odometry, episode, start_frame
+    <root>/meta.json                        tokenizer checksums, shards manifest hash, geometry, index checksums
+    <root>/normalization.npz                each tokenizer's latent normalisation (shift, scale)
+    <root>/<split>/chunks.npy               one row per chunk: name, source shard, frames, clips, first row,
+                                            the SHA-256 of each of its files
+    <root>/<split>/clips.npy                one row per clip, in split order: key, chunk, row in the chunk,
+                                            row in the split, length, has_odometry, episode, start_frame
+    <root>/<split>/<chunk>/detail.npy       float16 [n, C, h, w]     (unscaled detail latent)
+    <root>/<split>/<chunk>/abstract.npy     float16 [n, C', h', w']  (unscaled abstract latent)
+    <root>/<split>/<chunk>/odometry.npy     float32 [n, 2]           (speed, yaw rate)
+    <root>/<split>/<chunk>/clips.npy        the chunk's own rows of the clip table (what the gather reads)
 
-Why flat memory-mapped ``.npy`` arrays rather than tar shards of latents: a
-training item is a strided window of 10 + 6 frames at a random anchor, and with
-a memory map that is an O(1) row gather (no archive scan, no decoding, no
-per-sample deserialisation), so the dataset can be map-style and indexed at
-random, which lets ``DistributedSampler`` and DataLoader workers shard it
-exactly. Every worker process maps the same files, so the OS page cache holds
-one copy of the cache however many workers and ranks read it. The shard keys
-survive in ``index.json``, so every cached frame traces back to its sample in
-``data/shards``. fp16 halves the footprint; the latents are L2-normalised
-(|x| <= 1), where fp16 keeps about three significant digits. They are stored as the
-tokenizers encode them; readers apply the tokenizer's normalisation (``TokenizerFile.normalize``:
+One chunk per source shard, named after it (``train/train-000003.tar`` -> ``train/train-000003/``),
+its clips in the shard's order: the chunks of a split, in the manifest's order, hold the split's frames
+in the order of its samples (rows numbered across chunks give each frame one row in the split).
+
+**Parts.** Part ``i`` of ``parts`` (params.yaml ``parts``, the shards' setting) encodes the ``i``-th
+contiguous block of each split's shards into a work folder (:func:`encode_part`); each shard is
+checked against the shards manifest just before it is read, encoded in batches of
+``latents.batch_size`` frames counted from the shard's first frame, written as one chunk
+(``.partial`` folder, synced, renamed) and then recorded in the part's ``done.jsonl``. A killed
+part, started again, keeps every recorded chunk and starts at the shard in flight (with decode
+workers, one shard per worker is in flight: on CUDA a part decodes shards in every core of its job
+but one, :func:`decode_workers`). Batches never cross a shard, so which part, worker or restart
+encodes a shard does not change its latents: ``parts=N`` gives the latents of ``parts=1`` bit for
+bit. A work folder made from other inputs (shards manifest, tokenizer
+checksums, settings; the stage's folder also the code) is never resumed, nor is a part's work
+encoded on another kind of device. The gather (:func:`gather_parts`) moves every part's chunks
+into the cache and writes the split tables and ``meta.json``.
+
+**Memory.** A part holds the clips of the shards in flight and their latents (one shard's each),
+whatever the corpus; the gather writes the clip table through a memory map; a reader holds numpy
+arrays, one row per clip and per chunk (no Python object per clip or window, no JSON index).
+
+**Precision.** The encoders run in float32 on the CPU and under bfloat16 autocast on CUDA; the
+cache stores float16, which already halves the footprint of float32. The latents are
+L2-normalised (|x| <= 1), where float16 keeps about three significant digits. They are stored as
+the tokenizers encode them; readers apply the tokenizer's normalisation (``TokenizerFile.normalize``:
 per-position mean removed, per-channel unit variance) on the fly.
 
-``meta.json`` records the SHA-256 of every array, index and the normalisation file, and a
-reader checks a split's files before it first uses them (once per process, in the process
-that opens the cache): a flipped bit in a memory map would otherwise reach every predictor
-as a plausible-looking latent.
+Why memory-mapped ``.npy`` arrays rather than tar shards of latents: a training item is a strided
+window of 10 + 6 frames of one clip at a random anchor, and with a memory map that is an O(1) row
+gather (no archive scan, no decoding, no per-sample deserialisation), so the dataset can be
+map-style and indexed at random, which lets ``DistributedSampler`` and DataLoader workers shard it
+exactly. Every worker process maps the same files, so the OS page cache holds one copy of the
+cache however many workers and ranks read it. The clip keys survive in ``clips.npy``, so every
+cached frame traces back to its sample in ``data/shards``.
+
+**Integrity.** ``meta.json`` records the SHA-256 of each split's two tables and of the
+normalisation file; ``chunks.npy`` that of every chunk file. A reader checks a split's tables
+when it opens the split, and a chunk's files the first time this process reads that chunk (a
+process hashes only the chunks it reads; DataLoader workers and DDP ranks started from it carry
+the record of what it checked): a flipped bit in a memory map would otherwise reach every
+predictor as a plausible-looking latent.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+import os
+import shutil
+from collections import OrderedDict
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
-from torch.utils.data import Dataset
+from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_info
 from tqdm import tqdm
 
 from orbis2.config.sections import DataConfig
-from orbis2.data.shards import MANIFEST, Clip, load_manifest, read_clips
+from orbis2.data.parts import PART_LOG, PartLog, keyed_work, part_name, part_slice
+from orbis2.data.shards import MANIFEST, Clip, iter_samples, load_manifest, shard_urls, verify_shard
 from orbis2.errors import OrbisError
 from orbis2.hierarchy import anchor_range, window_indices, window_span
-from orbis2.io import atomic_dir, sha256_file, write_json
+from orbis2.io import HashingFile, atomic_dir, move_into, npz_bytes, sha256_file, write_json
 from orbis2.models.files import TokenizerFile, load_tokenizer
 
-FORMAT = 3  # 3: meta.json records every file's SHA-256
+FORMAT = 4  # 4: one chunk per source shard, written in parts, each chunk checked when first read
 KINDS = ("detail", "abstract")
 ARRAYS = (*KINDS, "odometry")
 META = "meta.json"
-INDEX = "index.json"
+CHUNKS = "chunks.npy"
+CLIPS = "clips.npy"
+CHUNK_FILES = (*(f"{name}.npy" for name in ARRAYS), CLIPS)
 NORMALIZATION = "normalization.npz"
+PARTIAL = ".partial"  # a chunk being written (``.<chunk>.partial``, removed when a part starts again)
 
 
 class LatentCacheError(OrbisError):
@@ -64,17 +101,44 @@ class LatentCacheError(OrbisError):
 # --------------------------------------------------------------------------- encoding
 
 
-def to_model_input(frames: np.ndarray) -> torch.Tensor:
-    """RGB uint8 ``[N, H, W, 3]`` -> float ``[N, 3, H, W]`` in [-1, 1], the tokenizers' input range."""
-    return torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2).float().div_(127.5).sub_(1.0)
+def to_model_input(frames: np.ndarray, device: str | torch.device | None = None) -> torch.Tensor:
+    """RGB uint8 ``[N, H, W, 3]`` -> float ``[N, 3, H, W]`` in [-1, 1], the tokenizers' input range, on ``device``
+    (the frames travel as bytes and are converted there: the same values on every device)."""
+    x = torch.from_numpy(np.ascontiguousarray(frames))
+    if device is not None:
+        x = x.to(device)
+    return x.permute(0, 3, 1, 2).float().div_(127.5).sub_(1.0)
 
 
-def encode_frames(tokenizer: TokenizerFile, frames: np.ndarray) -> torch.Tensor:
-    """The tokenizer's latent (unscaled, float32, on the CPU) of a stack of RGB frames."""
+def encode_frames(tokenizer: TokenizerFile, frames: np.ndarray, autocast: bool = False) -> torch.Tensor:
+    """The tokenizer's latent (unscaled, float32, on the CPU) of a stack of RGB frames.
+
+    ``autocast``: under bfloat16 autocast where the tokenizer is on CUDA (what the latent cache does); on
+    the CPU the encoder runs in float32 either way."""
     model = tokenizer.model.eval()
     device = next(model.parameters()).device
-    with torch.inference_mode():
-        return model.encode(to_model_input(frames).to(device)).float().cpu()
+    with torch.inference_mode(), torch.autocast(device.type, dtype=torch.bfloat16,
+                                                enabled=autocast and device.type == "cuda"):
+        return model.encode(to_model_input(frames, device)).float().cpu()
+
+
+def encoder_mode(tokenizers: dict[str, TokenizerFile]) -> str:
+    """How the cache's encoders run: ``cuda bfloat16 autocast`` or ``cpu float32`` (recorded in the meta; a
+    part's work is never resumed on another kind of device)."""
+    devices = sorted({next(t.model.parameters()).device.type for t in tokenizers.values()})
+    return ", ".join(f"{d} bfloat16 autocast" if d == "cuda" else f"{d} float32" for d in devices)
+
+
+MAX_DECODE_WORKERS = 8
+
+
+def decode_workers(tokenizers: dict[str, TokenizerFile]) -> int:
+    """How many processes read and decode shards beside the encoder by default: none on the CPU (the encoder's
+    threads use the cores), on CUDA every core this process may run on but its own (a part job's: its Slurm
+    ``cpus_per_task``, from the rule's threads), at most ``MAX_DECODE_WORKERS``. The latents do not depend on it."""
+    if all(next(t.model.parameters()).device.type == "cpu" for t in tokenizers.values()):
+        return 0
+    return max(0, min(MAX_DECODE_WORKERS, len(os.sched_getaffinity(0)) - 1))
 
 
 def encode_window(window: dict[str, Any], detail: TokenizerFile, abstract: TokenizerFile) -> dict[str, Any]:
@@ -96,7 +160,7 @@ def _item(key: str, anchor: int, detail: torch.Tensor, abstract: torch.Tensor, d
             "odometry": odo(odometry), "has_odometry": bool(has_odometry)}
 
 
-# --------------------------------------------------------------------------- building
+# --------------------------------------------------------------------------- tokenizers
 
 
 def _resolve(tokenizer: TokenizerFile | str | Path, kind: str,
@@ -113,23 +177,162 @@ def _resolve(tokenizer: TokenizerFile | str | Path, kind: str,
     return loaded, path
 
 
-class _SplitWriter:
-    """Fills one split's memory-mapped arrays, batching frames across clip boundaries."""
+def load_encoders(detail: TokenizerFile | str | Path, abstract: TokenizerFile | str | Path,
+                  device: str | torch.device | None = None) -> tuple[dict[str, TokenizerFile], dict[str, str | None]]:
+    """Both tokenizers (loaded ones are used on their own device; paths are loaded on ``device``, default CUDA
+    when present) and the paths they came from (None for loaded ones)."""
+    tokenizers, files = {}, {}
+    for kind, tokenizer in zip(KINDS, (detail, abstract)):
+        tokenizers[kind], files[kind] = _resolve(tokenizer, kind, device)
+    return tokenizers, files
 
-    def __init__(self, folder: Path, frames: int, tokenizers: dict[str, TokenizerFile],
-                 shapes: dict[str, tuple[int, ...]], batch_size: int):
-        folder.mkdir(parents=True)
+
+def latent_shapes(tokenizers: dict[str, TokenizerFile], height: int, width: int) -> dict[str, tuple[int, ...]]:
+    """Each tokenizer's latent shape ``(C, h, w)`` for frames of ``height`` x ``width``."""
+    probe = np.zeros((1, height, width, 3), np.uint8)
+    return {kind: tuple(encode_frames(tokenizers[kind], probe).shape[1:]) for kind in KINDS}
+
+
+# --------------------------------------------------------------------------- parts
+
+
+def chunk_name(shard: dict[str, Any]) -> str:
+    """A chunk's name: its source shard's file name without ``.tar`` (``train/train-000003.tar``: ``train-000003``)."""
+    return Path(shard["path"]).name.removesuffix(".tar")
+
+
+def _splits(manifest: dict[str, Any], splits: Sequence[str] | None) -> list[str]:
+    splits = list(manifest["splits"]) if splits is None else list(splits)
+    missing = [s for s in splits if s not in manifest["splits"]]
+    if missing:
+        raise LatentCacheError(f"the shards have no split {', '.join(missing)} (have {list(manifest['splits'])}); "
+                               f"re-run the `shards` stage")
+    return splits
+
+
+def latent_work(work: Path, shards_root: Path, tokenizers: dict[str, TokenizerFile], batch_size: int,
+                splits: Sequence[str] | None = None) -> Path:
+    """``work`` as the parts' folder of these inputs (:func:`~orbis2.data.parts.keyed_work`): the shards manifest,
+    the tokenizers (by checksum), the batch size, the splits and the cache format. One made from others is emptied."""
+    manifest = load_manifest(shards_root)
+    return keyed_work(Path(work), {"format": FORMAT, "manifest": sha256_file(Path(shards_root) / MANIFEST),
+                                   "tokenizers": {kind: t.checksum for kind, t in tokenizers.items()},
+                                   "batch_size": batch_size, "splits": _splits(manifest, splits)})
+
+
+class _ChunkLog(PartLog):
+    """A latents part's progress (``done.jsonl``): one line per chunk in place, with its clips' count, frames, the
+    device that encoded it and its files' SHA-256. Work whose chunks a gather moved out starts over."""
+
+    def stale(self, events: list[dict[str, Any]]) -> bool:
+        return any(not (self.folder / e["split"] / e["chunk"]).is_dir() for e in events)
+
+    def clean(self) -> None:
+        for partial in self.folder.glob(f"*/.*{PARTIAL}"):
+            shutil.rmtree(partial)
+
+
+def encode_part(shards_root: str | Path, work: str | Path, tokenizers: dict[str, TokenizerFile], batch_size: int,
+                part: int = 0, parts: int = 1, splits: Sequence[str] | None = None, workers: int | None = None,
+                base_url: str | None = None) -> dict[str, Any]:
+    """Encode part ``part`` of ``parts`` (the contiguous block of each split's shards, :func:`part_slice`) into
+    ``work/<part_name>/<split>/<chunk>/``; return the part's manifest (its chunks per split, in shard order).
+
+    Resumes where it stopped: chunks recorded in ``done.jsonl`` are kept and the others encoded, unless
+    those were encoded on another kind of device (CUDA under bfloat16 autocast, or the CPU in float32):
+    then the part starts over, so that a cache never mixes the two. A part found finished is returned
+    as it is, whatever this process's device (a gather on a CPU node). ``workers`` > 0 processes read and
+    decode shards (one shard each at a time) while this one encodes (default: :func:`decode_workers`).
+    ``work`` must belong to these inputs (:func:`latent_work`).
+    """
+    shards_root = Path(shards_root)
+    manifest = load_manifest(shards_root)
+    splits = _splits(manifest, splits)
+    encoder = encoder_mode(tokenizers)
+    folder = Path(work) / part_name(part, parts)
+    log = _ChunkLog(folder)
+    todo = _todo(shards_root, manifest, splits, log, part, parts, base_url)
+    if todo and any(e["encoder"] != encoder for e in log.events):
+        shutil.rmtree(folder)
+        log = _ChunkLog(folder)
+        todo = _todo(shards_root, manifest, splits, log, part, parts, base_url)
+    with tqdm(total=len(todo), desc=f"latents {part_name(part, parts)}", unit="chunk") as bar:
+        workers = decode_workers(tokenizers) if workers is None else workers
+        for (split, i), arrays, clips in _encoded_shards(todo, tokenizers, batch_size, workers):
+            shard = manifest["splits"][split]["shards"][i]
+            name = chunk_name(shard)
+            digests = write_chunk(folder / split / name, arrays, clips)
+            log.add({"split": split, "chunk": name, "index": i, "source": shard["path"], "encoder": encoder,
+                     "frames": len(arrays["odometry"]), "clips": len(clips), "sha256": digests})
+            bar.update(1)
+    return {"folder": str(folder), "encoder": log.events[0]["encoder"] if log.events else encoder,
+            "splits": {split: sorted((e for e in log.events if e["split"] == split), key=lambda e: e["index"])
+                       for split in splits}}
+
+
+def _todo(shards_root: Path, manifest: dict[str, Any], splits: list[str], log: _ChunkLog, part: int, parts: int,
+          base_url: str | None) -> list[tuple[tuple[str, int], str, dict[str, Any]]]:
+    """``((split, shard index), url, manifest entry)`` of the part's shards not yet recorded in its log."""
+    done = {(e["split"], e["chunk"]) for e in log.events}
+    todo = []
+    for split in splits:
+        shards = manifest["splits"][split]["shards"]
+        urls = shard_urls(shards_root, split, base_url)
+        todo += [((split, i), urls[i], shards[i]) for i in range(len(shards))[part_slice(len(shards), part, parts)]
+                 if (split, chunk_name(shards[i])) not in done]
+    return todo
+
+
+class _ShardClips(IterableDataset):
+    """The decoded clips of a list of shards, as ``(task, clip)`` items and a ``(task, None)`` when a shard ends; in
+    DataLoader worker processes each takes every n-th shard. Each shard is checked against the manifest just
+    before it is read; a damaged one yields its error, which the encoding process raises as it is."""
+
+    def __init__(self, todo: list[tuple[Any, str, dict[str, Any]]]):
+        self.todo = todo
+
+    def __iter__(self) -> Iterator[tuple[Any, Any]]:
+        info = get_worker_info()
+        mine = self.todo if info is None else self.todo[info.id::info.num_workers]
+        for task, url, shard in mine:
+            try:
+                verify_shard(url, shard)
+                for sample in iter_samples(url):
+                    clip = Clip.from_sample(sample, url)
+                    # a tensor, so that a worker hands the frames over in shared memory
+                    yield task, (clip.key, clip.meta, torch.from_numpy(clip.frames(range(len(clip)))), clip.odometry)
+            except OrbisError as err:
+                yield task, err
+                return
+            yield task, None
+
+
+def _one_thread(worker: int) -> None:
+    cv2.setNumThreads(1)  # a decode worker is one core's work: the workers, not threads, use the others
+
+
+def _identity(item: Any) -> Any:
+    return item
+
+
+class _Chunk:
+    """One shard's clips as they arrive, encoded in batches of ``batch_size`` frames counted from the shard's first
+    frame, so that the latents do not depend on which part, worker or restart encodes the shard."""
+
+    def __init__(self, tokenizers: dict[str, TokenizerFile], batch_size: int):
         self.tokenizers, self.batch_size = tokenizers, batch_size
-        self.arrays = {kind: np.lib.format.open_memmap(folder / f"{kind}.npy", "w+", np.float16,
-                                                       (frames, *shapes[kind])) for kind in KINDS}
-        self.arrays["odometry"] = np.lib.format.open_memmap(folder / "odometry.npy", "w+", np.float32, (frames, 2))
+        self.latents: dict[str, list[np.ndarray]] = {kind: [] for kind in KINDS}
+        self.odometry: list[np.ndarray] = []
+        self.clips: list[tuple[str, int, bool, str, int]] = []
         self.pending: list[np.ndarray] = []
-        self.cursor = 0  # frames written so far
 
-    def add(self, clip: Clip, offset: int) -> None:
-        self.arrays["odometry"][offset:offset + len(clip)] = clip.odometry
-        for i in range(len(clip)):
-            self.pending.append(clip.frames([i])[0])
+    def add(self, key: str, meta: dict[str, Any], pixels: torch.Tensor | np.ndarray, odometry: np.ndarray) -> None:
+        pixels = pixels.numpy() if isinstance(pixels, torch.Tensor) else pixels
+        self.clips.append((key, len(pixels), bool(meta["has_odometry"]), str(meta["episode"]),
+                           int(meta["start_frame"])))
+        self.odometry.append(np.asarray(odometry, np.float32))
+        for frame in pixels:
+            self.pending.append(frame)
             if len(self.pending) == self.batch_size:
                 self.flush()
 
@@ -137,101 +340,319 @@ class _SplitWriter:
         if not self.pending:
             return
         frames = np.stack(self.pending)
-        end = self.cursor + len(frames)
         for kind in KINDS:
-            half = encode_frames(self.tokenizers[kind], frames).numpy().astype(np.float16)
+            half = encode_frames(self.tokenizers[kind], frames, autocast=True).numpy().astype(np.float16)
             if not np.isfinite(half).all():
                 raise LatentCacheError(f"the {kind} tokenizer produced latents outside the float16 range; "
                                        f"the cache stores float16 and cannot hold them")
-            self.arrays[kind][self.cursor:end] = half
-        self.cursor, self.pending = end, []
+            self.latents[kind].append(half)
+        self.pending = []
 
-    def close(self) -> None:
+    def finish(self) -> tuple[dict[str, np.ndarray], np.ndarray]:
         self.flush()
-        for array in self.arrays.values():
-            array.flush()
-        self.arrays.clear()
+        arrays = {kind: np.concatenate(self.latents[kind]) for kind in KINDS}
+        arrays["odometry"] = np.concatenate(self.odometry)
+        return arrays, clip_table(self.clips)
+
+
+def _encoded_shards(todo: list[tuple[Any, str, dict[str, Any]]], tokenizers: dict[str, TokenizerFile],
+                    batch_size: int, workers: int) -> Iterator[tuple[Any, dict[str, np.ndarray], np.ndarray]]:
+    """``(task, arrays, clip table)`` of each shard of ``todo``, as each is finished (in order without workers)."""
+    dataset = _ShardClips(todo)
+    workers = min(workers, len(todo))
+    stream = iter(dataset) if workers == 0 else iter(DataLoader(
+        dataset, batch_size=None, num_workers=workers, collate_fn=_identity, worker_init_fn=_one_thread))
+    building: dict[Any, _Chunk] = {}
+    for task, item in stream:
+        if isinstance(item, BaseException):
+            raise item
+        if item is None:
+            yield (task, *building.pop(task, _Chunk(tokenizers, batch_size)).finish())
+        else:
+            building.setdefault(task, _Chunk(tokenizers, batch_size)).add(*item)
+
+
+def clip_table(clips: Sequence[tuple[str, int, bool, str, int]]) -> np.ndarray:
+    """A chunk's clip table: ``(key, length, has_odometry, episode, start_frame)`` per clip -> structured rows
+    with each clip's first ``row`` in the chunk."""
+    width = lambda values: max([1, *map(len, values)])  # noqa: E731
+    table = np.zeros(len(clips), [("key", f"U{width([c[0] for c in clips])}"), ("row", "i8"), ("length", "i8"),
+                                  ("has_odometry", "?"), ("episode", f"U{width([c[3] for c in clips])}"),
+                                  ("start_frame", "i8")])
+    for field, column in zip(("key", "length", "has_odometry", "episode", "start_frame"), zip(*clips)):
+        table[field] = column
+    table["row"] = np.cumsum(table["length"]) - table["length"]
+    return table
+
+
+def _save(path: Path, array: np.ndarray) -> str:
+    """``array`` as ``.npy`` (the bytes ``np.save`` writes), synced; its SHA-256, computed as it is written."""
+    file = HashingFile(path)
+    np.lib.format.write_array(file, np.ascontiguousarray(array), allow_pickle=False)
+    return file.finish()[1]
+
+
+def write_chunk(folder: Path, arrays: dict[str, np.ndarray], clips: np.ndarray) -> dict[str, str]:
+    """One chunk's files (``arrays``: detail, abstract, odometry; ``clips``: its :func:`clip_table`) into ``folder``,
+    atomically (a ``.partial`` folder beside it, synced, renamed); their SHA-256, computed as they are written."""
+    partial = folder.with_name(f".{folder.name}{PARTIAL}")
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    digests = {f"{name}.npy": _save(partial / f"{name}.npy", arrays[name]) for name in ARRAYS}
+    digests[CLIPS] = _save(partial / CLIPS, clips)
+    shutil.rmtree(folder, ignore_errors=True)  # written but not recorded when a part was killed: written again
+    os.replace(partial, folder)
+    return digests
+
+
+# --------------------------------------------------------------------------- gathering
+
+
+def gather_parts(shards_root: str | Path, written: list[dict[str, Any]], out_root: str | Path,
+                 tokenizers: dict[str, TokenizerFile], files: dict[str, str | None],
+                 splits: Sequence[str] | None = None) -> dict[str, Any]:
+    """Every part's chunks, in part order, moved into ``out_root/<split>/<chunk>/``, each split's tables
+    (``chunks.npy``, ``clips.npy``), the normalisation and ``meta.json``; returns the meta.
+
+    Moved, not copied: no second copy, and the files stay the ones the parts wrote and hashed. A part whose
+    chunks were gathered is encoded again if it is asked for again."""
+    shards_root, out_root = Path(shards_root), Path(out_root)
+    manifest = load_manifest(shards_root)
+    splits = _splits(manifest, splits)
+    encoders = sorted({w["encoder"] for w in written})
+    if len(encoders) > 1:
+        raise LatentCacheError(f"the parts were encoded on different kinds of device ({' and '.join(encoders)}): "
+                               f"their latents differ; run every part on one kind (delete the others' work folders)")
+    meta = cache_meta(shards_root, tokenizers, files, encoders[0] if encoders else encoder_mode(tokenizers))
+    for split in splits:
+        entries = [(Path(w["folder"]) / split / c["chunk"], c) for w in written for c in w["splits"][split]]
+        shards = manifest["splits"][split]["shards"]
+        if [c["index"] for _, c in entries] != list(range(len(shards))):
+            raise LatentCacheError(f"{shards_root / MANIFEST}: the parts hold chunks of shards "
+                                   f"{[c['index'] for _, c in entries]} of split '{split}', not each of its "
+                                   f"{len(shards)} once; re-run the `latents` stage")
+        (out_root / split).mkdir(parents=True)
+        for path, chunk in entries:
+            move_into(path, out_root / split / chunk["chunk"])
+        meta["splits"][split] = write_split(out_root / split, [c for _, c in entries])
+        if meta["splits"][split]["frames"] != manifest["splits"][split]["frames"]:
+            raise LatentCacheError(f"{shards_root / MANIFEST}: split '{split}' lists "
+                                   f"{manifest['splits'][split]['frames']} frames but its shards hold "
+                                   f"{meta['splits'][split]['frames']}; re-run the `shards` stage")
+    write_meta(out_root, meta, tokenizers)
+    return meta
+
+
+def cache_meta(shards_root: Path, tokenizers: dict[str, TokenizerFile], files: dict[str, str | None],
+               encoder: str) -> dict[str, Any]:
+    """``meta.json`` of a cache of ``shards_root`` by ``tokenizers``, without its splits yet."""
+    manifest = load_manifest(shards_root)
+    shapes = latent_shapes(tokenizers, manifest["height"], manifest["width"])
+    return {"format": FORMAT, "dtype": "float16", "encoder": encoder,
+            "shards": {"root": str(shards_root), "manifest_sha256": sha256_file(shards_root / MANIFEST)},
+            "data": {key: manifest[key] for key in ("source", "fps", "width", "height")},
+            "tokenizers": {kind: {"checksum": tokenizers[kind].checksum, "file": files[kind],
+                                  "build": tokenizers[kind].build, "shape": list(shapes[kind])} for kind in KINDS},
+            "splits": {}}
+
+
+def write_meta(root: Path, meta: dict[str, Any], tokenizers: dict[str, TokenizerFile] | None = None,
+               normalization: dict[str, np.ndarray] | None = None) -> None:
+    """``normalization.npz`` (each tokenizer's ``shift`` and ``scale``, or ``normalization``'s arrays) and
+    ``meta.json`` (with the former's SHA-256), the last files a cache gets."""
+    if normalization is None:
+        normalization = {f"{kind}_{part}": getattr(tokenizers[kind], part).cpu().numpy()
+                         for kind in KINDS for part in ("shift", "scale")}
+    (root / NORMALIZATION).write_bytes(npz_bytes(**normalization))
+    write_json(root / META, {**meta, "normalization_sha256": sha256_file(root / NORMALIZATION)})
+
+
+def write_split(folder: Path, chunks: list[dict[str, Any]]) -> dict[str, Any]:
+    """A split's tables from its chunks, in split order, each in ``folder/<chunk>/`` and described by its part's
+    record (``chunk``, ``source``, ``frames``, ``clips``, ``sha256`` of its files): ``chunks.npy`` and
+    ``clips.npy`` (written through a memory map, so the table is never held whole); the split's meta entry.
+    Each chunk's own clip table is checked against its part's record before it is read."""
+    widths = {"key": 1, "episode": 1}
+    for chunk in chunks:
+        table = folder / chunk["chunk"] / CLIPS
+        _check_file(table, chunk["sha256"][CLIPS], f"its part's {PART_LOG}")
+        dtype = np.load(table, mmap_mode="r", allow_pickle=False).dtype
+        widths = {field: max(width, dtype[field].itemsize // 4) for field, width in widths.items()}
+    width = lambda values: max([1, *map(len, values)])  # noqa: E731
+    table = np.zeros(len(chunks), [("name", f"U{width([c['chunk'] for c in chunks])}"),
+                                   ("source", f"U{width([c['source'] for c in chunks])}"),
+                                   ("frames", "i8"), ("clips", "i8"), ("first_row", "i8"), ("first_clip", "i8"),
+                                   *((f"{file.removesuffix('.npy')}_sha256", "U64") for file in CHUNK_FILES)])
+    clips = np.lib.format.open_memmap(folder / CLIPS, "w+", np.dtype([
+        ("key", f"U{widths['key']}"), ("chunk", "i8"), ("row", "i8"), ("offset", "i8"), ("length", "i8"),
+        ("has_odometry", "?"), ("episode", f"U{widths['episode']}"), ("start_frame", "i8")]),
+        (sum(c["clips"] for c in chunks),))
+    rows = first = 0
+    for k, chunk in enumerate(chunks):
+        own = np.load(folder / chunk["chunk"] / CLIPS, allow_pickle=False)
+        if len(own) != chunk["clips"] or int(own["length"].sum()) != chunk["frames"]:
+            raise LatentCacheError(f"{folder / chunk['chunk'] / CLIPS}: {len(own)} clips, {own['length'].sum()} "
+                                   f"frames; its part recorded {chunk['clips']}, {chunk['frames']}; "
+                                   f"re-run the `latents` stage")
+        table[k] = (chunk["chunk"], chunk["source"], chunk["frames"], chunk["clips"], rows, first,
+                    *(chunk["sha256"][file] for file in CHUNK_FILES))
+        block = clips[first:first + len(own)]
+        for field in ("key", "row", "length", "has_odometry", "episode", "start_frame"):
+            block[field] = own[field]
+        block["chunk"], block["offset"] = k, rows + own["row"]
+        rows, first = rows + chunk["frames"], first + len(own)
+    clips.flush()
+    del clips
+    return {"frames": rows, "clips": first, "chunks": len(chunks),
+            "sha256": {CHUNKS: _save(folder / CHUNKS, table), CLIPS: sha256_file(folder / CLIPS)}}
 
 
 def build_latent_cache(shards_root: str | Path, out_root: str | Path, detail: TokenizerFile | str | Path,
                        abstract: TokenizerFile | str | Path, batch_size: int, splits: Sequence[str] | None = None,
-                       device: str | torch.device | None = None, decode_workers: int = 0) -> dict[str, Any]:
+                       device: str | torch.device | None = None, workers: int | None = None, parts: int = 1,
+                       work: str | Path | None = None, base_url: str | None = None) -> dict[str, Any]:
     """Encode every native frame of every clip of ``splits`` (default: all in the manifest); returns the meta.
 
-    ``decode_workers`` > 0 decodes the JPEGs in that many processes ahead of the encoder (clips then
-    arrive in the loader's worker-interleaved order; the index is by key, so readers are unaffected).
+    Each of ``parts`` parts is encoded (or resumed, or found finished) in ``work`` (default:
+    ``<out_root>.parts`` beside it; see :func:`latent_work`), then gathered into ``out_root``, which is
+    built beside it and renamed into place only when complete. The latents do not depend on ``parts``
+    or ``workers`` (the processes decoding shards, default :func:`decode_workers`; see :func:`encode_part`).
 
     ``detail``/``abstract`` are loaded tokenizers (used on their own device) or paths to tokenizer files
     (loaded on ``device``, default CUDA when present; the path is recorded so a stale cache can name it).
-    The cache is built in a temporary folder beside ``out_root`` and renamed into place only when complete.
     """
     shards_root, out_root = Path(shards_root), Path(out_root)
-    manifest = load_manifest(shards_root)
-    splits = list(manifest["splits"]) if splits is None else list(splits)
-    tokenizers, files = {}, {}
-    for kind, tokenizer in zip(KINDS, (detail, abstract)):
-        tokenizers[kind], files[kind] = _resolve(tokenizer, kind, device)
-    probe = np.zeros((1, manifest["height"], manifest["width"], 3), np.uint8)
-    shapes = {kind: tuple(encode_frames(tokenizers[kind], probe).shape[1:]) for kind in KINDS}
-    meta: dict[str, Any] = {
-        "format": FORMAT,
-        "dtype": "float16",
-        "shards": {"root": str(shards_root), "manifest_sha256": sha256_file(shards_root / MANIFEST)},
-        "data": {key: manifest[key] for key in ("source", "fps", "width", "height")},
-        "tokenizers": {kind: {"checksum": tokenizers[kind].checksum, "file": files[kind],
-                              "build": tokenizers[kind].build, "shape": list(shapes[kind])}
-                       for kind in KINDS},
-        "splits": {},
-    }
+    tokenizers, files = load_encoders(detail, abstract, device)
+    work = latent_work(Path(work) if work is not None else out_root.with_name(out_root.name + ".parts"),
+                       shards_root, tokenizers, batch_size, splits)
+    written = [encode_part(shards_root, work, tokenizers, batch_size, part, parts, splits, workers, base_url)
+               for part in range(parts)]
     with atomic_dir(out_root) as tmp:
-        for split in splits:
-            frames = manifest["splits"][split]["frames"]
-            writer = _SplitWriter(tmp / split, frames, tokenizers, shapes, batch_size)
-            index: dict[str, dict[str, Any]] = {}
-            offset = 0
-            with tqdm(total=frames, desc=f"latents: {split}", unit="frame") as bar:
-                for clip in read_clips(shards_root, split, decode_workers):
-                    if offset + len(clip) > frames:
-                        raise LatentCacheError(f"{shards_root / MANIFEST}: split '{split}' holds more frames than "
-                                               f"the manifest's {frames}; re-run the `shards` stage")
-                    index[clip.key] = {"offset": offset, "length": len(clip),
-                                       "has_odometry": bool(clip.meta["has_odometry"]),
-                                       "episode": clip.meta["episode"], "start_frame": clip.meta["start_frame"]}
-                    writer.add(clip, offset)
-                    offset += len(clip)
-                    bar.update(len(clip))
-            writer.close()
-            if offset != frames:
-                raise LatentCacheError(f"{shards_root / MANIFEST}: split '{split}' lists {frames} frames but its "
-                                       f"shards hold {offset}; re-run the `shards` stage")
-            write_json(tmp / split / INDEX, index)
-            meta["splits"][split] = {"frames": frames, "clips": len(index),
-                                     "sha256": {name: sha256_file(tmp / split / name)
-                                                for name in (*(f"{a}.npy" for a in ARRAYS), INDEX)}}
-        np.savez(tmp / NORMALIZATION, **{f"{kind}_{part}": getattr(tokenizers[kind], part).cpu().numpy()
-                                         for kind in KINDS for part in ("shift", "scale")})
-        meta["normalization_sha256"] = sha256_file(tmp / NORMALIZATION)
-        write_json(tmp / META, meta)
-    return meta
+        return gather_parts(shards_root, written, tmp, tokenizers, files, splits)
 
 
 # --------------------------------------------------------------------------- reading
 
 
-class LatentCache:
-    """An opened cache: its meta, per-split indexes, and per-split arrays mapped on first use.
+class SplitIndex:
+    """A split's tables as numpy arrays: ``chunks`` (one row per chunk) and ``clips`` (one row per clip, in split
+    order), the structured rows ``chunks.npy`` and ``clips.npy`` hold (see the module's layout)."""
 
-    The maps are per process and are dropped when the object is pickled (DataLoader workers
-    started by spawn/forkserver, DDP), so each process maps the files instead of copying them.
-    The record of which splits were verified travels with it, so workers do not hash them again.
+    def __init__(self, chunks: np.ndarray, clips: np.ndarray):
+        self.chunks, self.clips = chunks, clips
+        self._order: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.clips)
+
+    @property
+    def keys(self) -> np.ndarray:
+        return self.clips["key"]
+
+    def find(self, keys: Sequence[str]) -> np.ndarray:
+        """The clip table's rows of ``keys`` (vectorised: the keys sorted once, then binary search)."""
+        if self._order is None:
+            self._order = np.argsort(self.keys, kind="stable")
+        ordered, wanted = self.keys[self._order], np.asarray(list(keys), dtype=str)
+        at = np.searchsorted(ordered, wanted)
+        found = np.zeros(len(wanted), bool)
+        if len(ordered):
+            found = (at < len(ordered)) & (ordered[np.minimum(at, len(ordered) - 1)] == wanted)
+        if not found.all():
+            raise KeyError(f"no clip {', '.join(map(str, wanted[~found][:5]))} in the split")
+        return self._order[at]
+
+
+class SplitArray:
+    """One array (``detail``, ``abstract`` or ``odometry``) of a split, its chunks' rows numbered as one array.
+
+    Indexed like the array it stands for (a row, a slice, an array of rows, optionally more axes after the
+    rows: ``odometry[rows, 1]``); each chunk read is mapped, and checked the first time this process reads
+    it (:meth:`LatentCache.chunk`). Returns numpy arrays."""
+
+    def __init__(self, cache: LatentCache, split: str, name: str):
+        index = cache.index(split)
+        self.cache, self.split, self.name = cache, split, name
+        frames = cache.meta["splits"][split]["frames"]
+        self._starts = np.append(index.chunks["first_row"], frames).astype(np.int64)
+        row = tuple(cache.meta["tokenizers"][name]["shape"]) if name in KINDS else (2,)
+        self.shape = (frames, *row)
+        self.dtype = np.dtype(np.float16 if name in KINDS else np.float32)
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def _rows(self, c: int) -> np.ndarray:
+        return self.cache.chunk(self.split, c)[self.name]
+
+    def _range(self, start: int, stop: int) -> np.ndarray:
+        if stop <= start:
+            return np.zeros((0, *self.shape[1:]), self.dtype)
+        first, last = (int(np.searchsorted(self._starts, r, "right")) - 1 for r in (start, stop - 1))
+        pieces = [self._rows(c)[max(start, self._starts[c]) - self._starts[c]:min(stop, self._starts[c + 1])
+                                - self._starts[c]] for c in range(first, last + 1)]
+        return pieces[0] if len(pieces) == 1 else np.concatenate(pieces)
+
+    def __getitem__(self, key: Any) -> np.ndarray:
+        rows, rest = (key[0], key[1:]) if isinstance(key, tuple) else (key, ())
+        n = len(self)
+        if isinstance(rows, slice):
+            start, stop, step = rows.indices(n)
+            if step == 1:
+                out = self._range(start, stop)
+                return out[(slice(None), *rest)] if rest else out
+            rows = np.arange(start, stop, step)
+        if isinstance(rows, (int, np.integer)):
+            r = int(rows) + (n if rows < 0 else 0)
+            if not 0 <= r < n:
+                raise IndexError(f"row {rows} outside the {n} rows of {self.split}/{self.name}")
+            c = int(np.searchsorted(self._starts, r, "right")) - 1
+            out = self._rows(c)[r - self._starts[c]]
+            return out[rest] if rest else out
+        rows = np.asarray(rows)
+        if rows.size == 0:
+            rows = rows.astype(np.int64)
+        if not np.issubdtype(rows.dtype, np.integer):
+            raise TypeError(f"{self.split}/{self.name}: index rows with integers or a slice, not {rows.dtype}")
+        flat = rows.ravel().astype(np.int64)
+        flat = np.where(flat < 0, flat + n, flat)
+        if flat.size and (flat.min() < 0 or flat.max() >= n):
+            raise IndexError(f"rows outside the {n} rows of {self.split}/{self.name}")
+        chunks = np.searchsorted(self._starts, flat, "right") - 1
+        if flat.size and (chunks == chunks[0]).all():
+            out = self._rows(int(chunks[0]))[flat - self._starts[chunks[0]]]
+        else:
+            out = np.empty((flat.size, *self.shape[1:]), self.dtype)
+            for c in np.unique(chunks):
+                at = chunks == c
+                out[at] = self._rows(int(c))[flat[at] - self._starts[c]]
+        out = out.reshape(*rows.shape, *self.shape[1:])
+        return out[(slice(None),) * rows.ndim + rest] if rest else out
+
+
+class LatentCache:
+    """An opened cache: its meta, per-split tables, and each chunk's arrays mapped on first use.
+
+    A chunk's files are hashed the first time this process reads the chunk; the record of what was
+    checked travels with the object when it is pickled (DataLoader workers started by spawn/forkserver,
+    DDP), as it does into forked workers, so no process hashes a chunk twice. The maps are per process
+    (dropped when pickled: each process maps the files instead of copying them), at most ``MAPPED``
+    chunks at a time (the least recently read unmapped first: a process may hold only so many maps).
     """
+
+    MAPPED = 256
 
     def __init__(self, root: Path, meta: dict[str, Any]):
         self.root, self.meta = root, meta
-        self._arrays: dict[str, dict[str, np.ndarray]] = {}
-        self._verified: set[str] = set()
+        self._verified: set[str] = set()  # files checked by this process (or the one it was started from)
+        self._indexes: dict[str, SplitIndex] = {}
+        self._maps: OrderedDict[tuple[str, int], dict[str, np.ndarray]] = OrderedDict()
         path = root / NORMALIZATION
-        _check_file(path, meta["normalization_sha256"])
+        self._check(path, meta["normalization_sha256"], META)
         try:
             with np.load(path) as norm:
                 self.norm = {key: torch.from_numpy(norm[key]) for key in norm.files}
@@ -253,53 +674,83 @@ class LatentCache:
                                    f"re-run the `latents` stage")
         return self.root / split
 
-    def verify(self, split: str) -> None:
-        """Check a split's arrays and index against the SHA-256 that ``meta.json`` recorded when they were written."""
-        if split in self._verified:
-            return
-        folder = self._folder(split)
-        for name, digest in self.meta["splits"][split]["sha256"].items():
-            _check_file(folder / name, digest)
-        self._verified.add(split)
+    def _check(self, path: Path, digest: str, recorded_in: str) -> None:
+        """``path`` against its recorded SHA-256, once per process (and the processes started from it)."""
+        name = str(path.relative_to(self.root))
+        if name not in self._verified:
+            _check_file(path, digest, recorded_in)
+            self._verified.add(name)
 
-    def index(self, split: str) -> dict[str, dict[str, Any]]:
-        self.verify(split)
-        path = self._folder(split) / INDEX
-        try:
-            return json.loads(path.read_text())
-        except (OSError, ValueError) as err:
-            raise LatentCacheError(f"{path}: unreadable ({err}); re-run the `latents` stage") from err
-
-    def arrays(self, split: str) -> dict[str, np.ndarray]:
-        """``detail``, ``abstract`` and ``odometry`` of one split as read-only memory maps."""
-        if split not in self._arrays:
-            self.verify(split)
-            folder, frames = self._folder(split), self.meta["splits"][split]["frames"]
-            expected = {kind: (frames, *self.meta["tokenizers"][kind]["shape"]) for kind in KINDS}
-            expected["odometry"] = (frames, 2)
-            arrays = {}
-            for name, shape in expected.items():
-                path = folder / f"{name}.npy"
+    def index(self, split: str) -> SplitIndex:
+        """A split's chunk and clip tables, checked against ``meta.json`` when this process first opens them."""
+        if split not in self._indexes:
+            folder, info = self._folder(split), self.meta["splits"][split]
+            tables = []
+            for name, rows in ((CHUNKS, info["chunks"]), (CLIPS, info["clips"])):
+                path = folder / name
+                self._check(path, info["sha256"][name], META)
                 try:
-                    arrays[name] = np.load(path, mmap_mode="r")
+                    tables.append(np.load(path, allow_pickle=False))
                 except (OSError, ValueError) as err:
                     raise LatentCacheError(f"{path}: unreadable ({err}); re-run the `latents` stage") from err
-                if arrays[name].shape != shape:
-                    raise LatentCacheError(f"{path}: shape {arrays[name].shape}, meta.json says {shape}; "
+                if len(tables[-1]) != rows:
+                    raise LatentCacheError(f"{path}: {len(tables[-1])} rows, meta.json says {rows}; "
                                            f"re-run the `latents` stage")
-            self._arrays[split] = arrays
-        return self._arrays[split]
+            self._indexes[split] = SplitIndex(*tables)
+        return self._indexes[split]
+
+    def chunk(self, split: str, c: int) -> dict[str, np.ndarray]:
+        """``detail``, ``abstract`` and ``odometry`` of chunk ``c`` of a split as read-only memory maps; the chunk's
+        files are hashed the first time this process reads it."""
+        key = (split, int(c))
+        maps = self._maps.get(key)
+        if maps is not None:
+            self._maps.move_to_end(key)
+            return maps
+        row = self.index(split).chunks[c]
+        folder = self._folder(split) / str(row["name"])
+        maps = {}
+        for name in ARRAYS:
+            path = folder / f"{name}.npy"
+            self._check(path, str(row[f"{name}_sha256"]), f"{split}/{CHUNKS}")
+            try:
+                maps[name] = np.load(path, mmap_mode="r")
+            except (OSError, ValueError) as err:
+                raise LatentCacheError(f"{path}: unreadable ({err}); re-run the `latents` stage") from err
+            shape = (int(row["frames"]), *(self.meta["tokenizers"][name]["shape"] if name in KINDS else (2,)))
+            if maps[name].shape != shape:
+                raise LatentCacheError(f"{path}: shape {maps[name].shape}, the cache's tables say {shape}; "
+                                       f"re-run the `latents` stage")
+        self._maps[key] = maps
+        if len(self._maps) > self.MAPPED:
+            self._maps.popitem(last=False)
+        return maps
+
+    def verify(self, split: str) -> int:
+        """Check every file of a split (its tables and each chunk's files) against the SHA-256 recorded when they
+        were written, as a reader checks what it reads; the number of files checked."""
+        index, folder = self.index(split), self._folder(split)
+        for row in index.chunks:
+            for file in CHUNK_FILES:
+                self._check(folder / str(row["name"]) / file, str(row[f"{file.removesuffix('.npy')}_sha256"]),
+                            f"{split}/{CHUNKS}")
+        return 2 + len(CHUNK_FILES) * len(index.chunks)
+
+    def arrays(self, split: str) -> dict[str, SplitArray]:
+        """``detail``, ``abstract`` and ``odometry`` of one split, rows numbered across chunks (:class:`SplitArray`)."""
+        self.index(split)
+        return {name: SplitArray(self, split, name) for name in ARRAYS}
 
     def __getstate__(self) -> dict[str, Any]:
-        return {**self.__dict__, "_arrays": {}}
+        return {**self.__dict__, "_maps": OrderedDict(), "_indexes": {}}
 
 
-def _check_file(path: Path, digest: str) -> None:
+def _check_file(path: Path, digest: str, recorded_in: str, stage: str = "latents") -> None:
     if not path.is_file():
-        raise LatentCacheError(f"{path}: missing from the latent cache; re-run the `latents` stage")
+        raise LatentCacheError(f"{path}: missing from the latent cache; re-run the `{stage}` stage")
     if sha256_file(path) != digest:
-        raise LatentCacheError(f"{path}: content does not match the SHA-256 recorded in meta.json when the cache "
-                               f"was written (corrupt or modified); re-run the `latents` stage")
+        raise LatentCacheError(f"{path}: content does not match the SHA-256 recorded in {recorded_in} when the cache "
+                               f"was written (corrupt or modified); re-run the `{stage}` stage")
 
 
 def open_cache(root: str | Path, detail_checksum: str | None = None,
@@ -327,14 +778,25 @@ def open_cache(root: str | Path, detail_checksum: str | None = None,
     return LatentCache(root, meta)
 
 
+def window_counts(data: DataConfig, lengths: np.ndarray, anchor_stride: int = 1) -> tuple[np.ndarray, int]:
+    """How many windows each clip of ``lengths`` frames gives (every ``anchor_stride``-th anchor of
+    :func:`anchor_range`), and the first anchor; vectorised over the clips."""
+    empty = anchor_range(data, 0)  # anchor_range(data, n) is range(first, n + empty.stop)
+    span = np.asarray(lengths, np.int64) + empty.stop - empty.start
+    return np.maximum(0, -(-span // anchor_stride)), empty.start
+
+
 class LatentWindowDataset(Dataset):
     """Two-rate latent windows at every valid (clip, anchor) of a split: the windows of ``clip_window``.
 
     An item holds ``detail`` (10 Hz window) and ``abstract`` (2 Hz window) latents, plus
-    ``detail_slow`` and ``abstract_fast``: each latent space at the other rate's frames.
+    ``detail_slow`` and ``abstract_fast``: each latent space at the other rate's frames. Items are in
+    split order: the clips in order, each clip's anchors in increasing order.
 
     Map-style, so ``DistributedSampler`` and DataLoader workers partition it exactly. ``anchor_stride``
-    keeps every n-th anchor of a clip (neighbouring anchors overlap almost completely).
+    keeps every n-th anchor of a clip (neighbouring anchors overlap almost completely). Holds the
+    split's clip table and one int64 per clip (where its windows start): an item's clip is found by
+    binary search, so no array or object per window exists unless :attr:`items` is asked for.
     """
 
     def __init__(self, cache: LatentCache | str | Path, split: str, data: DataConfig, anchor_stride: int = 1):
@@ -344,30 +806,47 @@ class LatentWindowDataset(Dataset):
                                    f"params.yaml asks for {data.fps} fps; re-run the `shards` and `latents` stages")
         if anchor_stride < 1:
             raise ValueError(f"anchor_stride must be >= 1, got {anchor_stride}")
-        self.split, self.data = split, data
-        index = self.cache.index(split)
-        self.keys = sorted(index, key=lambda k: index[k]["offset"])
-        self.clips = [index[k] for k in self.keys]
-        pairs = [(c, a) for c, clip in enumerate(self.clips)
-                 for a in anchor_range(data, clip["length"])[::anchor_stride]]
-        self.items = np.array(pairs, np.int64).reshape(-1, 2)
+        self.split, self.data, self.anchor_stride = split, data, anchor_stride
+        self.clips = self.cache.index(split).clips  # structured rows: key, chunk, row, offset, length, ...
+        self.keys = self.clips["key"]
+        counts, self._first_anchor = window_counts(data, self.clips["length"], anchor_stride)
+        self._starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)  # clip c: windows starts[c]..
 
     def __len__(self) -> int:
-        return len(self.items)
+        return int(self._starts[-1])
+
+    def windows(self, start: int = 0, stop: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(clip, anchor)`` of windows ``start``..``stop`` (default: to the end), as two int64 arrays."""
+        stop = len(self) if stop is None else stop
+        i = np.arange(start, stop, dtype=np.int64)
+        clip = np.searchsorted(self._starts, i, "right") - 1
+        return clip, self._first_anchor + self.anchor_stride * (i - self._starts[clip])
+
+    @property
+    def items(self) -> np.ndarray:
+        """Every window's ``(clip, anchor)``, ``[len, 2]`` int64, made when asked for (16 bytes a window)."""
+        return np.stack(self.windows(), 1)
 
     def __getitem__(self, i: int) -> dict[str, Any]:
-        c, anchor = (int(v) for v in self.items[i])
-        clip, arrays = self.clips[c], self.cache.arrays(self.split)
+        n = len(self)
+        i = int(i) + (n if i < 0 else 0)
+        if not 0 <= i < n:
+            raise IndexError(f"window {i} outside the {n} windows of {self.split}")
+        c = int(np.searchsorted(self._starts, i, "right")) - 1
+        anchor = self._first_anchor + self.anchor_stride * (i - int(self._starts[c]))
+        clip = self.clips[c]
+        arrays = self.cache.chunk(self.split, int(clip["chunk"]))
         detail, abstract = window_indices(self.data, anchor)
         span = window_span(detail, abstract)
-        base = clip["offset"]  # row of the clip's first frame
+        base = int(clip["row"])  # the clip's first frame in its chunk
 
         def latent(kind: str, idx: np.ndarray) -> torch.Tensor:
             return self.cache.normalize(kind, arrays[kind][base + idx])
 
         odometry = arrays["odometry"]
-        item = _item(self.keys[c], anchor, latent("detail", detail), latent("abstract", abstract),
-                     odometry[base + detail], odometry[base + abstract], odometry[base + span], clip["has_odometry"])
+        item = _item(str(clip["key"]), anchor, latent("detail", detail), latent("abstract", abstract),
+                     odometry[base + detail], odometry[base + abstract], odometry[base + span],
+                     bool(clip["has_odometry"]))
         # The same frames in the other latent space, for the hierarchy ablations' flat and top predictors.
         item["detail_slow"], item["abstract_fast"] = latent("detail", abstract), latent("abstract", detail)
         return item
@@ -379,3 +858,4 @@ def collate(items: list[dict[str, Any]]) -> dict[str, torch.Tensor]:
                for key in ("detail", "abstract", "detail_slow", "abstract_fast")},
             "odometry": torch.stack([i["odometry"] for i in items]),
             "has_odometry": torch.tensor([i["has_odometry"] for i in items])}
+

@@ -243,7 +243,7 @@ def profile_witness(interface: Interface, args: argparse.Namespace) -> Path | No
 
 def work_dir(name: str, cfg: PipelineConfig, sections: list[str], inputs: dict[str, Path],
              script: Path | str) -> Path:
-    """Where a resumable stage keeps its work (a training stage's checkpoints, the shards' parts):
+    """Where a resumable stage keeps its work (a training stage's checkpoints, the parts of the shards and caches):
     ``data/runs/<stage>-<profile>-<key>``.
 
     Outside the stage's declared outputs, because Snakemake and DVC delete those

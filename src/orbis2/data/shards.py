@@ -31,7 +31,6 @@ import hashlib
 import itertools
 import json
 import os
-import shutil
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,11 +44,11 @@ from tqdm import tqdm
 
 from orbis2.config.sections import SPLITS, DataConfig, ShardsConfig
 from orbis2.data.episodes import EpisodeRecord, RawIndex, read_odometry
-from orbis2.data.parts import keyed_work, part_name, part_slice
+from orbis2.data.parts import PART_LOG, PartLog, keyed_work, part_name, part_slice  # noqa: F401 (PART_LOG)
 from orbis2.data.video import iter_frames
 from orbis2.errors import OrbisError
 from orbis2.hierarchy import anchor_range, window_indices, window_span
-from orbis2.io import load_npy, load_npz, move_into, npy_bytes, npz_bytes, sha256_file, write_json
+from orbis2.io import HashingFile, load_npy, load_npz, move_into, npy_bytes, npz_bytes, sha256_file, write_json
 
 MANIFEST = "manifest.json"
 
@@ -78,7 +77,7 @@ class ShardWriter:
         self.next, self.on_shard = start, on_shard
         self.shards: list[dict[str, Any]] = []
         self._tar: wds.TarWriter | None = None
-        self._file: _HashingFile | None = None
+        self._file: HashingFile | None = None
         self._open: dict[str, Any] = {}
 
     def write(self, key: str, members: dict[str, bytes], frames: int = 0, tag: Any = None) -> None:
@@ -88,7 +87,7 @@ class ShardWriter:
         if self._tar is None:  # opened lazily: a split without clips leaves no empty shard
             path = self.folder / f"{self.prefix}-{self.next:06d}.tar"
             self.folder.mkdir(parents=True, exist_ok=True)
-            self._file = _HashingFile(path.with_name(path.name + PARTIAL))
+            self._file = HashingFile(path.with_name(path.name + PARTIAL))
             self._tar = wds.TarWriter(self._file, encoder=False, mtime=0, user="orbis2", group="orbis2",
                                       mode=0o644)
             self._open = {"path": path, "samples": 0, "size": 0, "frames": 0}
@@ -119,29 +118,6 @@ class ShardWriter:
 PARTIAL = ".partial"  # a shard still being written (removed when a part resumes)
 
 
-class _HashingFile:
-    """A binary file that hashes and counts what is written to it; ``finish`` syncs it to disk and closes it."""
-
-    def __init__(self, path: Path):
-        self.path = path
-        self._file = open(path, "wb")  # noqa: SIM115 (closed by finish)
-        self._digest, self._size = hashlib.sha256(), 0
-
-    def write(self, data: bytes) -> int:
-        self._digest.update(data)
-        self._size += len(data)
-        return self._file.write(data)
-
-    def flush(self) -> None:
-        self._file.flush()
-
-    def finish(self) -> tuple[int, str]:
-        self._file.flush()
-        os.fsync(self._file.fileno())
-        self._file.close()
-        return self._size, self._digest.hexdigest()
-
-
 def clip_starts(n_frames: int, clip_frames: int, min_frames: int) -> list[tuple[int, int]]:
     """Non-overlapping (start, length) clips; a short episode becomes one shorter clip."""
     if n_frames >= clip_frames:
@@ -151,51 +127,28 @@ def clip_starts(n_frames: int, clip_frames: int, min_frames: int) -> list[tuple[
 
 # --------------------------------------------------------------------------- parts
 
-PART_LOG = "done.jsonl"  # one line per shard in place, one per split finished, one when the part is done
 
-
-class _PartLog:
-    """A part's progress: ``done.jsonl`` in its folder, one JSON line appended (and synced) per event.
+class _PartLog(PartLog):
+    """A shards part's progress (``done.jsonl``): one line per shard in place, one per split finished, one when
+    the part is done.
 
     A shard is logged after it is renamed into place, so a kill loses at most the shard being
     written (its ``.partial`` file is removed on the next start) and the line being appended
     (a torn last line is ignored: its shard is written again, to the same bytes)."""
 
-    def __init__(self, folder: Path):
-        self.folder = folder
-        self.path = folder / PART_LOG
-        self.events: list[dict[str, Any]] = []
-        lines = self.path.read_text().splitlines() if self.path.is_file() else []
-        for line in lines:
-            try:
-                self.events.append(json.loads(line))
-            except ValueError:
-                break  # torn by a kill: this and anything after it is redone
-        if any(not (folder / e["path"]).is_file() for e in self.events if e.get("shard")):
-            shutil.rmtree(folder)  # gathered already (the gather moves the shards out): written again
-            self.events = []
-        folder.mkdir(parents=True, exist_ok=True)
-        for stale in folder.rglob(f"*{PARTIAL}"):
-            stale.unlink()
-        if len(self.events) != len(lines):  # drop the torn line, so that appends follow whole ones
-            self.path.write_text("".join(json.dumps(e, sort_keys=True) + "\n" for e in self.events))
+    def stale(self, events: list[dict[str, Any]]) -> bool:
+        # gathered already (the gather moves the shards out): written again
+        return any(not (self.folder / e["path"]).is_file() for e in events if e.get("shard"))
 
-    def add(self, event: dict[str, Any]) -> None:
-        with open(self.path, "a") as f:
-            f.write(json.dumps(event, sort_keys=True) + "\n")
-            f.flush()
-            os.fsync(f.fileno())
-        self.events.append(event)
+    def clean(self) -> None:
+        for stale in self.folder.rglob(f"*{PARTIAL}"):
+            stale.unlink()
 
     def shards(self, split: str) -> list[dict[str, Any]]:
         return [e for e in self.events if e.get("shard") and e["split"] == split]
 
     def finished(self, split: str) -> bool:
         return any(e.get("finished") == split for e in self.events)
-
-    @property
-    def done(self) -> bool:
-        return any(e.get("done") for e in self.events)
 
 
 def _checked_index(raw_root: Path, data: DataConfig) -> RawIndex:
@@ -402,17 +355,23 @@ def verify_shards(root: Path, splits: Iterable[str] | None = None, base: str | N
     with tqdm(total=sum(s["bytes"] for _, s in entries), desc="verify shards", unit="B", unit_scale=True,
               leave=False) as bar:
         for url, shard in entries:
-            size, digest = _stream_digest(url, bar)
-            if size != shard["bytes"]:
-                raise ShardError(f"{url}: {size} bytes, the manifest says {shard['bytes']} (truncated or "
-                                 f"modified); re-run the `shards` stage")
-            if digest != shard["sha256"]:
-                raise ShardError(f"{url}: content does not match the manifest's hash (corrupt or modified); "
-                                 f"re-run the `shards` stage")
+            verify_shard(url, shard, bar)
     return sum(s["bytes"] for _, s in entries)
 
 
-def _stream_digest(url: str, bar: tqdm) -> tuple[int, str]:
+def verify_shard(url: str, shard: dict[str, Any], bar: tqdm | None = None) -> None:
+    """Stream one shard (its manifest entry ``shard``) and compare its size and SHA-256 with the manifest's: the
+    check of :func:`verify_shards`, for a reader that checks each shard just before it reads it."""
+    size, digest = _stream_digest(url, bar)
+    if size != shard["bytes"]:
+        raise ShardError(f"{url}: {size} bytes, the manifest says {shard['bytes']} (truncated or "
+                         f"modified); re-run the `shards` stage")
+    if digest != shard["sha256"]:
+        raise ShardError(f"{url}: content does not match the manifest's hash (corrupt or modified); "
+                         f"re-run the `shards` stage")
+
+
+def _stream_digest(url: str, bar: tqdm | None = None) -> tuple[int, str]:
     """Size and SHA-256 of one shard, read in 1 MiB blocks through ``webdataset.gopen`` (files, pipes, URLs)."""
     digest, size = hashlib.sha256(), 0
     try:
@@ -420,7 +379,8 @@ def _stream_digest(url: str, bar: tqdm) -> tuple[int, str]:
             while block := stream.read(1 << 20):
                 digest.update(block)
                 size += len(block)
-                bar.update(len(block))
+                if bar is not None:
+                    bar.update(len(block))
     except FileNotFoundError as err:
         raise ShardError(f"{url}: listed in the manifest but missing; re-run the `shards` stage") from err
     except OSError as err:

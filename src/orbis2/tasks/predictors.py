@@ -42,6 +42,7 @@ because it is a pure function of the config.
 from __future__ import annotations
 
 import itertools
+import warnings
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -161,14 +162,17 @@ def offset_yaw_draws(b: int, generator: torch.Generator, device: torch.device) -
 # --------------------------------------------------------------------------- data
 
 
-def turn_repeats(dataset: LatentWindowDataset, data: DataConfig, cfg: PredictorConfig) -> np.ndarray:
+def turn_repeats(dataset: LatentWindowDataset, data: DataConfig, cfg: PredictorConfig,
+                 block: int = 1 << 16) -> np.ndarray:
     """How often each train window enters an epoch: ``turn_repeat`` times where the ego turns (mean
     |yaw rate| above ``TURN_THRESHOLD``) over the steering interval or the interval before it, so
     turn onsets, turns and turn ends all count; once elsewhere.
 
     Only windows that turn show what a turn does to the scene (and, for the steering
     fine-tune, what the yaw rate does): in the rest the ongoing motion is already in the
-    context, and a short run sees too few turns to learn to carry one.
+    context, and a short run sees too few turns to learn to carry one. Vectorised over
+    ``block`` windows at a time (their yaw rates are read in one gather), so memory stays
+    that of the result.
     """
     steer = steering_interval(data)
     before = slice(steer.start - (steer.stop - steer.start), steer.start)
@@ -176,10 +180,15 @@ def turn_repeats(dataset: LatentWindowDataset, data: DataConfig, cfg: PredictorC
     offsets = window_span(detail, abstract)
     odometry = dataset.cache.arrays(dataset.split)["odometry"]
     repeats = np.ones(len(dataset), np.int64)
-    for i, (c, anchor) in enumerate(dataset.items):
-        yaw = odometry[dataset.clips[c]["offset"] + anchor + offsets, 1]
-        turning = max(abs(np.nanmean(yaw[steer])), abs(np.nanmean(yaw[before]))) > TURN_THRESHOLD
-        repeats[i] = cfg.turn_repeat if turning else 1
+    for start in range(0, len(dataset), block):
+        clip, anchor = dataset.windows(start, min(start + block, len(dataset)))
+        yaw = odometry[(dataset.clips["offset"][clip] + anchor)[:, None] + offsets, 1]
+        with warnings.catch_warnings():  # a window without odometry (all NaN) does not turn
+            warnings.simplefilter("ignore", RuntimeWarning)
+            now, then = (np.abs(np.nanmean(yaw[:, part], axis=1)) for part in (steer, before))
+        # the larger of the two, NaN where the steering interval's is (a window whose odometry is unknown)
+        turning = np.where(then > now, then, now) > TURN_THRESHOLD
+        repeats[start:start + len(clip)] = np.where(turning, cfg.turn_repeat, 1)
     return repeats
 
 

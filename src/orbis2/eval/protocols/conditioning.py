@@ -453,9 +453,9 @@ def latent_steering_response(readouts: dict[str, np.ndarray], modes: dict[str, l
 
 def clip_latents(cache: LatentCache, split: str, level: str) -> tuple[list[np.ndarray], list[np.ndarray], list[str]]:
     """Per clip of a split: normalised latents [T, ...] of ``level`` (as the predictors see them), odometry, key."""
-    index, arrays = cache.index(split), cache.arrays(split)
-    keys = sorted(index, key=lambda k: index[k]["offset"])
-    rows = [slice(index[k]["offset"], index[k]["offset"] + index[k]["length"]) for k in keys]
+    clips, arrays = cache.index(split).clips, cache.arrays(split)  # the clips in split order
+    keys = clips["key"].tolist()
+    rows = [slice(o, o + n) for o, n in zip(clips["offset"].tolist(), clips["length"].tolist())]
     return ([cache.normalize(level, arrays[level][r]).numpy() for r in rows], [arrays["odometry"][r] for r in rows],
             keys)
 

@@ -198,12 +198,11 @@ class Sample:
 
 def eval_samples(cache: LatentCache, split: str, data: DataConfig, steps: int, starts_per_clip: int) -> list[Sample]:
     """Every clip of the split long enough for ``steps``, with ``starts_per_clip`` evenly spread starts."""
-    index = cache.index(split)
+    clips = cache.index(split).clips  # in split order
     samples = []
-    for key in sorted(index, key=lambda k: index[k]["offset"]):
-        entry = index[key]
-        for end in sample_ends(entry["length"], data, steps, starts_per_clip):
-            samples.append(Sample(key, int(entry["offset"]), end))
+    for key, offset, length in zip(clips["key"].tolist(), clips["offset"].tolist(), clips["length"].tolist()):
+        for end in sample_ends(length, data, steps, starts_per_clip):
+            samples.append(Sample(key, offset, end))
     if not samples:
         raise OrbisError(f"{cache.root}: no clip of the {split} split is long enough for {steps} rollout steps after "
                          f"its context; lower evaluation.seconds or use longer clips")
@@ -279,4 +278,4 @@ def real_subgoals(system: LoadedSystem, cache: LatentCache, split: str, data: Da
 def sample_clusters(cache: LatentCache, split: str, samples: list[Sample]) -> list[str]:
     """What a bootstrap resamples: each sample's episode (clips and starts of one episode are not independent)."""
     index = cache.index(split)
-    return [str(index[s.key].get("episode", s.key)) for s in samples]
+    return index.clips["episode"][index.find([s.key for s in samples])].tolist()
