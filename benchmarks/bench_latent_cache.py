@@ -25,6 +25,7 @@ from typing import Any, Iterator
 
 import numpy as np
 import torch
+from corpus import random_tokenizers
 from torch.utils.data import DataLoader, default_collate
 
 from orbis2.config.params import PipelineConfig, load_config
@@ -33,8 +34,7 @@ from orbis2.data.shards import MANIFEST, WindowDataset, write_shards
 from orbis2.data.video import write_video
 from orbis2.errors import OrbisError
 from orbis2.latents import LatentCache, LatentWindowDataset, build_latent_cache, encode_window, open_cache, sha256_file
-from orbis2.models.files import load_tokenizer, save_tokenizer
-from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer
+from orbis2.models.files import load_tokenizer
 
 
 def synthetic_setup(cfg: PipelineConfig, root: Path, episodes: int = 4) -> tuple[Path, Path, Path]:
@@ -54,13 +54,7 @@ def synthetic_setup(cfg: PipelineConfig, root: Path, episodes: int = 4) -> tuple
         records.append(EpisodeRecord("train", f"ep_train_{e:05d}", n, True, True, origin="synthetic"))
     RawIndex("synthetic", data.fps, data.width, data.height, None, records).write(root / "raw")
     write_shards(root / "raw", root / "shards", data, cfg.shards)
-    abstract = cfg.tokenizer_abstract
-    save_tokenizer(root / "detail.pt", "detail", build_detail_tokenizer(cfg.tokenizer_detail.preset), 1.0,
-                   {"preset": cfg.tokenizer_detail.preset})
-    save_tokenizer(root / "abstract.pt", "abstract",
-                   build_abstract_tokenizer(abstract.preset, compress=abstract.compress), 1.0,
-                   {"preset": abstract.preset, "teacher_dim": 768, "compress": abstract.compress})
-    return root / "shards", root / "detail.pt", root / "abstract.pt"
+    return root / "shards", *random_tokenizers(root, cfg)
 
 
 def reusable_cache(root: Path, shards: Path, split: str, detail: Any, abstract: Any) -> LatentCache | None:

@@ -34,6 +34,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from corpus import grown, random_tokenizers
+
 WORKER = """
 import json, resource, sys, time
 from pathlib import Path
@@ -86,40 +88,6 @@ def corpus(root: Path, cfg, episodes: int, seconds: float) -> None:
     RawIndex("synthetic", data.fps, data.width, data.height, None, records).write(root)
 
 
-def grown(base: Path, root: Path, scale: int) -> Path:
-    """``base``'s episodes ``scale`` times, under new names, files hard-linked."""
-    from orbis2.data.episodes import RawIndex
-
-    index = RawIndex.read(base)
-    records = []
-    for copy in range(scale):
-        for ep in index.episodes:
-            new = dataclasses.replace(ep, stem=f"{ep.stem}_c{copy}")
-            (root / ep.split).mkdir(parents=True, exist_ok=True)
-            for old_path, new_path in ((ep.video(base), new.video(root)), (ep.odometry(base), new.odometry(root))):
-                os.link(old_path, new_path)
-            records.append(new)
-    dataclasses.replace(index, episodes=records).write(root)
-    return root
-
-
-def tokenizers(root: Path, cfg) -> tuple[Path, Path]:
-    """Random-weight tokenizers of the profile's presets (and its abstract tokenizer's bottleneck)."""
-    import torch
-
-    from orbis2.models.files import save_tokenizer
-    from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer
-
-    torch.manual_seed(0)
-    abstract = cfg.tokenizer_abstract
-    save_tokenizer(root / "detail.pt", "detail", build_detail_tokenizer(cfg.tokenizer_detail.preset), 1.0,
-                   {"preset": cfg.tokenizer_detail.preset})
-    save_tokenizer(root / "abstract.pt", "abstract",
-                   build_abstract_tokenizer(abstract.preset, compress=abstract.compress), 1.0,
-                   {"preset": abstract.preset, "teacher_dim": 768, "compress": abstract.compress})
-    return root / "detail.pt", root / "abstract.pt"
-
-
 def run(job: str, shards: Path, work: Path, out: Path, models: tuple[Path, Path], batch: int,
         workers: int | None) -> dict:
     """One job (``part`` or ``gather``) in a fresh process; its figures."""
@@ -153,7 +121,7 @@ def measure(profile: str, scale: int, episodes: int, seconds: float, shard_mb: f
         grown(tmp / "raw1", tmp / f"raw{scale}", scale)
         for size in (1, scale):
             write_shards(tmp / f"raw{size}", tmp / f"shards{size}", cfg.data, shards_cfg)
-        models = tokenizers(tmp, cfg)
+        models = random_tokenizers(tmp, cfg)
         print(f"corpus and tokenizers made in {time.perf_counter() - t:.0f} s", file=sys.stderr)
         runs = {}
         for size in (1, scale):

@@ -30,6 +30,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from corpus import grown
+
 PAPER = "512x288"
 
 WORKER = """
@@ -56,25 +58,6 @@ def render(root: Path, size: tuple[int, int]) -> None:
 
     smoke = load_config("params.yaml", "smoke")
     build_town_dataset(root, dataclasses.replace(smoke.data, width=size[0], height=size[1]), smoke.town)
-
-
-def grown(base: Path, root: Path, scale: int) -> Path:
-    """``base``'s episodes ``scale`` times, under new names, files hard-linked."""
-    from orbis2.data.episodes import RawIndex
-
-    index = RawIndex.read(base)
-    records = []
-    for copy in range(scale):
-        for ep in index.episodes:
-            new = dataclasses.replace(ep, stem=f"{ep.stem}_c{copy}")
-            (root / ep.split).mkdir(parents=True, exist_ok=True)
-            for old_path, new_path in ((ep.video(base), new.video(root)), (ep.odometry(base), new.odometry(root)),
-                                       (ep.labels(base), new.labels(root))):
-                if old_path.is_file():
-                    os.link(old_path, new_path)
-            records.append(new)
-    dataclasses.replace(index, episodes=records).write(root)
-    return root
 
 
 def run_parts(raw: Path, work: Path, parts: list[int], of: int, size: tuple[int, int]) -> list[dict]:
