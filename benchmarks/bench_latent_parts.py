@@ -34,7 +34,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from corpus import grown, random_tokenizers
+from corpus import cpu_model, grown, random_tokenizers
 
 WORKER = """
 import json, resource, sys, time
@@ -99,14 +99,6 @@ def run(job: str, shards: Path, work: Path, out: Path, models: tuple[Path, Path]
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def _cpu_model() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").is_file() else []:
-        if line.startswith("model name"):
-            flags = Path("/proc/cpuinfo").read_text()
-            return line.split(":", 1)[1].strip() + (" (AVX-512)" if "avx512f" in flags else " (AVX2)")
-    return "unknown"
-
-
 def measure(profile: str, scale: int, episodes: int, seconds: float, shard_mb: float, workers: int | None,
             params: Path = Path("params.yaml")) -> dict:
     from orbis2.config.params import load_config
@@ -135,7 +127,7 @@ def measure(profile: str, scale: int, episodes: int, seconds: float, shard_mb: f
     part = large["part"]
     return {"profile": profile, "resolution": f"{cfg.data.width}x{cfg.data.height}",
             "presets": f"{cfg.tokenizer_detail.preset}/{cfg.tokenizer_abstract.preset}",
-            "device": part["device"] if part["device"] != "cpu" else f"{_cpu_model()}, {os.cpu_count()} cores",
+            "device": part["device"] if part["device"] != "cpu" else f"{cpu_model()}, {os.cpu_count()} cores",
             "encoder": part["encoder"], "batch_size": cfg.latents.batch_size,
             "decode_workers": part["decode_workers"], "shard_mb": shard_mb, "scale": scale,
             "frames_1x": small["part"]["frames"], "frames_scaled": part["frames"],
@@ -146,7 +138,7 @@ def measure(profile: str, scale: int, episodes: int, seconds: float, shard_mb: f
             "workers_peak_mb_1x": small["part"]["workers_peak_mb"], "workers_peak_mb_scaled": part["workers_peak_mb"],
             "gather_peak_mb_1x": small["gather"]["peak_mb"], "gather_peak_mb_scaled": large["gather"]["peak_mb"],
             "gather_peak_ratio": large["gather"]["peak_mb"] / small["gather"]["peak_mb"],
-            "cpus": os.cpu_count(), "cpu": _cpu_model()}
+            "cpus": os.cpu_count(), "cpu": cpu_model()}
 
 
 def main() -> None:

@@ -30,7 +30,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from corpus import grown
+from corpus import cpu_model, grown
 
 PAPER = "512x288"
 
@@ -75,14 +75,6 @@ def run_parts(raw: Path, work: Path, parts: list[int], of: int, size: tuple[int,
     return out
 
 
-def _cpu_model() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").is_file() else []:
-        if line.startswith("model name"):
-            flags = Path("/proc/cpuinfo").read_text()
-            return line.split(":", 1)[1].strip() + (" (AVX-512)" if "avx512f" in flags else " (AVX2)")
-    return "unknown"
-
-
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scale", type=int, default=4, help="the grown corpus, in copies of the rendered one")
@@ -112,7 +104,7 @@ def main() -> None:
                "two_parts_speedup": both / rate,
                "peak_mb_1x": small["peak_mb"], "peak_mb_scaled": large["peak_mb"],
                "peak_ratio": large["peak_mb"] / small["peak_mb"], "frames_1x": small["frames"],
-               "frames_scaled": large["frames"], "cpus": os.cpu_count(), "cpu": _cpu_model()}
+               "frames_scaled": large["frames"], "cpus": os.cpu_count(), "cpu": cpu_model()}
     print(f"one part         : {rate:7.1f} frames/s ({alone['frames']} frames at {figures['resolution']}, "
           f"{alone['cpu_s'] / alone['seconds']:.2f} cores busy)")
     print(f"two parts at once: {both:7.1f} frames/s, {both / rate:.2f}x one part")
