@@ -238,6 +238,11 @@ def test_a_reader_hashes_only_the_chunks_it_reads(setup, smoke_cfg, monkeypatch)
     ds[last - 1]
     pickle.loads(pickle.dumps(ds))[last]
     assert hashed == []  # checked already, in this process or the one it came from
+    cache = open_cache(tmp / "cache")  # a reader of the odometry alone (the turn repeats): that file, not the latents
+    odometry = cache.arrays("train")["odometry"]
+    hashed.clear()
+    odometry[0]
+    assert list(map(str, hashed)) == [f"train/{cache.index('train').chunks['name'][0]}/odometry.npy"]
 
 
 def test_any_parts_give_the_same_cache_bytes(setup, tmp_path):

@@ -587,7 +587,7 @@ class SplitArray:
         return self.shape[0]
 
     def _rows(self, c: int) -> np.ndarray:
-        return self.cache.chunk(self.split, c)[self.name]
+        return self.cache.chunk(self.split, c, (self.name,))[self.name]
 
     def _range(self, start: int, stop: int) -> np.ndarray:
         if stop <= start:
@@ -699,18 +699,23 @@ class LatentCache:
             self._indexes[split] = SplitIndex(*tables)
         return self._indexes[split]
 
-    def chunk(self, split: str, c: int) -> dict[str, np.ndarray]:
-        """``detail``, ``abstract`` and ``odometry`` of chunk ``c`` of a split as read-only memory maps; the chunk's
-        files are hashed the first time this process reads it."""
+    def chunk(self, split: str, c: int, names: Sequence[str] = ARRAYS) -> dict[str, np.ndarray]:
+        """``names`` (default ``detail``, ``abstract`` and ``odometry``) of chunk ``c`` of a split as read-only memory
+        maps; each file is hashed the first time this process reads it, so a reader of the odometry alone (the
+        turn repeats, the steering evaluation) does not hash the chunk's latents."""
         key = (split, int(c))
         maps = self._maps.get(key)
-        if maps is not None:
+        if maps is None:
+            maps = self._maps[key] = {}
+            if len(self._maps) > self.MAPPED:
+                self._maps.popitem(last=False)
+        else:
             self._maps.move_to_end(key)
-            return maps
-        row = self.index(split).chunks[c]
-        folder = self._folder(split) / str(row["name"])
-        maps = {}
-        for name in ARRAYS:
+        missing = [name for name in names if name not in maps]
+        if missing:
+            row = self.index(split).chunks[c]
+            folder = self._folder(split) / str(row["name"])
+        for name in missing:
             path = folder / f"{name}.npy"
             self._check(path, str(row[f"{name}_sha256"]), f"{split}/{CHUNKS}")
             try:
@@ -721,9 +726,6 @@ class LatentCache:
             if maps[name].shape != shape:
                 raise LatentCacheError(f"{path}: shape {maps[name].shape}, the cache's tables say {shape}; "
                                        f"re-run the `latents` stage")
-        self._maps[key] = maps
-        if len(self._maps) > self.MAPPED:
-            self._maps.popitem(last=False)
         return maps
 
     def verify(self, split: str) -> int:
