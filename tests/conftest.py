@@ -3,7 +3,9 @@ smoke-profile project run through the main job and `reports/all` for the whole s
 
 The smoke project takes most of the suite's time, so it is built in the background (tests/smoke_build.py)
 from the moment a test that needs it is collected, once for all pytest-xdist workers, and the tests that
-read it run last: the other tests run meanwhile."""
+read it run last: the other tests run meanwhile. Tests that read only the main job's outputs take
+``smoke_main``, a copy made as soon as the main job is done, and run while `reports/all` is built; only the
+tests of `reports/all` itself (``smoke_project``) wait for the whole build."""
 
 from __future__ import annotations
 
@@ -104,8 +106,16 @@ def run(cmd: list[str], cwd: Path) -> str:
 
 
 SMOKE = "smoke_project"  # the fixture, and its folder in the session's shared temporary folder
+SMOKE_MAIN = "smoke_main"  # the fixture of the main job's copy (the build's FOLDER/main)
+READERS = (SMOKE_MAIN, SMOKE)  # in the order they run: the main job's readers first
 BUILD_TIMEOUT_S = 3600
 BUILDER = pytest.StashKey[subprocess.Popen]()  # the build, in the process that started it
+
+
+def reads(item: pytest.Item) -> str | None:
+    """Which of the smoke project's fixtures a test needs (the whole build wins), or None."""
+    names = getattr(item, "fixturenames", ())
+    return next((fixture for fixture in reversed(READERS) if fixture in names), None)
 
 
 def shared_temp(config: pytest.Config) -> Path:
@@ -116,9 +126,9 @@ def shared_temp(config: pytest.Config) -> Path:
 
 @pytest.hookimpl(trylast=True)  # after -k / -m deselection
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """The smoke project's readers run last: the other tests run while it is built."""
-    readers = [item for item in items if SMOKE in getattr(item, "fixturenames", ())]
-    items[:] = [item for item in items if item not in readers] + readers
+    """The smoke project's readers run last, the main job's before the whole build's: the other tests run while
+    it is built."""
+    items[:] = [item for fixture in (None, *READERS) for item in items if reads(item) == fixture]
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
@@ -126,7 +136,7 @@ def pytest_collection_finish(session: pytest.Session) -> None:
     project's build if a test to run reads it (once per session, whichever xdist worker gets here first)."""
     freeze_imports()
     config = session.config
-    if config.option.collectonly or not any(SMOKE in getattr(i, "fixturenames", ()) for i in session.items):
+    if config.option.collectonly or not any(reads(item) for item in session.items):
         return
     folder = shared_temp(config) / SMOKE
     with FileLock(str(folder) + ".lock"):
@@ -147,16 +157,29 @@ def pytest_unconfigure(config: pytest.Config) -> None:
         proc.wait(timeout=60)
 
 
-@pytest.fixture(scope="session")
-def smoke_project(request) -> Path:
-    """A fresh copy run as the README says, at the smoke scale: the main job, then every ablation
-    (tests/smoke_build.py). Tests copy it before they change anything: several workers read it at once."""
-    folder = shared_temp(request.config) / SMOKE
+def wait_for_build(config: pytest.Config, marker: str) -> Path:
+    """The build's folder once it has written ``marker``; the build's failure, or a timeout, fails the test."""
+    folder = shared_temp(config) / SMOKE
     started = time.monotonic()
-    while not (folder / "built").exists():
+    while not (folder / marker).exists():
         if (folder / "failed").exists():
             pytest.fail(f"the smoke project's build failed:\n{(folder / 'failed').read_text()[-6000:]}")
         if time.monotonic() - started > BUILD_TIMEOUT_S:
             pytest.fail(f"the smoke project was not built within {BUILD_TIMEOUT_S} s: {folder / 'build.log'}")
         time.sleep(2)
-    return folder / "project"
+    return folder
+
+
+@pytest.fixture(scope="session")
+def smoke_main(request) -> Path:
+    """A fresh copy run through the README's main job (`snakemake --cores 2`) at the smoke scale, copied aside
+    before `reports/all` starts (tests/smoke_build.py). Tests copy it before they change anything: several
+    workers read it at once."""
+    return wait_for_build(request.config, "main_built") / "main"
+
+
+@pytest.fixture(scope="session")
+def smoke_project(request) -> Path:
+    """A fresh copy run as the README says, at the smoke scale: the main job, then every ablation
+    (tests/smoke_build.py). Tests copy it before they change anything: several workers read it at once."""
+    return wait_for_build(request.config, "built") / "project"

@@ -449,7 +449,7 @@ def test_the_documented_commands_convert_trees_laid_out_as_documented(tmp_path, 
         assert re.search(r": [1-9]\d* videos converted", summary), (command, summary)
 
 
-def test_a_25_fps_source_plays_through_shards_latents_and_evaluate(smoke_project, tmp_path):
+def test_a_25_fps_source_plays_through_shards_latents_and_evaluate(smoke_main, tmp_path):
     """BDD100K-layout videos at 25 frames/s (with gyro odometry) -> convert -> import -> shards -> latents with
     the smoke project's tokenizers -> rollouts of the smoke model from the imported episodes -> orbis2 evaluate.
 
@@ -457,7 +457,7 @@ def test_a_25_fps_source_plays_through_shards_latents_and_evaluate(smoke_project
     misreads data that came in at 25 frames/s."""
     root = project_copy(tmp_path / "project")
     for folder in ("data/tokenizers", "data/predictors", "data/assets"):
-        shutil.copytree(smoke_project / folder, root / folder, symlinks=True)
+        shutil.copytree(smoke_main / folder, root / folder, symlinks=True)
     source = tmp_path / "bdd100k"
     for split, names in (("train", ("t-25fps-0", "t-25fps-1")), ("val", ("v-25fps-0", "v-25fps-1"))):
         bdd_tree(source, {name: {"first_fix_s": 1.6} for name in names}, n_frames=160, size="moving", split=split,

@@ -3,13 +3,14 @@
 The commands are the lines of the ```bash blocks of README.md, docs/*.md and the package READMEs. A
 block whose commands cannot run here (a GPU, a cluster, a real dataset) has the line
 `<!-- not run in tests: <reason> -->` right before its opening fence. Every other command runs in a
-copy of the session's finished smoke project (the main job and `reports/all` done), in the order the
-pages give them, and must exit 0. Only what cannot run as written in a test is adapted, each in one
+copy of the session's finished smoke project (the main job and `reports/all` done; the pages of
+`AFTER_MAIN`'s groups, which read only the main job, in a copy of it made before `reports/all` starts), in
+the order the pages give them, and must exit 0. Only what cannot run as written in a test is adapted, each in one
 place below: the install prefix must equal what CI installs, `pytest` collects instead of recursing,
 DVC's runs are dry (the Snakemake runs made the outputs; `dvc repro` would redo them), a server is
 started, asked for its page and stopped, and a command the group already gave (the same words, its
 options in any order) is run once: the pages repeat a step as a reminder, and its second run would only
-redo the same work. The pages run in three groups side by side (`GROUPS`), each in its own copy.
+redo the same work. The pages run in four groups side by side (`GROUPS`), each in its own copy.
 The slowest commands are printed with their times.
 """
 
@@ -205,7 +206,10 @@ def test_the_documented_install_and_test_commands_are_what_ci_runs():
 
 # The pages run in groups side by side, each group in its own copy of the smoke project (no page reads what
 # another page's commands write); every page not named here is in "docs".
-GROUPS = {"README.md": "readme", "docs/evaluate.md": "evaluate"}
+GROUPS = {"README.md": "readme", "docs/evaluate.md": "evaluate",
+          **{page: "main_only" for page in ("docs/data.md", "docs/evaluation.md", "docs/gpu-inference.md",
+                                            "docs/gpu-training.md", "docs/integrity.md", "docs/play.md",
+                                            "docs/scale.md", "src/orbis2/sim/README.md")}}
 
 
 def group_of(command: Command) -> str:
@@ -216,10 +220,25 @@ def test_every_group_has_commands_to_run():
     assert {group_of(c) for c in ALL if not c.not_run} == {*GROUPS.values(), "docs"}
 
 
+# Groups whose pages read only the main job's outputs: they run while `reports/all` is still being built.
+AFTER_MAIN = {"evaluate", "main_only"}
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("group", sorted({*GROUPS.values(), "docs"}))
+@pytest.mark.parametrize("group", sorted({*GROUPS.values(), "docs"} - AFTER_MAIN))
 def test_documented_commands_run_in_a_finished_smoke_project(smoke_project, tmp_path, group):
-    root = Path(shutil.copytree(smoke_project, tmp_path / "project", symlinks=True))
+    run_group(smoke_project, tmp_path, group)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("group", sorted(AFTER_MAIN))
+def test_documented_commands_run_after_the_main_job(smoke_main, tmp_path, group):
+    run_group(smoke_main, tmp_path, group)
+
+
+def run_group(project: Path, tmp_path: Path, group: str) -> None:
+    """Run a group's commands in a copy of ``project``; every failure is reported at the end."""
+    root = Path(shutil.copytree(project, tmp_path / "project", symlinks=True))
     failures, ran, seen, times = [], 0, set(), []
     for command in ALL:
         if command.not_run or group_of(command) != group:

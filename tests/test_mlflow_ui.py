@@ -81,7 +81,7 @@ def test_the_ui_page_starts_by_choosing_model_training_where_the_browser_has_no_
 
 
 @pytest.mark.slow
-def test_the_readme_address_and_the_parent_run_open_in_model_training_mode(smoke_project, tmp_path):
+def test_the_readme_address_and_the_parent_run_open_in_model_training_mode(smoke_main, tmp_path):
     if not (CHROMIUM and DRIVER):
         pytest.skip("needs headless Chromium: apt-get install chromium chromium-driver (.ci/run does)")
     webdriver = pytest.importorskip("selenium.webdriver")
@@ -89,7 +89,7 @@ def test_the_readme_address_and_the_parent_run_open_in_model_training_mode(smoke
     from test_docs import free_port
 
     store = tmp_path / "mlflow.db"  # a copy: the server may write; the artifacts stay where the run put them
-    shutil.copy2(smoke_project / "mlflow.db", store)
+    shutil.copy2(smoke_main / "mlflow.db", store)
     client = MlflowClient(tracking_uri=f"sqlite:///{store}")
     experiment = client.get_experiment_by_name("orbis2")
     [parent] = client.search_runs([experiment.experiment_id], "tags.`orbis2.pipeline` = 'true'",

@@ -167,14 +167,14 @@ def test_snakemake_smoke_dag(smoke_project, tmp_path):
     assert len([r for r in mlflow_runs(root / "mlflow.db") if r[2] is None]) == 3  # one parent per invocation
 
 
-def test_tokenizer_levers_measure_a_change_against_a_baseline(smoke_project, tmp_path):
+def test_tokenizer_levers_measure_a_change_against_a_baseline(smoke_main, tmp_path):
     """tools/tokenizer_levers.py: short trainings on the smoke shards (outside the shared project), one with pixel
     MSE and its paired PSNR gain over the base, one with the perceptual term; an unknown setting, or a folder's
     name reused with other settings, stops with a line."""
-    shutil.copy(smoke_project / "params.yaml", tmp_path / "params.yaml")
+    shutil.copy(smoke_main / "params.yaml", tmp_path / "params.yaml")
     tool = [sys.executable, str(Path(__file__).parents[1] / "tools" / "tokenizer_levers.py")]
-    common = ["--profile", "smoke", "--shards", str(smoke_project / "data/shards"), "--assets",
-              str(smoke_project / "data/assets"), "--set", "train.steps=6", "--set", "fid_images=8"]
+    common = ["--profile", "smoke", "--shards", str(smoke_main / "data/shards"), "--assets",
+              str(smoke_main / "data/assets"), "--set", "train.steps=6", "--set", "fid_images=8"]
     run([*tool, "base", *common], tmp_path)
     out = run([*tool, "mse", *common, "--set", "mse_weight=1.0", "--against", "base"], tmp_path)
     rows = [json.loads(line) for line in (tmp_path / "reports/tokenizer_levers.jsonl").read_text().splitlines()]
@@ -197,13 +197,13 @@ def test_tokenizer_levers_measure_a_change_against_a_baseline(smoke_project, tmp
     assert other.returncode != 0 and "started with" in other.stderr
 
 
-def test_sampler_sweep_pairs_settings_on_the_same_starts_and_noise(smoke_project, tmp_path):
+def test_sampler_sweep_pairs_settings_on_the_same_starts_and_noise(smoke_main, tmp_path):
     """tools/sampler_sweep.py on the smoke run: a setting equal to the base reproduces its frames (a paired
     difference of exactly zero), fewer Euler steps change them; every figure carries its interval."""
     out = tmp_path / "sweep.jsonl"
     run([sys.executable, str(Path(__file__).parents[1] / "tools" / "sampler_sweep.py"), "--profile", "smoke",
          "--seconds", "1", "--horizons", "0.1", "0.5", "--setting", "same:", "--setting", "one:bottom_nfe=1",
-         "--out", str(out)], smoke_project)
+         "--out", str(out)], smoke_main)
     base, same, one = [json.loads(line) for line in out.read_text().splitlines()]
     assert [base["setting"], one["bottom_nfe"], base["bottom_nfe"]] == ["base", 1, 2] and base["rollouts"] >= 2
     assert set(base["horizons"]) == {"0.1", "0.5"} and "vs_base_db" not in base["horizons"]["0.1"]
@@ -216,9 +216,9 @@ def test_sampler_sweep_pairs_settings_on_the_same_starts_and_noise(smoke_project
         assert e["low"] <= e["estimate"] <= e["high"]
 
 
-def test_guidance_selection_starts_from_the_trained_models(smoke_project, tmp_path):
+def test_guidance_selection_starts_from_the_trained_models(smoke_main, tmp_path):
     """The guidance scale chosen on val, in a copy of the session's smoke project: one eval_steering per scale."""
-    root = Path(shutil.copytree(smoke_project, tmp_path / "project", symlinks=True))
+    root = Path(shutil.copytree(smoke_main, tmp_path / "project", symlinks=True))
     run([sys.executable, "tools/select_guidance.py", "--guidance", "1", "2", "--out", "selection"], root)
     chosen = json.loads((root / "selection/selection.json").read_text())
     assert chosen["split"] == "val" and chosen["chosen"] in (1.0, 2.0) and set(chosen["smaller_step_low_deg"]) == {
@@ -226,12 +226,12 @@ def test_guidance_selection_starts_from_the_trained_models(smoke_project, tmp_pa
     assert all(json.loads((root / f"selection/steering_g{w}.json").read_text())["split"] == "val" for w in (1, 2))
 
 
-def test_dvc_repro_smoke_dag(smoke_project, tmp_path):
+def test_dvc_repro_smoke_dag(smoke_main, tmp_path):
     """DVC takes over a Snakemake run: in a copy of the session's smoke project, `dvc status` of the main job
     is clean (each Snakemake run recorded its jobs' outputs in dvc.lock), and a param edit makes
     `dvc repro action` run the steered predictor alone, nothing upstream. test_dag proves that both DAGs
     issue the same commands."""
-    root = Path(shutil.copytree(smoke_project, tmp_path / "project", symlinks=True))
+    root = Path(shutil.copytree(smoke_main, tmp_path / "project", symlinks=True))
     assert "Data and pipelines are up to date." in run(["dvc", "status", "--with-deps", "report_main"], root)
     assert "Running stage" not in run(["dvc", "repro", "action"], root)
 

@@ -65,9 +65,9 @@ def until(condition, timeout: float = 120, what: str = ""):
 
 
 @pytest.fixture(scope="module")
-def server(smoke_project, tmp_path_factory):
+def server(smoke_main, tmp_path_factory):
     records = tmp_path_factory.mktemp("recordings")
-    proc = play(smoke_project, "--port", "0", "--record-dir", str(records))
+    proc = play(smoke_main, "--port", "0", "--record-dir", str(records))
     url = wait_ready(proc)
     yield url, records
     proc.terminate()
@@ -148,7 +148,7 @@ def gif_frames(path: Path) -> np.ndarray:
     return np.stack([np.array(f.convert("RGB")) for f in ImageSequence.Iterator(Image.open(path))])
 
 
-def test_a_recording_replays_to_the_same_frames(server, browser, smoke_project):
+def test_a_recording_replays_to_the_same_frames(server, browser, smoke_main):
     until(lambda: page(browser, "steps") >= 2, what="two steps to record")
     browser.execute_script("window.play.saved = null")
     browser.find_element("id", "save").click()
@@ -157,13 +157,13 @@ def test_a_recording_replays_to_the_same_frames(server, browser, smoke_project):
     assert video.is_file() and trajectory.read_text().startswith("timestamp,speed,yaw_rate\n")
     command = shlex.split(saved["replay"])
     assert command[:2] == ["orbis2", "rollout"]
-    subprocess.run([sys.executable, "-m", "orbis2.cli", *command[1:]], cwd=smoke_project,
-                   env=project_env(smoke_project), check=True, capture_output=True)
+    subprocess.run([sys.executable, "-m", "orbis2.cli", *command[1:]], cwd=smoke_main,
+                   env=project_env(smoke_main), check=True, capture_output=True)
     replayed = Path(command[command.index("--out") + 1]).with_suffix(".gif")
     assert np.array_equal(gif_frames(gif), gif_frames(replayed))
 
 
-def test_replay_drives_the_clips_recorded_commands(browser, smoke_project):
+def test_replay_drives_the_clips_recorded_commands(browser, smoke_main):
     from selenium.webdriver.common.keys import Keys
 
     body = browser.find_element("tag name", "body")
@@ -176,7 +176,7 @@ def test_replay_drives_the_clips_recorded_commands(browser, smoke_project):
     body.send_keys("r")
     driven = np.loadtxt(saved["paths"][2], delimiter=",", skiprows=1)
     video = Path(shlex.split(saved["replay"])[3])
-    recorded = pq.read_table(smoke_project / video.with_suffix(".parquet")).to_pydict()
+    recorded = pq.read_table(smoke_main / video.with_suffix(".parquet")).to_pydict()
     for column, name in ((1, "speed"), (2, "yaw_rate")):
         assert np.array_equal(driven[:, column], np.interp(driven[:, 0], recorded["t"], recorded[name]))
 
@@ -195,7 +195,7 @@ def test_a_closed_page_stops_generation(server, browser):
     assert status()["steps_generated"] == stopped
 
 
-def test_bad_input_gets_one_line_and_a_nonzero_exit(smoke_project, make_video, tmp_path):
+def test_bad_input_gets_one_line_and_a_nonzero_exit(smoke_main, make_video, tmp_path):
     busy = socket.socket()
     busy.bind(("127.0.0.1", 0))
     busy.listen(1)
@@ -207,7 +207,7 @@ def test_bad_input_gets_one_line_and_a_nonzero_exit(smoke_project, make_video, t
     }
     try:
         for name, (args, expected) in cases.items():
-            proc = play(smoke_project, *args)
+            proc = play(smoke_main, *args)
             out, _ = proc.communicate(timeout=120)
             lines = out.strip().splitlines()
             assert proc.returncode == 2 and len(lines) == 1, f"{name}: {out}"

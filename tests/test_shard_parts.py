@@ -123,19 +123,19 @@ def test_a_work_folder_of_other_inputs_is_not_resumed(raw, smoke_cfg, cfg, tmp_p
     assert samples(out, manifest) == samples(tmp_path / "fresh", fresh)
 
 
-def test_the_smoke_dag_in_3_parts_writes_the_smoke_shards(smoke_project, tmp_path):
+def test_the_smoke_dag_in_3_parts_writes_the_smoke_shards(smoke_main, tmp_path):
     """`snakemake data/shards --config parts=3` (three `shards_part` jobs and the gather) on the smoke build's
     raw town: the same samples, in the same order, as the smoke build's one-part shards. (The smoke build itself
     runs the documented one part.)"""
     root = project_copy(tmp_path / "project")
     (root / "data/raw").mkdir(parents=True)
-    (root / "data/raw/town").symlink_to(smoke_project / "data/raw/town")
+    (root / "data/raw/town").symlink_to(smoke_main / "data/raw/town")
     log = run(["snakemake", "--cores", "2", "data/shards", "--config", "parts=3"], root)
     assert log.count("rule shards_part:") == 3 and "rule town:" not in log
     assert sorted(p.name for p in (root / "data/shard_parts").iterdir()) == [
         f"{part_name(i, 3)}.json" for i in range(3)]
-    ours, theirs = (load_manifest(r / "data/shards") for r in (root, smoke_project))
-    assert samples(root / "data/shards", ours) == samples(smoke_project / "data/shards", theirs)
+    ours, theirs = (load_manifest(r / "data/shards") for r in (root, smoke_main))
+    assert samples(root / "data/shards", ours) == samples(smoke_main / "data/shards", theirs)
 
 
 def test_the_scale_page_is_written_from_the_published_measurement(tmp_path):
