@@ -156,6 +156,12 @@ def command(stage, head="", script=None):
     return cmd + ("{params.args}" if cut < len(stage.paths) else "") + " 2>&1 | tee {log}"
 
 
+def official_setting(imported):
+    """A rule's extra inputs and params for params.yaml's ``official_weights``: the imported file its stage reads
+    (None: unset) and the setting itself (which DVC tracks, so that setting it re-runs the stage)."""
+    return ({"imported": str(imported)} if imported is not None else {}), {"official_weights": config["official_weights"]}
+
+
 def resources_of(stage):
     """The declared needs for a scheduler; GPUs and memory at most this machine's when the jobs run here."""
     return requests(stage.resources.scheduler(), lambda: workflow.local_exec)

@@ -74,7 +74,7 @@ def snakemake_rules(root: Path = ROOT, videos_as_folder: bool = True) -> dict[st
                     for s in dag.section_chain(raw, key)}
         rules[rule.name] = {"cmd": cmd, "deps": {_as_folder(str(f), videos) for f in rule.input if not callable(f)},
                             "outs": {str(f) for f in rule.output},
-                            "params": sections | ({"profile"} | ({"spec", "parts"} & set(rule.params.keys()))),
+                            "params": sections | ({"profile"} | ({"spec", "parts", "official_weights"} & set(rule.params.keys()))),
                             "param_keys": [k for k in rule.params.keys() if k not in dag.NOT_SECTIONS]}
     return rules
 

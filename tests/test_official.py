@@ -23,7 +23,6 @@ from orbis2.config.params import load_config
 from orbis2.data.video import read_video, write_video
 from orbis2.errors import OrbisError
 from orbis2.flow import consistency_sample, euler_sample
-from orbis2.inference import check_imported
 from orbis2.models.files import load_predictor, load_tokenizer
 from orbis2.models.official import (
     ReleaseError,
@@ -41,6 +40,7 @@ from orbis2.models.official import (
 from orbis2.models.stdit import build_stdit_from
 from orbis2.models.stdit_layers import grid_positions
 from orbis2.rollout import first_context_end, rollout_schedule, sample_frames
+from orbis2.tasks.official import check_imported
 
 from conftest import ROOT
 

@@ -45,8 +45,8 @@ from orbis2.models.sizes import TOKENIZER_PRESETS
 from orbis2.models.stdit import build_stdit_from
 from orbis2.models.stdit_layers import grid_positions
 from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer
+from orbis2.tasks.official import OFFICIAL_SOURCE
 
-OFFICIAL_SOURCE = "the authors' release"  # meta["source"] of an imported file
 ENV_ROOT = "ORBIS2_MODELS_DIR"  # their configs name the other networks' folders through this variable
 DEFAULT_SCALES = {"detail": 4.0, "abstract": 3.45062}  # their PredictorModule's enc_scale and enc_scale_dino
 DEFAULT_CONSISTENCY_GRIDS = {1: [0.99], 2: [0.99, 0.8333], 4: [0.99, 0.9375, 0.8333, 0.625]}
