@@ -58,6 +58,10 @@ def dvc_stages(root: Path = ROOT, texts: dict[str, str] | None = None) -> dict[s
     return out
 
 
+# Rule params DVC tracks as top-level keys of params.yaml, or as the registry.yaml entry (spec).
+SETTINGS = {"spec", "parts", "official_weights"}
+
+
 def snakemake_rules(root: Path = ROOT, videos_as_folder: bool = True) -> dict[str, dict]:
     """Every rule with its command as the shell would run it (no log redirection; paths, params and the
     launcher filled in by Snakemake's own formatter) and its params' sections."""
@@ -74,7 +78,7 @@ def snakemake_rules(root: Path = ROOT, videos_as_folder: bool = True) -> dict[st
                     for s in dag.section_chain(raw, key)}
         rules[rule.name] = {"cmd": cmd, "deps": {_as_folder(str(f), videos) for f in rule.input if not callable(f)},
                             "outs": {str(f) for f in rule.output},
-                            "params": sections | ({"profile"} | ({"spec", "parts", "official_weights"} & set(rule.params.keys()))),
+                            "params": sections | {"profile"} | (SETTINGS & set(rule.params.keys())),
                             "param_keys": [k for k in rule.params.keys() if k not in dag.NOT_SECTIONS]}
     return rules
 

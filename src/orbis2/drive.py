@@ -47,7 +47,7 @@ from orbis2.kinematics import integrate_odometry
 from orbis2.latents import encode_frames
 from orbis2.models.files import PredictorFile, TokenizerFile
 from orbis2.registry import layout_path
-from orbis2.rollout import cascaded_steps, first_context_end, rollout_schedule, steering_sequences
+from orbis2.rollout import cascaded_steps, first_context_end, rollout_schedule, steering_offsets, steering_sequences
 from orbis2.run_profile import resolve_profile
 from orbis2.sim import Camera, EgoTrack, Town
 from orbis2.sim.counterfactual import PathFrames, PathRenderer
@@ -138,6 +138,7 @@ class Models:
     detail_nfe: int
     guidance: float
     summary: str  # which profile and sampler, and why
+    steering_offsets: list[int] | None  # an imported predictor's steering frames (orbis2.rollout.steering_offsets)
 
 
 def load_models(args: argparse.Namespace) -> Models:
@@ -162,8 +163,9 @@ def load_models(args: argparse.Namespace) -> Models:
     abstract_nfe, detail_nfe, guidance, sampler = sampler_settings(args.abstract_nfe, args.detail_nfe,
                                                                    args.steering_guidance, cfg, detail_pred,
                                                                    steered=True)
+    offsets = steering_offsets(abstract_pred.meta["steering"], cfg.data.fps, abstract_path)
     return Models(args, cfg, detail_tok, abstract_tok, abstract_pred, detail_pred, device, abstract_nfe, detail_nfe,
-                  guidance, f"{which}; {sampler}")
+                  guidance, f"{which}; {sampler}", offsets)
 
 
 class Drive:
@@ -224,7 +226,8 @@ class Drive:
             new_speed = np.full(end - len(self.speed), float(speed))
             new_yaw = np.full(end - len(self.speed), float(yaw_rate))
         self.speed, self.yaw_rate = np.concatenate([self.speed, new_speed]), np.concatenate([self.yaw_rate, new_yaw])
-        steering = steering_sequences([step], self.speed, self.yaw_rate, m.abstract_pred.meta["steering"]["scale"])
+        steering = steering_sequences([step], self.speed, self.yaw_rate, m.abstract_pred.meta["steering"]["scale"],
+                                      m.steering_offsets)
         rendering = None
         if self.truth is not None:  # the true view renders in another thread while the model samples
             # Control k drives pose k to k + 1 (the convention of the bird's-eye path, integrate_odometry).
