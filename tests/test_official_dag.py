@@ -24,6 +24,7 @@ from test_shards import make_raw
 from orbis2.cli import main
 from orbis2.config.params import load_params, parse_config
 from orbis2.data.shards import write_shards
+from orbis2.data.video import read_video
 from orbis2.errors import ConfigError, OrbisError
 from orbis2.io import sha256_file
 from orbis2.models.files import load_predictor
@@ -65,9 +66,10 @@ def run_stage(project: Path, script: str, *args: str) -> str:
     return proc.stdout
 
 
-def test_the_smoke_dag_fine_tunes_an_imported_release(imported, tmp_path, smoke_cfg):
+def test_the_smoke_dag_fine_tunes_an_imported_release(imported, tmp_path, smoke_cfg, make_video):
     """tokenizer_detail, tokenizer_abstract, latents, detail, abstract_tf (``init_from: null``: from the import)
-    and action (from abstract_tf, its steering embedder its own), 10 steps each."""
+    and action (from abstract_tf, its steering embedder its own), 10 steps each; the fine-tuned networks then
+    roll out with ``orbis2 rollout``."""
     steps = {"train": {**load_params(ROOT / "params.yaml")["_predictor"]["smoke"]["train"], "steps": STEPS}}
     raw = official_params(imported, detail=steps, abstract_tf={**steps, "init_from": None}, action=steps)
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(raw, sort_keys=False))
@@ -99,6 +101,16 @@ def test_the_smoke_dag_fine_tunes_an_imported_release(imported, tmp_path, smoke_
         # initialised afresh lies ~0.05 away in every weight); action also holds abstract_tf's own steps.
         assert 0 < moved < 0.03 * (2 if stage == "action" else 1), moved
     assert "steering.feature_mlps.0.0.weight" in tuned.model.state_dict()  # action's own steering embedder
+
+    video = make_video("clip.mp4", 60, 10.0, width=128, height=72)  # the fine-tuned networks roll out as ours do
+    data = tmp_path / "data"
+    main(["rollout", "--video", str(video), "--out", str(tmp_path / "rollout.mp4"), "--seconds", "1",
+          "--profile", "smoke", "--params", str(tmp_path / "params.yaml"), "--device", "cpu",
+          "--detail-tokenizer", str(data / "tokenizers" / "detail" / "tokenizer.pt"),
+          "--abstract-tokenizer", str(data / "tokenizers" / "abstract" / "tokenizer.pt"),
+          "--abstract-predictor", str(data / "predictors" / "abstract_tf" / "predictor.pt"),
+          "--detail-predictor", str(data / "predictors" / "detail" / "predictor.pt")])
+    assert len(read_video(tmp_path / "rollout.mp4", 1, (128, 72))) == 5 + 10
 
 
 def test_stages_without_the_setting_or_a_counterpart_are_unchanged(imported):

@@ -26,7 +26,7 @@ from orbis2.errors import OrbisError
 from orbis2.io import atomic_file
 from orbis2.models.files import PredictorFile, TokenizerFile, load_predictor, load_tokenizer
 from orbis2.registry import layout_path, registry
-from orbis2.tasks.official import OFFICIAL_SOURCE, check_imported
+from orbis2.tasks.official import built_from_import, check_imported
 
 DEFAULT_ACTION = layout_path("predictor", registry().steered) / "predictor.pt"
 DEFAULT_ABSTRACT_TF = layout_path("predictor", "abstract_tf") / "predictor.pt"
@@ -86,7 +86,7 @@ def load_checkpoints(detail_tokenizer: Path, abstract_tokenizer: Path, abstract_
     for pred, path, stage in ((abstract_pred, abstract_path, "abstract_tf"),
                               (detail_pred, detail_predictor, "detail")):
         preset, wanted = pred.build.get("preset"), cfg.section(stage).preset
-        if preset != wanted and pred.meta.get("source") != OFFICIAL_SOURCE:  # imported: its build has every size
+        if preset != wanted and not built_from_import(pred.meta):
             raise OrbisError(f"{path}: a {preset!r} predictor but profile {cfg.profile} uses {wanted!r}; pass the "
                              f"profile it was trained with (--profile) or that profile's checkpoints")
     check_imported(abstract_pred, abstract_path, cfg, "abstract")

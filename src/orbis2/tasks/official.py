@@ -41,6 +41,12 @@ COUNTERPARTS = {("abstract", "slow", None): "predictors/abstract_tf",
                 ("detail", "fast", "abstract"): "predictors/detail"}
 
 
+def built_from_import(meta: dict[str, Any]) -> bool:
+    """Whether a predictor file's build is an imported predictor's (the import's own file, or a stage's built
+    from it): its build names every size, so no profile's preset describes it."""
+    return meta.get("source") == OFFICIAL_SOURCE or "imported" in meta
+
+
 def _manifest(folder: str) -> dict[str, Any]:
     path = Path(folder) / MANIFEST
     if not path.is_file():

@@ -272,7 +272,6 @@ class PredictorTask:
         self.stage, self.spec, self.cfg, self.data, self.cache = stage, STAGES[stage], cfg, data, cache
         self.init_state = init_state
         self.architecture = architecture  # an imported predictor's build (orbis2.tasks.official), else None
-        self.init_name = cfg.init_from or "imported"
         self.batch_key = window_key(self.spec.level, self.spec.rate)
         self.train_set = LatentWindowDataset(cache, "train", data, cfg.anchor_stride)
         self.val_set = LatentWindowDataset(cache, "val", data, cfg.anchor_stride)
@@ -315,9 +314,11 @@ class PredictorTask:
             missing, unexpected = model.load_state_dict(self.init_state, strict=False)
             stray = [k for k in missing if not (self.spec.steering and k.startswith(("steering.", "steering_shift.")))]
             if stray or unexpected:
-                raise OrbisError(f"{self.stage}: the {self.init_name} weights do not fit this predictor "
-                                 f"(missing {stray[:5]}, unexpected {unexpected[:5]}); re-run {self.init_name} "
-                                 f"with the same preset and model overrides")
+                source = self.cfg.init_from or "imported"
+                fix = (f"re-run {source} with the same preset and model overrides" if self.cfg.init_from else
+                       "re-import the release (orbis2 import-weights)")
+                raise OrbisError(f"{self.stage}: the {source} weights do not fit this predictor (missing "
+                                 f"{stray[:5]}, unexpected {unexpected[:5]}); {fix}")
         return model
 
     def turn_columns(self) -> float:
