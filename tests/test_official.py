@@ -426,6 +426,9 @@ def test_play_and_a_steered_rollout_drive_the_imported_abstract_predictor(tmp_pa
     add_play_parser(parser.add_subparsers())
     models = load_models(parser.parse_args(["play", *files, "--abstract-nfe", "2", "--detail-nfe", "2"]))
     assert models.steering_offsets == [5, 10, 15]
+    distilled = str(out / "predictors" / "abstract_distilled" / "predictor.pt")  # its config names no preprocessing
+    with pytest.raises(OrbisError, match=r"steering preprocessing \(none in its config\) is not converted"):
+        load_models(parser.parse_args(["play", *files, "--abstract-predictor", distilled]))
     drive = Drive(models, scene_of(video), seed=0)
     fed = []
 

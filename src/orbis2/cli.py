@@ -63,6 +63,7 @@ from orbis2.rollout import (
 )
 from orbis2.run_profile import resolve_profile
 from orbis2.stage import freeze_imports
+from orbis2.tasks.official import unconverted_steering
 
 # --------------------------------------------------------------------------- rollout command
 
@@ -92,6 +93,8 @@ def rollout_command(args: argparse.Namespace) -> str:
         if abstract_pred.model.steering is None:
             raise OrbisError(f"{abstract_path}: this abstract predictor is not steered but {odometry_path} gives a "
                              f"trajectory; train the action stage or drop --trajectory")
+        if unconverted_steering(abstract_pred.meta, abstract_path):
+            raise OrbisError(unconverted_steering(abstract_pred.meta, abstract_path))
         if "steering" not in abstract_pred.meta:
             raise OrbisError(f"{abstract_path}: a steered predictor without its steering scale in the file; "
                              f"re-train it with the action stage (python stages/predictor.py action)")

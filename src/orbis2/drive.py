@@ -51,6 +51,7 @@ from orbis2.rollout import cascaded_steps, first_context_end, rollout_schedule, 
 from orbis2.run_profile import resolve_profile
 from orbis2.sim import Camera, EgoTrack, Town
 from orbis2.sim.counterfactual import PathFrames, PathRenderer
+from orbis2.tasks.official import unconverted_steering
 
 TRUTH_WORKER = ThreadPoolExecutor(1, thread_name_prefix="true-view")  # the town's kernels release the GIL
 TOWN_SPLIT = "heldout"  # the town clips offered as scenes: none of them was trained on
@@ -150,6 +151,8 @@ def load_models(args: argparse.Namespace) -> Models:
     detail_tok, abstract_tok, abstract_path, abstract_pred, detail_pred = load_checkpoints(
         args.detail_tokenizer, args.abstract_tokenizer, args.abstract_predictor, args.detail_predictor, args.device,
         cfg, args.params)
+    if unconverted_steering(abstract_pred.meta, abstract_path):
+        raise OrbisError(unconverted_steering(abstract_pred.meta, abstract_path))
     if abstract_pred.model.steering is None or "steering" not in abstract_pred.meta:
         raise OrbisError(f"{abstract_path}: not a steered predictor, so it cannot be driven; pass the action "
                          f"stage's predictor (--abstract-predictor) or train it (python stages/predictor.py action)")

@@ -47,6 +47,16 @@ def built_from_import(meta: dict[str, Any]) -> bool:
     return meta.get("source") == OFFICIAL_SOURCE or "imported" in meta
 
 
+def unconverted_steering(meta: dict[str, Any], path: Path) -> str | None:
+    """Why an imported steered predictor cannot be steered here (its steering preprocessing was not converted,
+    :func:`orbis2.models.official.converted_steering`), or None."""
+    if "authors_steering" not in meta or "steering" in meta:
+        return None
+    name = (meta["authors_steering"].get("preprocessor") or {}).get("preprocessor", "none in its config")
+    return (f"{path}: the authors' steering preprocessing ({name}) is not converted, so this predictor is not "
+            f"steered here (it rolls out unconditionally); docs/official-weights.md says which is")
+
+
 def _manifest(folder: str) -> dict[str, Any]:
     path = Path(folder) / MANIFEST
     if not path.is_file():
