@@ -20,6 +20,7 @@ from pathlib import Path
 
 from orbis2.config.params import load_params, parse_config, resolve_section
 from orbis2.dag import adopt_profile, code_inputs, commit_to_dvc, config_drift, follows_profile, requests
+from orbis2.errors import ConfigError
 from orbis2.interfaces import INTERFACES
 from orbis2.registry import layout_path, registry
 
@@ -38,6 +39,9 @@ if PROFILE != FILE_PROFILE and not FOLLOWS:  # DVC reads params.yaml only: say w
           f"`dvc exp show` and `dvc status` read. MLflow records {PROFILE}. To let DVC see this run, set "
           f"`profile: {PROFILE}` in params.yaml instead (docs/tracking.md).", file=sys.stderr)
 parse_config(config, PROFILE)  # every key, type and value, and the file's shape; errors name the key
+if "official_weights" in DVC_DRIFT:  # the stages read it from params.yaml, where DVC sees it too
+    raise ConfigError(f"--config official_weights={config['official_weights']}: set official_weights in "
+                      f"params.yaml instead (the stages read it there)")
 REG = registry()
 
 
@@ -154,6 +158,12 @@ def command(stage, head="", script=None):
     cut = _passed_from(stage)
     cmd += "".join(f" {o.option} {{{'output' if o.output else 'input'}.{o.key}}}" for o in stage.paths[:cut])
     return cmd + ("{params.args}" if cut < len(stage.paths) else "") + " 2>&1 | tee {log}"
+
+
+def official_setting(imported):
+    """A rule's extra inputs and params for params.yaml's ``official_weights``: the imported file its stage reads
+    (None: unset) and the setting itself (which DVC tracks, so that setting it re-runs the stage)."""
+    return ({"imported": str(imported)} if imported is not None else {}), {"official_weights": config["official_weights"]}
 
 
 def resources_of(stage):

@@ -5,6 +5,7 @@
 # (see the Snakefile's _passed_from).
 
 from orbis2.interfaces import GPU_PART
+from orbis2.tasks.official import imported_tokenizer, replaced_tokenizers
 
 TOKENIZER_KINDS = {kind: INTERFACES[f"tokenizer_{kind}"] for kind in ("detail", "abstract")}
 # One command for both kinds, the script a param: their path options are the same.
@@ -19,6 +20,9 @@ LATENT_PART_SHELL = (f"python {LATENTS.script} {{params.stage}} --profile {{para
 for tokenizer, kind in REG.tokenizers.items():
     stage = TOKENIZER_KINDS[kind]
     paths = stage_paths(stage, tokenizer)
+    # params.yaml official_weights: the main set's tokenizers publish the imported ones (orbis2.tasks.official)
+    official = (official_setting(imported_tokenizer(config["official_weights"], tokenizer))
+                if tokenizer in replaced_tokenizers() else ({}, {}))
 
     rule:
         name: f"tokenizer_{tokenizer}"
@@ -28,10 +32,11 @@ for tokenizer, kind in REG.tokenizers.items():
         input:
             code_inputs(stage.script),
             **inputs(stage, paths),
+            **official[0],
         output:
             **outputs(stage, paths),
         params:
-            **stage_params(stage, paths, [f"tokenizer_{tokenizer}"], script=stage.script),
+            **stage_params(stage, paths, [f"tokenizer_{tokenizer}"], script=stage.script, **official[1]),
         log: log(f"tokenizer_{tokenizer}")
         benchmark: bench(f"tokenizer_{tokenizer}")
         shell:

@@ -9,9 +9,11 @@ detail, action, and the ablations abstract_tf_only, flat_detail,
 flat_abstract, top_detail, detail_on_detail. Checkpoints live in data/runs/
 (see ``orbis2.stage.work_dir``), in a folder keyed by the params, the code and
 the upstream files (the latent cache's meta, which names the tokenizers and
-shards, and the ``init_from`` predictor): a killed run resumes there, while a
-retrained upstream starts a fresh run instead of resuming one that trained on
-other inputs. predictor.pt and the report are published atomically at the end.
+shards, the ``init_from`` predictor and, with params.yaml's ``official_weights``,
+the imported predictor the stage is built from: orbis2.tasks.official): a killed
+run resumes there, while a retrained upstream starts a fresh run instead of
+resuming one that trained on other inputs. predictor.pt and the report are
+published atomically at the end.
 """
 
 
@@ -27,6 +29,7 @@ from orbis2.stage import (
     stage_parser,
     work_dir,
 )
+from orbis2.tasks.official import imported_predictor
 from orbis2.tasks.predictors import STAGES, tokenizer_checksums, train_predictor
 
 INTERFACE = INTERFACES["predictor"]
@@ -57,8 +60,12 @@ def main(argv: list[str] | None = None) -> None:
                                  f"`{pc.init_from}` first")
             inputs[pc.init_from] = init_file
 
+        imported = imported_predictor(cfg.official_weights, STAGES[name])  # params.yaml official_weights
+        if imported is not None:
+            inputs["imported"] = imported
+
         work = work_dir(name, cfg, sections, inputs, __file__)
-        metrics = train_predictor(name, cfg, cache, work, run, init_file)
+        metrics = train_predictor(name, cfg, cache, work, run, init_file, imported)
         if not metrics:
             stage.summary = "training rank done; rank 0 writes the outputs"
             return

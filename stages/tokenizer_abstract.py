@@ -7,6 +7,8 @@ reports/tokenizer_abstract.json.
 Trained against the frozen teacher; tokenizer.pt is saved with its latent scale.
 Checkpoints live in data/runs/ (see `work_dir`): a killed run resumes there;
 tokenizer.pt, the samples and the report are published atomically at the end.
+With params.yaml's ``official_weights`` set, the main set's abstract tokenizer
+(tokenizer_abstract) is the imported one, published instead (orbis2.tasks.official).
 """
 
 from pathlib import Path
@@ -23,6 +25,7 @@ from orbis2.stage import (
     stage_parser,
     work_dir,
 )
+from orbis2.tasks.official import imported_tokenizer, publish_tokenizer
 from orbis2.tasks.tokenizers import train_abstract_tokenizer
 
 # Stage name -> registry.yaml entry, for every abstract tokenizer.
@@ -40,6 +43,10 @@ def main(argv: list[str] | None = None) -> None:
     sections = INTERFACE.sections_with([name])  # the entry's own section
     with open_stage(name, args, INTERFACE, sections) as stage:
         cfg, run = stage.cfg, stage.run
+        imported = imported_tokenizer(cfg.official_weights, VARIANTS[name])  # params.yaml official_weights
+        if imported is not None:
+            stage.summary = publish_tokenizer(imported, cfg, out / TOKENIZER_FILE, report, run)
+            return
         verify_shards(args.shards, ["train", "val"])  # the splits it reads, before any read (see verify_shards)
         assets = args.assets or Path(cfg.assets.dir)
         teacher = asset_path(assets, TEACHER_ASSETS[cfg.section(name).teacher])

@@ -3,7 +3,8 @@
 The VQGAN objective; the stage measures the result and saves tokenizer.pt with its
 latent scale. Checkpoints live in data/runs/ (see `work_dir`): a killed run
 resumes there; tokenizer.pt, the samples and the report are published atomically
-at the end.
+at the end. With params.yaml's ``official_weights`` set, the stage publishes the
+imported tokenizer instead (orbis2.tasks.official).
 """
 
 from pathlib import Path
@@ -18,6 +19,7 @@ from orbis2.stage import (
     stage_parser,
     work_dir,
 )
+from orbis2.tasks.official import imported_tokenizer, publish_tokenizer
 from orbis2.tasks.tokenizers import train_detail_tokenizer
 
 INTERFACE = INTERFACES["tokenizer_detail"]
@@ -33,6 +35,10 @@ def main(argv: list[str] | None = None) -> None:
     report = args.report or INTERFACE.option("report").path(ENTRY)
     with open_stage("tokenizer_detail", args, INTERFACE, SECTIONS) as stage:
         cfg, run = stage.cfg, stage.run
+        imported = imported_tokenizer(cfg.official_weights, ENTRY)  # params.yaml official_weights
+        if imported is not None:
+            stage.summary = publish_tokenizer(imported, cfg, out / TOKENIZER_FILE, report, run)
+            return
         verify_shards(args.shards, ["train", "val"])  # the splits it reads, before any read (see verify_shards)
         assets = args.assets or Path(cfg.assets.dir)
         work = work_dir("tokenizer_detail", cfg, SECTIONS, {"shards": args.shards / "manifest.json"}, __file__)

@@ -2,6 +2,7 @@
 re-run on the same params.yaml edits, and a registry entry adds a predictor to both."""
 
 import copy
+import json
 import re
 import shutil
 from pathlib import Path
@@ -58,6 +59,10 @@ def dvc_stages(root: Path = ROOT, texts: dict[str, str] | None = None) -> dict[s
     return out
 
 
+# Rule params DVC tracks as top-level keys of params.yaml, or as the registry.yaml entry (spec).
+SETTINGS = {"spec", "parts", "official_weights"}
+
+
 def snakemake_rules(root: Path = ROOT, videos_as_folder: bool = True) -> dict[str, dict]:
     """Every rule with its command as the shell would run it (no log redirection; paths, params and the
     launcher filled in by Snakemake's own formatter) and its params' sections."""
@@ -74,7 +79,7 @@ def snakemake_rules(root: Path = ROOT, videos_as_folder: bool = True) -> dict[st
                     for s in dag.section_chain(raw, key)}
         rules[rule.name] = {"cmd": cmd, "deps": {_as_folder(str(f), videos) for f in rule.input if not callable(f)},
                             "outs": {str(f) for f in rule.output},
-                            "params": sections | ({"profile"} | ({"spec", "parts"} & set(rule.params.keys()))),
+                            "params": sections | {"profile"} | (SETTINGS & set(rule.params.keys())),
                             "param_keys": [k for k in rule.params.keys() if k not in dag.NOT_SECTIONS]}
     return rules
 
@@ -271,3 +276,34 @@ def test_a_local_run_requests_at_most_what_this_machine_has(monkeypatch):
     assert dag.this_machine()["gpu"] == 0
     slurm = yaml.safe_load((ROOT / "profiles/slurm/config.yaml").read_text())["set-resources"]
     assert slurm["abstract_df"]["gres"] == "gpu:8" and slurm["abstract_df"]["mem_mb"] == 480000
+
+
+def test_official_weights_make_the_imported_files_inputs_of_the_stages_that_read_them(tmp_path):
+    """params.yaml's official_weights (orbis2.tasks.official): the main tokenizers' and the predictors with an
+    imported counterpart take the imported file as an input in both DAGs and track the setting; unset, the
+    setting is tracked and nothing else changes (the checked-in dvc.yaml)."""
+    (tmp_path / "project").mkdir()
+    root = project_copy(tmp_path / "project")
+    folder = tmp_path / "official"
+    written = {"tokenizers/detail": "tokenizers/detail/tokenizer.pt",
+               "tokenizers/abstract": "tokenizers/abstract/tokenizer.pt",
+               "predictors/abstract_tf": "predictors/abstract_tf/predictor.pt",
+               "predictors/detail": "predictors/detail/predictor.pt"}
+    folder.mkdir()
+    (folder / "manifest.json").write_text(json.dumps({"written": written}))
+    text = (root / "params.yaml").read_text()
+    (root / "params.yaml").write_text(text.replace("official_weights: null", f"official_weights: {folder}", 1))
+    snake = snakemake_rules(root)
+    dvc = dvc_stages(root, {str(f.relative_to(root)): text for f, text in dag.generate(root).items()})
+    imported = {"tokenizer_detail": "tokenizers/detail", "tokenizer_abstract": "tokenizers/abstract",
+                "abstract_df": "predictors/abstract_tf", "abstract_tf": "predictors/abstract_tf",
+                "action": "predictors/abstract_tf", "detail": "predictors/detail",
+                "detail_distill": "predictors/detail", "abstract_tf_only": "predictors/abstract_tf"}
+    for name in ("tokenizer_abstract_full", "flat_detail", "flat_abstract", "top_detail", *imported):
+        file = {str(folder / written[imported[name]])} if name in imported else set()
+        assert {d for d in dvc[name]["deps"] if d.startswith(str(folder))} == file, name
+        assert ("official_weights" in dvc[name]["keys"]) == (name in imported), name
+    assert drift(dvc, snake) == []
+    checked_in = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
+    assert "official_weights" in checked_in["detail"]["params"] and not any(
+        str(folder) in dep for stage in checked_in.values() for dep in stage["deps"])

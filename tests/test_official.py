@@ -9,21 +9,23 @@ state dicts' keys and shapes at the paper's size: the conversion must fit our ne
 
 from __future__ import annotations
 
+import argparse
 import copy
 import json
 import pickle
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import yaml
 
-from orbis2.cli import main
+from orbis2.cli import add_play_parser, main
 from orbis2.config.params import load_config
 from orbis2.data.video import read_video, write_video
+from orbis2.drive import Drive, load_models, scene_of
 from orbis2.errors import OrbisError
 from orbis2.flow import consistency_sample, euler_sample
-from orbis2.inference import check_imported
 from orbis2.models.files import load_predictor, load_tokenizer
 from orbis2.models.official import (
     ReleaseError,
@@ -40,7 +42,8 @@ from orbis2.models.official import (
 )
 from orbis2.models.stdit import build_stdit_from
 from orbis2.models.stdit_layers import grid_positions
-from orbis2.rollout import first_context_end, rollout_schedule, sample_frames
+from orbis2.rollout import first_context_end, rollout_schedule, sample_frames, steering_sequences
+from orbis2.tasks.official import check_imported
 
 from conftest import ROOT
 
@@ -188,7 +191,10 @@ def test_abstract_predictor_reproduces_the_authors_forward_and_consistency_sampl
     close(sample, cd["out"])
     assert distilled.meta["sampling"]["method"] == "consistency" and standard.meta["sampling"]["method"] == "euler"
     assert standard.meta["authors_steering"]["preprocessor"]["steering_offsets"] == [5, 10, 15]
-    assert "steering" not in standard.meta  # our rollout must not feed it our steering features
+    # Their preprocessor: raw speed and yaw rate at odometry rows 5, 10, 15 after the last context frame, the
+    # odometry at 2 Hz x 5 steps per frame; the distilled config names none, so it is not steered by ours.
+    assert standard.meta["steering"]["offsets_s"] == [0.5, 1.0, 1.5] and standard.meta["steering"]["scale"] == [1, 1]
+    assert "steering" not in distilled.meta
 
 
 def test_detail_predictor_reproduces_the_authors_forward_and_euler_sampler(imported, authors):
@@ -399,3 +405,51 @@ def test_a_heun_sampler_is_recorded_with_the_weights(tmp_path, authors, note):
     import_release(release, tmp_path / "ours")
     sampling = load_predictor(tmp_path / "ours" / "predictors" / "detail" / "predictor.pt").meta["sampling"]
     assert sampling["method"] == "heun_then_euler" and sampling["authors_sampler"]["step_schedule"] == schedule
+
+
+def test_play_and_a_steered_rollout_drive_the_imported_abstract_predictor(tmp_path, note, make_video):
+    """``orbis2 play``'s models and drive (what its server runs each step) on the imported release: each step feeds
+    the authors' embedder speed and yaw rate at 0.5, 1 and 1.5 s after its last context frame, the command held past
+    the frames driven so far; ``orbis2 rollout --trajectory`` samples the trajectory there."""
+    release = smoke_release(tmp_path / "release", note)
+    out = tmp_path / "official"
+    main(["import-weights", str(release), "--out", str(out)])
+    video = make_video("clip.mp4", 60, 10.0, width=128, height=72)
+    trajectory = video.with_suffix(".csv")
+    trajectory.write_text("timestamp,speed,yaw_rate\n0,4,0\n6,10,0.6\n")  # both ramp with time
+    files = ["--detail-tokenizer", str(out / "tokenizers" / "detail" / "tokenizer.pt"),
+             "--abstract-tokenizer", str(out / "tokenizers" / "abstract" / "tokenizer.pt"),
+             "--abstract-predictor", str(out / "predictors" / "abstract_tf" / "predictor.pt"),
+             "--detail-predictor", str(out / "predictors" / "detail" / "predictor.pt"),
+             "--profile", "smoke", "--params", str(ROOT / "params.yaml"), "--device", "cpu"]
+    parser = argparse.ArgumentParser()
+    add_play_parser(parser.add_subparsers())
+    models = load_models(parser.parse_args(["play", *files, "--abstract-nfe", "2", "--detail-nfe", "2"]))
+    assert models.steering_offsets == [5, 10, 15]
+    distilled = str(out / "predictors" / "abstract_distilled" / "predictor.pt")  # its config names no preprocessing
+    with pytest.raises(OrbisError, match=r"steering preprocessing \(none in its config\) is not converted"):
+        load_models(parser.parse_args(["play", *files, "--abstract-predictor", distilled]))
+    drive = Drive(models, scene_of(video), seed=0)
+    fed = []
+
+    class Recording:
+        def send(self, steering, stepper=drive.stepper):
+            fed.append(steering)
+            return stepper.send(steering)
+
+    drive.stepper = Recording()
+    frames = drive.step(7.0, 0.25)
+    frames = drive.step(7.0, 0.25)
+    assert frames.generated.shape == (5, 72, 128, 3) and drive.steps == 2
+    last = drive.context_end  # the first step's last context frame: recorded before it, commanded after
+    assert torch.equal(fed[0], torch.tensor([[[7.0, 0.25]] * 3]))
+    assert len(drive.speed) == last + 11 and float(drive.speed[last]) == 4 + 6 * last / 60
+
+    main(["rollout", *files, "--video", str(video), "--trajectory", str(trajectory), "--seconds", "1",
+          "--out", str(tmp_path / "steered.mp4")])
+    assert len(read_video(tmp_path / "steered.mp4", 1, (128, 72))) == 5 + 10
+    schedule = rollout_schedule(load_config(ROOT / "params.yaml", "smoke").data, last, 2)
+    speed = 4 + np.arange(80) / 60 * 6
+    steering = steering_sequences(schedule, speed, speed / 10 - 0.4, [1.0, 1.0], models.steering_offsets)
+    rows = [[last + o for o in (5, 10, 15)], [last + 5 + o for o in (5, 10, 15)]]
+    assert torch.allclose(steering[..., 0], torch.tensor(speed[rows], dtype=torch.float32))

@@ -58,10 +58,12 @@ from orbis2.rollout import (
     cascaded_rollout,
     first_context_end,
     rollout_schedule,
+    steering_offsets,
     steering_sequences,
 )
 from orbis2.run_profile import resolve_profile
 from orbis2.stage import freeze_imports
+from orbis2.tasks.official import unconverted_steering
 
 # --------------------------------------------------------------------------- rollout command
 
@@ -91,16 +93,22 @@ def rollout_command(args: argparse.Namespace) -> str:
         if abstract_pred.model.steering is None:
             raise OrbisError(f"{abstract_path}: this abstract predictor is not steered but {odometry_path} gives a "
                              f"trajectory; train the action stage or drop --trajectory")
-        last = schedule[-1].detail_target[-1]
-        t = np.arange(last + 1) / data.fps
-        speed = np.interp(t, odometry["timestamp"], odometry["speed"]) * args.speed_scale
-        yaw_rate = np.interp(t, odometry["timestamp"], odometry["yaw_rate"]) * args.yaw_rate_scale
+        if unconverted_steering(abstract_pred.meta, abstract_path):
+            raise OrbisError(unconverted_steering(abstract_pred.meta, abstract_path))
         if "steering" not in abstract_pred.meta:
             raise OrbisError(f"{abstract_path}: a steered predictor without its steering scale in the file; "
                              f"re-train it with the action stage (python stages/predictor.py action)")
-        steering = steering_sequences(schedule, speed, yaw_rate, abstract_pred.meta["steering"]["scale"])
+        offsets = steering_offsets(abstract_pred.meta["steering"], data.fps, abstract_path)
+        last = needed = schedule[-1].detail_target[-1]
+        if offsets is not None:  # the authors' steering also reads the commands after the predicted frame
+            needed = max(last, schedule[-1].abstract_context[-1] + max(offsets))
+            steering_until(odometry, odometry_path, needed / data.fps, args.hold_last)
+        t = np.arange(needed + 1) / data.fps
+        speed = np.interp(t, odometry["timestamp"], odometry["speed"]) * args.speed_scale
+        yaw_rate = np.interp(t, odometry["timestamp"], odometry["yaw_rate"]) * args.yaw_rate_scale
+        steering = steering_sequences(schedule, speed, yaw_rate, abstract_pred.meta["steering"]["scale"], offsets)
         steering = steering[None].to(device)
-        x, y, _ = integrate_odometry(speed[context_end:], yaw_rate[context_end:], data.fps)
+        x, y, _ = integrate_odometry(speed[context_end:last + 1], yaw_rate[context_end:last + 1], data.fps)
         path = (x, y)
 
     first = schedule[0]

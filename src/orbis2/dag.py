@@ -96,7 +96,7 @@ DECLARED_ENV = "ORBIS2_DECLARED_RESOURCES"  # set while the rules are read to ge
 # Rule params that are not params.yaml sections.
 # Those set when the rule is defined and passed in its command (see the Snakefile's _passed_from).
 PASSED = ("script", "scope", "stage", "args")
-NOT_SECTIONS = ("profile", "spec", "parts", *PASSED)
+NOT_SECTIONS = ("profile", "spec", "parts", "official_weights", *PASSED)
 
 
 # --------------------------------------------------------------------------- code inputs
@@ -197,8 +197,9 @@ def dvc_stage(rule, raw: dict, raw_dir: str, assets: str) -> dict:
             continue
         for section in section_chain(raw, key):
             params += [f"{section}.all", f"{section}.${{profile}}"]
-    if "parts" in rule.params.keys():  # how many parts a data stage runs in: where its shards end follows it
-        params.append("parts")
+    for setting in ("parts", "official_weights"):  # top-level settings the rule's stage reads (see the Snakefile)
+        if setting in rule.params.keys():
+            params.append(setting)
     params = list(dict.fromkeys(params))
     if "spec" in rule.params.keys():  # a predictor's registry.yaml entry
         params.append({"registry.yaml": [f"predictors.{rule.name}"]})

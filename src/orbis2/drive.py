@@ -47,10 +47,11 @@ from orbis2.kinematics import integrate_odometry
 from orbis2.latents import encode_frames
 from orbis2.models.files import PredictorFile, TokenizerFile
 from orbis2.registry import layout_path
-from orbis2.rollout import cascaded_steps, first_context_end, rollout_schedule, steering_sequences
+from orbis2.rollout import cascaded_steps, first_context_end, rollout_schedule, steering_offsets, steering_sequences
 from orbis2.run_profile import resolve_profile
 from orbis2.sim import Camera, EgoTrack, Town
 from orbis2.sim.counterfactual import PathFrames, PathRenderer
+from orbis2.tasks.official import unconverted_steering
 
 TRUTH_WORKER = ThreadPoolExecutor(1, thread_name_prefix="true-view")  # the town's kernels release the GIL
 TOWN_SPLIT = "heldout"  # the town clips offered as scenes: none of them was trained on
@@ -138,6 +139,7 @@ class Models:
     detail_nfe: int
     guidance: float
     summary: str  # which profile and sampler, and why
+    steering_offsets: list[int] | None  # an imported predictor's steering frames (orbis2.rollout.steering_offsets)
 
 
 def load_models(args: argparse.Namespace) -> Models:
@@ -149,6 +151,8 @@ def load_models(args: argparse.Namespace) -> Models:
     detail_tok, abstract_tok, abstract_path, abstract_pred, detail_pred = load_checkpoints(
         args.detail_tokenizer, args.abstract_tokenizer, args.abstract_predictor, args.detail_predictor, args.device,
         cfg, args.params)
+    if unconverted_steering(abstract_pred.meta, abstract_path):
+        raise OrbisError(unconverted_steering(abstract_pred.meta, abstract_path))
     if abstract_pred.model.steering is None or "steering" not in abstract_pred.meta:
         raise OrbisError(f"{abstract_path}: not a steered predictor, so it cannot be driven; pass the action "
                          f"stage's predictor (--abstract-predictor) or train it (python stages/predictor.py action)")
@@ -162,8 +166,9 @@ def load_models(args: argparse.Namespace) -> Models:
     abstract_nfe, detail_nfe, guidance, sampler = sampler_settings(args.abstract_nfe, args.detail_nfe,
                                                                    args.steering_guidance, cfg, detail_pred,
                                                                    steered=True)
+    offsets = steering_offsets(abstract_pred.meta["steering"], cfg.data.fps, abstract_path)
     return Models(args, cfg, detail_tok, abstract_tok, abstract_pred, detail_pred, device, abstract_nfe, detail_nfe,
-                  guidance, f"{which}; {sampler}")
+                  guidance, f"{which}; {sampler}", offsets)
 
 
 class Drive:
@@ -224,7 +229,8 @@ class Drive:
             new_speed = np.full(end - len(self.speed), float(speed))
             new_yaw = np.full(end - len(self.speed), float(yaw_rate))
         self.speed, self.yaw_rate = np.concatenate([self.speed, new_speed]), np.concatenate([self.yaw_rate, new_yaw])
-        steering = steering_sequences([step], self.speed, self.yaw_rate, m.abstract_pred.meta["steering"]["scale"])
+        steering = steering_sequences([step], self.speed, self.yaw_rate, m.abstract_pred.meta["steering"]["scale"],
+                                      m.steering_offsets)
         rendering = None
         if self.truth is not None:  # the true view renders in another thread while the model samples
             # Control k drives pose k to k + 1 (the convention of the bird's-eye path, integrate_odometry).

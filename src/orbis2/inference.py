@@ -23,11 +23,10 @@ from orbis2.data.images import to_uint8
 from orbis2.data.importer import read_odometry_csv
 from orbis2.data.video import probe, read_video, resample_stride, write_gif, write_video
 from orbis2.errors import OrbisError
-from orbis2.hierarchy import condition_slots
 from orbis2.io import atomic_file
 from orbis2.models.files import PredictorFile, TokenizerFile, load_predictor, load_tokenizer
-from orbis2.models.official import OFFICIAL_SOURCE
 from orbis2.registry import layout_path, registry
+from orbis2.tasks.official import built_from_import, check_imported
 
 DEFAULT_ACTION = layout_path("predictor", registry().steered) / "predictor.pt"
 DEFAULT_ABSTRACT_TF = layout_path("predictor", "abstract_tf") / "predictor.pt"
@@ -87,7 +86,7 @@ def load_checkpoints(detail_tokenizer: Path, abstract_tokenizer: Path, abstract_
     for pred, path, stage in ((abstract_pred, abstract_path, "abstract_tf"),
                               (detail_pred, detail_predictor, "detail")):
         preset, wanted = pred.build.get("preset"), cfg.section(stage).preset
-        if preset != wanted and pred.meta.get("source") != OFFICIAL_SOURCE:  # imported: its build has every size
+        if preset != wanted and not built_from_import(pred.meta):
             raise OrbisError(f"{path}: a {preset!r} predictor but profile {cfg.profile} uses {wanted!r}; pass the "
                              f"profile it was trained with (--profile) or that profile's checkpoints")
     check_imported(abstract_pred, abstract_path, cfg, "abstract")
@@ -96,23 +95,6 @@ def load_checkpoints(detail_tokenizer: Path, abstract_tokenizer: Path, abstract_
     check_pairing(detail_pred, detail_predictor, detail_tok, "detail", detail_tokenizer)
     check_pairing(detail_pred, detail_predictor, abstract_tok, "abstract", abstract_tokenizer)
     return detail_tok, abstract_tok, abstract_path, abstract_pred, detail_pred
-
-
-def check_imported(predictor: PredictorFile, path: Path, cfg: PipelineConfig, level: str) -> None:
-    """An imported predictor (``orbis2 import-weights``) records the rates and windows of the authors' configs;
-    a rollout at ``cfg``'s profile must use the same, or it would feed the networks inputs they never saw."""
-    if predictor.meta.get("source") != OFFICIAL_SOURCE:
-        return
-    d = cfg.data
-    n_target = d.detail_window - d.detail_context
-    expected = ({"frame_rate": d.detail_hz, "abstract_frame_rate": d.abstract_hz, "num_pred_frames": n_target,
-                 "condition_slots": list(condition_slots(d.detail_context, n_target))} if level == "detail"
-                else {"num_pred_frames": d.abstract_window - d.abstract_context})
-    for key, value in expected.items():
-        recorded = predictor.meta.get(key)
-        if recorded is not None and recorded != value:
-            raise OrbisError(f"{path}: the authors' config gives {key} = {recorded}, but profile {cfg.profile} uses "
-                             f"{value}; pass the profile whose data section matches the release")
 
 
 def profile_hint(params: Path, size: tuple[int, int]) -> str:

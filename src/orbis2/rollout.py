@@ -20,11 +20,13 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from orbis2.config.sections import DataConfig
+from orbis2.errors import OrbisError
 from orbis2.flow import ModelFn, consistency_sample, euler_grid, euler_sample, guided_velocity
 from orbis2.hierarchy import condition_frames, scale_steering, steering_rows, window_indices
 
@@ -89,11 +91,31 @@ def rollout_schedule(data: DataConfig, context_end: int, steps: int) -> list[Sch
     return schedule
 
 
+def steering_offsets(steering: dict, fps: int, path: Path) -> list[int] | None:
+    """The native frames after each step's last context frame an imported predictor's steering is sampled at
+    (its ``meta["steering"]["offsets_s"]``, :func:`orbis2.models.official.converted_steering`); None for ours,
+    which read the step's own rows (``ScheduleStep.steering``)."""
+    if "offsets_s" not in steering:
+        return None
+    frames = [seconds * fps for seconds in steering["offsets_s"]]
+    if any(abs(f - round(f)) > 1e-6 for f in frames):
+        raise OrbisError(f"{path}: the authors' steering samples the odometry at {steering['offsets_s']} s, not at "
+                         f"whole frames of this profile's {fps} fps; pass the profile whose data section matches "
+                         f"the release")
+    return [round(f) for f in frames]
+
+
 def steering_sequences(schedule: list[ScheduleStep], speed: np.ndarray, yaw_rate: np.ndarray,
-                       scale: Sequence[float]) -> torch.Tensor:
+                       scale: Sequence[float], offsets: Sequence[int] | None = None) -> torch.Tensor:
     """Per-step steering [steps, S, 2] of the steered predictor (:func:`~orbis2.hierarchy.scale_steering` by its
-    ``scale``) from native-rate speed and yaw rate."""
-    index = np.array([step.steering for step in schedule])
+    ``scale``) from native-rate speed and yaw rate.
+
+    ``offsets`` (:func:`steering_offsets`): sample each step at its last context frame plus these frames instead of
+    its own rows; past the end of ``speed`` the last value holds (a commanded speed is held until changed)."""
+    if offsets is None:
+        index = np.array([step.steering for step in schedule])
+    else:
+        index = np.minimum([[step.abstract_context[-1] + o for o in offsets] for step in schedule], len(speed) - 1)
     return scale_steering(torch.from_numpy(np.stack([np.asarray(speed)[index], np.asarray(yaw_rate)[index]], -1)),
                           scale)
 

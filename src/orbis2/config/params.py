@@ -49,8 +49,9 @@ from orbis2.typecheck import MissingKeyError, build
 
 PROFILES = ("smoke", "default", "gpu", "paper")
 SECTION_PARTS = ("all", *PROFILES)
-# Top-level keys that are not sections: the profile, and how training stages start.
-SETTINGS = ("profile", "train_launcher", "parts")
+# Top-level keys that are not sections: the profile, how training stages start, how many parts the data
+# stages split into, and the imported release the DAG starts from (orbis2.tasks.official).
+SETTINGS = ("profile", "train_launcher", "parts", "official_weights")
 
 # Section names in params.yaml whose Python attribute differs (``import`` is a keyword).
 SECTION_ATTRS = {"import": "import_"}
@@ -84,6 +85,9 @@ class PipelineConfig:
     """Every stage's resolved section for one profile."""
 
     profile: str
+    # A folder written by `orbis2 import-weights` that the tokenizer and predictor stages start from
+    # (orbis2.tasks.official); None: everything is trained here.
+    official_weights: str | None
     data: DataConfig
     town: TownConfig
     import_: ImportConfig
@@ -224,6 +228,11 @@ def parse_config(raw: dict[str, Any], profile: str | None = None, source: str = 
     if not isinstance(parts, int) or isinstance(parts, bool) or parts < 1:
         raise ConfigError(f"{source}: parts = {parts!r} must be a whole number >= 1 (how many jobs each data stage "
                           f"splits into); add `parts: 1` at the top level")
+    official = raw.get("official_weights")
+    if "official_weights" not in raw or (official is not None and (not isinstance(official, str)
+                                                                    or not official.strip())):
+        raise ConfigError(f"{source}: official_weights = {official!r} must be null or the folder `orbis2 "
+                          f"import-weights` wrote; add `official_weights: null` at the top level")
     types_ = section_types()
     unknown = {key for key in raw if not key.startswith("_")} - {*SETTINGS, *types_}
     if unknown:
@@ -245,7 +254,7 @@ def parse_config(raw: dict[str, Any], profile: str | None = None, source: str = 
             sections[SECTION_ATTRS.get(name, name)] = obj
         else:
             sections["stages"][name] = obj
-    cfg = PipelineConfig(profile=profile, **sections)
+    cfg = PipelineConfig(profile=profile, official_weights=official, **sections)
     cfg.validate()
     return cfg
 

@@ -45,8 +45,8 @@ from orbis2.models.sizes import TOKENIZER_PRESETS
 from orbis2.models.stdit import build_stdit_from
 from orbis2.models.stdit_layers import grid_positions
 from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer
+from orbis2.tasks.official import OFFICIAL_SOURCE
 
-OFFICIAL_SOURCE = "the authors' release"  # meta["source"] of an imported file
 ENV_ROOT = "ORBIS2_MODELS_DIR"  # their configs name the other networks' folders through this variable
 DEFAULT_SCALES = {"detail": 4.0, "abstract": 3.45062}  # their PredictorModule's enc_scale and enc_scale_dino
 DEFAULT_CONSISTENCY_GRIDS = {1: [0.99], 2: [0.99, 0.8333], 4: [0.99, 0.9375, 0.8333, 0.625]}
@@ -717,9 +717,11 @@ def _write_release(out: Path, folder: Path, causal_mask: str, configs: dict[str,
             meta["condition_slots"] = [n_context - 1, n_context + net.num_pred_frames - 1]
             meta["abstract_frame_rate"] = detail.preprocessor.get("l2_predictor_frame_rate")
         if net.spec.build["steering"]:
-            # Not "steering": our rollout would feed it our steering features, which are not their inputs.
             meta["authors_steering"] = {"steps": net.spec.steering_len,
                                         "preprocessor": net.preprocessor.get("steering")}
+            steering = converted_steering(net.preprocessor.get("steering"), net.frame_rate, net.spec.steering_len)
+            if steering is not None:  # what orbis2 rollout and orbis2 play feed a steered predictor
+                meta["steering"] = steering
         path = out / "predictors" / name / "predictor.pt"
         save_predictor(path, model, net.spec.build, meta)
         written[f"predictors/{name}"] = str(path.relative_to(out))
@@ -739,6 +741,32 @@ def _write_release(out: Path, folder: Path, causal_mask: str, configs: dict[str,
     }
     write_json(out / "manifest.json", manifest)
     return manifest
+
+
+def converted_steering(preprocessor: dict | None, frame_rate: float | None, steps: int | None) -> dict | None:
+    """Our ``meta["steering"]`` for their ``SpeedYawDirectConditionPreprocessor``, or None where it does not
+    convert (their moving goals integrate a path from the commands; a config without the predictor's frame rate).
+
+    Their steering input is the raw ``[speed, yaw_rate]`` (m/s, rad/s) times ``speed_scale``/``yaw_rate_scale``,
+    sampled from an odometry sequence at ``frame_rate x odometry_steps_per_image_frame`` Hz at the rows
+    ``anchor + steering_offsets``, the anchor being the context frame ``context_frame_anchor_index`` (-1: the
+    last); each rollout step moves the anchor on by the predicted frames. In our terms: speed and yaw rate
+    divided by ``scale`` at ``offsets_s`` seconds after each step's last context frame
+    (:func:`orbis2.rollout.steering_sequences`), which may lie beyond the predicted frame.
+    """
+    if (preprocessor is None or frame_rate is None
+            or preprocessor.get("preprocessor") != "SpeedYawDirectConditionPreprocessor"):
+        return None
+    offsets = [int(o) for o in preprocessor["steering_offsets"]]
+    odometry_hz = frame_rate * int(preprocessor["odometry_steps_per_image_frame"])
+    anchor = int(preprocessor.get("context_frame_anchor_index", -1))
+    scales = [float(preprocessor.get("speed_scale", 1.0)), float(preprocessor.get("yaw_rate_scale", 1.0))]
+    if (anchor >= 0 or 0.0 in scales or len(offsets) != steps
+            or preprocessor.get("steering_format", "speed_yawrate") != "speed_yawrate"):
+        return None  # an anchor counted from the context's start depends on its length: not converted
+    return {"features": ["speed", "yaw_rate"], "scale": [1.0 / v for v in scales],
+            "offsets_s": [(anchor + 1) / frame_rate + o / odometry_hz for o in offsets],
+            "interval": "the authors': speed and yaw rate at offsets_s seconds after the last context frame"}
 
 
 def _relative(path: Path, root: Path) -> str:

@@ -80,9 +80,10 @@ from orbis2.hierarchy import (
 from orbis2.io import sha256_file
 from orbis2.latents import LatentCache, LatentWindowDataset, collate
 from orbis2.models.deviations import TURN_SEARCH, best_sideways_shift, translate_columns
-from orbis2.models.files import load_predictor, save_predictor
+from orbis2.models.files import PredictorFile, load_predictor, save_predictor
 from orbis2.models.stdit import build_stdit_from
 from orbis2.registry import PredictorSpec, registry
+from orbis2.tasks import official
 from orbis2.train import DataSpec, ignore_stop_signals, load_weights, train
 
 # Offset of the validation generator's seed from the training seed: a different stream, fixed across steps.
@@ -265,11 +266,12 @@ class PredictorTask:
     global_order = True  # window_index_batches: the same global batches for any number of processes
 
     def __init__(self, stage: str, cfg: PredictorConfig, data: DataConfig, cache: LatentCache,
-                 init_state: dict[str, torch.Tensor] | None = None):
+                 init_state: dict[str, torch.Tensor] | None = None, architecture: dict[str, Any] | None = None):
         if stage not in STAGES:
             raise ValueError(f"unknown predictor stage {stage!r}; choose from {sorted(STAGES)}")
         self.stage, self.spec, self.cfg, self.data, self.cache = stage, STAGES[stage], cfg, data, cache
         self.init_state = init_state
+        self.architecture = architecture  # an imported predictor's build (orbis2.tasks.official), else None
         self.batch_key = window_key(self.spec.level, self.spec.rate)
         self.train_set = LatentWindowDataset(cache, "train", data, cfg.anchor_stride)
         self.val_set = LatentWindowDataset(cache, "val", data, cfg.anchor_stride)
@@ -289,7 +291,10 @@ class PredictorTask:
 
     @property
     def build(self) -> dict[str, Any]:
-        """The :func:`build_stdit_from` dict (preset, ``model`` overrides, wiring) :func:`save_predictor` records."""
+        """The :func:`build_stdit_from` dict (preset, ``model`` overrides, wiring) :func:`save_predictor` records;
+        the imported architecture where the stage starts from the authors' networks."""
+        if self.architecture is not None:
+            return self.architecture
         shapes, condition = self.cache.meta["tokenizers"], self.spec.condition
         return {"preset": self.cfg.preset, "latent_channels": shapes[self.spec.level]["shape"][0],
                 "causal": self.spec.causal, "abstract_channels": shapes[condition]["shape"][0] if condition else None,
@@ -309,9 +314,11 @@ class PredictorTask:
             missing, unexpected = model.load_state_dict(self.init_state, strict=False)
             stray = [k for k in missing if not (self.spec.steering and k.startswith(("steering.", "steering_shift.")))]
             if stray or unexpected:
-                raise OrbisError(f"{self.stage}: the {self.cfg.init_from} weights do not fit this predictor "
-                                 f"(missing {stray[:5]}, unexpected {unexpected[:5]}); re-run {self.cfg.init_from} "
-                                 f"with the same preset and model overrides")
+                source = self.cfg.init_from or "imported"
+                fix = (f"re-run {source} with the same preset and model overrides" if self.cfg.init_from else
+                       "re-import the release (orbis2 import-weights)")
+                raise OrbisError(f"{self.stage}: the {source} weights do not fit this predictor (missing "
+                                 f"{stray[:5]}, unexpected {unexpected[:5]}); {fix}")
         return model
 
     def turn_columns(self) -> float:
@@ -480,30 +487,55 @@ def tokenizer_checksums(detail: Path, abstract: Path) -> tuple[str, str]:
     return sha256_file(detail), sha256_file(abstract)
 
 
-def load_init_state(stage: str, source: str, path: Path, cache: LatentCache) -> dict[str, torch.Tensor]:
-    """The weights of ``path``, the published predictor of stage ``source``, refusing one trained on other latents."""
-    loaded = load_predictor(path)
+def check_latents(loaded: PredictorFile, path: Path, cache: LatentCache, fix: str) -> None:
+    """``loaded`` (from ``path``) predicts the latents of ``cache``'s tokenizers, or the stage stops with ``fix``."""
     for kind in ("detail", "abstract"):
         theirs = loaded.meta["tokenizers"][kind]["checksum"]
         if theirs != cache.meta["tokenizers"][kind]["checksum"]:
-            raise OrbisError(f"{path} was trained on latents of another {kind} tokenizer; "
-                             f"re-run `{source}` before `{stage}`")
+            raise OrbisError(f"{path} was trained on latents of another {kind} tokenizer; {fix}")
+
+
+def load_init_state(stage: str, source: str, path: Path, cache: LatentCache) -> dict[str, torch.Tensor]:
+    """The weights of ``path``, the published predictor of stage ``source``, refusing one trained on other latents."""
+    loaded = load_predictor(path)
+    check_latents(loaded, path, cache, f"re-run `{source}` before `{stage}`")
     return loaded.model.state_dict()
 
 
+def imported_start(stage: str, cfg: PipelineConfig, cache: LatentCache, path: Path
+                   ) -> tuple[dict[str, Any], dict[str, torch.Tensor] | None]:
+    """The build of ``stage`` at the architecture of the imported predictor ``path`` and, where the stage has no
+    ``init_from``, the imported weights it starts from (:mod:`orbis2.tasks.official`)."""
+    pc: PredictorConfig = cfg.section(stage)
+    imported = load_predictor(path)
+    build = official.stage_build(imported, path, STAGES[stage], pc.model, cfg, cache.meta["tokenizers"][
+        STAGES[stage].level]["shape"])
+    if pc.init_from is not None:
+        return build, None
+    check_latents(imported, path, cache, "make the latent cache with official_weights set (its tokenizer stages "
+                                         "then publish the imported tokenizers)")
+    return build, official.start_state(imported)
+
+
 def train_predictor(stage: str, cfg: PipelineConfig, cache: LatentCache, out_dir: Path, logger: Any = None,
-                    init_file: Path | None = None) -> dict[str, float]:
+                    init_file: Path | None = None, imported: Path | None = None) -> dict[str, float]:
     """A predictor stage: train (resuming), then measure the final val loss and write ``predictor.pt``.
 
     ``init_file`` is the published predictor of the stage's ``init_from`` (required when it
-    has one); ``logger`` receives the training metrics (``log_metrics(metrics, step)``).
+    has one); ``imported`` the imported predictor whose architecture the stage takes (and whose weights
+    it starts from without an ``init_from``; :func:`orbis2.tasks.official.imported_predictor`).
+    ``logger`` receives the training metrics (``log_metrics(metrics, step)``).
     Returns the final metrics on rank 0 and ``{}`` on other ranks (under torchrun).
     """
     pc: PredictorConfig = cfg.section(stage)
     if (pc.init_from is None) != (init_file is None):
         raise ValueError(f"{stage}: init_from is {pc.init_from!r} but init_file is {init_file}")
     init_state = None if init_file is None else load_init_state(stage, pc.init_from, init_file, cache)
-    task = PredictorTask(stage, pc, cfg.data, cache, init_state)
+    architecture = None
+    if imported is not None:
+        architecture, imported_state = imported_start(stage, cfg, cache, imported)
+        init_state = init_state if imported_state is None else imported_state
+    task = PredictorTask(stage, pc, cfg.data, cache, init_state, architecture)
     result = train(task, pc.train, Path(out_dir), logger)
     if task.rank != 0:
         return {}
@@ -517,7 +549,11 @@ def train_predictor(stage: str, cfg: PipelineConfig, cache: LatentCache, out_dir
         metrics.update(task.few_step_errors(model))
     if isinstance(pc, ActionConfig) and pc.yaw_offset_prob > 0:
         metrics["turn_columns_per_yaw_rate"] = task.turn_columns()
-    save_predictor(Path(out_dir) / "predictor.pt", model, task.build, predictor_meta(stage, cfg, cache, metrics))
+    meta = predictor_meta(stage, cfg, cache, metrics)
+    if imported is not None:  # what it was built from, and started from where it has no init_from
+        meta["imported"] = {"file": str(imported), "checksum": sha256_file(imported),
+                            "started_from": pc.init_from is None}
+    save_predictor(Path(out_dir) / "predictor.pt", model, task.build, meta)
     return metrics
 
 
