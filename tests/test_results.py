@@ -13,7 +13,7 @@ from orbis2.config.params import load_params
 from conftest import ROOT
 
 sys.path.insert(0, str(ROOT / "tools"))
-from publish_results import params_digest, profile_params  # noqa: E402
+from publish_results import params_digest, profile_params, same_params  # noqa: E402
 
 PUBLISHED = sorted((ROOT / "docs/results").glob("*/run.json"))
 
@@ -23,10 +23,18 @@ def test_published_params_are_todays_or_marked_stale(record):
     published = json.loads(record.read_text())
     today = profile_params(load_params(ROOT / "params.yaml"), published["profile"])
     assert published["params_sha256"] == params_digest(published["params"])
-    assert published["params"] == today or published["stale"], (
+    assert same_params(published["params"], today) or published["stale"], (
         f"{record}: made with other params than today's params.yaml; publish a new run "
         f"(python tools/publish_results.py) or mark it: python tools/publish_results.py --mark-stale "
         f"{published['profile']} --why '...'")
+
+
+def test_a_setting_added_since_counts_only_at_its_null_off_value():
+    published = {"profile": "default", "data": {"fps": 10}}
+    assert same_params(published, {**published, "official_weights": None})
+    assert not same_params(published, {**published, "official_weights": "data/official"})
+    assert not same_params(published, {**published, "data": {"fps": 5}})
+    assert not same_params({**published, "old": None}, published)  # a setting removed since: not the same
 
 
 def test_every_published_folder_links_what_it_holds():

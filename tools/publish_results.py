@@ -42,6 +42,13 @@ def profile_params(raw: dict, profile: str) -> dict:
     return json.loads(json.dumps(as_dict(parse_config({**raw, "profile": profile}, profile)), default=str))
 
 
+def same_params(published: dict, today: dict) -> bool:
+    """Whether a published run's params are today's. A top-level setting added after the run counts as the
+    same when it is null today: null is the setting's off value, the behaviour the run had without it."""
+    added = {key for key in today.keys() - published.keys() if today[key] is None}
+    return published == {key: value for key, value in today.items() if key not in added}
+
+
 def params_digest(params: dict) -> str:
     return hashlib.sha256(json.dumps(params, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
