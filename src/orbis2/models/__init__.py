@@ -10,6 +10,10 @@ from orbis2.typecheck import field_types, typed
 
 C = TypeVar("C", bound="ModelConfig")
 
+# meta["source"] of a network file converted from the authors' release (orbis2.models.official writes it,
+# orbis2.tasks.official and orbis2.inference read it)
+OFFICIAL_SOURCE = "the authors' release"
+
 
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:

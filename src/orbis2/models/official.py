@@ -39,13 +39,12 @@ import yaml
 
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_dir, sha256_file, write_json
-from orbis2.models import split_build
+from orbis2.models import OFFICIAL_SOURCE, split_build
 from orbis2.models.files import save_predictor, save_tokenizer
 from orbis2.models.sizes import TOKENIZER_PRESETS
 from orbis2.models.stdit import build_stdit_from
 from orbis2.models.stdit_layers import grid_positions
 from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer
-from orbis2.tasks.official import OFFICIAL_SOURCE
 
 ENV_ROOT = "ORBIS2_MODELS_DIR"  # their configs name the other networks' folders through this variable
 DEFAULT_SCALES = {"detail": 4.0, "abstract": 3.45062}  # their PredictorModule's enc_scale and enc_scale_dino

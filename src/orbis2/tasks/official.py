@@ -27,13 +27,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from orbis2.errors import OrbisError
+from orbis2.models import OFFICIAL_SOURCE
 from orbis2.registry import PredictorSpec, registry
 
 if TYPE_CHECKING:  # the Snakefile reads this module's paths: it stays free of torch
     from orbis2.config.params import PipelineConfig
     from orbis2.models.files import PredictorFile
 
-OFFICIAL_SOURCE = "the authors' release"  # meta["source"] of an imported file
 MANIFEST = "manifest.json"  # what orbis2.models.official writes beside the converted files
 MAIN_LATENTS = "compressed"  # the latent set whose tokenizers the import replaces
 # (level, rate, condition) of a predictor stage -> the imported predictor that models the same.
