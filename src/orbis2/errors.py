@@ -13,9 +13,12 @@ class ConfigError(OrbisError):
     """A params.yaml value (or a model size) is missing, unknown, mistyped or impossible."""
 
 
-# The exit status of a stage stopped at a checkpoint by SIGUSR1 or SIGTERM: sysexits' EX_TEMPFAIL ("a temporary
-# failure; the user is invited to retry"). Running the stage again resumes it where it stopped.
+# The exit status of a stage stopped at a checkpoint by SIGUSR1, SIGURG or SIGTERM: sysexits' EX_TEMPFAIL ("a
+# temporary failure; the user is invited to retry"). Running the stage again resumes it where it stopped.
 REQUEUE_EXIT = 75
+# Slurm's warnings ahead of a time limit (orbis2.train.STOP_SIGNALS): a stage stopped by one asks Slurm to requeue
+# its job (orbis2.stage.requeue_slurm_job); one stopped by SIGTERM (a cancel, a preemption) does not.
+WARNING_SIGNALS = ("SIGUSR1", "SIGURG")
 
 
 class TrainingStopped(Exception):

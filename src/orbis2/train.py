@@ -10,8 +10,8 @@ behind a checksum (:func:`load_checkpoint`); a re-run resumes from it,
 bit-identically on CPU. The schedule is a pure function
 of the step (:func:`lr_at`), so the step is the whole scheduler state.
 
-SIGUSR1 (a scheduler's warning before a time limit) and SIGTERM (preemption, a cancel) stop the run at the
-next step boundary: every rank agrees on the signal, rank 0 writes the checkpoint while the others wait, and
+SIGUSR1 or SIGURG (a scheduler's warning before a time limit) and SIGTERM (preemption, a cancel) stop the run
+at the next step boundary: every rank agrees on the signal, rank 0 writes the checkpoint while the others wait, and
 :func:`train` raises :class:`~orbis2.errors.TrainingStopped` (a stage then exits with ``REQUEUE_EXIT``, 75);
 the next run resumes there, bit-identically. A run may resume with another number of processes when its task
 draws every batch from the global sample order (``Task.global_order``); see :meth:`_Run.resume` for what is
@@ -541,14 +541,15 @@ class _Run:
         """At a step boundary: if any rank has received a stop signal (``received`` is this rank's, 0 if none),
         every rank stops here, after rank 0 has written the checkpoint of this step.
 
-        The ranks agree through a reduction of the signal numbers (SIGTERM outranks SIGUSR1), so they stop at the
-        same step: a rank that stopped alone would leave the others waiting in the next collective.
+        The ranks agree through a reduction of the signals' ranks in :data:`STOP_SIGNALS` (SIGTERM, a cancel,
+        outranks a warning), so they stop at the same step: a rank that stopped alone would leave the others
+        waiting in the next collective.
         """
         signum = received
         if self.env.world_size > 1:
-            flag = torch.tensor([received], dtype=torch.int32)
+            flag = torch.tensor([STOP_SIGNALS.index(received) + 1 if received else 0], dtype=torch.int32)
             dist.all_reduce(flag, op=dist.ReduceOp.MAX, group=self.env.control)
-            signum = int(flag.item())
+            signum = STOP_SIGNALS[int(flag.item()) - 1] if flag.item() else 0
         if not signum:
             return
         if self.checkpointed != self.step:
@@ -813,9 +814,11 @@ def _seed_global_streams(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-# The signals that stop training at the next step boundary: a scheduler's warning ahead of a time limit
-# (Slurm's `--signal=USR1@<seconds>`) and termination (preemption, a cancel, the time limit itself).
-STOP_SIGNALS = (signal.SIGUSR1, signal.SIGTERM)
+# The signals that stop training at the next step boundary, weakest first: a scheduler's warning ahead of a time
+# limit (Slurm's `--signal=USR1@<seconds>` to a job over nodes; `URG@<seconds>` to a one-task job, whose Snakemake
+# and shell share the stage's job step and ignore SIGURG, where SIGUSR1 would kill them: orbis2.dag) and
+# termination (preemption, a cancel, the time limit itself).
+STOP_SIGNALS = (signal.SIGUSR1, signal.SIGURG, signal.SIGTERM)
 
 
 class _StopSignals:
