@@ -32,6 +32,10 @@ ROOT = Path(__file__).resolve().parents[1]
 STEPS = 12
 
 
+def rank() -> int:
+    return dist.get_rank() if dist.is_initialized() else 0
+
+
 class SignalledPredictor(PredictorTask):
     def __init__(self, *args, at: int | None, out: Path):
         super().__init__(*args)
@@ -39,7 +43,7 @@ class SignalledPredictor(PredictorTask):
         self.wait_at = int(os.environ.get("WAIT_AT_STEP", "-1"))
 
     def loss(self, model, batch, step):
-        if step == self.at and dist.get_rank() == 1:
+        if step == self.at and rank() == 1:
             os.kill(os.getppid(), signal.SIGUSR1)  # torchrun: it must outlive the signal
             os.kill(os.getpid(), signal.SIGUSR1)
         if step == self.wait_at:
@@ -49,7 +53,7 @@ class SignalledPredictor(PredictorTask):
     def wait_for_the_stop_flag(self) -> None:
         """The training loop's handler of SIGUSR1 is a bound method of its flag holder (orbis2.train)."""
         flag = signal.getsignal(signal.SIGUSR1).__self__
-        Path(self.out.parent, f"{self.out.name}.waiting.{dist.get_rank()}").touch()
+        Path(self.out.parent, f"{self.out.name}.waiting.{rank()}").touch()
         deadline = time.monotonic() + 120
         while not flag.received:
             if time.monotonic() > deadline:
@@ -68,7 +72,7 @@ def main(cache: str, out: str, at: str | None = None) -> None:
     try:
         train(task, cfg.train, Path(out))
     except TrainingStopped as stop:
-        print(f"rank {dist.get_rank()}: {stop}", flush=True)
+        print(f"rank {rank()}: {stop}", flush=True)
         if stop.signal_name in WARNING_SIGNALS:
             requeue_slurm_job("multinode_train")
         sys.exit(REQUEUE_EXIT)
