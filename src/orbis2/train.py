@@ -369,6 +369,15 @@ def _host_group() -> Any:
     return dist.new_group(backend="gloo")
 
 
+def stopped_together() -> None:
+    """After :class:`~orbis2.errors.TrainingStopped`: wait until every rank has got here. A rank that exited
+    first would end its torchrun, and srun (``--kill-on-bad-exit``) the other ranks with it, while rank 0 may
+    still be acting on the stop (asking Slurm to requeue the job, ending its MLflow run): each rank calls this
+    once it is done, and exits after."""
+    if dist.is_initialized():
+        dist.barrier(group=_host_group())
+
+
 def _destroy_group() -> None:
     if dist.is_initialized():
         dist.destroy_process_group()
