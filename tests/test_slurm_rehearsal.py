@@ -103,8 +103,11 @@ def stop_and_requeue(job: str, out: Path, signal_name: str, ranks: int) -> tuple
     wait_until(lambda: restarts(job) >= 1, "the requeue", timeout_s=120)
     requeued = time.monotonic() - signalled
     # Slurm holds a requeued batch job about two minutes before it may start again; the rehearsal lets it start
-    # at once (the job, its requeue and what it runs unchanged).
+    # as soon as the first run's processes are gone from the node, this machine (the job, its requeue and what it
+    # runs unchanged).
     wait_until(lambda: state(job) == "PENDING", "the requeued job pending", timeout_s=120)
+    wait_until(lambda: subprocess.run(["scontrol", "listpids", job], capture_output=True).returncode != 0,
+               "the first run's processes gone", timeout_s=120)
     subprocess.run(["scontrol", "update", f"JobId={job}", "StartTime=now"], check=True)
     return until_step, requeued, wait_until(lambda: state(job) in ENDED, "the requeued job")
 
