@@ -26,7 +26,7 @@ from orbis2.errors import REQUEUE_EXIT, WARNING_SIGNALS, TrainingStopped
 from orbis2.latents import open_cache
 from orbis2.stage import requeue_slurm_job
 from orbis2.tasks.predictors import PredictorTask
-from orbis2.train import stopped_together, train
+from orbis2.train import train
 
 ROOT = Path(__file__).resolve().parents[1]
 STEPS = 12
@@ -75,7 +75,7 @@ def main(cache: str, out: str, at: str | None = None) -> None:
         print(f"rank {rank()}: {stop}", flush=True)
         if stop.signal_name in WARNING_SIGNALS:
             requeue_slurm_job("multinode_train")
-        stopped_together()
+        stop.stopped_together()
         sys.exit(REQUEUE_EXIT)
 
 

@@ -4,6 +4,8 @@ Stages catch it, print its message (which names the file and the fix) and exit
 with status 2 instead of a stack trace; anything else is a bug and keeps its trace.
 """
 
+from typing import Callable
+
 
 class OrbisError(ValueError):
     """A user-fixable problem; the message names the file or key and the fix."""
@@ -23,8 +25,18 @@ WARNING_SIGNALS = ("SIGUSR1", "SIGURG")
 
 class TrainingStopped(Exception):
     """Training stopped at a step boundary on a signal (a scheduler's time limit or preemption), after writing
-    its checkpoint: not an error; the stage exits with :data:`REQUEUE_EXIT` and a re-run resumes it."""
+    its checkpoint: not an error; the stage exits with :data:`REQUEUE_EXIT` and a re-run resumes it.
 
-    def __init__(self, message: str, signal_name: str, step: int):
+    Each rank calls :meth:`stopped_together` once it is done acting on the stop, and exits after: a rank that
+    exited first would end its torchrun, and srun (``--kill-on-bad-exit``) the other ranks with it, while rank 0
+    may still be asking Slurm to requeue the job or ending its MLflow run."""
+
+    def __init__(self, message: str, signal_name: str, step: int,
+                 together: Callable[[], None] = lambda: None):
         super().__init__(message)
         self.signal_name, self.step = signal_name, step
+        self._together = together
+
+    def stopped_together(self) -> None:
+        """Return once every rank of the run has called it (at once with one process)."""
+        self._together()

@@ -204,9 +204,7 @@ def open_stage(name: str, args: argparse.Namespace, interface: Interface,
         print(f"[{name}] {err} (exit {REQUEUE_EXIT})", file=sys.stderr)
         if err.signal_name in WARNING_SIGNALS:
             requeue_slurm_job(name)
-        from orbis2.train import stopped_together  # torch is loaded: the stage has trained
-
-        stopped_together()
+        err.stopped_together()
         sys.exit(REQUEUE_EXIT)
     except OrbisError as err:
         print(f"[{name}] error: {err}", file=sys.stderr)

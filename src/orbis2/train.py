@@ -369,15 +369,6 @@ def _host_group() -> Any:
     return dist.new_group(backend="gloo")
 
 
-def stopped_together() -> None:
-    """After :class:`~orbis2.errors.TrainingStopped`: wait until every rank has got here. A rank that exited
-    first would end its torchrun, and srun (``--kill-on-bad-exit``) the other ranks with it, while rank 0 may
-    still be acting on the stop (asking Slurm to requeue the job, ending its MLflow run): each rank calls this
-    once it is done, and exits after."""
-    if dist.is_initialized():
-        dist.barrier(group=_host_group())
-
-
 def _destroy_group() -> None:
     if dist.is_initialized():
         dist.destroy_process_group()
@@ -565,7 +556,8 @@ class _Run:
             self.save_checkpoint()
         name = signal.Signals(signum).name
         raise TrainingStopped(f"stopped by {name} at step {self.step} of {self.cfg.steps}, checkpoint "
-                              f"{self.checkpoint_path} written; run the stage again to resume", name, self.step)
+                              f"{self.checkpoint_path} written; run the stage again to resume", name, self.step,
+                              together=functools.partial(_barrier, self.env, self.env.control))
 
     def autocast(self) -> contextlib.AbstractContextManager:
         if self.cfg.mixed_precision == "bf16" and self.env.device.type == "cuda":
