@@ -52,7 +52,7 @@ def train_config(**values) -> TrainConfig:
     plain = dict(weight_decay=0.0, decay_biases_and_norms=False, betas=(0.9, 0.999), optimizer="adamw",
                  warmup_steps=0, min_lr_ratio=0.1, grad_clip=None, ema_decay=None, mixed_precision="bf16", tf32=True,
                  activation_checkpointing=0, checkpoint_policy="full", compile=False, log_every=10, eval_every=0,
-                 checkpoint_every=500, seed=0, num_workers=0)
+                 checkpoint_every=500, seed=0, num_workers=0, micro_batch_size=None)
     return TrainConfig(**{**plain, **values})
 
 

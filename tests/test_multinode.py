@@ -81,6 +81,60 @@ def test_the_slurm_profile_spans_nodes_for_training_and_asks_for_the_warning():
     assert not [w for w in words if w.startswith(("--gpus", "--ntasks-per-gpu"))], call
 
 
+def sbatch_call(request: dict) -> list[str]:
+    """The words of the sbatch call that snakemake-executor-plugin-slurm makes of a rule's profile entry."""
+    submit = pytest.importorskip("snakemake_executor_plugin_slurm.submit_string")
+    from snakemake_executor_plugin_slurm.utils import set_gres_string
+    from snakemake_executor_plugin_slurm.validation import validate_slurm_extra
+
+    class Resources(dict):
+        __getattr__ = dict.__getitem__
+
+    job = SimpleNamespace(resources=Resources({"gpu": 0, **request}), threads=request["cpus_per_task"])
+    validate_slurm_extra(job)
+    params = {"run_uuid": "job", "slurm_logfile": "log", "comment_str": "rule", "account": "", "partition": "-p gpu",
+              "workdir": "."}
+    return (submit.get_submit_command(job, params) + set_gres_string(job)).split()
+
+
+def test_every_training_rule_is_warned_and_requeued_and_a_one_task_job_with_sigurg():
+    """A training rule of one task (inverse_dynamics; every training rule when TRAIN is one node) asks for
+    SIGURG ahead of its limit: the plugin runs it under Snakemake in a one-task job step, which Slurm's signal
+    reaches and SIGUSR1 would kill. No other rule asks for a signal."""
+    from orbis2 import dag
+    from orbis2.interfaces import GPU, INTERFACES, Resources
+
+    slurm = yaml.safe_load((ROOT / "profiles/slurm/config.yaml").read_text())["set-resources"]
+    training = {name for name, request in slurm.items() if "--requeue" in request.get("slurm_extra", "")}
+    assert {"tokenizer_detail", "detail", "abstract_df", "inverse_dynamics"} <= training
+    assert not {name for name, request in slurm.items() if "slurm_extra" in request} - training
+    assert "mpi" not in slurm["inverse_dynamics"]
+    assert slurm["inverse_dynamics"]["slurm_extra"] == "--signal=URG@600 --requeue"
+    words = sbatch_call(slurm["inverse_dynamics"])
+    assert {"--signal=URG@600", "--requeue", "--gres=gpu:1"} <= set(words), words
+
+    class Value(int):
+        value = property(int)
+
+    rule = SimpleNamespace(shellcmd="{config[train_launcher]} stages/predictor.py detail --profile paper",
+                           resources={"gpu": Value(8), "_cores": Value(16), "mem_mb": Value(480000),
+                                      "runtime": Value(2880)})
+    one_node = Resources(threads=16, gpu=8, mem_mb=480000, runtime=2880, nodes=1)
+    assert dag.slurm_resources(rule)["nodes"] == TRAIN.nodes
+    original = dag.TRAIN
+    try:
+        dag.TRAIN = one_node
+        request = dag.slurm_resources(rule)
+    finally:
+        dag.TRAIN = original
+    assert request == {"slurm_partition": "gpu", "cpus_per_task": 16, "mem_mb": 480000, "runtime": 2880,
+                       "gres": "gpu:8", "slurm_extra": "--signal=URG@600 --requeue"}
+    assert {"--signal=URG@600", "--requeue", "--gres=gpu:8"} <= set(sbatch_call(request))
+    evaluation = SimpleNamespace(shellcmd=f"python {INTERFACES['eval_steering'].script} --profile paper",
+                                 resources=rule.resources)
+    assert "slurm_extra" not in dag.slurm_resources(evaluation) and GPU.nodes == 1
+
+
 def test_the_launcher_refuses_to_run_outside_slurm():
     env = {k: v for k, v in os.environ.items() if k != "SLURM_JOB_ID"}
     proc = subprocess.run([str(LAUNCHER), "stages/predictor.py"], env=env, capture_output=True, text=True)
@@ -135,11 +189,11 @@ def test_two_simulated_nodes_stopped_by_sigusr1_and_requeued_end_as_one_node_of_
     assert one.keys() == two.keys() and all(torch.equal(one[k], two[k]) for k in one)
 
 
-@pytest.mark.parametrize("signal_name, requeued", [("SIGUSR1", True), ("SIGTERM", False)])
+@pytest.mark.parametrize("signal_name, requeued", [("SIGUSR1", True), ("SIGURG", True), ("SIGTERM", False)])
 def test_a_stopped_stage_exits_75_and_requeues_its_slurm_job_on_sigusr1(tmp_path, monkeypatch, capfd, signal_name,
                                                                         requeued):
-    """SIGUSR1 is the warning ahead of the time limit: the stage asks Slurm to requeue its job; SIGTERM (a cancel,
-    a preemption) does not. Either way the stage exits with REQUEUE_EXIT."""
+    """SIGUSR1 and SIGURG are the warning ahead of the time limit: the stage asks Slurm to requeue its job;
+    SIGTERM (a cancel, a preemption) does not. Either way the stage exits with REQUEUE_EXIT."""
     import argparse
     import contextlib
 

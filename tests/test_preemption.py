@@ -52,7 +52,7 @@ class SignalledRegression(Signalled, Regression):
     pass
 
 
-@pytest.mark.parametrize("signum", [signal.SIGUSR1, signal.SIGTERM])
+@pytest.mark.parametrize("signum", [signal.SIGUSR1, signal.SIGURG, signal.SIGTERM])
 def test_a_signal_checkpoints_within_one_step_and_the_resume_is_bit_identical(tmp_path, signum):
     cfg = config(steps=20, checkpoint_every=7)
     handler = signal.getsignal(signum)

@@ -29,12 +29,14 @@ def test_published_params_are_todays_or_marked_stale(record):
         f"{published['profile']} --why '...'")
 
 
-def test_a_setting_added_since_counts_only_at_its_null_off_value():
+def test_a_setting_added_since_counts_as_the_same_only_at_its_null_off_value():
     published = {"profile": "default", "data": {"fps": 10}}
     assert same_params(published, {**published, "official_weights": None})
     assert not same_params(published, {**published, "official_weights": "data/official"})
     assert not same_params(published, {**published, "data": {"fps": 5}})
     assert not same_params({**published, "old": None}, published)  # a setting removed since: not the same
+    assert same_params(published, {**published, "data": {"fps": 10, "micro_batch_size": None}})  # at any depth
+    assert not same_params(published, {**published, "data": {"fps": 10, "micro_batch_size": 8}})
 
 
 def test_every_published_folder_links_what_it_holds():

@@ -157,8 +157,9 @@ def main() -> None:
     parser.add_argument("--profile", default="smoke")
     parser.add_argument("--trials", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0, help="seeds the kill steps and moments")
-    parser.add_argument("--signal", choices=("KILL", "USR1", "TERM"), default="KILL",
-                        help="SIGKILL (default), or the signal of a time limit's warning (USR1) or a preemption")
+    parser.add_argument("--signal", choices=("KILL", "USR1", "URG", "TERM"), default="KILL",
+                        help="SIGKILL (default), or the signal of a time limit's warning (USR1, or URG to a "
+                             "one-task job) or a preemption (TERM)")
     parser.add_argument("--keep", action="store_true", help="keep the workspaces (printed) for inspection")
     args = parser.parse_args()
     cmd, out = stage_command(args.stage, args.profile)

@@ -24,6 +24,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 import torch
@@ -42,11 +43,13 @@ def profile_params(raw: dict, profile: str) -> dict:
     return json.loads(json.dumps(as_dict(parse_config({**raw, "profile": profile}, profile)), default=str))
 
 
-def same_params(published: dict, today: dict) -> bool:
-    """Whether a published run's params are today's. A top-level setting added after the run counts as the
-    same when it is null today: null is the setting's off value, the behaviour the run had without it."""
+def same_params(published: Any, today: Any) -> bool:
+    """Whether a published run's params are today's. A setting added after the run, at any depth, counts as the
+    same when it is null today: null is a setting's off value, the behaviour the run had without it."""
+    if not (isinstance(published, dict) and isinstance(today, dict)):
+        return published == today
     added = {key for key in today.keys() - published.keys() if today[key] is None}
-    return published == {key: value for key, value in today.items() if key not in added}
+    return published.keys() == today.keys() - added and all(same_params(published[k], today[k]) for k in published)
 
 
 def params_digest(params: dict) -> str:

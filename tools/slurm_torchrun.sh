@@ -10,7 +10,10 @@
 # Snakemake's job step hands the rule's command only SLURM_JOB_ID, and a step gets one CPU a task
 # unless it asks for the node's. Every node must reach the first one on RDZV_PORT (default
 # 20000 + job id mod 10000, so that two jobs sharing a node do not meet); NPROC_PER_NODE
-# (default `gpu`: one process per visible GPU) sets the processes per node.
+# (default `gpu`: one process per visible GPU) sets the processes per agent. AGENTS (default:
+# the job's node count, one agent a node) sets how many torchrun agents start, spread evenly
+# over the nodes: a rehearsal on one machine starts two, as two nodes would
+# (tests/test_slurm_rehearsal.py).
 #
 # torchrun itself ignores SIGUSR1 (it would otherwise die of it and take the workers with it): Slurm's
 # `--signal=USR1@<seconds>` reaches every process of the step, and only the training processes act on it
@@ -22,8 +25,11 @@ read -r nodelist nodes cpus < <(squeue --noheader --jobs "$job" --format "%N %D 
 head=$(scontrol show hostnames "$nodelist" | sed -n 1p)
 port=${RDZV_PORT:-$((20000 + job % 10000))}
 
-exec srun --nodes "$nodes" --ntasks "$nodes" --ntasks-per-node 1 --cpus-per-task $((cpus / nodes)) \
-    --kill-on-bad-exit=1 \
+agents=${AGENTS:-$nodes}
+(( agents % nodes == 0 )) || { echo "slurm_torchrun.sh: AGENTS=$agents does not spread evenly over $nodes nodes" >&2; exit 2; }
+
+exec srun --nodes "$nodes" --ntasks "$agents" --ntasks-per-node $((agents / nodes)) \
+    --cpus-per-task $((cpus / agents)) --kill-on-bad-exit=1 \
     bash -c 'trap "" USR1; exec "$@"' launcher \
-    torchrun --nnodes "$nodes" --nproc_per_node "${NPROC_PER_NODE:-gpu}" \
+    torchrun --nnodes "$agents" --nproc_per_node "${NPROC_PER_NODE:-gpu}" \
     --rdzv_backend c10d --rdzv_endpoint "$head:$port" --rdzv_id "$job" "$@"

@@ -26,7 +26,7 @@ from typing import Any, Callable
 import yaml
 
 from orbis2.config.params import load_params, section_chain
-from orbis2.interfaces import TRAIN
+from orbis2.interfaces import INTERFACES, TRAIN
 from orbis2.registry import layout_path, registry
 from orbis2.stage import LOSS_PLOTS, module_closure
 
@@ -79,8 +79,8 @@ SLURM_HEADER = """\
 #   pip install snakemake-executor-plugin-slurm
 #   snakemake --workflow-profile profiles/slurm --config profile=paper \\
 #       train_launcher=tools/slurm_torchrun.sh
-# Training rules span nodes (orbis2.interfaces TRAIN), one torchrun per node, and are warned
-# ahead of their time limit to checkpoint and requeue (docs/gpus-and-clusters.md).
+# Training rules span nodes (orbis2.interfaces TRAIN), one torchrun per node; every training
+# rule is warned ahead of its time limit to checkpoint and requeue (docs/gpus-and-clusters.md).
 # Adjust partitions, accounts and limits to your cluster.
 """
 SLURM_BASE = {"executor": "slurm", "jobs": 50,
@@ -256,8 +256,9 @@ def requests(declared: dict[str, int], runs_here: Callable[[], bool]) -> dict[st
 
 def slurm_resources(rule) -> dict:
     """A rule's SLURM request: GPU rules on the gpu partition, one task with the rule's threads (the rules as
-    :func:`snakemake_rules` reads them: with the declared GPUs and memory, not this machine's); a training rule
-    (one that starts through ``train_launcher``) spans ``TRAIN.nodes`` nodes (:func:`multi_node`)."""
+    :func:`snakemake_rules` reads them: with the declared GPUs and memory, not this machine's); a rule that
+    starts through ``train_launcher`` spans ``TRAIN.nodes`` nodes (:func:`multi_node`), and any other rule of
+    a stage that trains gets the warning of a one-task job (:func:`one_task_warning`)."""
     value = {name: int(rule.resources[name].value) for name in ("gpu", "_cores", "mem_mb", "runtime")}
     gpus = value["gpu"]
     out = {"slurm_partition": "gpu" if gpus else "cpu", "cpus_per_task": value["_cores"],
@@ -266,7 +267,15 @@ def slurm_resources(rule) -> dict:
         out["gres"] = f"gpu:{gpus}"
     if LAUNCHER in rule.shellcmd and TRAIN.nodes > 1:
         out.update(multi_node(TRAIN.nodes))
+    elif trains(rule):
+        out["slurm_extra"] = one_task_warning()
     return out
+
+
+def trains(rule) -> bool:
+    """Whether the rule runs the script of a stage that trains (``Interface.trains``)."""
+    return any(interface.trains and f" {interface.script} " in f" {rule.shellcmd} "
+               for interface in INTERFACES.values())
 
 # Slurm's warning to a training job ahead of its time limit: time to finish the step under way and write the
 # checkpoint (orbis2.train) before the limit's SIGTERM and, KillWait later, SIGKILL.
@@ -290,6 +299,18 @@ def multi_node(nodes: int) -> dict:
     """
     return {"nodes": nodes, "mpi": "srun", "tasks": nodes, "tasks_per_gpu": 0, "gpu": 0,
             "slurm_extra": f"--ntasks-per-node=1 --signal=USR1@{STOP_WARNING_S} --requeue"}
+
+
+def one_task_warning() -> str:
+    """The warning and requeue of a training job of one task (one node: ``TRAIN.nodes`` 1, or a one-GPU stage).
+
+    The plugin runs such a rule's command in a one-task job step, under the job step's Snakemake and its shell,
+    and Slurm's ``--signal`` reaches every process of the step: SIGUSR1 would kill both (their default), the
+    job step would end and take the stage with it mid-checkpoint. SIGURG is ignored by default by all but the
+    training process, which stops on it as on SIGUSR1 (``orbis2.train.STOP_SIGNALS``). The plugin's ``mpi``
+    mode, which keeps Snakemake out of the signalled step, needs two tasks or more.
+    """
+    return f"--signal=URG@{STOP_WARNING_S} --requeue"
 
 
 def generate(root: Path = ROOT) -> dict[Path, str]:

@@ -124,6 +124,9 @@ class Interface:
     record: str | None = None  # the orbis2.eval.records model it writes, by name
     rules: str | None = None  # the rules/*.smk file that makes its rules; None: made from this declaration alone
     options: tuple[str, ...] = ()  # options other than paths that its rules pass (how many parts, which one)
+    # Its stage runs the training loop (orbis2.train): on Slurm's warning ahead of the time limit it stops at a step
+    # boundary with a checkpoint and requeues its job, which profiles/slurm asks for (orbis2.dag.slurm_resources).
+    trains: bool = False
 
     @property
     def launcher(self) -> str:
@@ -182,9 +185,9 @@ INTERFACES: dict[str, Interface] = _declare(
     ), ("assets",), LIGHT, FIRST, rules="rules/data.smk"),
     # The tokenizers' own sections (tokenizer_<entry>) come with their registry.yaml entry.
     Interface("tokenizer_detail", "stages/tokenizer_detail.py", TOKENIZER_PATHS, ("data",), TRAIN, FIRST,
-              rules="rules/tokenizers.smk"),
+              rules="rules/tokenizers.smk", trains=True),
     Interface("tokenizer_abstract", "stages/tokenizer_abstract.py", TOKENIZER_PATHS, ("data",), TRAIN, FIRST,
-              rules="rules/tokenizers.smk"),
+              rules="rules/tokenizers.smk", trains=True),
     Interface("latents", "stages/latents.py", (
         SHARDS, *TOKENIZERS,
         PathOption("latents", "--out", "the latent cache", "latents", name="{name}", output=True, folder=True),
@@ -197,7 +200,7 @@ INTERFACES: dict[str, Interface] = _declare(
                    fallback="data/predictors/<init_from>"),
         PathOption("weights", "--out", "output folder", "predictor", name="{name}", output=True, folder=True),
         REPORT,
-    ), ("data",), TRAIN, FIRST, rules="rules/predictors.smk"),
+    ), ("data",), TRAIN, FIRST, rules="rules/predictors.smk", trains=True),
     Interface("eval_fvd", "stages/eval_fvd.py", (
         LATENTS, *TOKENIZERS, SHARDS, ASSETS, PREDICTORS,
         PathOption("fvd", "--fvd", "the record", "fvd", name="{name}", output=True),
@@ -216,7 +219,8 @@ INTERFACES: dict[str, Interface] = _declare(
         PathOption("weights", "--out", "output folder (its inverse_dynamics.pt)", "inverse_dynamics", output=True,
                    folder=True),
         PathOption("report", "--report", "metrics report", "report", name="inverse_dynamics", output=True),
-    ), ("data", "town", "shards", "truth", "inverse_dynamics"), GPU, FIRST, rules="rules/evaluation.smk"),
+    ), ("data", "town", "shards", "truth", "inverse_dynamics"), GPU, FIRST, rules="rules/evaluation.smk",
+        trains=True),
     # The town's true counterfactuals of the steering starts: data, cached per clip and command.
     Interface("truth", "stages/truth.py", (
         SHARDS,

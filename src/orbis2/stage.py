@@ -38,7 +38,7 @@ from typing import Iterable, Iterator, Sequence
 import orbis2
 from orbis2.config.params import PipelineConfig, as_dict
 from orbis2.config.training import BOOKKEEPING_FIELDS
-from orbis2.errors import REQUEUE_EXIT, OrbisError, TrainingStopped
+from orbis2.errors import REQUEUE_EXIT, WARNING_SIGNALS, OrbisError, TrainingStopped
 from orbis2.interfaces import Interface, PathOption
 from orbis2.io import atomic_dir, sha256_file, write_json
 from orbis2.registry import layout_path, registry
@@ -183,9 +183,9 @@ def open_stage(name: str, args: argparse.Namespace, interface: Interface,
     logged as ``wall_seconds`` (the parent's ``tables/stage_times.csv`` collects them) and
     ``[<name>] <summary> (<s> s, profile <p>)`` printed. A user-fixable problem (:class:`OrbisError`) prints
     ``[<name>] error: ...`` and exits with status 2. Training stopped by a signal (:class:`TrainingStopped`,
-    its checkpoint written) exits with ``REQUEUE_EXIT`` (75), after asking Slurm to requeue the job on SIGUSR1
-    (:func:`requeue_slurm_job`). Run by hand without ``--profile``, the stage takes the profile of the data it
-    works on (:func:`profile_witness`) and says so.
+    its checkpoint written) exits with ``REQUEUE_EXIT`` (75), after asking Slurm to requeue the job on a warning
+    (SIGUSR1, SIGURG: :func:`requeue_slurm_job`). Run by hand without ``--profile``, the stage takes the
+    profile of the data it works on (:func:`profile_witness`) and says so.
     """
     started = time.perf_counter()
     freeze_imports()  # the script's own imports
@@ -202,8 +202,9 @@ def open_stage(name: str, args: argparse.Namespace, interface: Interface,
             run.log_metrics({"wall_seconds": seconds})  # the parent's tables/stage_times.csv (report_main)
     except TrainingStopped as err:
         print(f"[{name}] {err} (exit {REQUEUE_EXIT})", file=sys.stderr)
-        if err.signal_name == "SIGUSR1":
+        if err.signal_name in WARNING_SIGNALS:
             requeue_slurm_job(name)
+        err.stopped_together()
         sys.exit(REQUEUE_EXIT)
     except OrbisError as err:
         print(f"[{name}] error: {err}", file=sys.stderr)
@@ -214,11 +215,11 @@ def open_stage(name: str, args: argparse.Namespace, interface: Interface,
 def requeue_slurm_job(name: str) -> None:
     """Put this Slurm batch job back in the queue (``scontrol requeue``); rank 0 only, the checkpoint written.
 
-    SIGUSR1 is Slurm's warning ahead of the time limit (``--signal=USR1@<seconds>``, which profiles/slurm asks
-    for on every training rule, with ``--requeue``): the requeued job runs the stage again, and it resumes. Like
-    Lightning's and submitit's Slurm handling, the stage asks for the requeue itself, as only it knows that its
-    checkpoint is written. Outside a Slurm job nothing happens; a refusal (a job without ``--requeue``) is
-    printed, and running the stage again resumes it all the same.
+    SIGUSR1 and SIGURG are Slurm's warning ahead of the time limit (``--signal=USR1@<seconds>`` or
+    ``URG@<seconds>``, which profiles/slurm asks for on every training rule, with ``--requeue``): the requeued
+    job runs the stage again, and it resumes. Like Lightning's and submitit's Slurm handling, the stage asks for
+    the requeue itself, as only it knows that its checkpoint is written. Outside a Slurm job nothing happens; a
+    refusal (a job without ``--requeue``) is printed, and running the stage again resumes it all the same.
     """
     job = os.environ.get("SLURM_JOB_ID")
     if job is None or int(os.environ.get("RANK", "0")) != 0:

@@ -10,12 +10,17 @@ behind a checksum (:func:`load_checkpoint`); a re-run resumes from it,
 bit-identically on CPU. The schedule is a pure function
 of the step (:func:`lr_at`), so the step is the whole scheduler state.
 
-SIGUSR1 (a scheduler's warning before a time limit) and SIGTERM (preemption, a cancel) stop the run at the
-next step boundary: every rank agrees on the signal, rank 0 writes the checkpoint while the others wait, and
+SIGUSR1 or SIGURG (a scheduler's warning before a time limit) and SIGTERM (preemption, a cancel) stop the run
+at the next step boundary: every rank agrees on the signal, rank 0 writes the checkpoint while the others wait, and
 :func:`train` raises :class:`~orbis2.errors.TrainingStopped` (a stage then exits with ``REQUEUE_EXIT``, 75);
 the next run resumes there, bit-identically. A run may resume with another number of processes when its task
 draws every batch from the global sample order (``Task.global_order``); see :meth:`_Run.resume` for what is
 then not bit-identical.
+
+A process whose share of the global batch exceeds ``micro_batch_size`` runs it as several micro-batches,
+accumulating their gradients (synchronised across processes on the last one only, DDP's ``no_sync``), and
+steps the optimiser once (:func:`batch_split`); signals, checkpoints and the data position count optimiser
+steps, never micro-batches.
 
 ``out_dir/model.pt`` holds ``{"model": EMA weights if EMA is on else raw, "raw",
 "ema", "step", "config"}``; read it with :func:`load_weights`. Beside it,
@@ -29,6 +34,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import contextvars
 import copy
 import dataclasses
 import functools
@@ -80,6 +86,41 @@ def lr_at(step: int, cfg: TrainConfig) -> float:
     return cfg.lr * (floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * progress)))
 
 
+def batch_split(cfg: TrainConfig, world_size: int) -> tuple[int, int, int]:
+    """``(share, micro, accumulation)``: each of ``world_size`` processes takes ``share`` samples of the global
+    ``batch_size`` a step and runs them as ``accumulation`` micro-batches of ``micro`` samples.
+
+    ``micro`` is ``micro_batch_size`` when the share exceeds it, else the whole share (one micro-batch): the
+    same setting serves 8 GPUs (share 8, one micro-batch) and 4 (share 16, two of 8). A split that does not come
+    out whole raises :class:`ConfigError` naming the numbers and what would divide.
+    """
+    if cfg.batch_size % world_size:
+        raise ConfigError(f"train config: batch_size = {cfg.batch_size} is not divisible by the "
+                          f"{world_size} processes; use a multiple of {world_size}")
+    share = cfg.batch_size // world_size
+    micro = cfg.micro_batch_size
+    if micro is None or share <= micro:
+        return share, share, 1
+    if share % micro:
+        fits = [d for d in range(micro, 0, -1) if share % d == 0][:3]
+        raise ConfigError(f"train config: batch_size = {cfg.batch_size} over {world_size} processes is {share} "
+                          f"samples a process, which micro_batch_size = {micro} does not divide; set "
+                          f"micro_batch_size to a divisor of {share} (e.g. {', '.join(map(str, fits))}) or "
+                          f"run on a number of processes that leaves a multiple of {micro}")
+    return share, micro, share // micro
+
+
+# Which micro-batch of the current optimiser step a task's loss is computing (:func:`micro_step`).
+_MICRO_STEP: contextvars.ContextVar[int] = contextvars.ContextVar("micro_step", default=0)
+
+
+def micro_step() -> int:
+    """The index of the micro-batch that the task's ``loss`` is computing within this optimiser step: 0 without
+    gradient accumulation. A task that seeds its noise per ``(rank, step)`` adds it (when not 0) so that the
+    micro-batches of one step draw independent noise."""
+    return _MICRO_STEP.get()
+
+
 def rank_seed(seed: int, rank: int) -> int:
     """An independent seed per rank, so ranks draw different noise from one params.yaml seed."""
     return int(np.random.SeedSequence([seed, rank]).generate_state(1)[0])
@@ -99,7 +140,7 @@ class DataSpec:
 
     rank: int
     world_size: int
-    batch_size: int  # per rank
+    batch_size: int  # per rank: its share of the global batch, all its micro-batches together
     seed: int
     start: int
     num_workers: int
@@ -353,9 +394,7 @@ class _Run:
     evaluation, periodic checkpoints) to ``cfg.steps``; the checkpoint and weight files are written last."""
 
     def __init__(self, task: Task, cfg: TrainConfig, out_dir: Path, logger: Any, env: _Env):
-        if cfg.batch_size % env.world_size:
-            raise ConfigError(f"train config: batch_size = {cfg.batch_size} is not divisible by the "
-                              f"{env.world_size} processes; use a multiple of {env.world_size}")
+        self.share, _, self.accumulation = batch_split(cfg, env.world_size)
         self.task, self.cfg, self.logger, self.env = task, cfg, logger, env
         self.out_dir = out_dir
         self.checkpoint_path = out_dir / "checkpoints" / "last.pt"
@@ -366,6 +405,13 @@ class _Run:
         if cfg.activation_checkpointing:
             set_checkpointing(self.raw, cfg.activation_checkpointing, cfg.checkpoint_policy)
         self.updates = _updates(task, self.raw)
+        if self.accumulation > 1 and len(self.updates) > 1:
+            # An extra update (a discriminator) scores the main update's outputs of the same batch: it would
+            # need every micro-batch's, kept across the main update's optimiser step.
+            raise ConfigError(f"train config: micro_batch_size = {cfg.micro_batch_size} accumulates "
+                              f"{self.accumulation} micro-batches a step, and this stage also trains "
+                              f"{', '.join(u.name for u in self.updates[1:])} on the same batch, which gradient "
+                              f"accumulation does not support; set micro_batch_size: null or use more processes")
         self.optimizers = {u.name: _optimizer(u.params, cfg, env.device) for u in self.updates}
         self.model: nn.Module = self.raw
         if env.world_size > 1:
@@ -387,8 +433,8 @@ class _Run:
     def run(self) -> TrainResult:
         self.resume()
         cfg, env = self.cfg, self.env
-        spec = DataSpec(env.rank, env.world_size, cfg.batch_size // env.world_size, cfg.seed, self.position,
-                        cfg.num_workers, pin_memory=env.device.type == "cuda")
+        spec = DataSpec(env.rank, env.world_size, self.share, cfg.seed, self.position, cfg.num_workers,
+                        pin_memory=env.device.type == "cuda")
         batches: Iterator[Any] = iter(self.task.batches(spec))
         meter = _Meter()
         started = time.perf_counter()
@@ -421,13 +467,19 @@ class _Run:
         batch = _to_device(batch, self.env.device)
         self.position += 1
         for update in self.updates:
-            with self.autocast():
-                out = update.loss(self.model, batch, self.step)
-            if out is None:
-                continue
-            loss, metrics = out
-            self.model.zero_grad(set_to_none=True)
-            loss.backward()
+            if self.accumulation == 1:
+                with self.autocast():
+                    out = update.loss(self.model, batch, self.step)
+                if out is None:
+                    continue
+                loss, metrics = out
+                self.model.zero_grad(set_to_none=True)
+                loss.backward()
+            else:
+                out = self.accumulate(update, batch)
+                if out is None:
+                    continue
+                loss, metrics = out
             norm = nn.utils.clip_grad_norm_(update.params, self.cfg.grad_clip or math.inf)
             optimizer = self.optimizers[update.name]
             for group in optimizer.param_groups:
@@ -438,6 +490,33 @@ class _Run:
         if self.ema is not None:
             _ema_update(self.ema, self.raw, ema_decay_at(self.step, self.cfg.ema_decay))
         self.step += 1
+
+    def accumulate(self, update: Update, batch: Any) -> LossOutput | None:
+        """Gradients of ``update``'s loss over this rank's batch, as ``self.accumulation`` micro-batches: each
+        micro-batch's loss divided by their number and back-propagated, DDP's gradient averaging left to the
+        last. Returns the micro-batches' mean loss and metrics, or ``None`` when the update skips this step."""
+        micro_batches = _split_batch(batch, self.accumulation)
+        losses, sums = [], {}
+        for index, micro in enumerate(micro_batches):
+            last = index == len(micro_batches) - 1
+            sync = contextlib.nullcontext() if last or self.env.world_size == 1 else self.model.no_sync()
+            token = _MICRO_STEP.set(index)
+            try:
+                with sync:
+                    with self.autocast():
+                        out = update.loss(self.model, micro, self.step)
+                    if out is None:
+                        return None
+                    loss, metrics = out
+                    if index == 0:
+                        self.model.zero_grad(set_to_none=True)
+                    (loss / self.accumulation).backward()
+            finally:
+                _MICRO_STEP.reset(token)
+            losses.append(loss.detach())
+            for key, value in metrics.items():
+                sums[key] = sums.get(key, 0.0) + (value.detach() if torch.is_tensor(value) else value)
+        return sum(losses) / len(losses), {key: value / len(losses) for key, value in sums.items()}
 
     def after_step(self, meter: _Meter, bar: tqdm) -> None:
         step, cfg = self.step, self.cfg
@@ -462,21 +541,23 @@ class _Run:
         """At a step boundary: if any rank has received a stop signal (``received`` is this rank's, 0 if none),
         every rank stops here, after rank 0 has written the checkpoint of this step.
 
-        The ranks agree through a reduction of the signal numbers (SIGTERM outranks SIGUSR1), so they stop at the
-        same step: a rank that stopped alone would leave the others waiting in the next collective.
+        The ranks agree through a reduction of the signals' ranks in :data:`STOP_SIGNALS` (SIGTERM, a cancel,
+        outranks a warning), so they stop at the same step: a rank that stopped alone would leave the others
+        waiting in the next collective.
         """
         signum = received
         if self.env.world_size > 1:
-            flag = torch.tensor([received], dtype=torch.int32)
+            flag = torch.tensor([STOP_SIGNALS.index(received) + 1 if received else 0], dtype=torch.int32)
             dist.all_reduce(flag, op=dist.ReduceOp.MAX, group=self.env.control)
-            signum = int(flag.item())
+            signum = STOP_SIGNALS[int(flag.item()) - 1] if flag.item() else 0
         if not signum:
             return
         if self.checkpointed != self.step:
             self.save_checkpoint()
         name = signal.Signals(signum).name
         raise TrainingStopped(f"stopped by {name} at step {self.step} of {self.cfg.steps}, checkpoint "
-                              f"{self.checkpoint_path} written; run the stage again to resume", name, self.step)
+                              f"{self.checkpoint_path} written; run the stage again to resume", name, self.step,
+                              together=functools.partial(_barrier, self.env, self.env.control))
 
     def autocast(self) -> contextlib.AbstractContextManager:
         if self.cfg.mixed_precision == "bf16" and self.env.device.type == "cuda":
@@ -625,6 +706,24 @@ def _ema_update(ema: nn.Module, raw: nn.Module, decay: float) -> None:
         ema_buffer.copy_(buffer)
 
 
+def _split_batch(batch: Any, parts: int) -> list[Any]:
+    """``batch`` (tensors, or dicts, lists and tuples of them, with the samples along the first dimension) as
+    ``parts`` consecutive micro-batches of equal size."""
+    if torch.is_tensor(batch):
+        if batch.ndim == 0 or batch.shape[0] % parts:
+            raise ConfigError(f"micro_batch_size: a batch tensor of shape {tuple(batch.shape)} does not split into "
+                              f"{parts} micro-batches along its first dimension; set micro_batch_size: null")
+        return list(batch.tensor_split(parts))
+    if isinstance(batch, dict):
+        columns = {key: _split_batch(value, parts) for key, value in batch.items()}
+        return [{key: column[i] for key, column in columns.items()} for i in range(parts)]
+    if isinstance(batch, (list, tuple)):
+        columns = [_split_batch(value, parts) for value in batch]
+        return [type(batch)(column[i] for column in columns) for i in range(parts)]
+    raise ConfigError(f"micro_batch_size: a batch of {type(batch).__name__} does not split into micro-batches; "
+                      f"set micro_batch_size: null")
+
+
 def _to_device(batch: Any, device: torch.device) -> Any:
     if device.type == "cpu":
         return batch
@@ -716,9 +815,11 @@ def _seed_global_streams(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-# The signals that stop training at the next step boundary: a scheduler's warning ahead of a time limit
-# (Slurm's `--signal=USR1@<seconds>`) and termination (preemption, a cancel, the time limit itself).
-STOP_SIGNALS = (signal.SIGUSR1, signal.SIGTERM)
+# The signals that stop training at the next step boundary, weakest first: a scheduler's warning ahead of a time
+# limit (Slurm's `--signal=USR1@<seconds>` to a job over nodes; `URG@<seconds>` to a one-task job, whose Snakemake
+# and shell share the stage's job step and ignore SIGURG, where SIGUSR1 would kill them: orbis2.dag) and
+# termination (preemption, a cancel, the time limit itself).
+STOP_SIGNALS = (signal.SIGUSR1, signal.SIGURG, signal.SIGTERM)
 
 
 class _StopSignals:

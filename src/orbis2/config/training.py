@@ -21,15 +21,23 @@ from orbis2.models.sizes import STDIT_PRESETS, TOKENIZER_PRESETS
 
 # Fields that change only bookkeeping, never the trajectory: a resume may change them.
 # Activation checkpointing recomputes the same activations: it changes memory and time, not the numbers;
-# compilation changes only the order of floating-point operations (on GPU), not the method.
+# compilation changes only the order of floating-point operations (on GPU), not the method. The micro-batch
+# (gradient accumulation) changes how a process splits its share of the same global batch: the order of the
+# gradient's sums, as another number of processes does (orbis2.train.batch_split).
 BOOKKEEPING_FIELDS = frozenset({"log_every", "eval_every", "checkpoint_every", "activation_checkpointing",
-                                "checkpoint_policy", "compile"})
+                                "checkpoint_policy", "compile", "micro_batch_size"})
 CHECKPOINT_POLICIES = ("full", "selective")
 
 
 @dataclass(frozen=True)
 class TrainConfig:
     """Optimisation settings of one stage; ``batch_size`` is global (summed over ranks).
+
+    ``micro_batch_size`` caps the samples one process runs forward and backward at once (what its memory
+    holds): a process whose share of the global batch (``batch_size / processes``) is larger splits it into
+    micro-batches of this size and accumulates their gradients before the optimiser step, so that
+    ``batch_size = micro-batch x processes x accumulation steps`` (``orbis2.train.batch_split``); null: no
+    cap, one micro-batch of the whole share.
 
     ``weight_decay`` applies to weight matrices and kernels; ``decay_biases_and_norms``
     extends it to biases and norm scales (tensors under 2 dims), as a plain
@@ -46,6 +54,7 @@ class TrainConfig:
 
     steps: int
     batch_size: int
+    micro_batch_size: int | None
     lr: float
     weight_decay: float
     decay_biases_and_norms: bool
@@ -74,6 +83,8 @@ class TrainConfig:
             "optimizer": (self.optimizer in ("adamw", "adam"), "'adamw' or 'adam'"),
             "min_lr_ratio": (0 <= self.min_lr_ratio <= 1, "in [0, 1]"),
             "grad_clip": (self.grad_clip is None or self.grad_clip > 0, "> 0, or null for off"),
+            "micro_batch_size": (self.micro_batch_size is None or self.micro_batch_size >= 1,
+                                 ">= 1, or null for no cap"),
             "ema_decay": (self.ema_decay is None or 0 <= self.ema_decay < 1, "in [0, 1), or null for off"),
             "mixed_precision": (self.mixed_precision in ("bf16", "none"), "'bf16' or 'none'"),
             "checkpoint_policy": (self.checkpoint_policy in CHECKPOINT_POLICIES, "'full' or 'selective'"),

@@ -84,7 +84,7 @@ from orbis2.models.files import PredictorFile, load_predictor, save_predictor
 from orbis2.models.stdit import build_stdit_from
 from orbis2.registry import PredictorSpec, registry
 from orbis2.tasks import official
-from orbis2.train import DataSpec, ignore_stop_signals, load_weights, train
+from orbis2.train import DataSpec, ignore_stop_signals, load_weights, micro_step, train
 
 # Offset of the validation generator's seed from the training seed: a different stream, fixed across steps.
 VAL_SEED_OFFSET = 7919
@@ -250,10 +250,14 @@ def window_batches(dataset: LatentWindowDataset, spec: DataSpec,
     return iter(loader)
 
 
-def step_generator(seed: int, rank: int, step: int, device: torch.device) -> torch.Generator:
-    """The noise source of one training step: independent of the global RNG, so resuming replays it."""
+def step_generator(seed: int, rank: int, step: int, device: torch.device, micro: int = 0) -> torch.Generator:
+    """The noise source of one training step: independent of the global RNG, so resuming replays it.
+
+    ``micro``: the micro-batch within the step under gradient accumulation (:func:`orbis2.train.micro_step`);
+    each draws its own noise, and the first (the only one without accumulation) the step's of old."""
+    key = [seed, rank, step] if micro == 0 else [seed, rank, step, micro]
     generator = torch.Generator(device)
-    generator.manual_seed(int(np.random.SeedSequence([seed, rank, step]).generate_state(1)[0]))
+    generator.manual_seed(int(np.random.SeedSequence(key).generate_state(1)[0]))
     return generator
 
 
@@ -413,7 +417,8 @@ class PredictorTask:
     def loss(self, model: nn.Module, batch: dict[str, torch.Tensor], step: int
              ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         device = batch[self.batch_key].device
-        return self.objective(model, batch, step_generator(self.cfg.train.seed, self.rank, step, device), True)
+        generator = step_generator(self.cfg.train.seed, self.rank, step, device, micro_step())
+        return self.objective(model, batch, generator, True)
 
     def val_windows(self) -> list[dict[str, torch.Tensor]]:
         """``val_batches`` batches of val windows spread evenly over the split; the same every call."""
