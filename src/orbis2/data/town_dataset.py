@@ -155,7 +155,8 @@ def render_part(work: Path, data: DataConfig, cfg: TownConfig, part: int = 0, pa
     log = _TownLog(folder)
     done = log.records()
     todo = [plan for plan in plans if plan.stem not in done]
-    workers = min(cfg.workers or os.cpu_count() or 1, max(len(todo), 1))
+    # 0: one process per core the job may use (a Slurm job's cores, not the node's)
+    workers = min(cfg.workers or len(os.sched_getaffinity(0)), max(len(todo), 1))
     with tqdm(total=len(plans), initial=len(plans) - len(todo), desc=f"town {part_name(part, parts)}",
               unit="ep") as bar:
         if workers == 1:
