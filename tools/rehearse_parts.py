@@ -16,7 +16,7 @@ What it checks and reports (``--json``):
 
 The corpus: the smoke profile with ``--train`` train episodes of 3 s and the other splits' smoke lengths (216
 episodes by default), in a copy of this checkout (tracked and untracked files, not the ignored ones) under
-``--dir``. Needs Slurm's client tools (``sinfo``, ``scancel``) and ``snakemake-executor-plugin-slurm``.
+``--dir``, whose code the jobs run. Needs Slurm's client tools (``sinfo``, ``scancel``) and ``snakemake-executor-plugin-slurm``.
 """
 
 from __future__ import annotations
@@ -156,7 +156,7 @@ def samples_digest(shards: Path) -> str:
 def one_part(project: Path, out: Path) -> dict[str, str]:
     """The town, shards and latent cache that one part writes, from the same settings and tokenizers, built here
     with the library; their digests."""
-    sys.path.insert(0, str(ROOT / "src"))
+    sys.path.insert(0, str(project / "src"))  # the copy's code, as the jobs ran it
     from orbis2.config.params import load_config
     from orbis2.data.shards import write_shards
     from orbis2.data.town_dataset import build_town_dataset
@@ -185,8 +185,9 @@ def main(argv: list[str] | None = None) -> dict:
         sys.exit("rehearse_parts: no Slurm cluster answers `sinfo`; start one: tools/slurm_local.sh start")
     episodes = {"train": args.train, "val": 24, "turns": 8, "heldout": 16, "probe": 8}
     project = project_copy(args.dir.resolve() / "project", episodes)
-    env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "MLFLOW_TRACKING_URI": f"sqlite:///{project / 'mlflow.db'}",
-           "OMP_NUM_THREADS": "1"}
+    # The copy's code, not this checkout's: an edit here while the jobs run would change the parts' resume key.
+    os.environ["OMP_NUM_THREADS"] = "1"
+    env = {**os.environ, "PYTHONPATH": str(project / "src"), "MLFLOW_TRACKING_URI": f"sqlite:///{project / 'mlflow.db'}"}
     env.pop("ORBIS2_PIPELINE_ID", None)
     part = args.parts // 2
     per_part = len(range(sum(episodes.values()))[slice(sum(episodes.values()) * part // args.parts,
