@@ -16,7 +16,8 @@ What it checks and reports (``--json``):
 
 The corpus: the smoke profile with ``--train`` train episodes of 3 s and the other splits' smoke lengths (216
 episodes by default), in a copy of this checkout (tracked and untracked files, not the ignored ones) under
-``--dir``, whose code the jobs run. Needs Slurm's client tools (``sinfo``, ``scancel``) and ``snakemake-executor-plugin-slurm``.
+``--dir``, whose code the jobs run. Needs Slurm's client tools (``sinfo``, ``scancel``) and
+``snakemake-executor-plugin-slurm``.
 """
 
 from __future__ import annotations
@@ -187,7 +188,8 @@ def main(argv: list[str] | None = None) -> dict:
     project = project_copy(args.dir.resolve() / "project", episodes)
     # The copy's code, not this checkout's: an edit here while the jobs run would change the parts' resume key.
     os.environ["OMP_NUM_THREADS"] = "1"
-    env = {**os.environ, "PYTHONPATH": str(project / "src"), "MLFLOW_TRACKING_URI": f"sqlite:///{project / 'mlflow.db'}"}
+    env = {**os.environ, "PYTHONPATH": str(project / "src"),
+           "MLFLOW_TRACKING_URI": f"sqlite:///{project / 'mlflow.db'}"}
     env.pop("ORBIS2_PIPELINE_ID", None)
     part = args.parts // 2
     per_part = len(range(sum(episodes.values()))[slice(sum(episodes.values()) * part // args.parts,
