@@ -2,12 +2,12 @@
 stopped part resumes without rendering again the episodes it finished; the stage's parts then its gather."""
 
 import dataclasses
-import subprocess
 import sys
 
 import pytest
 import yaml
 from test_import import stage_env
+from test_import_parts import parts_then_gather
 
 from orbis2.data import town_dataset
 from orbis2.data.episodes import RawIndex
@@ -98,12 +98,6 @@ def test_the_stage_in_parts_then_the_gather(tmp_path):
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
     env = stage_env(tmp_path)
     stage = [sys.executable, str(ROOT / "stages/town.py"), "--profile", "smoke"]
-    for part in range(2):
-        proc = subprocess.run([*stage, "--parts", "2", "--part", str(part)], cwd=tmp_path, capture_output=True,
-                              text=True, env=env)
-        assert proc.returncode == 0, proc.stderr
-        assert (tmp_path / "data/town_parts" / f"{part_name(part, 2)}.json").is_file()
-    proc = subprocess.run([*stage, "--parts", "2"], cwd=tmp_path, capture_output=True, text=True, env=env)
-    assert proc.returncode == 0 and "in 2 parts" in proc.stdout, proc.stderr
+    assert "in 2 parts" in parts_then_gather(stage, 2, tmp_path, env, tmp_path / "data/town_parts")
     assert len(RawIndex.read(tmp_path / "data/raw/town").episodes) == 6
     assert (tmp_path / "reports/town_contact_sheet.png").is_file()

@@ -15,8 +15,8 @@ What it checks and reports (``--json``):
   with the library, ``parts=1``), compared by SHA-256 digests.
 
 The corpus: the smoke profile with ``--train`` train episodes of 3 s and the other splits' smoke lengths (216
-episodes by default), in a copy of this checkout (tracked and untracked files, not the ignored ones) under
-``--dir``, whose code the jobs run. Needs Slurm's client tools (``sinfo``, ``scancel``) and
+episodes by default), in a copy of this checkout's tracked files (with their edits) under ``--dir``, whose code
+the jobs run. Needs Slurm's client tools (``sinfo``, ``scancel``) and
 ``snakemake-executor-plugin-slurm``.
 """
 
@@ -42,19 +42,17 @@ ARRAY_RULES = ("town_part", "shards_part", "latents_part")
 
 
 def project_copy(dest: Path, episodes: dict[str, int]) -> Path:
-    """This checkout's tracked and untracked-but-not-ignored files in ``dest`` (a new git repo), at the smoke
-    profile with ``episodes`` town episodes per split."""
-    names = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=ROOT, capture_output=True,
-                           text=True, check=True).stdout.split()
-    for name in names:
-        if (ROOT / name).is_file():
-            (dest / name).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(ROOT / name, dest / name)
+    """This checkout's tracked files as they are now (edits included: ``git stash create``; files not yet added
+    are left out) in ``dest`` (a new git repo), at the smoke profile with ``episodes`` town episodes per split."""
+    tree = subprocess.run(["git", "stash", "create"], cwd=ROOT, capture_output=True, text=True,
+                          check=True).stdout.strip() or "HEAD"
+    dest.mkdir(parents=True)
+    archive = subprocess.run(["git", "archive", tree], cwd=ROOT, capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
     params = yaml.safe_load((dest / "params.yaml").read_text())
     params["profile"] = "smoke"
-    params["town"]["smoke"]["episodes"] = episodes
+    params["town"]["smoke"].update(episodes=episodes, turns_candidates=2 * episodes["turns"])
     params["town"]["smoke"]["episode_seconds"]["train"] = params["shards"]["smoke"]["clip_seconds"]["train"]
-    params["town"]["smoke"]["turns_candidates"] = 2 * episodes["turns"]
     (dest / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     for cmd in (["git", "init", "-q"], ["git", "add", "-A"], ["git", "commit", "-qm", "rehearsal"]):
         subprocess.run(cmd, cwd=dest, check=True, capture_output=True)
