@@ -1,14 +1,18 @@
 """Rehearse the data path in parts on a Slurm cluster: many short town episodes through the town, the shards and
-the latent cache at ``--parts N``, submitted through profiles/slurm-local as Slurm array jobs, with one part of
-the town killed (SIGKILL, ``scancel --signal=KILL --full``) in the middle and the run started again.
+the latent cache at ``--parts N``, submitted through profiles/slurm-local (one Slurm job per part, or with
+``--arrays`` one array per stage), with one part of the town killed (SIGKILL, ``scancel --signal=KILL --full``)
+in the middle and the run started again.
 
     tools/slurm_local.sh start          # a one-node cluster on this machine (or run it on yours)
     python tools/rehearse_parts.py --dir /tmp/rehearsal --json rehearsal.json
 
 What it checks and reports (``--json``):
 
-- every part ran as a task of a Slurm array (the executor plugin's ``--slurm-array-jobs``), one array per
-  stage's parts;
+- the Slurm arrays submitted (with ``--arrays``: the executor plugin's ``--slurm-array-jobs`` for the parts'
+  rules). In snakemake-executor-plugin-slurm 2.8.0 (with the jobstep plugin 0.6.1) an array's tasks after the
+  first run their own part, but the Snakemake around each of them takes it for the first task's job: it
+  removes that job's output before it starts and fails for want of it when done (the plugin's issue 447), so
+  such a run fails; without ``--arrays`` every part is its own Slurm job;
 - the killed part, started again, renders only the episodes it had not logged: its ``done.jsonl`` holds each
   of its episodes once (the count at the kill, and the count after);
 - the town, the shards' samples and the latent chunks equal, byte for byte, what one part writes (built here
@@ -59,13 +63,19 @@ def project_copy(dest: Path, episodes: dict[str, int]) -> Path:
     return dest
 
 
-def snakemake(project: Path, parts: int, log: Path, env: dict[str, str]) -> subprocess.Popen:
-    """The DAG up to the latent cache through the Slurm profile, the parts as array jobs. ``--jobs`` and
-    ``--cores`` above the parts: the plugin submits an array once every part of a rule is handed to it."""
+def snakemake(project: Path, parts: int, log: Path, env: dict[str, str], arrays: bool) -> subprocess.Popen:
+    """The DAG up to the latent cache through the Slurm profile, the parts side by side (``--jobs`` and ``--cores``
+    above the parts: the plugin submits an array once every part of a rule is handed to it)."""
     cmd = [sys.executable, "-m", "snakemake", "--profile", str(ROOT / "profiles/slurm-local"), "data/latents",
-           "--jobs", str(4 * parts), "--cores", str(16 * parts), "--rerun-incomplete",
-           "--slurm-array-jobs", ",".join(ARRAY_RULES), "--config", "profile=smoke", f"parts={parts}"]
+           "--jobs", str(4 * parts), "--cores", str(16 * parts), "--rerun-incomplete", "--config", "profile=smoke",
+           f"parts={parts}"]
+    cmd += ["--slurm-array-jobs", ",".join(ARRAY_RULES)] if arrays else []
     return subprocess.Popen(cmd, cwd=project, env=env, stdout=log.open("w"), stderr=subprocess.STDOUT)
+
+
+def jobs(log_text: str) -> int:
+    """How many Slurm jobs (an array counts once) the run submitted."""
+    return len(re.findall(r"submitted with SLURM jobid|Submitted array job with", log_text))
 
 
 def part_process(project: Path, stage_script: str, part: int, parts: int) -> int | None:
@@ -177,6 +187,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--parts", type=int, default=4)
     parser.add_argument("--train", type=int, default=160, help="train episodes of 3 s (default: 160)")
     parser.add_argument("--json", type=Path, default=None, help="write the figures here")
+    parser.add_argument("--arrays", action="store_true",
+                        help="submit the parts as Slurm arrays (--slurm-array-jobs; fails with plugin 2.8.0, above)")
     args = parser.parse_args(argv)
     if args.dir.exists() and any(args.dir.iterdir()):
         parser.error(f"--dir {args.dir}: not empty; give a new folder")
@@ -194,10 +206,10 @@ def main(argv: list[str] | None = None) -> dict:
                                                        sum(episodes.values()) * (part + 1) // args.parts)])
 
     started = time.perf_counter()
-    first = snakemake(project, args.parts, args.dir / "run1.log", env)
+    first = snakemake(project, args.parts, args.dir / "run1.log", env, args.arrays)
     killed = kill_a_part(project, first, args.parts, after=per_part // 3)
     first.wait()
-    second = snakemake(project, args.parts, args.dir / "run2.log", env)
+    second = snakemake(project, args.parts, args.dir / "run2.log", env, args.arrays)
     if second.wait() != 0:
         sys.exit(f"rehearse_parts: the second run failed; see {args.dir / 'run2.log'}")
     wall = time.perf_counter() - started
@@ -206,14 +218,15 @@ def main(argv: list[str] | None = None) -> dict:
     killed.update(episodes_in_part=per_part, logged_after_resume=len(events), distinct_after_resume=len(set(stems)),
                   rendered_after_resume=len(events) - killed["logged_at_kill"])
 
-    slurm = {"run1": arrays((args.dir / "run1.log").read_text()), "run2": arrays((args.dir / "run2.log").read_text())}
+    slurm = {run: {"jobs": jobs(text), "arrays": arrays(text)}
+             for run, text in ((r, (args.dir / f"{r}.log").read_text()) for r in ("run1", "run2"))}
     theirs = {"town": files_digest(project / "data/raw/town", skip=("motion.json",)),
               "shards": samples_digest(project / "data/shards"), "latents": files_digest(project / "data/latents")}
     ours = one_part(project, args.dir / "one_part")
     result = {"parts": args.parts, "episodes": sum(episodes.values()),
               "frames": sum(e["frames"] for e in json.loads((project / "data/raw/town/index.json").read_text())
                             ["episodes"]),
-              "wall_s_both_runs": round(wall), "killed": killed, "arrays": slurm,
+              "wall_s_both_runs": round(wall), "killed": killed, "slurm": slurm,
               "digests": {k: {"parts": theirs[k], "one_part": ours[k], "equal": theirs[k] == ours[k]} for k in ours}}
     if args.json:
         args.json.write_text(json.dumps(result, indent=2) + "\n")
