@@ -201,9 +201,8 @@ def main(argv: list[str] | None = None) -> dict:
     env = {**os.environ, "PYTHONPATH": str(project / "src"),
            "MLFLOW_TRACKING_URI": f"sqlite:///{project / 'mlflow.db'}"}
     env.pop("ORBIS2_PIPELINE_ID", None)
-    part = args.parts // 2
-    per_part = len(range(sum(episodes.values()))[slice(sum(episodes.values()) * part // args.parts,
-                                                       sum(episodes.values()) * (part + 1) // args.parts)])
+    total, part = sum(episodes.values()), args.parts // 2
+    per_part = total * (part + 1) // args.parts - total * part // args.parts  # the killed part's (parts.part_slice)
 
     started = time.perf_counter()
     first = snakemake(project, args.parts, args.dir / "run1.log", env, args.arrays)
@@ -223,7 +222,7 @@ def main(argv: list[str] | None = None) -> dict:
     theirs = {"town": files_digest(project / "data/raw/town", skip=("motion.json",)),
               "shards": samples_digest(project / "data/shards"), "latents": files_digest(project / "data/latents")}
     ours = one_part(project, args.dir / "one_part")
-    result = {"parts": args.parts, "episodes": sum(episodes.values()),
+    result = {"parts": args.parts, "episodes": total,
               "frames": sum(e["frames"] for e in json.loads((project / "data/raw/town/index.json").read_text())
                             ["episodes"]),
               "wall_s_both_runs": round(wall), "killed": killed, "slurm": slurm,
