@@ -143,9 +143,10 @@ def digest(pairs) -> str:
 
 
 def files_digest(root: Path, skip: tuple[str, ...] = ()) -> str:
-    """SHA-256 over every file under ``root`` (relative path and bytes), in path order."""
+    """SHA-256 over every file under ``root`` (relative path and bytes), in path order, but Snakemake's marker of a
+    folder output (``.snakemake_timestamp``) and ``skip``."""
     return digest((p.relative_to(root).as_posix(), p.read_bytes()) for p in sorted(root.rglob("*"))
-                  if p.is_file() and p.name not in skip)
+                  if p.is_file() and p.name not in (".snakemake_timestamp", *skip))
 
 
 def samples_digest(shards: Path) -> str:
@@ -170,13 +171,15 @@ def one_part(project: Path, out: Path) -> dict[str, str]:
     from orbis2.data.shards import write_shards
     from orbis2.data.town_dataset import build_town_dataset
     from orbis2.latents import build_latent_cache
+    from orbis2.stage import TOKENIZER_FILE
 
-    cfg = load_config(project / "params.yaml", "smoke")
+    os.chdir(project)  # the cache's meta.json names its shards and tokenizers as the stage does, relative to it
+    cfg = load_config("params.yaml", "smoke")
     build_town_dataset(out / "town", cfg.data, cfg.town)
     write_shards(out / "town", out / "shards", cfg.data, cfg.shards)
     splits = list(json.loads((out / "shards/manifest.json").read_text())["splits"])
-    build_latent_cache(project / "data/shards", out / "latents", project / "data/tokenizers/detail",
-                       project / "data/tokenizers/abstract", cfg.latents.batch_size, splits)
+    tokenizers = [Path("data/tokenizers") / level / TOKENIZER_FILE for level in ("detail", "abstract")]
+    build_latent_cache(Path("data/shards"), out / "latents", *tokenizers, cfg.latents.batch_size, splits)
     return {"town": files_digest(out / "town"), "shards": samples_digest(out / "shards"),
             "latents": files_digest(out / "latents")}
 
@@ -219,9 +222,9 @@ def main(argv: list[str] | None = None) -> dict:
 
     slurm = {run: {"jobs": jobs(text), "arrays": arrays(text)}
              for run, text in ((r, (args.dir / f"{r}.log").read_text()) for r in ("run1", "run2"))}
-    theirs = {"town": files_digest(project / "data/raw/town", skip=("motion.json",)),
+    theirs = {"town": files_digest(project / "data/raw/town", skip=("motion.json",)),  # the gather's statistics
               "shards": samples_digest(project / "data/shards"), "latents": files_digest(project / "data/latents")}
-    ours = one_part(project, args.dir / "one_part")
+    ours = one_part(project, args.dir.resolve() / "one_part")
     result = {"parts": args.parts, "episodes": total,
               "frames": sum(e["frames"] for e in json.loads((project / "data/raw/town/index.json").read_text())
                             ["episodes"]),
