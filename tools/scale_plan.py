@@ -110,6 +110,10 @@ depend on `parts`; where shards end does (tested: `tests/test_shard_parts.py`).
   of a dataset's items (nuPlan logs, PhysicalAI-AV chunks, BDD100K videos, OpenDV meta entries; one
   array task each), named by the item, each logged with its sources' sizes and times; the command
   without `--part` runs what is left and writes the report (`tests/test_convert_parts.py`).
+- **Rehearsed on Slurm.** `tools/rehearse_parts.py` runs 216 short town episodes through the town, the
+  shards and the latent cache at `parts=4`, one Slurm job per part, kills a town part and starts the run
+  again, and checks the result against one part's, byte for byte
+  ([gpus-and-clusters.md](gpus-and-clusters.md#the-data-path-in-parts-on-slurm), with why not as arrays).
 - **Checksums from the writer.** Each shard's SHA-256 is computed as it is written (no second read of
   {tb(bench['shard_bytes_per_frame']):,.1f} TB) and the manifest carries it for the readers.
 
