@@ -9,20 +9,43 @@ TOWN, IMPORT, SHARDS, ASSETS = (INTERFACES[kind] for kind in ("town", "import", 
 PARTS = [part_name(i, config["parts"]) for i in range(config["parts"])]  # params.yaml `parts`, or --config parts=N
 
 
-rule town:
+# One job per part of the town's episodes (an array on Slurm), rendered into data/runs/ (resumable per episode),
+# then the gather with the motion statistics and previews. Snakemake's only: DVC's `town` renders every part itself.
+rule town_part:
     threads: TOWN.resources.threads  # one process per core
     priority: TOWN.priority
     resources: **resources_of(TOWN)
     input:
         code_inputs(TOWN.script),
     output:
+        part=P("town_parts", "{part}"),
+    wildcard_constraints:
+        part=r"\d{4}-of-\d{4}",
+    params:
+        **stage_params(TOWN, stage_paths(TOWN)),
+        args=lambda wildcards, output: f" --part {int(wildcards.part[:4])} --part-manifest {output.part}",
+    log: log("town_part_{part}")
+    benchmark: bench("town_part_{part}")
+    shell:
+        f"python {TOWN.script} --profile {{params.profile}} --parts {{config[parts]}}{{params.args}} 2>&1 | tee {{log}}"
+
+
+rule town:
+    threads: TOWN.resources.threads
+    priority: TOWN.priority
+    resources: **resources_of(TOWN)
+    input:
+        code_inputs(TOWN.script),
+        parts=lambda wildcards: [P("town_parts", part) for part in PARTS],  # a function: DVC's stage runs them
+    output:
         **outputs(TOWN, stage_paths(TOWN)),
     params:
         **stage_params(TOWN, stage_paths(TOWN)),
+        parts=config["parts"],
     log: log("town")
     benchmark: bench("town")
     shell:
-        command(TOWN)
+        command(TOWN, head=" --parts {config[parts]}")
 
 
 # One job per part of your videos (an array on Slurm), imported into data/runs/ (resumable per video), then the

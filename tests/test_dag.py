@@ -117,12 +117,12 @@ def test_snakefile_and_dvc_yaml_agree(both):
 
 
 def test_wildcard_rules_are_snakemake_only(both):
-    """The rules with a wildcard (scoring data/rollouts/<name>/; one part of the import, the shards or a latent
-    cache, which DVC's `import`, `shards` and latents stages write themselves) are left out of dvc.yaml on purpose
-    and no other: a rule that gained a wildcard by mistake would vanish from DVC's DAG."""
+    """The rules with a wildcard (scoring data/rollouts/<name>/; one part of the town, the import, the shards or a
+    latent cache, which DVC's `town`, `import`, `shards` and latents stages write themselves) are left out of
+    dvc.yaml on purpose and no other: a rule that gained a wildcard by mistake would vanish from DVC's DAG."""
     dvc, _ = both
     only = {rule.name for rule in dag.snakemake_rules(ROOT) if dag.snakemake_only(rule)}
-    assert only == {"evaluate", "import_part", "shards_part", "latents_part", "latents_full_part"}
+    assert only == {"evaluate", "town_part", "import_part", "shards_part", "latents_part", "latents_full_part"}
     assert not only & set(dvc)
     assert only <= set(yaml.safe_load((ROOT / "profiles/slurm/config.yaml").read_text())["set-resources"])
 

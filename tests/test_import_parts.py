@@ -107,6 +107,19 @@ def test_streamed_import_writes_the_frames_of_the_whole_video_path(videos, smoke
     assert next(e for e in index.episodes if e.stem == stem).frames == len(frames)
 
 
+def parts_then_gather(stage: list[str], parts: int, cwd, env, manifests) -> str:
+    """Run a data stage's command once per part (``--part I``, what the DAG's part jobs run), each leaving its part
+    manifest in ``manifests``, then without ``--part`` (the gather); the gather's output."""
+    for part in range(parts):
+        proc = subprocess.run([*stage, "--parts", str(parts), "--part", str(part)], cwd=cwd, capture_output=True,
+                              text=True, env=env)
+        assert proc.returncode == 0, proc.stderr
+        assert (manifests / f"{part_name(part, parts)}.json").is_file()
+    proc = subprocess.run([*stage, "--parts", str(parts)], cwd=cwd, capture_output=True, text=True, env=env)
+    assert proc.returncode == 0, proc.stderr
+    return proc.stdout
+
+
 def test_the_stage_in_parts_then_the_gather(videos, smoke_cfg, tmp_path):
     """`stages/import.py --part I --parts 2` for each part (what the DAG's `import_part` jobs run), then the stage
     without --part (the gather, which finds both parts done): the episodes a one-part library import writes; and
@@ -114,13 +127,8 @@ def test_the_stage_in_parts_then_the_gather(videos, smoke_cfg, tmp_path):
     env = stage_env(tmp_path)
     (tmp_path / "params.yaml").write_text((ROOT / "params.yaml").read_text())
     stage = [sys.executable, str(ROOT / "stages/import.py"), "--profile", "smoke", "--videos", str(videos)]
-    for part in range(2):
-        proc = subprocess.run([*stage, "--parts", "2", "--part", str(part)], cwd=tmp_path, capture_output=True,
-                              text=True, env=env)
-        assert proc.returncode == 0, proc.stderr
-        assert (tmp_path / "data/import_parts" / f"{part_name(part, 2)}.json").is_file()
-    proc = subprocess.run([*stage, "--parts", "2"], cwd=tmp_path, capture_output=True, text=True, env=env)
-    assert proc.returncode == 0 and "9 videos imported in 2 parts" in proc.stdout, proc.stderr
+    out = parts_then_gather(stage, 2, tmp_path, env, tmp_path / "data/import_parts")
+    assert "9 videos imported in 2 parts" in out
     whole, _ = import_videos(videos, tmp_path / "one", smoke_cfg.data, smoke_cfg.import_, False)
     gathered = RawIndex.read(tmp_path / "data/raw/import")
     assert episodes(tmp_path / "data/raw/import", gathered) == episodes(tmp_path / "one", whole)

@@ -1,5 +1,5 @@
 """Opt-in: the smoke DAG up to the shards through Slurm (profiles/slurm-local), in a fresh project copy, the
-shards in two parts (two Slurm jobs side by side, then the gather).
+town and the shards in two parts each (two Slurm jobs side by side, then the gather).
 
 Skipped unless ``sinfo`` answers (``tools/slurm_local.sh start`` sets up a one-node cluster).
 On a multi-node cluster set ``ORBIS2_SLURM_TEST_DIR`` to a folder every node sees.
@@ -55,10 +55,11 @@ def test_smoke_dag_through_slurm():
         children = [r for r in runs if "mlflow.parentRunId" in r.data.tags]
         assert len(parents) == 1 and parents[0].info.status == "FINISHED"
         assert sorted(r.info.run_name for r in children) == [
-            "shards", "shards_part_0000-of-0002", "shards_part_0001-of-0002", "town"]
+            "shards", "shards_part_0000-of-0002", "shards_part_0001-of-0002", "town", "town_part_0000-of-0002",
+            "town_part_0001-of-0002"]
         assert all(r.data.tags["mlflow.parentRunId"] == parents[0].info.run_id for r in children)
         assert all(r.data.tags.get("orbis2.slurm_job_id", "").isdigit() for r in children)
-        assert len({r.data.tags["orbis2.slurm_job_id"] for r in children}) == 4
+        assert len({r.data.tags["orbis2.slurm_job_id"] for r in children}) == 6
 
         cfg = load_config(root / "params.yaml", "smoke")
         one_part = write_shards(root / "data/raw/town", Path(tmp) / "one", cfg.data, cfg.shards)

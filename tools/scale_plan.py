@@ -102,6 +102,18 @@ depend on `parts`; where shards end does (tested: `tests/test_shard_parts.py`).
   records its outcome (the episode, or why it was skipped, with the video's size and time) in
   `done/<stem>.json`: a killed part loses at most the video it was importing, and a video changed before
   the restart is imported again. Episodes are named by their path in the input folder, never by order.
+- **The town and the converters in parts.** A part of `town` (`town_part`, a process per core) renders
+  its block of the planned episodes, each named by its split and index and a pure function of its seed,
+  and logs each once it is in place: a killed part renders again only the episodes in flight; the gather
+  moves them into `data/raw/town` and writes the index, the motion statistics and the previews
+  (`tests/test_town_parts.py`). `orbis2 convert <dataset> --parts N --part I` converts the *I*-th block
+  of a dataset's items (nuPlan logs, PhysicalAI-AV chunks, BDD100K videos, OpenDV meta entries; one
+  array task each), named by the item, each logged with its sources' sizes and times; the command
+  without `--part` runs what is left and writes the report (`tests/test_convert_parts.py`).
+- **Rehearsed on Slurm.** `tools/rehearse_parts.py` runs 216 short town episodes through the town, the
+  shards and the latent cache at `parts=4`, one Slurm job per part, kills a town part and starts the run
+  again, and checks the result against one part's, byte for byte
+  ([gpus-and-clusters.md](gpus-and-clusters.md#the-data-path-in-parts-on-slurm), with why not as arrays).
 - **Checksums from the writer.** Each shard's SHA-256 is computed as it is written (no second read of
   {tb(bench['shard_bytes_per_frame']):,.1f} TB) and the manifest carries it for the readers.
 
@@ -152,8 +164,8 @@ Snakemake (`--workflow-profile profiles/slurm`) at the paper's.
 
 ## Not yet in parts
 
-The `town` and `convert` stages and the evaluation's generate-and-featurise pass still run as one job
-each; their parts would follow the same design (`orbis2.data.parts`). The latent cache's parts check
+The evaluation's generate-and-featurise pass still runs as one job; its parts would follow the same
+design (`orbis2.data.parts`). The latent cache's parts check
 each shard as they read it; every other reader of shards still checks each shard of the splits it reads
 before it starts.
 

@@ -30,6 +30,7 @@ from tqdm import tqdm
 
 from orbis2.accel import cast_for_inference, inference_autocast, set_tf32
 from orbis2.data.datasets import DatasetError, bdd100k, nuplan, opendv, physicalai_av
+from orbis2.data.parts import part_name
 from orbis2.data.video import PLAYABLE_SUFFIXES
 from orbis2.errors import OrbisError
 from orbis2.eval.metrics.inverse_dynamics import WEIGHTS_FILE
@@ -279,18 +280,27 @@ def add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def convert_command(args: argparse.Namespace) -> str:
-    """Turn a dataset tree into the import layout under ``--out``; bad items are skipped and reported."""
+    """Turn a dataset tree into the import layout under ``--out``; bad items are skipped and reported. With
+    ``--parts N --part I`` part I only (one job of N side by side); without ``--part`` every part not yet done, then
+    the report of all of them (orbis2.data.datasets.convert_items)."""
     start = time.perf_counter()
+    if args.parts < 1 or (args.part is not None and not 0 <= args.part < args.parts):
+        raise DatasetError(f"--part {args.part} --parts {args.parts}: parts must be >= 1 and 0 <= part < parts")
+    parts = {"parts": args.parts, "part": args.part}
     if args.dataset == "nuplan":
         report = nuplan.convert(args.db, args.sensor_root, args.out, args.split, args.channel, args.clip_seconds,
-                                args.turns_deg, args.strict)
+                                args.turns_deg, args.strict, **parts)
     elif args.dataset == "physicalai-av":
         report = physicalai_av.convert(args.root, args.out, args.split, args.camera, args.include_invalid,
-                                       args.strict)
+                                       args.strict, **parts)
     elif args.dataset == "bdd100k":
-        report = bdd100k.convert(args.root, args.out, args.allow_missing_info, args.max_fix_delay, args.strict)
+        report = bdd100k.convert(args.root, args.out, args.allow_missing_info, args.max_fix_delay, args.strict,
+                                 **parts)
     else:
-        report = opendv.convert(args.meta, args.videos, args.out, args.limit, args.strict)
+        report = opendv.convert(args.meta, args.videos, args.out, args.limit, args.strict, **parts)
+    if args.part is not None:
+        return (f"part {part_name(args.part, args.parts)}: {report.summary()} -> {args.out} in "
+                f"{time.perf_counter() - start:.1f} s; the report: the same command without --part")
     path = report.write()
     if not report.converted:
         raise DatasetError(f"{report.summary()}: nothing usable was converted; see {path} for each item's problem "
@@ -333,6 +343,10 @@ def add_convert_parser(sub: argparse._SubParsersAction) -> None:
                             help="import folder to write into (default: data/videos)")
         parser.add_argument("--strict", action="store_true",
                             help="stop at the first bad item (default: skip it, list it in the report, go on)")
+        parser.add_argument("--parts", type=int, default=1,
+                            help="split the items into this many parts, one job each (default: 1)")
+        parser.add_argument("--part", type=int, default=None, metavar="I",
+                            help="convert part I (0-based) only; then the command without --part writes the report")
     p.set_defaults(run=convert_command)
 
 

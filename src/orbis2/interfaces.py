@@ -170,7 +170,8 @@ INTERFACES: dict[str, Interface] = _declare(
         PathOption("raw", "--out", "raw episodes folder", "raw", name="town", output=True, folder=True),
         PathOption("sheet", "--sheet", "contact sheet", "reports", file="town_contact_sheet.png", output=True),
         PathOption("preview", "--preview", "preview video", "reports", file="town_preview.mp4", output=True),
-    ), ("data", "town"), CPU, FIRST, rules="rules/data.smk"),
+    ), ("data", "town"), CPU, FIRST, rules="rules/data.smk",  # the parts too: each renders with a process per core
+        options=("--parts", "--part", "--part-manifest")),
     Interface("import", "stages/import.py", (
         PathOption("raw", "--out", "raw episodes folder", "raw", name="import", output=True, folder=True),
     ), ("data", "import"), LIGHT, FIRST, rules="rules/data.smk",  # the gather; the parts run as PART

@@ -40,7 +40,7 @@ from tqdm import tqdm
 
 from orbis2.config.sections import SPLITS, DataConfig, ImportConfig
 from orbis2.data.episodes import EpisodeRecord, RawIndex, write_odometry
-from orbis2.data.parts import keyed_work, part_name, part_slice
+from orbis2.data.parts import files_fingerprint, keyed_work, part_name, part_slice
 from orbis2.data.video import VIDEO_SUFFIXES, VideoError, iter_resampled, probe, write_video
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file, move_into, write_json
@@ -269,13 +269,9 @@ def import_videos(folder: Path, root: Path, data: DataConfig, cfg: ImportConfig,
 
 
 def fingerprint(video: Path) -> list[int | None]:
-    """What says a video (and its CSV) is the one a recorded outcome was made from: sizes and modification times
-    (reading terabytes of video again to hash them would cost as much as importing them)."""
-    out: list[int | None] = []
-    for path in (video, video.with_suffix(".csv")):
-        stat = path.stat() if path.exists() else None
-        out += [stat.st_size, stat.st_mtime_ns] if stat else [None, None]
-    return out
+    """What says a video (and its CSV) is the one a recorded outcome was made from
+    (:func:`orbis2.data.parts.files_fingerprint`)."""
+    return files_fingerprint([video, video.with_suffix(".csv")])
 
 
 def import_part(folder: Path, work: Path, data: DataConfig, cfg: ImportConfig, skip_bad: bool, part: int = 0,

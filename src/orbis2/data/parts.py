@@ -49,6 +49,17 @@ def keyed_work(work: Path, key: dict[str, Any]) -> Path:
     return work
 
 
+def files_fingerprint(paths: list[Path]) -> list[int | None]:
+    """What says the files an item is made from are the ones a logged outcome was made from: their sizes and
+    modification times, None for one that is absent (reading terabytes of video again to hash them would cost as
+    much as converting them)."""
+    out: list[int | None] = []
+    for path in paths:
+        stat = path.stat() if path.exists() else None
+        out += [stat.st_size, stat.st_mtime_ns] if stat else [None, None]
+    return out
+
+
 class PartLog:
     """A part's progress: ``done.jsonl`` in its folder, one JSON line appended (and synced) per event.
 

@@ -15,10 +15,11 @@ depend on how many worker processes render it.
 from __future__ import annotations
 
 import os
-from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -27,8 +28,9 @@ from tqdm import tqdm
 from orbis2.config.sections import SPLITS, DataConfig, TownConfig
 from orbis2.data.episodes import EpisodeRecord, RawIndex, read_odometry, write_labels, write_odometry
 from orbis2.data.motion import motion_statistics
+from orbis2.data.parts import PartLog, keyed_work, part_name, part_slice
 from orbis2.data.video import write_video
-from orbis2.io import atomic_file
+from orbis2.io import atomic_file, move_into
 from orbis2.sim import Camera, Town, render_episode, simulate_ego
 
 SPLIT_CODES = {split: code for code, split in enumerate(SPLITS)}
@@ -120,27 +122,89 @@ def _init_worker() -> None:
     os.environ["NUMBA_NUM_THREADS"] = "1"
 
 
-def build_town_dataset(root: Path, data: DataConfig, cfg: TownConfig) -> RawIndex:
+class _TownLog(PartLog):
+    """A town part's ``done.jsonl``: one ``{"record": ...}`` line per episode rendered and in place."""
+
+    def records(self) -> dict[str, EpisodeRecord]:
+        return {e["record"]["stem"]: EpisodeRecord(**e["record"]) for e in self.events if "record" in e}
+
+    def stale(self, events: list[dict[str, Any]]) -> bool:
+        """A logged episode whose video is gone was moved out by a gather: the part is rendered again."""
+        return any(not EpisodeRecord(**e["record"]).video(self.folder).is_file() for e in events if "record" in e)
+
+    def clean(self) -> None:
+        """Remove the files of an episode a kill stopped half-way (not logged, so rendered again)."""
+        logged = self.records()
+        for path in self.folder.glob("*/town_*"):
+            if path.name.split(".")[0] not in logged:
+                path.unlink()
+
+
+def render_part(work: Path, data: DataConfig, cfg: TownConfig, part: int = 0, parts: int = 1) -> dict[str, Any]:
+    """Render part ``part`` of ``parts`` (a contiguous block of :func:`plan_episodes`' episodes) into
+    ``work/<part_name>/<split>/``; return the part's manifest (its folder and its episodes' records, in plan
+    order).
+
+    Each episode is logged (``done.jsonl``) once its files are in place, so a killed part started again renders
+    only the episodes that were in flight (one per worker process). ``work`` must belong to these settings
+    (:func:`town_key`). Episodes are pure functions of their plan: the part's files do not depend on ``parts``.
+    """
     plans = plan_episodes(cfg, data.fps)
-    workers = cfg.workers or os.cpu_count() or 1
-    records: list[EpisodeRecord] = []
-    with tqdm(total=len(plans), desc="town: episodes", unit="ep") as bar:
+    plans = plans[part_slice(len(plans), part, parts)]
+    folder = work / part_name(part, parts)
+    log = _TownLog(folder)
+    done = log.records()
+    todo = [plan for plan in plans if plan.stem not in done]
+    # 0: one process per core the job may use (a Slurm job's cores, not the node's)
+    workers = min(cfg.workers or len(os.sched_getaffinity(0)), max(len(todo), 1))
+    with tqdm(total=len(plans), initial=len(plans) - len(todo), desc=f"town {part_name(part, parts)}",
+              unit="ep") as bar:
         if workers == 1:
-            for plan in plans:
-                records.append(render_and_write(plan, root, data, cfg))
+            for plan in todo:
+                log.add({"record": asdict(render_and_write(plan, folder, data, cfg))})
                 bar.update()
         else:
             with ProcessPoolExecutor(workers, initializer=_init_worker) as pool:
-                futures = [pool.submit(render_and_write, p, root, data, cfg) for p in plans]
-                for future in futures:
-                    records.append(future.result())
+                futures = [pool.submit(render_and_write, plan, folder, data, cfg) for plan in todo]
+                for future in as_completed(futures):
+                    log.add({"record": asdict(future.result())})
                     bar.update()
+    done = log.records()
+    return {"folder": str(folder), "records": [asdict(done[plan.stem]) for plan in plans]}
+
+
+def town_key(data: DataConfig, cfg: TownConfig) -> dict[str, Any]:
+    """What a part's episodes are made from (the settings); a work folder made from another key is not resumed."""
+    return {"data": asdict(data), "town": asdict(cfg)}
+
+
+def gather_town(parts_written: list[dict[str, Any]], root: Path, data: DataConfig, cfg: TownConfig) -> RawIndex:
+    """The parts' episodes, in part order (the plan's), moved into ``root/<split>/`` (see
+    :func:`orbis2.data.shards.gather_parts` for why moved) with ``index.json``."""
+    records = []
+    for written in parts_written:
+        for record in (EpisodeRecord(**r) for r in written["records"]):
+            (root / record.split).mkdir(parents=True, exist_ok=True)
+            sources = [record.video, record.odometry] + ([record.labels] if record.label_frames else [])
+            for source in (path(Path(written["folder"])) for path in sources):
+                move_into(source, root / record.split / source.name)
+            records.append(record)
     camera = Camera(data.width, data.height, cfg.hfov_deg, cfg.mount_height_m)
     index = RawIndex("town", data.fps, data.width, data.height,
                      {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
                       "mount_height_m": cfg.mount_height_m}, records)
     index.write(root)
     return index
+
+
+def build_town_dataset(root: Path, data: DataConfig, cfg: TownConfig, parts: int = 1,
+                       work: Path | None = None) -> RawIndex:
+    """Render every episode into ``root``: each of ``parts`` parts is rendered (or resumed, or found finished) in
+    ``work`` (default: ``<root>.parts`` beside it), then gathered. The episodes and their order do not depend on
+    ``parts``."""
+    work = keyed_work(Path(work) if work is not None else root.with_name(root.name + ".parts"), town_key(data, cfg))
+    written = [render_part(work, data, cfg, part, parts) for part in range(parts)]
+    return gather_town(written, root, data, cfg)
 
 
 def split_motion_statistics(root: Path, index: RawIndex, cfg: TownConfig) -> dict[str, dict[str, float]]:

@@ -13,6 +13,14 @@ video): it is skipped and listed with its reason and fix in a :class:`Report`, w
 output; under ``strict`` the first bad item stops the run. A tree that lacks what every item needs
 (the index, the meta file) stops the reader with a :class:`DatasetError` naming the file and the
 fix. Each video and CSV is written atomically, so an interrupted run leaves no half-written file.
+
+A conversion runs in parts (:func:`convert_items`): each reader lists its items (a log, a chunk of
+clips, a video) in a fixed order and part i of N converts the i-th contiguous block of them, so that
+N jobs (an array on a cluster) convert a dataset side by side. Output names come from the items
+(the log, clip or video id), never from their order, so parts write into one folder; each part logs
+each item once its files are in place, and a part started again skips the items it logged (unless
+their source files changed). Without ``part`` every part not yet done runs, then the report of all
+of them is written: the report and the files do not depend on how many parts there were.
 """
 
 from __future__ import annotations
@@ -21,9 +29,11 @@ import csv
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 
+from orbis2.data.parts import PartLog, files_fingerprint, keyed_work, part_name, part_slice
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file
 
@@ -95,6 +105,64 @@ class Report:
                                        "converted": self.converted, "skipped": [asdict(s) for s in self.skipped]},
                                       indent=2) + "\n")
         return self.path
+
+
+@dataclass(frozen=True)
+class Item:
+    """One unit of a conversion that a part converts, logs and, started again, skips."""
+
+    name: str  # the log, chunk or video, as the part's log names it (unique among the items)
+    sources: tuple[Path, ...]  # the files it is made from: their sizes and times say whether a logged outcome holds
+    convert: Callable[[Report], None]  # converts it, adding to the report what it wrote or left out
+    entry: str = ""  # what else it is made from (its line of a meta file), compared like the sources
+
+
+def convert_items(report: Report, items: list[Item], key: dict[str, Any], parts: int = 1, part: int | None = None,
+                  limit: int | None = None) -> Report:
+    """Convert ``items`` in ``parts`` parts (only part ``part`` when given) into ``report``, in item order.
+
+    A part's progress lives in ``<out>.convert-parts/<dataset>/<part_name>/done.jsonl`` beside the output folder
+    (outside it: the import reads that folder), keyed by ``key`` (the reader's settings and code: a folder made
+    from another key is emptied). An item is logged with what it wrote and left out once its files are in place;
+    a logged item whose sources are unchanged and whose videos are still there is not converted again, so a
+    killed part loses at most the item in flight. ``limit``: stop once that many videos are converted (one part
+    only: how far a part goes would depend on the parts before it)."""
+    if limit is not None and parts > 1:
+        raise DatasetError(f"--limit {limit} with --parts {parts}: a limit counts converted videos in order, which "
+                           f"parts cannot know of each other; drop --limit or convert in one part")
+    work = keyed_work(report.out.parent / f"{report.out.name}.convert-parts" / report.dataset, key)
+    for p in range(parts) if part is None else [part]:
+        log = PartLog(work / part_name(p, parts))
+        logged = {event["item"]: event for event in log.events}
+        for item in items[part_slice(len(items), p, parts)]:
+            if limit is not None and len(report.converted) >= limit:
+                break
+            mark = [*files_fingerprint(list(item.sources)), item.entry]
+            saved = logged.get(item.name)
+            converted = [json.loads(entry) for entry in saved["converted"]] if saved else []
+            if (saved is None or saved["fingerprint"] != mark
+                    or not all(Path(entry["video"]).exists() for entry in converted)):
+                done = Report(report.dataset, report.out, report.strict)
+                item.convert(done)
+                converted = done.converted
+                saved = {"item": item.name, "fingerprint": mark, "skipped": [asdict(s) for s in done.skipped],
+                         "converted": [json.dumps(entry) for entry in converted]}  # as text: keeps the keys' order
+                log.add(saved)
+            report.converted += converted
+            report.skipped += [Skip(**s) for s in saved["skipped"]]
+    return report
+
+
+def reader_key(module: str, **settings: Any) -> dict[str, Any]:
+    """The key of a reader's parts: its settings (paths as given) and the code of the reader ``module`` (its
+    ``__file__``) and what it imports, so that a fixed reader converts again."""
+    from orbis2.stage import code_version  # the stage machinery, only when converting
+
+    def plain(value: Any) -> Any:  # as JSON reads it back
+        return [plain(v) for v in value] if isinstance(value, (list, tuple)) else (
+            str(value) if isinstance(value, Path) else value)
+
+    return {"code": code_version(module), **{k: plain(v) for k, v in settings.items()}}
 
 
 def yaw_of_quaternion(qw, qx, qy, qz) -> np.ndarray:

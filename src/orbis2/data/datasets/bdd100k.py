@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from orbis2.data.datasets import DatasetError, Report, write_odometry_csv
+from orbis2.data.datasets import DatasetError, Item, Report, convert_items, reader_key, write_odometry_csv
 
 SPLITS = ("train", "val")
 VIDEO_SUFFIXES = (".mov", ".mp4")
@@ -131,33 +131,43 @@ def odometry(path: Path, max_fix_delay: float = MAX_FIX_DELAY) -> tuple[np.ndarr
 
 
 def convert(root: Path, out: Path, allow_missing_info: bool = False, max_fix_delay: float = MAX_FIX_DELAY,
-            strict: bool = False) -> Report:
+            strict: bool = False, parts: int = 1, part: int | None = None) -> Report:
     """Link every video of ``videos/{train,val}`` (or ``videos/100k/{train,val}``) into ``out/<split>/`` with its
     odometry CSV; a video without a usable info file is skipped and reported (``allow_missing_info``: linked
-    without a CSV when the file is missing)."""
-    report = Report("bdd100k", out, strict)
+    without a CSV when the file is missing). One item per video, in parts
+    (:func:`orbis2.data.datasets.convert_items`)."""
     videos = [(split, video) for split in SPLITS for folder in video_folders(root, split)
               for video in sorted(folder.iterdir()) if video.suffix.lower() in VIDEO_SUFFIXES]
     if not videos:
         raise DatasetError(f"{root / 'videos'}: no .mov video in train/ or val/ (nor 100k/train/, 100k/val/); pass "
                            f"the bdd100k folder holding videos/ and info/")
-    for split, video in videos:
-        info = info_path(root, split, video.stem)
-        target = out / split / video.name
-        details: dict = {}
-        try:
-            if info.is_file():
-                t, speed, yaw_rate, details = odometry(info, max_fix_delay)
-                write_odometry_csv(target.with_suffix(".csv"), t, speed, yaw_rate)
-            elif not allow_missing_info:
-                raise DatasetError(f"{info}: missing for {video}; download the info archive (bdd100k_info) or pass "
-                                   f"--allow-missing-info to import such videos without odometry",
-                                   reason="no info file")
-        except DatasetError as err:
-            report.skip(str(video), err)
-            continue
-        target.parent.mkdir(parents=True, exist_ok=True)
-        target.unlink(missing_ok=True)
-        os.symlink(video.resolve(), target)
-        report.add(target, split=split, **details)
-    return report
+    items = [Item(f"{split}/{video.name}", (video, info_path(root, split, video.stem)),
+                  lambda report, split=split, video=video: convert_video(root, out, split, video, allow_missing_info,
+                                                                         max_fix_delay, report))
+             for split, video in videos]
+    key = reader_key(__file__, root=root, allow_missing_info=allow_missing_info, max_fix_delay=max_fix_delay,
+                     strict=strict)
+    return convert_items(Report("bdd100k", out, strict), items, key, parts, part)
+
+
+def convert_video(root: Path, out: Path, split: str, video: Path, allow_missing_info: bool, max_fix_delay: float,
+                  report: Report) -> None:
+    """Link one video into ``out/<split>/`` with its odometry CSV, or report why it was left out."""
+    info = info_path(root, split, video.stem)
+    target = out / split / video.name
+    details: dict = {}
+    try:
+        if info.is_file():
+            t, speed, yaw_rate, details = odometry(info, max_fix_delay)
+            write_odometry_csv(target.with_suffix(".csv"), t, speed, yaw_rate)
+        elif not allow_missing_info:
+            raise DatasetError(f"{info}: missing for {video}; download the info archive (bdd100k_info) or pass "
+                               f"--allow-missing-info to import such videos without odometry",
+                               reason="no info file")
+    except DatasetError as err:
+        report.skip(str(video), err)
+        return
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.unlink(missing_ok=True)
+    os.symlink(video.resolve(), target)
+    report.add(target, split=split, **details)

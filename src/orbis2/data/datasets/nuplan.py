@@ -32,10 +32,13 @@ import numpy as np
 
 from orbis2.data.datasets import (
     DatasetError,
+    Item,
     Report,
+    convert_items,
     heading_change_deg,
     motion_from_poses,
     native_rate,
+    reader_key,
     write_odometry_csv,
     yaw_of_quaternion,
 )
@@ -131,35 +134,45 @@ def read_clip(paths: list[Path], db: Path) -> list[np.ndarray]:
 
 
 def convert(databases: Path, sensor_roots: list[Path], out: Path, split: str, channel: str = "CAM_F0",
-            clip_seconds: float = 20.0, turns_deg: float | None = None, strict: bool = False) -> Report:
-    """Convert every log database in ``databases`` (a .db file or a folder of them) whose images are present."""
+            clip_seconds: float = 20.0, turns_deg: float | None = None, strict: bool = False, parts: int = 1,
+            part: int | None = None) -> Report:
+    """Convert every log database in ``databases`` (a .db file or a folder of them) whose images are present. One
+    item per log, in parts (:func:`orbis2.data.datasets.convert_items`)."""
     dbs = [databases] if databases.is_file() else sorted(databases.glob("*.db")) if databases.is_dir() else []
     if not dbs:
         raise DatasetError(f"{databases}: no nuPlan log database (*.db); pass nuplan-v1.1/splits/<split>/ or one .db")
     for root in sensor_roots:
         if not root.is_dir():
             raise DatasetError(f"{root}: no such folder; pass the sensor-blob root (nuplan-v1.1/sensor_blobs)")
-    report = Report("nuplan", out, strict)
-    for db in dbs:
-        try:
-            files, t, speed, yaw_rate = read_log(db, channel)
-            root = blob_root(files, sensor_roots, db, channel)
-            fps = native_rate(t, f"{db} ({channel})")
-        except DatasetError as err:
-            report.skip(str(db), err)
+    items = [Item(db.name, (db,), lambda report, db=db: convert_log(db, sensor_roots, out, split, channel,
+                                                                    clip_seconds, turns_deg, report))
+             for db in dbs]
+    key = reader_key(__file__, databases=databases, sensor_roots=sensor_roots, split=split, channel=channel,
+                     clip_seconds=clip_seconds, turns_deg=turns_deg, strict=strict)
+    return convert_items(Report("nuplan", out, strict), items, key, parts, part)
+
+
+def convert_log(db: Path, sensor_roots: list[Path], out: Path, split: str, channel: str, clip_seconds: float,
+                turns_deg: float | None, report: Report) -> None:
+    """Convert the clips of one log into ``report``: each written, or why it (or the whole log) was left out."""
+    try:
+        files, t, speed, yaw_rate = read_log(db, channel)
+        root = blob_root(files, sensor_roots, db, channel)
+        fps = native_rate(t, f"{db} ({channel})")
+    except DatasetError as err:
+        report.skip(str(db), err)
+        return
+    for n, clip in enumerate(clips_of(t, fps, clip_seconds)):
+        if turns_deg is not None and heading_change_deg(yaw_rate[clip], t[clip]) < turns_deg:
             continue
-        for n, clip in enumerate(clips_of(t, fps, clip_seconds)):
-            if turns_deg is not None and heading_change_deg(yaw_rate[clip], t[clip]) < turns_deg:
-                continue
-            stem = f"{db.stem}_{n:03d}"
-            try:
-                frames = read_clip([root / name for name in files[clip]], db)
-            except DatasetError as err:
-                report.skip(stem, err)
-                continue
-            video = out / split / f"{stem}.mp4"
-            with atomic_file(video) as tmp:
-                write_video(tmp, frames, fps)
-            write_odometry_csv(out / split / f"{stem}.csv", t[clip] - t[clip][0], speed[clip], yaw_rate[clip])
-            report.add(video, log=db.stem, fps=round(fps, 3))
-    return report
+        stem = f"{db.stem}_{n:03d}"
+        try:
+            frames = read_clip([root / name for name in files[clip]], db)
+        except DatasetError as err:
+            report.skip(stem, err)
+            continue
+        video = out / split / f"{stem}.mp4"
+        with atomic_file(video) as tmp:
+            write_video(tmp, frames, fps)
+        write_odometry_csv(out / split / f"{stem}.csv", t[clip] - t[clip][0], speed[clip], yaw_rate[clip])
+        report.add(video, log=db.stem, fps=round(fps, 3))

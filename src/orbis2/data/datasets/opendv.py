@@ -21,7 +21,7 @@ import json
 import math
 from pathlib import Path
 
-from orbis2.data.datasets import DatasetError, Report
+from orbis2.data.datasets import DatasetError, Item, Report, convert_items, reader_key
 from orbis2.data.video import VideoError, count_frames, iter_frames, probe, write_video
 from orbis2.io import atomic_file
 
@@ -86,28 +86,41 @@ def convert_video(path: Path, entry: dict, target: Path) -> dict:
     return details
 
 
-def convert(meta: Path, videos: Path, out: Path, limit: int | None = None, strict: bool = False) -> Report:
-    """Write the listed videos that are present, at most ``limit``; the absent ones are reported."""
-    report = Report("opendv", out, strict)
-    for n, entry in enumerate(read_meta(meta)):
-        if limit is not None and len(report.converted) >= limit:
-            break
-        try:
-            check_entry(meta, n, entry)
-            path = video_of(videos, entry)
-            if path is None:
-                raise DatasetError(f"{videos / str(entry['youtuber']).replace(' ', '_') / str(entry['videoid'])}.mp4: "
-                                   f"missing (nor .webm, .mkv); rerun the dataset's download script (YouTube removes "
-                                   f"some videos)", reason="not downloaded")
-            target = out / SPLITS[str(entry["split"]).lower()] / f"{entry['videoid']}.mp4"
-            details = convert_video(path, entry, target)
-        except (DatasetError, VideoError) as err:
-            report.skip(str(entry.get("videoid", f"entry {n}")), err)
-            continue
-        except ValueError as err:  # a discard cell that is not a number
-            report.skip(str(entry.get("videoid")), DatasetError(
-                f"{meta}: entry {n} ({entry.get('videoid')}): a discard cell is not a number ({err}); fix the meta "
-                f"file", reason="bad meta entry"))
-            continue
-        report.add(target, **details)
-    return report
+def convert(meta: Path, videos: Path, out: Path, limit: int | None = None, strict: bool = False, parts: int = 1,
+            part: int | None = None) -> Report:
+    """Write the listed videos that are present, at most ``limit``; the absent ones are reported. One item per meta
+    entry, in parts (:func:`orbis2.data.datasets.convert_items`)."""
+    entries = read_meta(meta)
+    items = [Item(f"entry {n} ({entry.get('videoid')})", tuple(filter(None, [_present(videos, entry)])),
+                  lambda report, n=n, entry=entry: convert_entry(meta, videos, out, n, entry, report),
+                  json.dumps(entry, sort_keys=True))
+             for n, entry in enumerate(entries)]
+    key = reader_key(__file__, meta=meta, videos=videos, strict=strict)
+    return convert_items(Report("opendv", out, strict), items, key, parts, part, limit)
+
+
+def _present(videos: Path, entry: dict) -> Path | None:
+    """The entry's downloaded video, if its entry names one."""
+    return video_of(videos, entry) if {"videoid", "youtuber"} <= set(entry) else None
+
+
+def convert_entry(meta: Path, videos: Path, out: Path, n: int, entry: dict, report: Report) -> None:
+    """Convert meta entry ``n`` into ``report``: its video written, or why it was left out."""
+    try:
+        check_entry(meta, n, entry)
+        path = video_of(videos, entry)
+        if path is None:
+            raise DatasetError(f"{videos / str(entry['youtuber']).replace(' ', '_') / str(entry['videoid'])}.mp4: "
+                               f"missing (nor .webm, .mkv); rerun the dataset's download script (YouTube removes "
+                               f"some videos)", reason="not downloaded")
+        target = out / SPLITS[str(entry["split"]).lower()] / f"{entry['videoid']}.mp4"
+        details = convert_video(path, entry, target)
+    except (DatasetError, VideoError) as err:
+        report.skip(str(entry.get("videoid", f"entry {n}")), err)
+        return
+    except ValueError as err:  # a discard cell that is not a number
+        report.skip(str(entry.get("videoid")), DatasetError(
+            f"{meta}: entry {n} ({entry.get('videoid')}): a discard cell is not a number ({err}); fix the meta "
+            f"file", reason="bad meta entry"))
+        return
+    report.add(target, **details)

@@ -32,7 +32,16 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from orbis2.data.datasets import DatasetError, Report, motion_from_poses, write_odometry_csv, yaw_of_quaternion
+from orbis2.data.datasets import (
+    DatasetError,
+    Item,
+    Report,
+    convert_items,
+    motion_from_poses,
+    reader_key,
+    write_odometry_csv,
+    yaw_of_quaternion,
+)
 from orbis2.io import atomic_file
 
 CAMERA = "camera_front_wide_120fov"
@@ -122,8 +131,9 @@ def convert_clip(clip_id: str, cams: zipfile.ZipFile, egos: zipfile.ZipFile, cam
 
 
 def convert(root: Path, out: Path, split: str | None = None, camera: str = CAMERA, include_invalid: bool = False,
-            strict: bool = False) -> Report:
-    """Convert every clip whose camera and egomotion chunks are present."""
+            strict: bool = False, parts: int = 1, part: int | None = None) -> Report:
+    """Convert every clip whose camera and egomotion chunks are present. One item per downloaded chunk (its two
+    zip files hold its clips), in parts (:func:`orbis2.data.datasets.convert_items`)."""
     features = read_features(root)
     index = read_index(root, split)
     cam_path, cam_files = templates(features, camera, root)
@@ -138,14 +148,15 @@ def convert(root: Path, out: Path, split: str | None = None, camera: str = CAMER
     if absent:
         report.notes["clips in chunks not downloaded"] = absent
     valid = index["clip_is_valid"].astype(bool) if "clip_is_valid" in index.columns else pd.Series(True, index.index)
-    for chunk in present:
+
+    def convert_chunk(chunk: int, report: Report) -> None:
         cam_zip, ego_zip = root / cam_path.format(chunk_id=chunk), root / ego_path.format(chunk_id=chunk)
         clips = index.index[index["chunk"] == chunk]
         if not ego_zip.is_file():
             report.skip(f"chunk {chunk} ({len(clips)} clips)", DatasetError(
                 f"{ego_zip}: missing, but {cam_zip} is present; download the {EGOMOTION} chunk {chunk} too",
                 reason="egomotion chunk missing"))
-            continue
+            return
         with zipfile.ZipFile(cam_zip) as cams, zipfile.ZipFile(ego_zip) as egos:
             for clip_id in clips:
                 if not valid[clip_id] and not include_invalid:
@@ -161,4 +172,9 @@ def convert(root: Path, out: Path, split: str | None = None, camera: str = CAMER
                     report.skip(clip_id, err)
                     continue
                 report.add(video, split=target, clip_is_valid=bool(valid[clip_id]))
-    return report
+
+    items = [Item(f"chunk {chunk}", (root / cam_path.format(chunk_id=chunk), root / ego_path.format(chunk_id=chunk),
+                                     root / "clip_index.parquet"),
+                  lambda report, chunk=chunk: convert_chunk(chunk, report)) for chunk in present]
+    key = reader_key(__file__, root=root, split=split, camera=camera, include_invalid=include_invalid, strict=strict)
+    return convert_items(report, items, key, parts, part)
