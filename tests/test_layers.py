@@ -19,7 +19,8 @@ from conftest import ROOT
 SRC = ROOT / "src"
 LAYERS = (
     ("orbis2.errors", "orbis2.typecheck", "orbis2.io", "orbis2.flow", "orbis2.losses", "orbis2.kinematics",
-     "orbis2.accel", "orbis2.models"),  # typecheck: the one type checker of params sections and model sizes
+     "orbis2.accel", "orbis2.models", "orbis2.sources"),  # typecheck: the one type checker of params sections
+    # and model sizes; sources: the package's import graph and code digests (the DAG's, the resume keys')
     ("orbis2.sim",),  # the driving simulator: numpy/numba/cv2 and orbis2.kinematics only
     ("orbis2.registry", "orbis2.config", "orbis2.interfaces"),  # config checks model presets; all read registry.yaml
     ("orbis2.hierarchy", "orbis2.data"),  # hierarchy: what each predictor sees, its windows included

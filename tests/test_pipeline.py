@@ -43,7 +43,8 @@ PREDICTORS = sorted(STAGE_SPECS)
 STAGES = sorted(name for name in dvc_stages() if name != "import")  # the whole DAG on the embedded town
 # The MLflow runs of a Snakemake build: every stage, and the one part of the shards and of each latent cache (jobs
 # of Snakemake's own).
-RUNS = sorted([*STAGES, *(f"{stage}_part_{part_name(0, 1)}" for stage in ("shards", "latents", "latents_full"))])
+RUNS = sorted([*STAGES, *(f"{stage}_part_{part_name(0, 1)}" for stage in ("town", "shards", "latents",
+                                                                                   "latents_full"))])
 TARGETS = ["reports/main_table.csv", "reports/all"]
 
 

@@ -9,12 +9,13 @@ recorded commands; a closed page stops the generation. Bad input gets one line a
 
 import json
 import os
-import selectors
+import queue
 import shlex
 import shutil
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -40,19 +41,29 @@ def play(root: Path, *args: str) -> subprocess.Popen:
 
 
 def wait_ready(proc: subprocess.Popen, timeout: float = 300) -> str:
-    """The server's address, from its 'ready at' line."""
-    selector = selectors.DefaultSelector()
-    selector.register(proc.stdout, selectors.EVENT_READ)
-    lines, deadline = [], time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if selector.select(timeout=1) and (line := proc.stdout.readline()):
-            lines.append(line)
-            if "ready at " in line:
-                return line.split("ready at ")[1].split()[0]
-        elif proc.poll() is not None:
+    """The server's address, from its 'ready at' line. The lines are read by a thread: a select() on the pipe
+    beside a buffered readline misses lines that arrived together (the buffer holds them, the pipe is empty)."""
+    lines: queue.Queue[str | None] = queue.Queue()
+
+    def read() -> None:  # to the end, so that the server never blocks on a full pipe; None: it exited
+        for line in proc.stdout:
+            lines.put(line)
+        lines.put(None)
+
+    threading.Thread(target=read, daemon=True).start()
+    seen, deadline = [], time.monotonic() + timeout
+    while (left := deadline - time.monotonic()) > 0:
+        try:
+            line = lines.get(timeout=left)
+        except queue.Empty:
             break
+        if line is None:  # the server exited
+            break
+        seen.append(line)
+        if "ready at " in line:
+            return line.split("ready at ")[1].split()[0]
     proc.kill()
-    pytest.fail("orbis2 play did not become ready:\n" + "".join(lines))
+    pytest.fail("orbis2 play did not become ready:\n" + "".join(seen))
 
 
 def until(condition, timeout: float = 120, what: str = ""):

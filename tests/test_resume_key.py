@@ -6,7 +6,8 @@ import pytest
 
 from orbis2 import stage
 from orbis2.errors import OrbisError
-from orbis2.stage import code_version, module_closure, source_digest, work_dir
+from orbis2.sources import code_version, module_closure, source_digest
+from orbis2.stage import work_dir
 
 from conftest import ROOT
 

@@ -28,7 +28,8 @@ import yaml
 from orbis2.config.params import load_params, section_chain
 from orbis2.interfaces import INTERFACES, TRAIN
 from orbis2.registry import layout_path, registry
-from orbis2.stage import LOSS_PLOTS, module_closure
+from orbis2.sources import module_closure
+from orbis2.stage import LOSS_PLOTS
 
 ROOT = Path(__file__).resolve().parents[2]
 HEADER = """\

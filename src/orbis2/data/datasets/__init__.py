@@ -36,6 +36,7 @@ import numpy as np
 from orbis2.data.parts import PartLog, files_fingerprint, keyed_work, part_name, part_slice
 from orbis2.errors import OrbisError
 from orbis2.io import atomic_file
+from orbis2.sources import code_version
 
 
 class DatasetError(OrbisError):
@@ -156,7 +157,6 @@ def convert_items(report: Report, items: list[Item], key: dict[str, Any], parts:
 def reader_key(module: str, **settings: Any) -> dict[str, Any]:
     """The key of a reader's parts: its settings (paths as given) and the code of the reader ``module`` (its
     ``__file__``) and what it imports, so that a fixed reader converts again."""
-    from orbis2.stage import code_version  # the stage machinery, only when converting
 
     def plain(value: Any) -> Any:  # as JSON reads it back
         return [plain(v) for v in value] if isinstance(value, (list, tuple)) else (
