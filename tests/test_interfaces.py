@@ -12,8 +12,7 @@ from pydantic import BaseModel
 from snakemake.utils import format as snakemake_format
 from test_dag import drift, dvc_stages, project_copy, snakemake_rules
 
-from orbis2 import dag, interfaces
-from orbis2 import stage as stage_module
+from orbis2 import dag, interfaces, sources
 from orbis2.config.params import load_params
 from orbis2.eval import records
 from orbis2.interfaces import INTERFACES, LIGHT, SHARDS, SHORT, Interface, PathOption
@@ -116,7 +115,7 @@ def test_a_declaration_and_a_script_add_an_evaluation_stage_to_both_dags(tmp_pat
     root = project_copy(tmp_path)
     (root / "src").symlink_to(ROOT / "src")  # the code inputs are paths inside the project
     monkeypatch.setattr(dag, "ROOT", root)
-    monkeypatch.setattr(stage_module, "PACKAGE_HOME", root / "src")
+    monkeypatch.setattr(sources, "PACKAGE_HOME", root / "src")
     reg = yaml.safe_load((root / "registry.yaml").read_text())
     reg["layout"]["dummy"] = "reports/eval/dummy.json"
     (root / "registry.yaml").write_text(yaml.safe_dump(reg, sort_keys=False))
