@@ -9,11 +9,13 @@ tests of `reports/all` itself (``smoke_project``) wait for the whole build."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -36,6 +38,42 @@ ROOT = Path(__file__).resolve().parents[1]
 # job it runs its rule's threads (capped at --cores).
 os.environ["OMP_NUM_THREADS"] = "1"
 torch.set_num_threads(1)
+
+
+# Slurm's client tools installed where no controller answers (a machine that once ran tools/slurm_local.sh, an
+# image with the packages): Snakemake's Slurm executor plugin, which every `snakemake` run imports, then waits 10 s
+# at import for `scontrol show config` to time out, and the suite starts a few hundred of them. The first pytest
+# process asks `sinfo` once; where nothing answers, every process of the session finds shims first on its PATH
+# that fail at once, as the real tools would after their timeout, and the Slurm tests skip.
+SLURM_STATE = "ORBIS2_TEST_SLURM"  # "up" or "down", the first process's answer, inherited by the xdist workers
+SLURM_TOOLS = ("sinfo", "scontrol", "squeue", "sacct", "sbatch", "srun", "scancel", "salloc")
+
+
+def slurm_answers() -> bool:
+    """Whether a Slurm controller answers `sinfo` here (asked once per session)."""
+    if SLURM_STATE not in os.environ:
+        up = False
+        if shutil.which("sinfo"):
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                up = subprocess.run(["sinfo", "-h"], capture_output=True, timeout=20).returncode == 0
+        os.environ[SLURM_STATE] = "up" if up else "down"
+    return os.environ[SLURM_STATE] == "up"
+
+
+SLURM_SHIMS = pytest.StashKey[Path]()
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Shadow Slurm's client tools for the session where they are installed but no controller answers."""
+    if slurm_answers() or not shutil.which("scontrol") or "orbis2-no-slurm-" in os.environ["PATH"]:
+        return
+    shims = Path(tempfile.mkdtemp(prefix="orbis2-no-slurm-"))
+    for tool in SLURM_TOOLS:
+        (shims / tool).write_text(f"#!/bin/sh\necho '{tool}: no Slurm controller answers here "
+                                  f"(tests/conftest.py)' >&2\nexit 1\n")
+        (shims / tool).chmod(0o755)
+    os.environ["PATH"] = f"{shims}{os.pathsep}{os.environ['PATH']}"
+    config.stash[SLURM_SHIMS] = shims
 
 
 @pytest.fixture(scope="session")
@@ -109,6 +147,10 @@ SMOKE = "smoke_project"  # the fixture, and its folder in the session's shared t
 SMOKE_MAIN = "smoke_main"  # the fixture of the main job's copy (the build's FOLDER/main)
 READERS = (SMOKE_MAIN, SMOKE)  # in the order they run: the main job's readers first
 BUILD_TIMEOUT_S = 3600
+# The build is the session's critical path: its readers wait for it, while every other test can run at any time.
+# The tests run at a lower priority than the build (a weight of a third of its jobs' while both want the cores),
+# so the build ends near its time alone and its readers do not wait at the end of the session with a core idle.
+TEST_NICENESS = 5
 BUILDER = pytest.StashKey[subprocess.Popen]()  # the build, in the process that started it
 
 
@@ -133,24 +175,27 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 def pytest_collection_finish(session: pytest.Session) -> None:
     """Freeze what collection imported, as a stage does (:func:`orbis2.stage.freeze_imports`), and start the smoke
-    project's build if a test to run reads it (once per session, whichever xdist worker gets here first)."""
+    project's build if a test to run reads it (once per session, whichever xdist worker gets here first); the
+    tests then run below the build's priority."""
     freeze_imports()
     config = session.config
     if config.option.collectonly or not any(reads(item) for item in session.items):
         return
     folder = shared_temp(config) / SMOKE
     with FileLock(str(folder) + ".lock"):
-        if folder.exists():
-            return
-        folder.mkdir()
-        with open(folder / "build.log", "w") as log:
-            config.stash[BUILDER] = subprocess.Popen(
-                [sys.executable, str(ROOT / "tests" / "smoke_build.py"), str(folder)], cwd=ROOT, stdout=log,
-                stderr=subprocess.STDOUT, start_new_session=True)
+        if not folder.exists():
+            folder.mkdir()
+            with open(folder / "build.log", "w") as log:
+                config.stash[BUILDER] = subprocess.Popen(
+                    [sys.executable, str(ROOT / "tests" / "smoke_build.py"), str(folder)], cwd=ROOT, stdout=log,
+                    stderr=subprocess.STDOUT, start_new_session=True)
+    os.nice(TEST_NICENESS)  # this process and what it starts from now on; the build, started above, keeps 0
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
     """Every test has run: a build still going (an interrupted session) is stopped with its jobs."""
+    if SLURM_SHIMS in config.stash:
+        shutil.rmtree(config.stash[SLURM_SHIMS], ignore_errors=True)
     proc = config.stash.get(BUILDER, None)
     if proc is not None and proc.poll() is None:
         os.killpg(proc.pid, signal.SIGTERM)

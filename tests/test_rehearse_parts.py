@@ -10,11 +10,10 @@ import tempfile
 from pathlib import Path
 
 import pytest
-from test_slurm import _slurm_answers
 
-from conftest import ROOT
+from conftest import ROOT, slurm_answers
 
-pytestmark = [pytest.mark.slow, pytest.mark.skipif(not _slurm_answers(), reason="no Slurm cluster answers `sinfo`")]
+pytestmark = [pytest.mark.slow, pytest.mark.skipif(not slurm_answers(), reason="no Slurm cluster answers `sinfo`")]
 
 
 def test_the_data_path_in_parts_through_slurm_arrays_equals_one_part():

@@ -8,7 +8,6 @@ shards hold the samples one part writes, in the same order.
 """
 
 import os
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -20,19 +19,9 @@ from test_shard_parts import samples
 from orbis2.config.params import load_config
 from orbis2.data.shards import load_manifest, write_shards
 
-from conftest import ROOT, project_copy
+from conftest import ROOT, project_copy, slurm_answers
 
-
-def _slurm_answers() -> bool:
-    if shutil.which("sinfo") is None:
-        return False
-    try:
-        return subprocess.run(["sinfo", "-h"], capture_output=True, timeout=20).returncode == 0
-    except subprocess.TimeoutExpired:
-        return False
-
-
-pytestmark = [pytest.mark.slow, pytest.mark.skipif(not _slurm_answers(), reason="no Slurm cluster answers `sinfo`")]
+pytestmark = [pytest.mark.slow, pytest.mark.skipif(not slurm_answers(), reason="no Slurm cluster answers `sinfo`")]
 
 
 def test_smoke_dag_through_slurm():

@@ -17,7 +17,6 @@ torchrun agent per task, as there would be one per node).
 from __future__ import annotations
 
 import os
-import shutil
 import subprocess
 import sys
 import time
@@ -30,7 +29,8 @@ from test_predictors import SPAN, write_cache
 
 from orbis2.train import load_checkpoint, load_weights
 
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import ROOT, slurm_answers
+
 LAUNCHER = ROOT / "tools" / "slurm_torchrun.sh"
 SCRIPT = Path(__file__).with_name("multinode_train.py")
 ENDED = ("COMPLETED", "FAILED", "CANCELLED", "TIMEOUT", "NODE_FAIL", "OUT_OF_MEMORY", "PREEMPTED", "BOOT_FAIL",
@@ -38,7 +38,7 @@ ENDED = ("COMPLETED", "FAILED", "CANCELLED", "TIMEOUT", "NODE_FAIL", "OUT_OF_MEM
 
 
 def slurm_up() -> bool:
-    if not shutil.which("sbatch"):
+    if not slurm_answers():
         return False
     proc = subprocess.run(["sinfo", "--noheader", "--format", "%t"], capture_output=True, text=True)
     return proc.returncode == 0 and any(state.startswith(("idle", "mix", "alloc")) for state in proc.stdout.split())
