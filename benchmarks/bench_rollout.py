@@ -198,8 +198,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="torch.compile predictors (by region; CUDA graphs on CUDA) and decoder")
     parser.add_argument("--predictor-backend", default="inductor",
                         help="with --compile: torch.compile's backend for the predictors (the decoder's is inductor); "
-                             "aot_eager traces the same graphs without generating code (tools/gpu_run.sh's CPU "
-                             "rehearsal: tests/test_compiled_path.py runs the predictors' inductor code)")
+                             "eager traces the same graphs through dynamo and runs them as they are (tools/gpu_run.sh's"
+                             " CPU rehearsal: tests/test_compiled_path.py runs the predictors' inductor code)")
     parser.add_argument("--compile-cache", type=Path, default=None,
                         help="with --compile: directory keeping the compiled artifacts between runs")
     parser.add_argument("--no-kv-cache", dest="kv_cache", action="store_false")

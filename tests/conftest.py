@@ -76,6 +76,16 @@ def pytest_configure(config: pytest.Config) -> None:
     config.stash[SLURM_SHIMS] = shims
 
 
+@pytest.fixture(autouse=True)
+def _scheduling_class_kept():
+    """Every test leaves its process in the scheduling class it found: one left in the real-time class (SVT-AV1's
+    encoder, run as root, did that) would pass it on to every later test of its worker and to what they start,
+    and run ahead of the smoke build until the build starved."""
+    before = os.sched_getscheduler(0)
+    yield
+    assert os.sched_getscheduler(0) == before, "the test left its process in another scheduling class"
+
+
 @pytest.fixture(scope="session")
 def smoke_cfg():
     return load_config(ROOT / "params.yaml", "smoke")
@@ -148,8 +158,10 @@ SMOKE_MAIN = "smoke_main"  # the fixture of the main job's copy (the build's FOL
 READERS = (SMOKE_MAIN, SMOKE)  # in the order they run: the main job's readers first
 BUILD_TIMEOUT_S = 3600
 # The build is the session's critical path: its readers wait for it, while every other test can run at any time.
-# The tests run at a lower priority than the build (a weight of a third of its jobs' while both want the cores),
-# so the build ends near its time alone and its readers do not wait at the end of the session with a core idle.
+# The tests run at a lower priority than the build (a third of its jobs' weight while both want the cores), so
+# that the build's readers do not wait for it at the end with a core idle. The build stays in the tests' session
+# (its own process group, not its own session): Linux's autogroup shares the cores between sessions first, and
+# niceness counts only within one.
 TEST_NICENESS = 5
 BUILDER = pytest.StashKey[subprocess.Popen]()  # the build, in the process that started it
 
@@ -188,7 +200,7 @@ def pytest_collection_finish(session: pytest.Session) -> None:
             with open(folder / "build.log", "w") as log:
                 config.stash[BUILDER] = subprocess.Popen(
                     [sys.executable, str(ROOT / "tests" / "smoke_build.py"), str(folder)], cwd=ROOT, stdout=log,
-                    stderr=subprocess.STDOUT, start_new_session=True)
+                    stderr=subprocess.STDOUT, process_group=0)  # not a session: one scheduling group with the tests
     os.nice(TEST_NICENESS)  # this process and what it starts from now on; the build, started above, keeps 0
 
 

@@ -6,7 +6,7 @@ block whose commands cannot run here (a GPU, a cluster, a real dataset) has the 
 copy of the session's finished smoke project (the main job and `reports/all` done; the pages of
 `AFTER_MAIN`'s groups, which read only the main job, in a copy of it made before `reports/all` starts), in
 the order the pages give them, and must exit 0. Only what cannot run as written in a test is adapted, each in one
-place below: the install prefix must equal what CI installs, `pytest` collects instead of recursing,
+place below: the install prefix must equal what CI installs, `pytest` collects (in one process) instead of recursing,
 DVC's runs are dry (the Snakemake runs made the outputs; `dvc repro` would redo them), a server is
 started, asked for its page and stopped, and a command the group already gave (the same words, its
 options in any order) is run once: the pages repeat a step as a reminder, and its second run would only
@@ -155,7 +155,7 @@ def adapted(text: str) -> str | None:
         rest = text[len(INSTALL):].strip()
         return adapted(rest.removeprefix("&&").strip()) if rest else None
     if text == "pytest" or text.startswith("pytest "):
-        return text.replace("pytest", "pytest --collect-only -q", 1)
+        return text.replace("pytest", "pytest --collect-only -q -n 0", 1)
     if re.match(r"^dvc (repro|exp run)\b", text):
         return text + " --dry"
     return text

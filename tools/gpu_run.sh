@@ -7,7 +7,7 @@
 #
 #   OUT=/path/to/results bash tools/gpu_run.sh          # from the repository root, on the GPU machine
 #   REHEARSE=1 OUT=/tmp/rehearsal bash tools/gpu_run.sh  # every part on the CPU, smoke preset
-#   (the rollouts' predictors compiled through aot_eager, rollouts_v1 eager and the toggles without their compile check there;
+#   (the rollouts' predictors compiled through dynamo alone, rollouts_v1 eager and the toggles without their compile check there;
 #   the DAG part a Snakemake dry run)
 #
 # Parts, in the order of what they are worth if time runs out, each under its own limit (seconds; T_<PART>
@@ -78,9 +78,9 @@ if [ -n "$REHEARSE" ]; then  # CPU, smoke preset: every part's real code path in
   suite+=(--rehearse)
   toggles=(--no-compile)  # the rollouts and train parts rehearse the compiled paths; the suite has no time to spare
   preset=smoke device=cpu
-  # The compiled rollouts trace the predictors through dynamo and AOTAutograd without generating their code
-  # (aot_eager; tests/test_compiled_path.py runs the predictors' inductor code): the suite has no time to spare.
-  rollout=(--seconds 0.5 --repeats 1 --distill-nfe 2 --predictor-backend aot_eager)
+  # The compiled rollouts trace the predictors through dynamo only (the eager backend; tests/test_compiled_path.py
+  # runs the predictors' inductor code, AOTAutograd included): the suite has no time to spare.
+  rollout=(--seconds 0.5 --repeats 1 --distill-nfe 2 --predictor-backend eager)
   v1=()  # eager: the rollouts part rehearses the compiled rollout already, and the test suite has no time to spare
   train=(--presets smoke --mfu-preset smoke --batch-size 2 --checkpointing 2 --steps 1 --warmup 1)
 else
