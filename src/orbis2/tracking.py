@@ -317,6 +317,21 @@ class StageRun:
 
 
 @contextlib.contextmanager
+def _not_a_notebook() -> Iterator[None]:
+    """Start a run without MLflow importing IPython (0.4 s a stage, where it is installed) to ask whether it runs
+    in a notebook: a process that has not imported IPython is not in one, and MLflow reads a refused import so."""
+    if "IPython" in sys.modules:
+        yield
+        return
+    sys.modules["IPython"] = None  # `import IPython` raises ImportError
+    try:
+        yield
+    finally:
+        if "IPython" in sys.modules and sys.modules["IPython"] is None:
+            del sys.modules["IPython"]
+
+
+@contextlib.contextmanager
 def stage_run(stage: str, params: dict[str, Any], pipeline: dict[str, Any] | None = None) -> Iterator[StageRun]:
     """Open the stage's MLflow run (nested under the invocation's parent) for the block.
 
@@ -348,8 +363,10 @@ def stage_run(stage: str, params: dict[str, Any], pipeline: dict[str, Any] | Non
     owner = {OWNER_TAG: key} if (key := process_key(os.getpid())) else {}  # no /proc: not tracked
     tags = {"orbis2.stage": stage, **provenance(params), **owner}
     status = "FAILED"
-    with mlflow.start_run(run_name=stage, parent_run_id=parent_id, nested=True, tags=tags,
-                          log_system_metrics=_system_metrics()) as run:
+    with _not_a_notebook():
+        active = mlflow.start_run(run_name=stage, parent_run_id=parent_id, nested=True, tags=tags,
+                                  log_system_metrics=_system_metrics())
+    with active as run:
         _settle_parent(client, experiment.experiment_id, parent_id)
         flat = {k: str(v)[:6000] for k, v in flatten(params).items()}
         for start in range(0, len(flat), 100):  # MLflow limits one batch to 100 params
