@@ -343,8 +343,6 @@ def stage_run(stage: str, params: dict[str, Any], pipeline: dict[str, Any] | Non
     if int(os.environ.get("RANK", "0")) != 0:
         yield StageRun(None, None)
         return
-    # MLflow's resumption of Databricks serverless jobs looks for a notebook (it imports IPython, 0.4 s a stage)
-    os.environ.setdefault("MLFLOW_ENABLE_SGC_RUN_RESUMPTION_FOR_DATABRICKS_JOBS", "false")
     import mlflow
     from mlflow.tracking import MlflowClient
 
