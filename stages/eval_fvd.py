@@ -19,7 +19,6 @@ from pathlib import Path
 
 from orbis2.accel import default_device
 from orbis2.assets import ensure_asset
-from orbis2.data.shards import verify_shards
 from orbis2.eval.protocols.rollout_fvd import split_fvd
 from orbis2.eval.protocols.systems import SYSTEMS, inference_settings, load_system
 from orbis2.eval.records import FvdRecord, Nfe, write_record
@@ -54,7 +53,6 @@ def main(argv: list[str] | None = None) -> None:
     media = args.media or INTERFACE.option("media").path(name)
     with open_stage(f"eval_fvd_{name}", args, INTERFACE) as stage:
         cfg, run = stage.cfg, stage.run
-        verify_shards(args.shards, cfg.evaluation.fvd_splits)  # the splits it reads, before any read
         ev, dev = cfg.evaluation, default_device()
 
         latents = latent_paths(args, SYSTEMS[name].latents)

@@ -13,7 +13,6 @@ from pathlib import Path
 
 from orbis2.accel import default_device
 from orbis2.assets import TEACHER_ASSETS, asset_path
-from orbis2.data.shards import verify_shards
 from orbis2.eval.protocols.probe import (
     predictor_features,
     probe_all,
@@ -53,7 +52,6 @@ def main(argv: list[str] | None = None) -> None:
     out = args.out or INTERFACE.option("probe").path(target)
     with open_stage(f"eval_probe_{target}", args, INTERFACE) as stage:
         cfg, run = stage.cfg, stage.run
-        verify_shards(args.shards)  # before any read; see verify_shards for why
         ps, dev = cfg.evaluation.probe, default_device()
         probe_cfg = probe_config(ps, str(dev))
         sets = probe_sets(ps, (cfg.data.width, cfg.data.height), args.shards)

@@ -13,7 +13,6 @@ pairs, on the detail tokenizer's reconstructions of them and on shuffled pairs
 import os
 
 from orbis2.accel import default_device
-from orbis2.data.shards import verify_shards
 from orbis2.eval.metrics.inverse_dynamics import (
     WEIGHTS_FILE,
     ClipFrames,
@@ -36,7 +35,6 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     with open_stage("inverse_dynamics", args, INTERFACE) as stage:
         cfg, run = stage.cfg, stage.run
-        verify_shards(args.shards, ["train", "val"])  # the splits it reads, before any read (see verify_shards)
         ic, fps, dev = cfg.inverse_dynamics, float(cfg.data.fps), default_device()
 
         work = work_dir("inverse_dynamics", cfg, SECTIONS, {"shards": args.shards / "manifest.json"}, __file__)

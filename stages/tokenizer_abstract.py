@@ -14,7 +14,6 @@ With params.yaml's ``official_weights`` set, the main set's abstract tokenizer
 from pathlib import Path
 
 from orbis2.assets import TEACHER_ASSETS, asset_path
-from orbis2.data.shards import verify_shards
 from orbis2.interfaces import INTERFACES
 from orbis2.registry import registry
 from orbis2.stage import (
@@ -47,7 +46,6 @@ def main(argv: list[str] | None = None) -> None:
         if imported is not None:
             stage.summary = publish_tokenizer(imported, cfg, out / TOKENIZER_FILE, report, run)
             return
-        verify_shards(args.shards, ["train", "val"])  # the splits it reads, before any read (see verify_shards)
         assets = args.assets or Path(cfg.assets.dir)
         teacher = asset_path(assets, TEACHER_ASSETS[cfg.section(name).teacher])
         inputs = {"shards": args.shards / "manifest.json", "teacher": teacher}

@@ -9,7 +9,6 @@ imported tokenizer instead (orbis2.tasks.official).
 
 from pathlib import Path
 
-from orbis2.data.shards import verify_shards
 from orbis2.interfaces import INTERFACES
 from orbis2.stage import (
     TOKENIZER_FILE,
@@ -39,7 +38,6 @@ def main(argv: list[str] | None = None) -> None:
         if imported is not None:
             stage.summary = publish_tokenizer(imported, cfg, out / TOKENIZER_FILE, report, run)
             return
-        verify_shards(args.shards, ["train", "val"])  # the splits it reads, before any read (see verify_shards)
         assets = args.assets or Path(cfg.assets.dir)
         work = work_dir("tokenizer_detail", cfg, SECTIONS, {"shards": args.shards / "manifest.json"}, __file__)
         metrics = train_detail_tokenizer(cfg, args.shards, work, assets, run)

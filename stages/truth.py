@@ -17,7 +17,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 from tqdm import tqdm
 
-from orbis2.data.shards import load_manifest, split_clips, verify_shards
+from orbis2.data.shards import load_manifest, split_clips
 from orbis2.data.truth import Command, render_commands, single_thread_renderer, write_truth, write_unavailable
 from orbis2.eval.protocols.starts import commanded_steps, rollout_steps, sample_ends
 from orbis2.interfaces import INTERFACES
@@ -51,7 +51,6 @@ def main(argv: list[str] | None = None) -> None:
             stage.summary = f"no truth: the data source is {source}, not the town"
             write_json(args.report, {"available": False, "source": source})
             return
-        verify_shards(args.shards, [split])  # before any read; see verify_shards for why
         clips = split_clips(args.shards, split)
         jobs = []
         for key in sorted(clips):

@@ -18,10 +18,21 @@ from test_latents import save_detail
 from test_shards import make_raw
 
 from orbis2 import dag
-from orbis2.data.shards import ShardError, iter_samples, shard_paths, verify_shards, write_shards
+from orbis2.data import shards as shards_module
+from orbis2.data.shards import (
+    FrameDataset,
+    ShardError,
+    iter_clips,
+    iter_samples,
+    shard_paths,
+    split_clips,
+    verify_shards,
+    write_shards,
+)
 from orbis2.latents import LatentCacheError, LatentWindowDataset, build_latent_cache, open_cache
 from orbis2.models.files import save_tokenizer
 from orbis2.models.tokenizer import build_abstract_tokenizer
+from orbis2.tasks.tokenizers import frame_batches
 
 from conftest import ROOT
 
@@ -88,17 +99,29 @@ def test_a_flipped_jpeg_byte_stops_the_latents_stage(project, tmp_path):
     assert not (tmp_path / "latents").exists()
 
 
-def test_a_flipped_tar_header_byte_stops_the_tokenizer_stage(project, tmp_path):
+def test_a_flipped_tar_header_byte_stops_the_readers_of_that_shard(project, tmp_path):
     shards = copy_of(project, tmp_path, "shards")
     shard = shard_paths(shards, "val")[0]
     flip(shard, first_member(shard).offset + 3)  # inside the member's name field
     with pytest.raises(ShardError, match=f"{shard}: content does not match"):
         verify_shards(shards)
-    proc = run_stage(tmp_path, project, "tokenizer_detail.py", "--shards", shards, "--assets", tmp_path / "assets",
-                     "--out", tmp_path / "tokenizer", "--report", tmp_path / "report.json")
-    assert proc.returncode == 2, proc.stderr
-    assert f"{shard}: content does not match the manifest's hash" in proc.stderr and "Traceback" not in proc.stderr
-    assert not (tmp_path / "tokenizer").exists() and not (tmp_path / "report.json").exists()
+    assert len(list(FrameDataset(shards, "train", rank=0, world=1))) > 0  # the other split's readers go on
+    for read in (lambda: list(FrameDataset(shards, "val", rank=0, world=1)), lambda: split_clips(shards, "val"),
+                 lambda: list(frame_batches(shards, "val", 4, 2, seed=0))):
+        with pytest.raises(ShardError, match=f"{shard}: content does not match the manifest's hash"):
+            read()
+
+
+def test_a_reader_hashes_only_the_shards_it_reads(project, monkeypatch):
+    hashed = []
+    real = shards_module._stream_digest
+    monkeypatch.setattr(shards_module, "_stream_digest", lambda url, bar=None: hashed.append(url) or real(url, bar))
+    train = shard_paths(project / "shards", "train")
+    assert len(train) == 2
+    first = list(FrameDataset(project / "shards", "train", rank=0, world=2))  # rank 0 of 2 takes the first shard
+    assert first and hashed == [str(train[0])]
+    hashed.clear()
+    assert list(iter_clips(project / "shards", "val")) and hashed == [str(shard_paths(project / "shards", "val")[0])]
 
 
 def test_truncated_or_missing_shard_is_named(project, tmp_path):

@@ -77,7 +77,7 @@ from tqdm import tqdm
 
 from orbis2.config.sections import DataConfig
 from orbis2.data.parts import PART_LOG, PartLog, keyed_work, part_name, part_slice
-from orbis2.data.shards import MANIFEST, Clip, iter_samples, load_manifest, shard_urls, verify_shard
+from orbis2.data.shards import MANIFEST, Clip, ShardRef, load_manifest, shard_dataset, shard_refs
 from orbis2.errors import OrbisError
 from orbis2.hierarchy import anchor_range, window_indices, window_span
 from orbis2.io import HashingFile, atomic_dir, move_into, npz_bytes, sha256_file, write_json
@@ -271,14 +271,14 @@ def encode_part(shards_root: str | Path, work: str | Path, tokenizers: dict[str,
 
 
 def _todo(shards_root: Path, manifest: dict[str, Any], splits: list[str], log: _ChunkLog, part: int, parts: int,
-          base_url: str | None) -> list[tuple[tuple[str, int], str, dict[str, Any]]]:
-    """``((split, shard index), url, manifest entry)`` of the part's shards not yet recorded in its log."""
+          base_url: str | None) -> list[tuple[tuple[str, int], ShardRef, dict[str, Any]]]:
+    """``((split, shard index), shard, manifest entry)`` of the part's shards not yet recorded in its log."""
     done = {(e["split"], e["chunk"]) for e in log.events}
     todo = []
     for split in splits:
         shards = manifest["splits"][split]["shards"]
-        urls = shard_urls(shards_root, split, base_url)
-        todo += [((split, i), urls[i], shards[i]) for i in range(len(shards))[part_slice(len(shards), part, parts)]
+        refs = shard_refs(shards_root, split, base_url)
+        todo += [((split, i), refs[i], shards[i]) for i in range(len(shards))[part_slice(len(shards), part, parts)]
                  if (split, chunk_name(shards[i])) not in done]
     return todo
 
@@ -288,17 +288,16 @@ class _ShardClips(IterableDataset):
     DataLoader worker processes each takes every n-th shard. Each shard is checked against the manifest just
     before it is read; a damaged one yields its error, which the encoding process raises as it is."""
 
-    def __init__(self, todo: list[tuple[Any, str, dict[str, Any]]]):
+    def __init__(self, todo: list[tuple[Any, ShardRef, dict[str, Any]]]):
         self.todo = todo
 
     def __iter__(self) -> Iterator[tuple[Any, Any]]:
         info = get_worker_info()
         mine = self.todo if info is None else self.todo[info.id::info.num_workers]
-        for task, url, shard in mine:
+        for task, ref, _ in mine:
             try:
-                verify_shard(url, shard)
-                for sample in iter_samples(url):
-                    clip = Clip.from_sample(sample, url)
+                for sample in shard_dataset([ref]):  # checked against the manifest before it is read
+                    clip = Clip.from_sample(sample, ref.url)
                     # a tensor, so that a worker hands the frames over in shared memory
                     yield task, (clip.key, clip.meta, torch.from_numpy(clip.frames(range(len(clip)))), clip.odometry)
             except OrbisError as err:

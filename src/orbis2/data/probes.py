@@ -17,7 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from orbis2.data.shards import Clip, iter_samples, shard_paths
+from orbis2.data.shards import iter_clips
 from orbis2.data.video import resize_cover
 from orbis2.errors import OrbisError
 
@@ -100,15 +100,13 @@ def town_probe_frames(shards_root: str | Path, split: str = "probe",
     :func:`split_by_episode` keeps all clips of one drive together.
     """
     frames = []
-    for path in shard_paths(Path(shards_root), split):
-        for sample in iter_samples(path):
-            clip = Clip.from_sample(sample, str(path))
-            if clip.labels is None:
-                continue
-            labels = clip.labels
-            for i, index in enumerate(labels["frames"].tolist()):
-                frames.append(_frame(clip.frames([index])[0], labels["semantic"][i], labels["depth"][i], size,
-                                     f"{clip.key}/{index:04d}", clip.key.rsplit("_", 1)[0]))
+    for clip in iter_clips(Path(shards_root), split):
+        if clip.labels is None:
+            continue
+        labels = clip.labels
+        for i, index in enumerate(labels["frames"].tolist()):
+            frames.append(_frame(clip.frames([index])[0], labels["semantic"][i], labels["depth"][i], size,
+                                 f"{clip.key}/{index:04d}", clip.key.rsplit("_", 1)[0]))
     if not frames:
         raise ProbeDataError(f"{shards_root}: split '{split}' holds no labelled frames; the town stage writes "
                              f"labels for data.label_splits, re-run it and the shards stage")

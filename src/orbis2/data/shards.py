@@ -340,34 +340,52 @@ def shard_paths(root: Path, split: str) -> list[Path]:
     return [Path(root) / s["path"] for s in manifest["splits"][split]["shards"]]
 
 
-def verify_shards(root: Path, splits: Iterable[str] | None = None, base: str | None = None) -> int:
-    """Stream every shard of ``splits`` (default: all) and compare its size and SHA-256 with the manifest.
+@dataclass(frozen=True)
+class ShardRef:
+    """Where a shard is read from, and its size and SHA-256 as the manifest recorded them when it was written."""
 
-    Stages call this before they read: a flipped byte in a JPEG payload still decodes (to wrong
-    pixels), and a damaged tar header mid-shard ends the archive early without an error in
-    ``tarfile``, so reading alone would not notice either. Shards are read from where
-    :func:`shard_urls` says (local files, or ``base``/``$ORBIS2_SHARDS_URL``). Returns the bytes checked.
+    url: str
+    bytes: int
+    sha256: str
+
+
+def shard_refs(root: Path, split: str, base: str | None = None) -> list[ShardRef]:
+    """A split's shards in manifest order: where each is read from (:func:`shard_urls`) and what it must hash to."""
+    urls = shard_urls(root, split, base)  # names a split the manifest lacks
+    entries = load_manifest(root)["splits"][split]["shards"]
+    return [ShardRef(url, int(e["bytes"]), str(e["sha256"])) for url, e in zip(urls, entries, strict=True)]
+
+
+def verify_shards(root: Path, splits: Iterable[str] | None = None, base: str | None = None) -> int:
+    """Stream every shard of ``splits`` (default: all) and compare its size and SHA-256 with the manifest; the
+    bytes checked.
+
+    The full check, by hand or before copying a dataset: readers do not call it. Each reader checks a shard
+    just before it reads it (:func:`shard_dataset`, :func:`iter_clips`), so a process hashes only the shards it
+    reads, and a job of many ranks does not hash every split on every rank before its first step.
     """
     manifest = load_manifest(root)
     splits = list(manifest["splits"]) if splits is None else list(splits)
-    entries = [(url, shard) for split in splits
-               for url, shard in zip(shard_urls(root, split, base), manifest["splits"][split]["shards"])]
-    with tqdm(total=sum(s["bytes"] for _, s in entries), desc="verify shards", unit="B", unit_scale=True,
-              leave=False) as bar:
-        for url, shard in entries:
-            verify_shard(url, shard, bar)
-    return sum(s["bytes"] for _, s in entries)
+    refs = [ref for split in splits for ref in shard_refs(root, split, base)]
+    with tqdm(total=sum(r.bytes for r in refs), desc="verify shards", unit="B", unit_scale=True, leave=False) as bar:
+        for ref in refs:
+            verify_shard(ref, bar)
+    return sum(r.bytes for r in refs)
 
 
-def verify_shard(url: str, shard: dict[str, Any], bar: tqdm | None = None) -> None:
-    """Stream one shard (its manifest entry ``shard``) and compare its size and SHA-256 with the manifest's: the
-    check of :func:`verify_shards`, for a reader that checks each shard just before it reads it."""
-    size, digest = _stream_digest(url, bar)
-    if size != shard["bytes"]:
-        raise ShardError(f"{url}: {size} bytes, the manifest says {shard['bytes']} (truncated or "
+def verify_shard(ref: ShardRef, bar: tqdm | None = None) -> None:
+    """Stream one shard and compare its size and SHA-256 with the manifest's.
+
+    Reading alone would not notice damage: a flipped byte in a JPEG payload still decodes (to wrong pixels), and
+    a damaged tar header mid-shard ends the archive early without an error in ``tarfile``. So a reader streams
+    the shard through the hash first and reads its samples only if it matches (a second read, from the page
+    cache for a local file; a shard behind a URL is fetched twice)."""
+    size, digest = _stream_digest(ref.url, bar)
+    if size != ref.bytes:
+        raise ShardError(f"{ref.url}: {size} bytes, the manifest says {ref.bytes} (truncated or "
                          f"modified); re-run the `shards` stage")
-    if digest != shard["sha256"]:
-        raise ShardError(f"{url}: content does not match the manifest's hash (corrupt or modified); "
+    if digest != ref.sha256:
+        raise ShardError(f"{ref.url}: content does not match the manifest's hash (corrupt or modified); "
                          f"re-run the `shards` stage")
 
 
@@ -416,15 +434,33 @@ def _raise_shard_error(exn: Exception) -> bool:
                      f"re-run the `shards` stage") from exn
 
 
-def shard_dataset(urls: list[str], nodesplitter: Any = None, workersplitter: Any = None) -> wds.WebDataset:
-    """The raw samples (members grouped by key) of ``urls`` in order, through ``webdataset``."""
-    return wds.WebDataset(urls, shardshuffle=False, nodesplitter=nodesplitter, workersplitter=workersplitter,
+def shard_dataset(shards: list[ShardRef], nodesplitter: Any = None, workersplitter: Any = None) -> wds.WebDataset:
+    """The raw samples (members grouped by key) of ``shards`` in order, through ``webdataset``; after the node
+    and worker splitters have chosen this reader's shards, each is checked (:func:`verify_shard`) just before it
+    is opened."""
+    refs = {ref.url: ref for ref in shards}
+
+    def checked(urls: Iterator[dict[str, str]]) -> Iterator[dict[str, str]]:
+        for shard in (workersplitter(urls) if workersplitter else urls):
+            verify_shard(refs[shard["url"]])
+            yield shard
+
+    return wds.WebDataset(list(refs), shardshuffle=False, nodesplitter=nodesplitter, workersplitter=checked,
                           handler=_raise_shard_error, empty_check=False)
 
 
 def iter_samples(path: Path | str) -> Iterator[dict[str, Any]]:
-    """Yield the samples of one shard (a path or URL)."""
-    yield from shard_dataset([str(path)])
+    """Yield the samples of one shard (a path or URL) as they are, unchecked: for shards whose reader checks
+    them itself (the truth shards; :func:`iter_clips` for the dataset's)."""
+    yield from wds.WebDataset([str(path)], shardshuffle=False, nodesplitter=None, workersplitter=None,
+                              handler=_raise_shard_error, empty_check=False)
+
+
+def iter_clips(root: Path, split: str) -> Iterator[Clip]:
+    """Every clip of a split in manifest order, each shard checked just before it is read."""
+    for ref in shard_refs(root, split):
+        for sample in shard_dataset([ref]):
+            yield Clip.from_sample(sample, ref.url)
 
 
 @dataclass
@@ -473,8 +509,7 @@ class Clip:
 
 def split_clips(root: Path, split: str) -> dict[str, Clip]:
     """Every clip of a split's shards by key (JPEGs stay compressed until frames are asked for)."""
-    return {clip.key: clip for path in shard_paths(root, split)
-            for clip in (Clip.from_sample(s, str(path)) for s in iter_samples(path))}
+    return {clip.key: clip for clip in iter_clips(root, split)}
 
 
 def split_digest(root: Path, split: str) -> str:
@@ -524,7 +559,7 @@ class ClipStream(IterableDataset):
 
     def __init__(self, root: Path, split: str, seed: int = 0, epoch: int = 0,
                  rank: int | None = None, world: int | None = None, base_url: str | None = None):
-        self.paths = shard_urls(root, split, base_url)
+        self.shards = shard_refs(root, split, base_url)
         self.seed, self.epoch = seed, epoch
         node_rank, node_world, _, _ = wds.utils.pytorch_worker_info()
         self.rank = rank if rank is not None else node_rank
@@ -533,12 +568,12 @@ class ClipStream(IterableDataset):
     def clips(self) -> Iterator[Clip]:
         info = get_worker_info()
         worker, workers = (info.id, info.num_workers) if info else (0, 1)
-        mode, slot, slots = assign(len(self.paths), self.rank, self.world, worker, workers)
+        mode, slot, slots = assign(len(self.shards), self.rank, self.world, worker, workers)
         if mode == "shards":
-            samples = shard_dataset([str(p) for p in self.paths], nodesplitter=self._node_shards,
+            samples = shard_dataset(self.shards, nodesplitter=self._node_shards,
                                     workersplitter=wds.split_by_worker)
         else:
-            samples = (s for i, s in enumerate(shard_dataset([str(p) for p in self.paths])) if i % slots == slot)
+            samples = (s for i, s in enumerate(shard_dataset(self.shards)) if i % slots == slot)
         for sample in samples:
             yield Clip.from_sample(sample)
 

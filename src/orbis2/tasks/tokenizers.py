@@ -125,8 +125,8 @@ def _train_refs(root: Path, spec: DataSpec, per_clip: int, buffer: int) -> Itera
     for epoch in itertools.count():
         refs = _FrameRefs(root, "train", per_clip, seed=spec.seed, epoch=epoch, rank=spec.rank,
                           world=spec.world_size)
-        order = np.random.default_rng([spec.seed, epoch]).permutation(len(refs.paths))
-        refs.paths = [refs.paths[i] for i in order]
+        order = np.random.default_rng([spec.seed, epoch]).permutation(len(refs.shards))
+        refs.shards = [refs.shards[i] for i in order]
         count = 0
         for ref in _shuffled(refs, np.random.default_rng([spec.seed, epoch, spec.rank]), buffer):
             count += 1

@@ -31,7 +31,7 @@ import torch
 
 from orbis2.accel import conv_layout
 from orbis2.data.images import to_uint8
-from orbis2.data.shards import Clip, iter_samples, shard_paths
+from orbis2.data.shards import iter_clips
 from orbis2.errors import OrbisError
 from orbis2.kinematics import integrate_controls
 from orbis2.latents import encode_frames
@@ -63,7 +63,7 @@ def resize(frames: np.ndarray, scale: float) -> np.ndarray:
 def load_clips(shards: Path, split: str, scale: float, max_clips: int | None = None) -> ClipFrames:
     """Every clip of ``split`` of the shards in ``shards`` with odometry (at most ``max_clips``, evenly spread),
     frames resized by ``scale``."""
-    clips = [Clip.from_sample(s, str(p)) for p in shard_paths(shards, split) for s in iter_samples(p)]
+    clips = list(iter_clips(shards, split))
     clips = [c for c in clips if c.meta["has_odometry"]]
     if max_clips is not None and len(clips) > max_clips:
         clips = [clips[int(i)] for i in np.linspace(0, len(clips) - 1, max_clips).round()]
@@ -177,8 +177,7 @@ def reconstruct(tokenizer_file: Path, shards: Path, split: str, data: ClipFrames
     """The same clips (of ``split`` in ``shards``) through the tokenizer of ``tokenizer_file`` (encode, decode)
     at full resolution, then resized."""
     tokenizer = load_tokenizer(tokenizer_file, device)
-    clips = {c.key: c for p in shard_paths(shards, split) for s in iter_samples(p)
-             for c in [Clip.from_sample(s, str(p))] if c.key in set(data.keys)}
+    clips = {c.key: c for c in iter_clips(shards, split) if c.key in set(data.keys)}
     frames = []
     for key in data.keys:
         full = clips[key].frames(np.arange(len(clips[key])))
