@@ -1,5 +1,5 @@
 """No silent corruption: a damaged shard or latent cache stops the stage that reads it (exit 2, the file named); a
-cache's chunk is checked by whoever reads it, when it first does.
+cache's rows are checked, a block of them at a time, by whoever reads them, when it first does.
 
 The stage scripts run as subprocesses on small synthetic shards and a smoke-tokenizer cache built here.
 """
@@ -29,7 +29,7 @@ from orbis2.data.shards import (
     verify_shards,
     write_shards,
 )
-from orbis2.latents import LatentCacheError, LatentWindowDataset, build_latent_cache, open_cache
+from orbis2.latents import BLOCK_ROWS, LatentCacheError, LatentWindowDataset, build_latent_cache, open_cache
 from orbis2.models.files import save_tokenizer
 from orbis2.models.tokenizer import build_abstract_tokenizer
 from orbis2.tasks.tokenizers import frame_batches
@@ -165,29 +165,71 @@ def test_a_flipped_latent_byte_stops_the_predictor_stage(project, tmp_path):
     assert not (tmp_path / "predictor").exists() and not (tmp_path / "report.json").exists()
 
 
-def test_cache_files_are_checked_per_chunk_when_first_read(project, tmp_path, smoke_cfg):
-    """A flipped byte in one chunk stops the reader of that chunk (naming the file) and no other: another
-    chunk's reader, another split's, or a reader of the split's tables goes on."""
+def test_cache_rows_are_checked_by_block_when_first_read(project, tmp_path, smoke_cfg):
+    """A flipped byte stops the readers of the block of rows that holds it (naming the file) and no other: a reader
+    of the chunk's other rows, another chunk's, another split's, or a reader of the split's tables goes on; the
+    check by hand (``verify``) hashes whole files and finds it."""
     cache = copy_of(project, tmp_path, "latents")
-    assert len(open_cache(cache).index("train").chunks) == 2
+    index = open_cache(cache).index("train")
+    assert len(index.chunks) == 2 and int(index.chunks["frames"][1]) > BLOCK_ROWS
     path, data_start = detail_array(cache, "train", 1)
-    flip(path, data_start)
+    row_bytes = np.load(path, mmap_mode="r")[0].nbytes
+    flip(path, data_start + BLOCK_ROWS * row_bytes + 5)  # the chunk's second block
     opened = open_cache(cache)
     train = LatentWindowDataset(opened, "train", smoke_cfg.data)  # the tables are intact
     train[0]  # the first chunk's windows: intact
+    first = int(index.chunks["first_row"][1])
+    detail = opened.arrays("train")["detail"]
+    detail[first:first + BLOCK_ROWS]  # the damaged chunk's first block: intact
+    opened.arrays("train")["odometry"][:]  # the damaged chunk's other arrays: intact
     opened.arrays("val")["detail"][:]  # another split's chunks: intact
-    for use in (lambda: train[len(train) - 1], lambda: opened.arrays("train")["detail"][:],
-                lambda: open_cache(cache).verify("train")):
+    for use in (lambda: train[len(train) - 1], lambda: detail[first + BLOCK_ROWS],
+                lambda: opened.arrays("train")["detail"][:], lambda: open_cache(cache).verify("train")):
         with pytest.raises(LatentCacheError, match=f"{path}: content does not match the SHA-256 recorded in "
                                                    f"train/chunks.npy"):
             use()
-    flip(path, data_start)  # restored
+    flip(path, data_start + BLOCK_ROWS * row_bytes + 5)  # restored
+    assert open_cache(cache).verify("train") == 2 + 5 * 2
     clips = cache / "val" / "clips.npy"
     flip(clips, clips.stat().st_size - 1)
     with pytest.raises(LatentCacheError, match=f"{clips}: content does not match the SHA-256 recorded in meta.json"):
         open_cache(cache).index("val")
     flip(cache / "normalization.npz", 100)
     with pytest.raises(LatentCacheError, match="normalization.npz: content does not match"):
+        open_cache(cache)
+
+
+def test_truncated_missing_or_replaced_cache_files_are_named(project, tmp_path, smoke_cfg):
+    """Mapping a chunk's array checks its header and size (no hashing): a truncated, extended, missing or rewritten
+    file is named when the chunk is first read; so is a damaged blocks.npy, and a cache of the former format."""
+    cache = copy_of(project, tmp_path, "latents")
+    path, _ = detail_array(cache, "val")
+    original = path.read_bytes()
+    array = np.load(path)
+    for damaged, message in ((original[:-7], "unreadable"), (original + b"\0", f"{len(original) + 1} bytes, its "
+                                                                                 f"header says {len(original)}")):
+        path.write_bytes(damaged)
+        with pytest.raises(LatentCacheError, match=f"{path}: {message}.*re-run the `latents` stage"):
+            open_cache(cache).arrays("val")["detail"][0]
+    np.save(path, array.astype(np.float32))  # the same values, another dtype
+    with pytest.raises(LatentCacheError, match=f"{path}: a float32 array in C order, the cache's tables say float16"):
+        open_cache(cache).arrays("val")["detail"][0]
+    np.save(path, array[:-1])
+    with pytest.raises(LatentCacheError, match=f"{path}: shape .*, the cache's tables say"):
+        open_cache(cache).arrays("val")["detail"][0]
+    path.unlink()
+    with pytest.raises(LatentCacheError, match=f"{path}: missing from the latent cache; re-run the `latents` stage"):
+        open_cache(cache).arrays("val")["detail"][0]
+    path.write_bytes(original)
+    blocks = path.with_name("blocks.npy")
+    flip(blocks, blocks.stat().st_size - 1)
+    opened = open_cache(cache)
+    with pytest.raises(LatentCacheError, match=f"{blocks}: content does not match the SHA-256 recorded in "
+                                               f"val/chunks.npy"):
+        opened.arrays("val")["odometry"][0]
+    meta = cache / "meta.json"
+    meta.write_text(meta.read_text().replace('"format": 5', '"format": 4'))
+    with pytest.raises(LatentCacheError, match="cache format 4, this code reads 5; re-run the `latents` stage"):
         open_cache(cache)
 
 

@@ -19,6 +19,7 @@ from torch.utils.data import DataLoader, DistributedSampler
 
 from orbis2.data.parts import PART_LOG, WORK_KEY, part_name
 from orbis2.data.shards import MANIFEST, Clip, anchor_range, clip_window, iter_samples, shard_paths, write_shards
+from orbis2.hierarchy import window_indices
 from orbis2.latents import (
     CHUNKS,
     CLIPS,
@@ -217,32 +218,97 @@ def test_pickled_dataset_maps_instead_of_copying(setup, smoke_cfg):
     torch.testing.assert_close(pickle.loads(blob)[7]["detail"], item["detail"])
 
 
-def test_a_reader_hashes_only_the_chunks_it_reads(setup, smoke_cfg, monkeypatch):
-    """Opening a split hashes its two tables; reading a window hashes that window's chunk, once per process, and
-    the record travels to the processes started from it (pickled)."""
-    tmp, _, _, _ = setup
+def block_cache(root, frames=640, clip=160, shape=(4, 3, 4)):
+    """A cache of one train chunk of ``frames`` frames (``frames // BLOCK_ROWS`` blocks) in clips of ``clip``, random
+    latents: bigger than a window by far, small enough to write in a test."""
+    from orbis2.latents import clip_table, write_chunk, write_meta, write_split
+
+    rng = np.random.default_rng(0)
+    arrays = {kind: rng.standard_normal((frames, *shape)).astype(np.float16) for kind in ("detail", "abstract")}
+    arrays["odometry"] = rng.standard_normal((frames, 2)).astype(np.float32)
+    table = clip_table([(f"clip-{i:03d}", clip, True, str(i), 0) for i in range(frames // clip)])
+    digests = write_chunk(root / "train" / "train-000000", arrays, table)
+    meta = {"format": FORMAT, "dtype": "float16", "encoder": "cpu float32",
+            "data": {"source": "town", "fps": 10, "width": 128, "height": 72},
+            "tokenizers": {kind: {"checksum": kind * 8, "file": None, "shape": list(shape)}
+                           for kind in ("detail", "abstract")},
+            "splits": {"train": write_split(root / "train", [{"chunk": "train-000000", "source": "train/x.tar",
+                                                                "frames": frames, "clips": len(table),
+                                                                "sha256": digests}])}}
+    write_meta(root, meta, normalization={f"{kind}_{part}": value for kind in ("detail", "abstract")
+                                          for part, value in (("shift", np.zeros(shape, np.float32)),
+                                                              ("scale", np.ones((shape[0], 1, 1), np.float32)))})
+    return root, arrays
+
+
+def count_hashing(monkeypatch, root):
+    """Record every hash a reader computes: whole files (their paths) and blocks (their rows' bytes)."""
     from orbis2 import latents
 
-    hashed = []
-    real = latents.sha256_file
-    monkeypatch.setattr(latents, "sha256_file", lambda path: hashed.append(path.relative_to(tmp / "cache")) or
-                        real(path))
-    ds = LatentWindowDataset(tmp / "cache", "train", smoke_cfg.data)
-    assert sorted(map(str, hashed)) == ["normalization.npz", f"train/{CHUNKS}", f"train/{CLIPS}"]
-    hashed.clear()
-    last = len(ds) - 1
-    ds[last]
-    chunk = str(ds.cache.index("train").chunks["name"][ds.clips[-1]["chunk"]])
-    assert sorted(map(str, hashed)) == [f"train/{chunk}/{name}.npy" for name in ("abstract", "detail", "odometry")]
-    hashed.clear()
-    ds[last - 1]
-    pickle.loads(pickle.dumps(ds))[last]
-    assert hashed == []  # checked already, in this process or the one it came from
-    cache = open_cache(tmp / "cache")  # a reader of the odometry alone (the turn repeats): that file, not the latents
+    files, blocks = [], []
+    real_file, real_block = latents.sha256_file, latents.block_digest
+    monkeypatch.setattr(latents, "sha256_file", lambda path: files.append(str(path.relative_to(root))) or
+                        real_file(path))
+    monkeypatch.setattr(latents, "block_digest", lambda rows: blocks.append(rows.nbytes) or real_block(rows))
+    return files, blocks
+
+
+def test_a_window_hashes_the_blocks_that_hold_it_not_the_chunk(tmp_path, smoke_cfg, monkeypatch):
+    """Reading one window of a big chunk hashes the blocks that hold its rows (at most its span and a block at each
+    end, in each array) and the chunk's small blocks.npy: not the chunk's files."""
+    from orbis2.latents import BLOCK_ROWS, BLOCKS
+
+    root, arrays = block_cache(tmp_path / "cache")
+    files, blocks = count_hashing(monkeypatch, root)
+    ds = LatentWindowDataset(root, "train", smoke_cfg.data)
+    assert sorted(files) == ["normalization.npz", f"train/{CHUNKS}", f"train/{CLIPS}"]
+    files.clear()
+    item = ds[len(ds) // 2]
+    assert files == [f"train/train-000000/{BLOCKS}"]  # 3 x 32 bytes a block
+    span = smoke_cfg.data.window_span_frames
+    row_bytes = sum(a[0].nbytes for a in arrays.values())
+    whole = sum(a.nbytes for a in arrays.values())
+    assert 0 < sum(blocks) <= (span + 2 * BLOCK_ROWS) * row_bytes < whole / 8, (sum(blocks), whole)
+    clip, anchor = (int(a[0]) for a in ds.windows(len(ds) // 2, len(ds) // 2 + 1))
+    detail, _ = window_indices(smoke_cfg.data, anchor)
+    np.testing.assert_array_equal(item["detail"].numpy(), arrays["detail"][int(ds.clips[clip]["row"]) + detail])
+    blocks.clear()
+    ds[len(ds) // 2]
+    assert blocks == [] and files == [f"train/train-000000/{BLOCKS}"]  # checked once per process
+
+
+def test_checked_blocks_travel_with_the_pickled_cache(tmp_path, smoke_cfg, monkeypatch):
+    """What a process checked (the tables, blocks.npy, each block read) travels to the processes started from it
+    (pickled: spawned DataLoader workers, DDP): they hash only the blocks it did not read."""
+    root, _ = block_cache(tmp_path / "cache")
+    files, blocks = count_hashing(monkeypatch, root)
+    ds = LatentWindowDataset(root, "train", smoke_cfg.data)
+    ds[3]
+    files.clear(), blocks.clear()
+    child = pickle.loads(pickle.dumps(ds))
+    torch.testing.assert_close(child[3]["detail"], ds[3]["detail"])
+    assert files == [] and blocks == []  # checked already, in the process it came from
+    assert child.cache._checked.keys() == ds.cache._checked.keys()
+    for name, bits in ds.cache._checked.items():
+        np.testing.assert_array_equal(child.cache._checked[name], bits)
+    child[len(child) - 1]  # another clip's window: its own blocks, nothing else
+    assert files == [] and 0 < len(blocks) <= 3 * 4
+
+
+def test_a_reader_of_the_odometry_hashes_no_latents(setup, monkeypatch):
+    """The turn repeats and the steering evaluation read the odometry alone: its blocks and blocks.npy are hashed,
+    not a byte of the latents."""
+    from orbis2.latents import BLOCK_ROWS, BLOCKS
+
+    tmp, _, _, _ = setup
+    files, blocks = count_hashing(monkeypatch, tmp / "cache")
+    cache = open_cache(tmp / "cache")
     odometry = cache.arrays("train")["odometry"]
-    hashed.clear()
+    files.clear()
     odometry[0]
-    assert list(map(str, hashed)) == [f"train/{cache.index('train').chunks['name'][0]}/odometry.npy"]
+    assert files == [f"train/{cache.index('train').chunks['name'][0]}/{BLOCKS}"]
+    assert blocks == [BLOCK_ROWS * 2 * 4]  # one block of float32 [16, 2]
+    assert "detail" not in str(cache._checked) and "abstract" not in str(cache._checked)
 
 
 def test_any_parts_give_the_same_cache_bytes(setup, tmp_path):

@@ -7,13 +7,15 @@ itself. The ``latents`` stage therefore encodes every frame once and stores
     <root>/meta.json                        tokenizer checksums, shards manifest hash, geometry, index checksums
     <root>/normalization.npz                each tokenizer's latent normalisation (shift, scale)
     <root>/<split>/chunks.npy               one row per chunk: name, source shard, frames, clips, first row,
-                                            the SHA-256 of each of its files
+                                            the SHA-256 of each of its files (blocks.npy's too)
     <root>/<split>/clips.npy                one row per clip, in split order: key, chunk, row in the chunk,
                                             row in the split, length, has_odometry, episode, start_frame
     <root>/<split>/<chunk>/detail.npy       float16 [n, C, h, w]     (unscaled detail latent)
     <root>/<split>/<chunk>/abstract.npy     float16 [n, C', h', w']  (unscaled abstract latent)
     <root>/<split>/<chunk>/odometry.npy     float32 [n, 2]           (speed, yaw rate)
     <root>/<split>/<chunk>/clips.npy        the chunk's own rows of the clip table (what the gather reads)
+    <root>/<split>/<chunk>/blocks.npy       per block of ``BLOCK_ROWS`` rows: the SHA-256 of that block of each
+                                            of detail, abstract and odometry (what a reader checks)
 
 One chunk per source shard, named after it (``train/train-000003.tar`` -> ``train/train-000003/``),
 its clips in the shard's order: the chunks of a split, in the manifest's order, hold the split's frames
@@ -52,15 +54,22 @@ cache however many workers and ranks read it. The clip keys survive in ``clips.n
 cached frame traces back to its sample in ``data/shards``.
 
 **Integrity.** ``meta.json`` records the SHA-256 of each split's two tables and of the
-normalisation file; ``chunks.npy`` that of every chunk file. A reader checks a split's tables
-when it opens the split, and a chunk's files the first time this process reads that chunk (a
-process hashes only the chunks it reads; DataLoader workers and DDP ranks started from it carry
-the record of what it checked): a flipped bit in a memory map would otherwise reach every
-predictor as a plausible-looking latent.
+normalisation file; ``chunks.npy`` that of every chunk file; a chunk's ``blocks.npy`` that of
+every block of ``BLOCK_ROWS`` rows of each of its arrays. A reader checks a split's tables when
+it opens the split; when it maps a chunk's array, the file's header and size against the tables;
+and before it returns rows, the blocks that hold them (``blocks.npy`` itself, small, hashed whole
+against ``chunks.npy`` when first needed). Each block is hashed once per process, and DataLoader
+workers and DDP ranks started from a process carry the record of what it checked. So a reader
+hashes what it reads and at most a block more at each end of a read (a predictor's random
+windows: 2-3x the rows they read, as they skip frames; never whole chunks), and a reader of the
+odometry alone hashes no latents. :meth:`LatentCache.verify` (the check by hand) hashes whole
+files. A flipped bit in a memory map would otherwise reach every predictor as a
+plausible-looking latent.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -83,13 +92,25 @@ from orbis2.hierarchy import anchor_range, window_indices, window_span
 from orbis2.io import HashingFile, atomic_dir, move_into, npz_bytes, sha256_file, write_json
 from orbis2.models.files import TokenizerFile, load_tokenizer
 
-FORMAT = 4  # 4: one chunk per source shard, written in parts, each chunk checked when first read
+# 4: one chunk per source shard, written in parts, each chunk checked when first read;
+# 5: each chunk's blocks.npy (a SHA-256 per BLOCK_ROWS rows of each array), the rows checked as they are read
+FORMAT = 5
 KINDS = ("detail", "abstract")
 ARRAYS = (*KINDS, "odometry")
 META = "meta.json"
 CHUNKS = "chunks.npy"
 CLIPS = "clips.npy"
-CHUNK_FILES = (*(f"{name}.npy" for name in ARRAYS), CLIPS)
+BLOCKS = "blocks.npy"
+CHUNK_FILES = (*(f"{name}.npy" for name in ARRAYS), CLIPS, BLOCKS)
+# Rows (frames) per checked block. A predictor's window spans about 16-30 native frames (26 in every
+# profile), and a read hashes the blocks that hold its rows: at most its span plus a block at each end.
+# A 26-frame window lies in at most 3 blocks of 16 (48 rows, 1.8x its span); blocks of 32 would hash up
+# to 64 rows (2.5x). Smaller blocks cost more digests (32 bytes a block and array: 6 bytes a frame at 16,
+# next to 36.9 kB of latents a frame at the paper's scale) and one more hash call a block (about 0.5 us).
+BLOCK_ROWS = 16
+# blocks.npy: one row per block, a 32-byte SHA-256 per array (uint8, not a bytes dtype: numpy's fixed-width
+# bytes drop trailing zero bytes when read).
+BLOCK_DTYPE = np.dtype([(name, "u1", (32,)) for name in ARRAYS])
 NORMALIZATION = "normalization.npz"
 PARTIAL = ".partial"  # a chunk being written (``.<chunk>.partial``, removed when a part starts again)
 
@@ -391,14 +412,38 @@ def _save(path: Path, array: np.ndarray) -> str:
     return file.finish()[1]
 
 
+def block_digest(rows: np.ndarray) -> bytes:
+    """The SHA-256 of rows' raw bytes (C order: the bytes a ``.npy`` file holds after its header).
+
+    SHA-256 rather than BLAKE2: with the CPUs' SHA extensions hashlib's SHA-256 ran at about 1.6 GiB/s
+    here, ``blake2b(digest_size=16)`` at about 0.8 GiB/s, and it is the hash every other check uses."""
+    return hashlib.sha256(np.ascontiguousarray(rows)).digest()
+
+
+def chunk_blocks(arrays: dict[str, np.ndarray]) -> np.ndarray:
+    """A chunk's ``blocks.npy``: for each block of ``BLOCK_ROWS`` rows (the last one may be shorter), the
+    :func:`block_digest` of those rows of each of ``ARRAYS`` (which have one row per frame each)."""
+    frames = len(arrays[ARRAYS[0]])
+    table = np.zeros(-(-frames // BLOCK_ROWS), BLOCK_DTYPE)
+    for name in ARRAYS:
+        array = np.ascontiguousarray(arrays[name])
+        if len(array) != frames:
+            raise ValueError(f"{name}: {len(array)} rows, {ARRAYS[0]} has {frames}")
+        for b in range(len(table)):
+            table[name][b] = np.frombuffer(block_digest(array[b * BLOCK_ROWS:(b + 1) * BLOCK_ROWS]), np.uint8)
+    return table
+
+
 def write_chunk(folder: Path, arrays: dict[str, np.ndarray], clips: np.ndarray) -> dict[str, str]:
-    """One chunk's files (``arrays``: detail, abstract, odometry; ``clips``: its :func:`clip_table`) into ``folder``,
-    atomically (a ``.partial`` folder beside it, synced, renamed); their SHA-256, computed as they are written."""
+    """One chunk's files (``arrays``: detail, abstract, odometry; ``clips``: its :func:`clip_table`; ``blocks.npy``:
+    the arrays' :func:`chunk_blocks`) into ``folder``, atomically (a ``.partial`` folder beside it, synced,
+    renamed); their SHA-256, computed as they are written."""
     partial = folder.with_name(f".{folder.name}{PARTIAL}")
     shutil.rmtree(partial, ignore_errors=True)
     partial.mkdir(parents=True)
     digests = {f"{name}.npy": _save(partial / f"{name}.npy", arrays[name]) for name in ARRAYS}
     digests[CLIPS] = _save(partial / CLIPS, clips)
+    digests[BLOCKS] = _save(partial / BLOCKS, chunk_blocks(arrays))
     shutil.rmtree(folder, ignore_errors=True)  # written but not recorded when a part was killed: written again
     os.replace(partial, folder)
     return digests
@@ -562,12 +607,72 @@ class SplitIndex:
         return self._order[at]
 
 
+def _row_blocks(rows: Any, n: int) -> np.ndarray | None:
+    """The blocks (of ``BLOCK_ROWS`` rows) that indexing an array of ``n`` rows with ``rows`` reads, or None for
+    an index it does not resolve (the caller checks every block). Rows outside the array are left to the
+    array's own indexing to refuse."""
+    if isinstance(rows, (int, np.integer)):
+        r = int(rows) + (n if rows < 0 else 0)
+        return np.array([r // BLOCK_ROWS] if 0 <= r < n else [], np.int64)
+    if isinstance(rows, slice):
+        start, stop, step = rows.indices(n)
+        if step == 1:
+            return np.arange(start // BLOCK_ROWS, (stop - 1) // BLOCK_ROWS + 1) if stop > start else np.zeros(0, int)
+        rows = np.arange(start, stop, step)
+    if rows is None or rows is Ellipsis:
+        return None
+    rows = np.asarray(rows)
+    if rows.dtype == bool:
+        if rows.ndim != 1:
+            return None
+        rows = np.flatnonzero(rows)
+    if not np.issubdtype(rows.dtype, np.integer):
+        return None
+    flat = rows.ravel().astype(np.int64)
+    flat = np.where(flat < 0, flat + n, flat)
+    return np.unique(flat[(flat >= 0) & (flat < n)] // BLOCK_ROWS)
+
+
+class ChunkArray:
+    """One array file of a chunk (``detail``, ``abstract`` or ``odometry``), memory-mapped and indexed like it
+    (``array[rows]``, ``array[rows, ...]``, ``np.asarray(array)``): before rows are returned, the blocks of
+    ``BLOCK_ROWS`` rows that hold them are checked against the chunk's ``blocks.npy``, each block once per
+    process (:meth:`LatentCache.check_blocks`). What the index returns is the map's (a view for a slice)."""
+
+    def __init__(self, cache: LatentCache, split: str, c: int, name: str, path: Path, array: np.ndarray):
+        self.cache, self.split, self.c, self.name, self.path, self.array = cache, split, c, name, path, array
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.array.shape
+
+    @property
+    def dtype(self) -> np.dtype:
+        return self.array.dtype
+
+    @property
+    def ndim(self) -> int:
+        return self.array.ndim
+
+    def __len__(self) -> int:
+        return len(self.array)
+
+    def __getitem__(self, key: Any) -> np.ndarray:
+        rows = (key[0] if key else Ellipsis) if isinstance(key, tuple) else key
+        self.cache.check_blocks(self, _row_blocks(rows, len(self)))
+        return self.array[key]
+
+    def __array__(self, dtype: Any = None, copy: bool | None = None) -> np.ndarray:
+        self.cache.check_blocks(self, None)
+        return np.array(self.array, dtype, copy=True) if copy else np.asarray(self.array, dtype)
+
+
 class SplitArray:
     """One array (``detail``, ``abstract`` or ``odometry``) of a split, its chunks' rows numbered as one array.
 
     Indexed like the array it stands for (a row, a slice, an array of rows, optionally more axes after the
-    rows: ``odometry[rows, 1]``); each chunk read is mapped, and checked the first time this process reads
-    it (:meth:`LatentCache.chunk`). Returns numpy arrays."""
+    rows: ``odometry[rows, 1]``); each chunk read is mapped (:meth:`LatentCache.chunk`), and the blocks holding
+    the rows read are checked before they are returned (:class:`ChunkArray`). Returns numpy arrays."""
 
     def __init__(self, cache: LatentCache, split: str, name: str):
         index = cache.index(split)
@@ -585,7 +690,7 @@ class SplitArray:
     def __len__(self) -> int:
         return self.shape[0]
 
-    def _rows(self, c: int) -> np.ndarray:
+    def _rows(self, c: int) -> ChunkArray:
         return self.cache.chunk(self.split, c, (self.name,))[self.name]
 
     def _range(self, start: int, stop: int) -> np.ndarray:
@@ -636,11 +741,13 @@ class SplitArray:
 class LatentCache:
     """An opened cache: its meta, per-split tables, and each chunk's arrays mapped on first use.
 
-    A chunk's files are hashed the first time this process reads the chunk; the record of what was
-    checked travels with the object when it is pickled (DataLoader workers started by spawn/forkserver,
-    DDP), as it does into forked workers, so no process hashes a chunk twice. The maps are per process
-    (dropped when pickled: each process maps the files instead of copying them), at most ``MAPPED``
-    chunks at a time (the least recently read unmapped first: a process may hold only so many maps).
+    The rows read are checked block by block (:class:`ChunkArray`), each block the first time this process
+    reads it: a reader hashes about what it reads, not whole chunks. The record of what was checked (the
+    files hashed whole, a bit per block of each array read) travels with the object when it is pickled
+    (DataLoader workers started by spawn/forkserver, DDP), as it does into forked workers, so no process
+    hashes a block twice. The maps and the loaded ``blocks.npy`` are per process (dropped when pickled: each
+    process maps the files instead of copying them), at most ``MAPPED`` chunks at a time (the least recently
+    read unmapped first: a process may hold only so many maps).
     """
 
     MAPPED = 256
@@ -648,8 +755,10 @@ class LatentCache:
     def __init__(self, root: Path, meta: dict[str, Any]):
         self.root, self.meta = root, meta
         self._verified: set[str] = set()  # files checked by this process (or the one it was started from)
+        self._checked: dict[str, np.ndarray] = {}  # per array file read: which of its blocks were checked (bools)
         self._indexes: dict[str, SplitIndex] = {}
-        self._maps: OrderedDict[tuple[str, int], dict[str, np.ndarray]] = OrderedDict()
+        self._maps: OrderedDict[tuple[str, int], dict[str, ChunkArray]] = OrderedDict()
+        self._digests: dict[tuple[str, int], np.ndarray] = {}  # the chunks' blocks.npy, as loaded
         path = root / NORMALIZATION
         self._check(path, meta["normalization_sha256"], META)
         try:
@@ -698,16 +807,18 @@ class LatentCache:
             self._indexes[split] = SplitIndex(*tables)
         return self._indexes[split]
 
-    def chunk(self, split: str, c: int, names: Sequence[str] = ARRAYS) -> dict[str, np.ndarray]:
+    def chunk(self, split: str, c: int, names: Sequence[str] = ARRAYS) -> dict[str, ChunkArray]:
         """``names`` (default ``detail``, ``abstract`` and ``odometry``) of chunk ``c`` of a split as read-only memory
-        maps; each file is hashed the first time this process reads it, so a reader of the odometry alone (the
-        turn repeats, the steering evaluation) does not hash the chunk's latents."""
+        maps (:class:`ChunkArray`: the rows read are checked as they are read). Mapping hashes nothing: it checks
+        each file's header (shape, dtype, C order) against the cache's tables and its size against the header,
+        so a truncated or replaced file is named here. A reader of the odometry alone (the turn repeats, the
+        steering evaluation) hashes no latents."""
         key = (split, int(c))
         maps = self._maps.get(key)
         if maps is None:
             maps = self._maps[key] = {}
             if len(self._maps) > self.MAPPED:
-                self._maps.popitem(last=False)
+                self._digests.pop(self._maps.popitem(last=False)[0], None)
         else:
             self._maps.move_to_end(key)
         missing = [name for name in names if name not in maps]
@@ -716,20 +827,69 @@ class LatentCache:
             folder = self._folder(split) / str(row["name"])
         for name in missing:
             path = folder / f"{name}.npy"
-            self._check(path, str(row[f"{name}_sha256"]), f"{split}/{CHUNKS}")
+            if not path.is_file():
+                raise LatentCacheError(f"{path}: missing from the latent cache; re-run the `latents` stage")
             try:
-                maps[name] = np.load(path, mmap_mode="r")
+                array = np.load(path, mmap_mode="r")
             except (OSError, ValueError) as err:
                 raise LatentCacheError(f"{path}: unreadable ({err}); re-run the `latents` stage") from err
             shape = (int(row["frames"]), *(self.meta["tokenizers"][name]["shape"] if name in KINDS else (2,)))
-            if maps[name].shape != shape:
-                raise LatentCacheError(f"{path}: shape {maps[name].shape}, the cache's tables say {shape}; "
+            dtype = np.dtype(np.float16 if name in KINDS else np.float32)
+            if array.shape != shape:
+                raise LatentCacheError(f"{path}: shape {array.shape}, the cache's tables say {shape}; "
                                        f"re-run the `latents` stage")
+            if array.dtype != dtype or not array.flags.c_contiguous:
+                raise LatentCacheError(f"{path}: a {array.dtype} array in {'C' if array.flags.c_contiguous else 'F'} "
+                                       f"order, the cache's tables say {dtype} in C order; re-run the `latents` stage")
+            size = path.stat().st_size
+            if size != array.offset + array.nbytes:
+                raise LatentCacheError(f"{path}: {size} bytes, its header says {array.offset + array.nbytes}; "
+                                       f"re-run the `latents` stage")
+            self._checked.setdefault(str(path.relative_to(self.root)), np.zeros(-(-len(array) // BLOCK_ROWS), bool))
+            maps[name] = ChunkArray(self, split, int(c), name, path, array)
         return maps
 
+    def block_digests(self, split: str, c: int) -> np.ndarray:
+        """Chunk ``c``'s ``blocks.npy`` (:func:`chunk_blocks`), hashed whole against ``chunks.npy`` the first time
+        this process (or the one it came from) needs it, loaded once per process."""
+        key = (split, int(c))
+        if key not in self._digests:
+            row = self.index(split).chunks[c]
+            path = self._folder(split) / str(row["name"]) / BLOCKS
+            self._check(path, str(row["blocks_sha256"]), f"{split}/{CHUNKS}")
+            try:
+                table = np.load(path, allow_pickle=False)
+            except (OSError, ValueError) as err:
+                raise LatentCacheError(f"{path}: unreadable ({err}); re-run the `latents` stage") from err
+            if table.dtype != BLOCK_DTYPE or table.shape != (-(-int(row["frames"]) // BLOCK_ROWS),):
+                raise LatentCacheError(f"{path}: {table.shape} rows of {table.dtype}, not the blocks of "
+                                       f"{int(row['frames'])} frames; re-run the `latents` stage")
+            self._digests[key] = table
+        return self._digests[key]
+
+    def check_blocks(self, array: ChunkArray, blocks: np.ndarray | None) -> None:
+        """Check ``blocks`` (None: all) of a chunk's array against their SHA-256 in its ``blocks.npy`` (recorded
+        in ``chunks.npy`` through that file's own SHA-256), those this process has not checked yet; a file hashed
+        whole (:meth:`verify`) is not checked again."""
+        name = str(array.path.relative_to(self.root))
+        if name in self._verified:
+            return
+        checked = self._checked[name]
+        todo = np.flatnonzero(~checked) if blocks is None else blocks[~checked[blocks]]
+        if not todo.size:
+            return
+        digests = self.block_digests(array.split, array.c)[array.name]
+        for b in todo.tolist():
+            if block_digest(array.array[b * BLOCK_ROWS:(b + 1) * BLOCK_ROWS]) != digests[b].tobytes():
+                raise LatentCacheError(
+                    f"{array.path}: content does not match the SHA-256 recorded in {array.split}/{CHUNKS} when the "
+                    f"cache was written (corrupt or modified); re-run the `latents` stage")
+            checked[b] = True
+
     def verify(self, split: str) -> int:
-        """Check every file of a split (its tables and each chunk's files) against the SHA-256 recorded when they
-        were written, as a reader checks what it reads; the number of files checked."""
+        """Check every file of a split (its tables and each chunk's files, ``blocks.npy`` included) against the
+        SHA-256 recorded when they were written, whole (a reader checks the blocks it reads); the number of files
+        checked."""
         index, folder = self.index(split), self._folder(split)
         for row in index.chunks:
             for file in CHUNK_FILES:
@@ -743,7 +903,14 @@ class LatentCache:
         return {name: SplitArray(self, split, name) for name in ARRAYS}
 
     def __getstate__(self) -> dict[str, Any]:
-        return {**self.__dict__, "_maps": OrderedDict(), "_indexes": {}}
+        # the record of checked blocks travels as bits (one a block: 1/128 byte a frame and array)
+        checked = {name: (len(bits), np.packbits(bits)) for name, bits in self._checked.items()}
+        return {**self.__dict__, "_maps": OrderedDict(), "_indexes": {}, "_digests": {}, "_checked": checked}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        state["_checked"] = {name: np.unpackbits(bits, count=n).astype(bool)
+                             for name, (n, bits) in state["_checked"].items()}
+        self.__dict__.update(state)
 
 
 def _check_file(path: Path, digest: str, recorded_in: str, stage: str = "latents") -> None:
