@@ -13,10 +13,12 @@ import webdataset as wds
 from orbis2.data.episodes import EpisodeRecord, RawIndex, write_labels, write_odometry
 from orbis2.data.shards import (
     Clip,
+    ClipStream,
     ShardError,
     WindowDataset,
     anchor_range,
     clip_window,
+    interleave,
     iter_samples,
     load_manifest,
     read_clips,
@@ -263,3 +265,21 @@ def test_a_broken_shard_in_a_worker_names_the_file(shards, tmp_path):
     shard.write_bytes(shard.read_bytes()[:5000])
     with pytest.raises(ShardError, match=shard.name):
         list(read_clips(copy, "train", workers=2))
+
+
+def test_interleave_takes_an_item_from_each_open_stream_in_turn():
+    streams = [iter(["a1", "a2", "a3"]), iter(["b1"]), iter(["c1", "c2"]), iter(["d1"])]
+    assert list(interleave(iter(streams), 3)) == ["a1", "b1", "c1", "a2", "d1", "c2", "a3"]
+    assert list(interleave(iter([iter([1, 2]), iter([3])]), 1)) == [1, 2, 3]
+    started = []
+    lazy = interleave((started.append(i) or iter([i]) for i in range(10)), 2)
+    assert next(lazy) == 0 and started == [0, 1]  # a stream starts when its turn comes, no sooner
+
+
+def test_interleaved_ranks_still_split_the_clips_exactly(shards):
+    tmp, _, _ = shards
+    every = sorted(clip.key for clip in ClipStream(tmp / "out", "train", rank=0, world=1))
+    for world in (1, 2, 5):  # 5 readers for fewer shards: every reader keeps every 5th sample
+        taken = [clip.key for rank in range(world) for clip in ClipStream(tmp / "out", "train", rank=rank,
+                                                                           world=world, interleave=2)]
+        assert sorted(taken) == every

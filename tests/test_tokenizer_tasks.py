@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import warnings
 
 import numpy as np
@@ -18,6 +19,7 @@ from orbis2.models.tokenizer import build_detail_tokenizer
 from orbis2.tasks.tokenizers import (
     AbstractTokenizerTask,
     DetailTokenizerTask,
+    _train_refs,
     frame_batches,
     image_batches,
     latent_statistics,
@@ -199,3 +201,28 @@ def test_abstract_task_aligns_to_the_teacher(shard_root, smoke_cfg, tmp_path):
     evaluated = result.history[-1][1]
     assert {"val_align", "val_cosine", "val_psnr"} <= set(evaluated) and -1.0 <= evaluated["val_cosine"] <= 1.0
     assert (tmp_path / "samples" / "step_000012.png").is_file()
+
+
+def test_interleaved_shards_feed_the_shuffle_buffer_from_more_videos(tmp_path, smoke_cfg):
+    """A shard holds minutes of one video: read one after another, a rank's shuffle buffer holds one street.
+    Interleaved, the same frames of the epoch arrive from that many videos at once."""
+    make_raw(tmp_path / "raw", smoke_cfg, episodes=(("train", 8, 120), ("val", 1, 30)))
+    write_shards(tmp_path / "raw", tmp_path / "probe", smoke_cfg.data, smoke_cfg.shards)
+    manifest = shards.load_manifest(tmp_path / "probe")["splits"]["train"]
+    clip_mb = sum(s["bytes"] for s in manifest["shards"]) / manifest["samples"] / 2**20
+    # about 4 clips (one 120-frame video) per shard
+    write_shards(tmp_path / "raw", tmp_path / "shards", smoke_cfg.data,
+                 dataclasses.replace(smoke_cfg.shards, max_shard_mb=3.5 * clip_mb))
+    train = shards.load_manifest(tmp_path / "shards")["splits"]["train"]
+    assert len(train["shards"]) >= 6 and train["samples"] == 32
+
+    def epoch(interleave):
+        refs = _train_refs(tmp_path / "shards", spec(batch=8), per_clip=4, interleave=interleave, buffer=8)
+        return [(clip.key, index) for clip, index in itertools.islice(refs, 32 * 4)]
+
+    def videos_per_batch(refs):
+        return np.mean([len({key.rsplit("_", 1)[0] for key, _ in refs[b:b + 8]}) for b in range(0, len(refs), 8)])
+
+    one, eight = epoch(1), epoch(8)
+    assert sorted(one) == sorted(eight)  # the same frames of the epoch
+    assert videos_per_batch(eight) >= 1.5 * videos_per_batch(one), (videos_per_batch(one), videos_per_batch(eight))

@@ -27,13 +27,13 @@ NODES = (1, 4, 16, 64)
 CORES_PER_NODE = 32
 GPUS_PER_NODE = 8
 LATENT_BYTES = 2  # the cache stores float16
-HASH_MB_S = 500  # one core's SHA-256 of a file in the page cache (docs/integrity.md: 440-540 MiB/s measured)
 
 
 def plan(bench: dict, params: Path, latents: dict | None = None) -> str:
     cfg = load_config(params, "paper")
     frames = HOURS * 3600 * cfg.data.fps
     tok = tokenizer_config("paper")
+    tok_cfg = cfg.tokenizer_detail
     grid = (tok.image_size[0] // tok.patch_size) * (tok.image_size[1] // tok.patch_size)
     latent_frame = 2 * grid * tok.latent_dim * LATENT_BYTES  # detail and abstract
     tb = lambda per_frame: per_frame * frames / 1e12  # noqa: E731
@@ -114,8 +114,20 @@ depend on `parts`; where shards end does (tested: `tests/test_shard_parts.py`).
   shards and the latent cache at `parts=4`, one Slurm job per part, kills a town part and starts the run
   again, and checks the result against one part's, byte for byte
   ([gpus-and-clusters.md](gpus-and-clusters.md#the-data-path-in-parts-on-slurm), with why not as arrays).
-- **Checksums from the writer.** Each shard's SHA-256 is computed as it is written (no second read of
-  {tb(bench['shard_bytes_per_frame']):,.1f} TB) and the manifest carries it for the readers.
+- **Batches from many videos.** A shard holds consecutive clips: at the paper profile about
+  {chunk_frames:,.0f} frames, {chunk_frames / cfg.data.fps / 60:,.1f} minutes of one video (or of consecutive short ones). The writer keeps that order
+  (it is what makes `parts=N` equal `parts=1` and a killed part resume at a clip); the mixing is the
+  reader's: a tokenizer rank reads `interleave_shards` of its shards side by side
+  ({tok_cfg.interleave_shards} at the paper profile, one shard after another where it is null), a clip from each in turn,
+  into its shuffle buffer, so a batch draws on that many videos instead of one or two
+  (`tests/test_tokenizer_tasks.py` measures the videos per batch). Changing it rewrites no shard. The
+  predictors read random windows of the whole latent cache and need no mixing. Shards are {shard_mb:g} MB
+  (WebDataset advises hundreds of MB to 1 GB); their count need not divide by nodes x GPUs x workers, since
+  a tokenizer rank's stream is endless (epoch after epoch) and ranks never wait for each other's epoch to
+  end, and a split with fewer shards than readers is read sample by sample instead.
+- **Checksums from the writer, checked by each reader.** Each shard's SHA-256 is computed as it is written
+  (no second read of {tb(bench['shard_bytes_per_frame']):,.1f} TB) and the manifest carries it; a reader checks a
+  shard just before it reads it, so a rank hashes the shards it reads, not every split before its first step.
 
 ## Storage per stage
 
@@ -193,7 +205,6 @@ LATENTS_JSON = "docs/results/scale/bench_latents.json"
 def latents_section(cfg, frames: float, latent_frame: float, chunk_frames: float, chunk_mb: float, chunks: float,
                     tb, latents: dict | None) -> str:
     """The latent cache's part of the page: its parts, chunks and checks, and its wall time when measured."""
-    hours_hashed = tb(latent_frame) * 1e6 / HASH_MB_S / 3600
     text = f"""## The latent cache in parts
 
 The same `parts` setting splits the latent cache: part *i* of *N* (`latents_part`, one GPU job each on
@@ -214,12 +225,12 @@ and `meta.json`. The latents do not depend on `parts` (tested: `tests/test_laten
   ({GPU_PART.threads - 1} of the {GPU_PART.threads} a `latents_part` job asks for). The cache stores float16:
   half precision already.
 - **Chunks.** At the paper profile a chunk holds about {chunk_frames:,.0f} frames ({chunk_mb:,.0f} MB of
-  latents), {chunks:,.0f} chunks in all. A reader checks a split's two tables when it opens the split and
-  a chunk's files the first time it reads that chunk, so a process hashes only what it reads. A
-  predictor's windows are drawn from every chunk, so over its first pass each reading process (a rank,
-  each of its DataLoader workers) hashes up to every chunk of the splits it reads (at most the whole
-  cache, {tb(latent_frame):,.1f} TB: about {hours_hashed:,.1f} core-hours at {HASH_MB_S} MB/s), spread over
-  its reads instead of before its first step.
+  latents), {chunks:,.0f} chunks in all. A reader checks a split's two tables when it opens the split and,
+  before it uses rows, the blocks of 16 frames that hold them (each once per process, against the
+  chunk's `blocks.npy`: 6 bytes a frame). A predictor's random window (26 frames) hashes at most 3
+  blocks (48 frames) of each array, so each reading process (a rank, each of its DataLoader workers)
+  hashes 2-3 times the rows it reads, not the whole chunks its windows come from
+  ([integrity.md](integrity.md)).
 - **Memory.** A part holds the encoders and the shards in flight; the gather writes the clip table
   through a memory map; a reader holds one numpy row per clip and per chunk (no Python object per window
   or clip, no JSON index)."""

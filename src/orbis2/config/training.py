@@ -116,6 +116,7 @@ class DetailTokenizerConfig:
     preset: str
     train: TrainConfig
     frames_per_clip: int
+    interleave_shards: int | None  # train shards read side by side (orbis2.data.shards.interleave); None: 1
     l1_weight: float
     mse_weight: float  # 0 in the paper's objective (docs/differences.md, "Detail tokenizer objective")
     entropy_start: float
@@ -149,6 +150,7 @@ class AbstractTokenizerConfig:
     rec_weight: float
     compress: bool
     frames_per_clip: int
+    interleave_shards: int | None  # train shards read side by side (orbis2.data.shards.interleave); None: 1
     eval_images: int
     scale_images: int
     latent_norm: str  # or "global": the paper's single scale factor
@@ -169,6 +171,8 @@ class AbstractTokenizerConfig:
 def _tokenizer_common(cfg: Any, where: str) -> None:
     _model_size(TOKENIZER_PRESETS, cfg.preset, {}, where)
     positive(cfg, where, "frames_per_clip", "eval_images", "scale_images")
+    if cfg.interleave_shards is not None and cfg.interleave_shards < 1:
+        raise ConfigError(f"{where}.interleave_shards = {cfg.interleave_shards} must be >= 1 or null")
     if cfg.latent_norm not in ("per_position", "global"):
         raise ConfigError(f"{where}.latent_norm = {cfg.latent_norm!r} must be 'per_position' or 'global'")
 

@@ -434,19 +434,40 @@ def _raise_shard_error(exn: Exception) -> bool:
                      f"re-run the `shards` stage") from exn
 
 
-def shard_dataset(shards: list[ShardRef], nodesplitter: Any = None, workersplitter: Any = None) -> wds.WebDataset:
-    """The raw samples (members grouped by key) of ``shards`` in order, through ``webdataset``; after the node
-    and worker splitters have chosen this reader's shards, each is checked (:func:`verify_shard`) just before it
-    is opened."""
+def shard_dataset(shards: list[ShardRef]) -> wds.WebDataset:
+    """The raw samples (members grouped by key) of ``shards`` in order, through ``webdataset``; each shard is
+    checked (:func:`verify_shard`) just before it is opened."""
     refs = {ref.url: ref for ref in shards}
 
     def checked(urls: Iterator[dict[str, str]]) -> Iterator[dict[str, str]]:
-        for shard in (workersplitter(urls) if workersplitter else urls):
+        for shard in urls:
             verify_shard(refs[shard["url"]])
             yield shard
 
-    return wds.WebDataset(list(refs), shardshuffle=False, nodesplitter=nodesplitter, workersplitter=checked,
+    return wds.WebDataset(list(refs), shardshuffle=False, nodesplitter=None, workersplitter=checked,
                           handler=_raise_shard_error, empty_check=False)
+
+
+def interleave(streams: Iterable[Iterator[Any]], lanes: int) -> Iterator[Any]:
+    """The items of ``streams`` read ``lanes`` streams at a time, an item from each in turn; a stream that ends
+    gives its place to the next one. A stream is started only when its turn first comes (a shard is opened,
+    and checked, only then). ``lanes=1`` gives the streams one after another."""
+    pending = iter(streams)
+    open_ = list(itertools.islice(pending, lanes))
+    turn = 0
+    while open_:
+        turn %= len(open_)
+        try:
+            item = next(open_[turn])
+        except StopIteration:
+            following = next(pending, None)
+            if following is None:
+                del open_[turn]
+            else:
+                open_[turn] = following
+            continue
+        yield item
+        turn += 1
 
 
 def iter_samples(path: Path | str) -> Iterator[dict[str, Any]]:
@@ -553,14 +574,21 @@ class ClipStream(IterableDataset):
     or ``torch.distributed``; DataLoader workers split a rank's shards like ``wds.split_by_worker``.
     With fewer shards than (ranks x workers) every reader keeps every n-th sample instead, so
     all ranks still get the same number of clips (give or take one) and none waits at a barrier.
+
+    ``interleave`` shards are read side by side, a clip from each in turn (:func:`interleave`): a shard
+    holds minutes of one video, so a reader that took its shards one at a time would fill a shuffle buffer
+    with one street. 1 reads them one after another. Each shard is checked just before it is read.
     Iterating yields the clips themselves; subclasses turn each clip into training items
     (``items``). ``seed`` and ``epoch`` make every random choice reproducible.
     """
 
     def __init__(self, root: Path, split: str, seed: int = 0, epoch: int = 0,
-                 rank: int | None = None, world: int | None = None, base_url: str | None = None):
+                 rank: int | None = None, world: int | None = None, base_url: str | None = None,
+                 interleave: int = 1):
+        if interleave < 1:
+            raise ValueError(f"interleave must be >= 1, got {interleave}")
         self.shards = shard_refs(root, split, base_url)
-        self.seed, self.epoch = seed, epoch
+        self.seed, self.epoch, self.interleave = seed, epoch, interleave
         node_rank, node_world, _, _ = wds.utils.pytorch_worker_info()
         self.rank = rank if rank is not None else node_rank
         self.world = world if world is not None else node_world
@@ -569,19 +597,13 @@ class ClipStream(IterableDataset):
         info = get_worker_info()
         worker, workers = (info.id, info.num_workers) if info else (0, 1)
         mode, slot, slots = assign(len(self.shards), self.rank, self.world, worker, workers)
-        if mode == "shards":
-            samples = shard_dataset(self.shards, nodesplitter=self._node_shards,
-                                    workersplitter=wds.split_by_worker)
-        else:
-            samples = (s for i, s in enumerate(shard_dataset(self.shards)) if i % slots == slot)
+        # whole shards: every world-th from the rank on, then every workers-th of those from the worker on
+        mine = self.shards[self.rank::self.world][worker::workers] if mode == "shards" else self.shards
+        samples = interleave((iter(shard_dataset([ref])) for ref in mine), self.interleave)
+        if mode == "samples":
+            samples = (s for i, s in enumerate(samples) if i % slots == slot)
         for sample in samples:
             yield Clip.from_sample(sample)
-
-    def _node_shards(self, shards: Iterator[dict[str, str]]) -> Iterator[dict[str, str]]:
-        """This rank's shards: every ``world``-th, from ``rank`` on."""
-        for i, shard in enumerate(shards):
-            if i % self.world == self.rank:
-                yield shard
 
     def rng(self, clip: Clip) -> np.random.Generator:
         return np.random.default_rng([self.seed, self.epoch, zlib.crc32(clip.key.encode())])

@@ -115,8 +115,9 @@ def _shuffled(items: Iterable[Any], rng: np.random.Generator, size: int) -> Iter
     yield from (held[j] for j in rng.permutation(len(held)))
 
 
-def _train_refs(root: Path, spec: DataSpec, per_clip: int, buffer: int) -> Iterator[tuple[Clip, int]]:
-    """Endless frame references of this rank, epoch after epoch.
+def _train_refs(root: Path, spec: DataSpec, per_clip: int, interleave: int,
+                buffer: int) -> Iterator[tuple[Clip, int]]:
+    """Endless frame references of this rank, epoch after epoch, its shards read ``interleave`` at a time.
 
     Every epoch re-draws everything from ``(seed, epoch)``: the frames per clip
     (FrameDataset), the shard order (shared by all ranks, so they still split the
@@ -124,7 +125,7 @@ def _train_refs(root: Path, spec: DataSpec, per_clip: int, buffer: int) -> Itera
     """
     for epoch in itertools.count():
         refs = _FrameRefs(root, "train", per_clip, seed=spec.seed, epoch=epoch, rank=spec.rank,
-                          world=spec.world_size)
+                          world=spec.world_size, interleave=interleave)
         order = np.random.default_rng([spec.seed, epoch]).permutation(len(refs.shards))
         refs.shards = [refs.shards[i] for i in order]
         count = 0
@@ -136,7 +137,8 @@ def _train_refs(root: Path, spec: DataSpec, per_clip: int, buffer: int) -> Itera
                              f"re-run the `shards` stage or use fewer processes")
 
 
-def image_batches(root: Path, spec: DataSpec, per_clip: int, buffer: int = SHUFFLE_BUFFER) -> Iterator[torch.Tensor]:
+def image_batches(root: Path, spec: DataSpec, per_clip: int, interleave: int = 1,
+                  buffer: int = SHUFFLE_BUFFER) -> Iterator[torch.Tensor]:
     """Endless train batches ``[spec.batch_size, 3, H, W]`` in [-1, 1] for one rank, from batch ``spec.start`` on.
 
     The stream is a pure function of ``(seed, rank, world_size)``; starting at
@@ -144,7 +146,8 @@ def image_batches(root: Path, spec: DataSpec, per_clip: int, buffer: int = SHUFF
     resumed run sees exactly the batches an uninterrupted one would have.
     ``spec.num_workers`` threads decode upcoming batches ahead (OpenCV releases the GIL).
     """
-    refs = itertools.islice(_train_refs(Path(root), spec, per_clip, buffer), spec.start * spec.batch_size, None)
+    refs = itertools.islice(_train_refs(Path(root), spec, per_clip, interleave, buffer), spec.start * spec.batch_size,
+                            None)
     groups = iter(lambda: list(itertools.islice(refs, spec.batch_size)), [])
     yield from _decode_ahead(groups, spec.num_workers)
 
@@ -219,7 +222,7 @@ class _TokenizerTask:
         self._val: np.ndarray | None = None
 
     def batches(self, spec: DataSpec) -> Iterator[torch.Tensor]:
-        return image_batches(self.root, spec, self.cfg.frames_per_clip)
+        return image_batches(self.root, spec, self.cfg.frames_per_clip, self.cfg.interleave_shards or 1)
 
     def val_batches(self, device: torch.device) -> Iterator[torch.Tensor]:
         """The ``eval_images`` validation frames (decoded once, kept as uint8), batch by batch."""
