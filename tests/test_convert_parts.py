@@ -95,6 +95,66 @@ def test_a_killed_part_converts_again_only_the_item_in_flight_and_a_changed_sour
     assert calls == ["b1c66a42-00000001.mov"]
 
 
+PAI_CLIPS = {f"{n:08x}-0000-4000-8000-000000000000": ("val" if n == 4 else "train", n != 1) for n in range(6)}
+
+
+def test_a_physicalai_part_killed_mid_chunk_converts_again_only_the_clips_not_done(tmp_path, monkeypatch):
+    """A PhysicalAI-AV chunk is one zip of about a hundred clips: a part killed in it resumes at the clip it was on."""
+    root = physicalai_tree(tmp_path / "av", clips=PAI_CLIPS)
+    clips = list(PAI_CLIPS)
+    calls, kill_at = [], [3]
+    real = physicalai_av.convert_clip
+
+    def convert_clip(clip_id, *args):
+        calls.append(clip_id)
+        if len(calls) == kill_at[0]:
+            kill_at[0] = 0
+            raise Killed
+        return real(clip_id, *args)
+
+    monkeypatch.setattr(physicalai_av, "convert_clip", convert_clip)
+    with pytest.raises(Killed):  # clip 1 is invalid: killed converting clip 3, after clips 0, 1 and 2 were logged
+        physicalai_av.convert(root, tmp_path / "out")
+    log = tmp_path / "out.convert-parts/physicalai-av" / part_name(0, 1) / "done.jsonl"
+    assert [json.loads(line)["item"] for line in log.read_text().splitlines()] == clips[:3]
+    calls.clear()
+    physicalai_av.convert(root, tmp_path / "out").write()
+    assert calls == clips[3:]
+    physicalai_av.convert(root, tmp_path / "fresh").write()
+    assert files(tmp_path / "out") == files(tmp_path / "fresh")
+    assert len(json.loads((tmp_path / "fresh/convert-physicalai-av.json").read_text())["converted"]) == 5
+
+    calls.clear()  # in parts: the chunk's clips split between them; each part resumes where it stopped
+    kill_at[0] = 2
+    with pytest.raises(Killed):
+        physicalai_av.convert(root, tmp_path / "in2", parts=2, part=1)  # clips 3, 4, 5: killed on clip 4
+    calls.clear()
+    physicalai_av.convert(root, tmp_path / "in2", parts=2).write()
+    assert calls == [*clips[0:1], *clips[2:3], *clips[4:]]
+    assert files(tmp_path / "in2") == files(tmp_path / "fresh")
+
+    chunk = root / "camera/camera_front_wide_120fov/camera_front_wide_120fov.chunk_0000.zip"
+    os.utime(chunk, ns=(chunk.stat().st_atime_ns, chunk.stat().st_mtime_ns + 10**9))
+    calls.clear()  # the chunk's zip changed: each of its clips is converted again
+    physicalai_av.convert(root, tmp_path / "out")
+    assert calls == [c for c in clips if PAI_CLIPS[c][1]]
+
+
+def test_a_missing_egomotion_chunk_is_one_skip_in_any_parts_and_stops_any_strict_part(tmp_path):
+    """The chunk's first clip reports the chunk (as one item did when items were chunks), its other clips nothing."""
+    root = physicalai_tree(tmp_path / "av", clips=PAI_CLIPS, drop_ego_chunk=True)
+    report = physicalai_av.convert(root, tmp_path / "one")
+    report.write()
+    assert [(s.item, s.reason) for s in report.skipped] == [("chunk 0 (6 clips)", "egomotion chunk missing")]
+    for parts in (2, 7):
+        for part in reversed(range(parts)):
+            physicalai_av.convert(root, tmp_path / f"in{parts}", parts=parts, part=part)
+        physicalai_av.convert(root, tmp_path / f"in{parts}", parts=parts).write()
+        assert files(tmp_path / f"in{parts}") == files(tmp_path / "one"), parts
+    with pytest.raises(DatasetError, match="egomotion.chunk_0000.zip: missing, but"):  # part 1 lacks the first clip
+        physicalai_av.convert(root, tmp_path / "strict", strict=True, parts=2, part=1)
+
+
 def test_the_command_in_parts_and_a_limit_that_parts_cannot_keep(tmp_path, capsys):
     meta = opendv_tree(tmp_path / "opendv")
     command = ["convert", "opendv", "--meta", str(meta), "--videos", str(tmp_path / "opendv/videos"), "--out",

@@ -107,7 +107,7 @@ depend on `parts`; where shards end does (tested: `tests/test_shard_parts.py`).
   and logs each once it is in place: a killed part renders again only the episodes in flight; the gather
   moves them into `data/raw/town` and writes the index, the motion statistics and the previews
   (`tests/test_town_parts.py`). `orbis2 convert <dataset> --parts N --part I` converts the *I*-th block
-  of a dataset's items (nuPlan logs, PhysicalAI-AV chunks, BDD100K videos, OpenDV meta entries; one
+  of a dataset's items (nuPlan logs, PhysicalAI-AV clips, BDD100K videos, OpenDV meta entries; one
   array task each), named by the item, each logged with its sources' sizes and times; the command
   without `--part` runs what is left and writes the report (`tests/test_convert_parts.py`).
 - **Rehearsed on Slurm.** `tools/rehearse_parts.py` runs 216 short town episodes through the town, the

@@ -14,8 +14,8 @@ output; under ``strict`` the first bad item stops the run. A tree that lacks wha
 (the index, the meta file) stops the reader with a :class:`DatasetError` naming the file and the
 fix. Each video and CSV is written atomically, so an interrupted run leaves no half-written file.
 
-A conversion runs in parts (:func:`convert_items`): each reader lists its items (a log, a chunk of
-clips, a video) in a fixed order and part i of N converts the i-th contiguous block of them, so that
+A conversion runs in parts (:func:`convert_items`): each reader lists its items (a log, a clip, a
+video) in a fixed order and part i of N converts the i-th contiguous block of them, so that
 N jobs (an array on a cluster) convert a dataset side by side. Output names come from the items
 (the log, clip or video id), never from their order, so parts write into one folder; each part logs
 each item once its files are in place, and a part started again skips the items it logged (unless
@@ -112,7 +112,7 @@ class Report:
 class Item:
     """One unit of a conversion that a part converts, logs and, started again, skips."""
 
-    name: str  # the log, chunk or video, as the part's log names it (unique among the items)
+    name: str  # the log, clip or video, as the part's log names it (unique among the items)
     sources: tuple[Path, ...]  # the files it is made from: their sizes and times say whether a logged outcome holds
     convert: Callable[[Report], None]  # converts it, adding to the report what it wrote or left out
     entry: str = ""  # what else it is made from (its line of a meta file), compared like the sources

@@ -14,7 +14,9 @@ reader uses the same templates, so a partial download (some chunks) converts the
 Clips go to the import split named by their ``split`` (``test`` to ``heldout``, the import's
 split for data no model trains on) unless ``split`` is given, which puts every clip there;
 invalid clips are skipped and reported unless ``include_invalid``. A clip whose members are
-missing, or whose ego motion does not cover its frames, is skipped and reported.
+missing, or whose ego motion does not cover its frames, is skipped and reported; a chunk whose egomotion
+zip is missing is reported once, for all its clips. Each clip is an item of the conversion in parts, so a
+part killed in the middle of a chunk converts again only the clip it was on.
 
 The paper fine-tunes on the dataset's IMU-derived ego motion; the egomotion table is that
 motion, and speed and yaw rate are derived from its poses as for every dataset here.
@@ -27,6 +29,7 @@ from __future__ import annotations
 import io
 import json
 import zipfile
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -132,8 +135,15 @@ def convert_clip(clip_id: str, cams: zipfile.ZipFile, egos: zipfile.ZipFile, cam
 
 def convert(root: Path, out: Path, split: str | None = None, camera: str = CAMERA, include_invalid: bool = False,
             strict: bool = False, parts: int = 1, part: int | None = None) -> Report:
-    """Convert every clip whose camera and egomotion chunks are present. One item per downloaded chunk (its two
-    zip files hold its clips), in parts (:func:`orbis2.data.datasets.convert_items`)."""
+    """Convert every clip whose camera and egomotion chunks are present, in parts
+    (:func:`orbis2.data.datasets.convert_items`).
+
+    One item per clip of a downloaded chunk (chunks in order, clips in the index's order within a chunk), named
+    by its ``clip_id`` and made from its chunk's two zip files and the index: a part killed mid-chunk converts
+    again only the clip it was on, and every clip of a chunk whose zip changed is converted again. A clip opens
+    its chunk's zips itself (reading their central directories, a small cost beside copying its mp4), so no
+    clip's work depends on another's. What goes wrong with a whole chunk (its egomotion zip missing) is reported
+    once, as ``chunk N (K clips)``, by the chunk's first clip; its other clips report nothing."""
     features = read_features(root)
     index = read_index(root, split)
     cam_path, cam_files = templates(features, camera, root)
@@ -149,32 +159,37 @@ def convert(root: Path, out: Path, split: str | None = None, camera: str = CAMER
         report.notes["clips in chunks not downloaded"] = absent
     valid = index["clip_is_valid"].astype(bool) if "clip_is_valid" in index.columns else pd.Series(True, index.index)
 
-    def convert_chunk(chunk: int, report: Report) -> None:
+    def convert_one(clip_id: str, chunk: int, clips: int, first: bool, report: Report) -> None:
         cam_zip, ego_zip = root / cam_path.format(chunk_id=chunk), root / ego_path.format(chunk_id=chunk)
-        clips = index.index[index["chunk"] == chunk]
         if not ego_zip.is_file():
-            report.skip(f"chunk {chunk} ({len(clips)} clips)", DatasetError(
-                f"{ego_zip}: missing, but {cam_zip} is present; download the {EGOMOTION} chunk {chunk} too",
-                reason="egomotion chunk missing"))
+            if first or strict:  # the chunk's skip, once; under strict whichever clip a part starts at stops it
+                report.skip(f"chunk {chunk} ({clips} clips)", DatasetError(
+                    f"{ego_zip}: missing, but {cam_zip} is present; download the {EGOMOTION} chunk {chunk} too",
+                    reason="egomotion chunk missing"))
             return
-        with zipfile.ZipFile(cam_zip) as cams, zipfile.ZipFile(ego_zip) as egos:
-            for clip_id in clips:
-                if not valid[clip_id] and not include_invalid:
-                    report.skip(clip_id, DatasetError(
-                        f"{root / 'clip_index.parquet'}: clip {clip_id} has clip_is_valid false; pass "
-                        f"--include-invalid to convert such clips too", reason="clip_is_valid false"))
-                    continue
-                target = split or SPLITS[index.at[clip_id, "split"]]
-                try:
-                    video = convert_clip(clip_id, cams, egos, cam_zip, ego_zip, cam_files, ego_files[EGOMOTION],
-                                         out / target)
-                except DatasetError as err:
-                    report.skip(clip_id, err)
-                    continue
-                report.add(video, split=target, clip_is_valid=bool(valid[clip_id]))
+        if not valid[clip_id] and not include_invalid:
+            report.skip(clip_id, DatasetError(
+                f"{root / 'clip_index.parquet'}: clip {clip_id} has clip_is_valid false; pass "
+                f"--include-invalid to convert such clips too", reason="clip_is_valid false"))
+            return
+        target = split or SPLITS[index.at[clip_id, "split"]]
+        try:
+            with zipfile.ZipFile(cam_zip) as cams, zipfile.ZipFile(ego_zip) as egos:
+                video = convert_clip(clip_id, cams, egos, cam_zip, ego_zip, cam_files, ego_files[EGOMOTION],
+                                     out / target)
+        except DatasetError as err:
+            report.skip(clip_id, err)
+            return
+        report.add(video, split=target, clip_is_valid=bool(valid[clip_id]))
 
-    items = [Item(f"chunk {chunk}", (root / cam_path.format(chunk_id=chunk), root / ego_path.format(chunk_id=chunk),
-                                     root / "clip_index.parquet"),
-                  lambda report, chunk=chunk: convert_chunk(chunk, report)) for chunk in present]
+    in_chunk: dict[int, list] = {chunk: [] for chunk in present}  # each chunk's clips, in the index's order
+    for clip_id, chunk in zip(index.index, index["chunk"]):
+        in_chunk.get(int(chunk), []).append(clip_id)
+    items = []
+    for chunk, clips in in_chunk.items():
+        sources = (root / cam_path.format(chunk_id=chunk), root / ego_path.format(chunk_id=chunk),
+                   root / "clip_index.parquet")
+        items += [Item(str(clip_id), sources, partial(convert_one, clip_id, chunk, len(clips), i == 0))
+                  for i, clip_id in enumerate(clips)]
     key = reader_key(__file__, root=root, split=split, camera=camera, include_invalid=include_invalid, strict=strict)
     return convert_items(report, items, key, parts, part)
