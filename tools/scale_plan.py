@@ -115,15 +115,15 @@ depend on `parts`; where shards end does (tested: `tests/test_shard_parts.py`).
   again, and checks the result against one part's, byte for byte
   ([gpus-and-clusters.md](gpus-and-clusters.md#the-data-path-in-parts-on-slurm), with why not as arrays).
 - **Batches from many videos.** A shard holds consecutive clips: at the paper profile about
-  {chunk_frames:,.0f} frames, {chunk_frames / cfg.data.fps / 60:,.1f} minutes of one video (or of consecutive short ones). The writer keeps that order
-  (it is what makes `parts=N` equal `parts=1` and a killed part resume at a clip); the mixing is the
-  reader's: a tokenizer rank reads `interleave_shards` of its shards side by side
-  ({tok_cfg.interleave_shards} at the paper profile, one shard after another where it is null), a clip from each in turn,
-  into its shuffle buffer, so a batch draws on that many videos instead of one or two
-  (`tests/test_tokenizer_tasks.py` measures the videos per batch). Changing it rewrites no shard. The
+  {chunk_frames:,.0f} frames, {chunk_frames / cfg.data.fps / 60:,.1f} minutes of one video (or of consecutive
+  short ones). The writer keeps that order (it is what makes `parts=N` equal `parts=1` and a killed part
+  resume at a clip); the mixing is the reader's: a tokenizer rank reads `interleave_shards` of its shards
+  side by side ({tok_cfg.interleave_shards} at the paper profile, one shard after another where it is null),
+  a clip from each in turn, into its shuffle buffer, so a batch draws on that many videos instead of one or
+  two (`tests/test_tokenizer_tasks.py` measures the videos per batch). Changing it rewrites no shard. The
   predictors read random windows of the whole latent cache and need no mixing. Shards are {shard_mb:g} MB
-  (WebDataset advises hundreds of MB to 1 GB); their count need not divide by nodes x GPUs x workers, since
-  a tokenizer rank's stream is endless (epoch after epoch) and ranks never wait for each other's epoch to
+  (WebDataset advises hundreds of MB to 1 GB); their count need not divide by nodes x GPUs x workers:
+  a tokenizer rank's stream is endless (epoch after epoch), so ranks never wait for each other's epoch to
   end, and a split with fewer shards than readers is read sample by sample instead.
 - **Checksums from the writer, checked by each reader.** Each shard's SHA-256 is computed as it is written
   (no second read of {tb(bench['shard_bytes_per_frame']):,.1f} TB) and the manifest carries it; a reader checks a
