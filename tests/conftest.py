@@ -181,15 +181,8 @@ def shared_temp(config: pytest.Config) -> Path:
 @pytest.hookimpl(trylast=True)  # after -k / -m deselection
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """The smoke project's readers run last, the main job's before the whole build's: the other tests run while
-    it is built. Within each group of readers the end-to-end ones (``slow``) come first: an idle xdist worker
-    takes work from the end of another's queue, so the short ones left there even out the two workers' ends,
-    where two long readers queued last on one worker ran one after the other beside an idle one."""
-    def slow(item: pytest.Item) -> bool:
-        return item.get_closest_marker("slow") is not None
-
-    items[:] = [item for item in items if reads(item) is None] + [
-        item for fixture in READERS for first in (True, False) for item in items
-        if reads(item) == fixture and slow(item) == first]
+    it is built."""
+    items[:] = [item for fixture in (None, *READERS) for item in items if reads(item) == fixture]
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
