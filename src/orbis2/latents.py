@@ -292,14 +292,14 @@ def encode_part(shards_root: str | Path, work: str | Path, tokenizers: dict[str,
 
 
 def _todo(shards_root: Path, manifest: dict[str, Any], splits: list[str], log: _ChunkLog, part: int, parts: int,
-          base_url: str | None) -> list[tuple[tuple[str, int], ShardRef, dict[str, Any]]]:
-    """``((split, shard index), shard, manifest entry)`` of the part's shards not yet recorded in its log."""
+          base_url: str | None) -> list[tuple[tuple[str, int], ShardRef]]:
+    """``((split, shard index), shard)`` of the part's shards not yet recorded in its log."""
     done = {(e["split"], e["chunk"]) for e in log.events}
     todo = []
     for split in splits:
         shards = manifest["splits"][split]["shards"]
         refs = shard_refs(shards_root, split, base_url)
-        todo += [((split, i), refs[i], shards[i]) for i in range(len(shards))[part_slice(len(shards), part, parts)]
+        todo += [((split, i), refs[i]) for i in range(len(shards))[part_slice(len(shards), part, parts)]
                  if (split, chunk_name(shards[i])) not in done]
     return todo
 
@@ -309,13 +309,13 @@ class _ShardClips(IterableDataset):
     DataLoader worker processes each takes every n-th shard. Each shard is checked against the manifest just
     before it is read; a damaged one yields its error, which the encoding process raises as it is."""
 
-    def __init__(self, todo: list[tuple[Any, ShardRef, dict[str, Any]]]):
+    def __init__(self, todo: list[tuple[Any, ShardRef]]):
         self.todo = todo
 
     def __iter__(self) -> Iterator[tuple[Any, Any]]:
         info = get_worker_info()
         mine = self.todo if info is None else self.todo[info.id::info.num_workers]
-        for task, ref, _ in mine:
+        for task, ref in mine:
             try:
                 for sample in shard_dataset([ref]):  # checked against the manifest before it is read
                     clip = Clip.from_sample(sample, ref.url)
@@ -375,7 +375,7 @@ class _Chunk:
         return arrays, clip_table(self.clips)
 
 
-def _encoded_shards(todo: list[tuple[Any, str, dict[str, Any]]], tokenizers: dict[str, TokenizerFile],
+def _encoded_shards(todo: list[tuple[Any, ShardRef]], tokenizers: dict[str, TokenizerFile],
                     batch_size: int, workers: int) -> Iterator[tuple[Any, dict[str, np.ndarray], np.ndarray]]:
     """``(task, arrays, clip table)`` of each shard of ``todo``, as each is finished (in order without workers)."""
     dataset = _ShardClips(todo)

@@ -444,8 +444,7 @@ def shard_dataset(shards: list[ShardRef]) -> wds.WebDataset:
             verify_shard(refs[shard["url"]])
             yield shard
 
-    return wds.WebDataset(list(refs), shardshuffle=False, nodesplitter=None, workersplitter=checked,
-                          handler=_raise_shard_error, empty_check=False)
+    return _tar_samples(list(refs), checked)
 
 
 def interleave(streams: Iterable[Iterator[Any]], lanes: int) -> Iterator[Any]:
@@ -473,8 +472,15 @@ def interleave(streams: Iterable[Iterator[Any]], lanes: int) -> Iterator[Any]:
 def iter_samples(path: Path | str) -> Iterator[dict[str, Any]]:
     """Yield the samples of one shard (a path or URL) as they are, unchecked: for shards whose reader checks
     them itself (the truth shards; :func:`iter_clips` for the dataset's)."""
-    yield from wds.WebDataset([str(path)], shardshuffle=False, nodesplitter=None, workersplitter=None,
-                              handler=_raise_shard_error, empty_check=False)
+    yield from _tar_samples([str(path)])
+
+
+def _tar_samples(urls: list[str], opening: Callable[[Iterator[dict[str, str]]], Iterator[dict[str, str]]] | None = None
+                 ) -> wds.WebDataset:
+    """The samples of ``urls`` in order (no shuffling or splitting: readers choose their shards themselves);
+    ``opening`` sees each shard just before it is opened. A broken shard raises :class:`ShardError`."""
+    return wds.WebDataset(urls, shardshuffle=False, nodesplitter=None, workersplitter=opening,
+                          handler=_raise_shard_error, empty_check=False)
 
 
 def iter_clips(root: Path, split: str) -> Iterator[Clip]:
