@@ -15,8 +15,38 @@ def speed_predictors(scope):
     systems = REG.timed_systems(scope).values()
     return sorted({p for system in systems for p in system.stages})
 
+def eval_part_manifests(system_name):
+    """The part manifests a system's FVD gather waits on: none at parts=1, where the gather's one job does it all
+    (a function: DVC's stage does every part itself)."""
+    return lambda wildcards: [P("eval_parts", f"{system_name}/{part}") for part in PARTS] if len(PARTS) > 1 else []
+
+
+# Per system: at parts=N > 1, one job per part (an array of GPU jobs on Slurm): part I of N generates, decodes and
+# featurises the I-th block of each split's rollout batches into data/runs/ and writes its part manifest; then the
+# gather adds the real side and the intervals. The figures do not depend on `parts` (orbis2.eval.protocols.rollout_fvd).
 for system_name, system in REG.systems.items():
     paths = stage_paths(EVAL_FVD, system_name, **latent_paths(system.latents), predictor=system.stages)
+    part_paths = {key: value for key, value in paths.items() if key not in ("fvd", "media")}
+
+    rule:
+        name: f"eval_fvd_{system_name}_part"
+        threads: EVAL_FVD.resources.threads
+        priority: EVAL_FVD.priority
+        resources: **resources_of(EVAL_FVD)
+        input:
+            code_inputs(EVAL_FVD.script),
+            **inputs(EVAL_FVD, part_paths),
+        output:
+            part=P("eval_parts", f"{system_name}/{{part}}"),
+        wildcard_constraints:
+            part=r"\d{4}-of-\d{4}",
+        params:
+            **stage_params(EVAL_FVD, part_paths),
+            part=lambda wildcards, output: f" --part {int(wildcards.part[:4])} --part-manifest {output.part}",
+        log: log(f"eval_fvd_{system_name}_part_{{part}}")
+        benchmark: bench(f"eval_fvd_{system_name}_part_{{part}}")
+        shell:
+            command(EVAL_FVD, head=f" {system_name} --parts {{config[parts]}}{{params.part}}")
 
     rule:
         name: f"eval_fvd_{system_name}"
@@ -26,14 +56,16 @@ for system_name, system in REG.systems.items():
         input:
             code_inputs(EVAL_FVD.script),
             **inputs(EVAL_FVD, paths),
+            parts=eval_part_manifests(system_name),
         output:
             **outputs(EVAL_FVD, paths),
         params:
             **stage_params(EVAL_FVD, paths),
+            parts=config["parts"],
         log: log(f"eval_fvd_{system_name}")
         benchmark: bench(f"eval_fvd_{system_name}")
         shell:
-            command(EVAL_FVD, head=" {rule}")
+            command(EVAL_FVD, head=" {rule} --parts {config[parts]}")
 
 
 for target in REG.probe_targets:

@@ -17,14 +17,25 @@ conditional variance).
 from contextlib import nullcontext
 from pathlib import Path
 
+import numpy as np
+
 from orbis2.accel import default_device
 from orbis2.assets import ensure_asset
-from orbis2.eval.protocols.rollout_fvd import split_fvd
+from orbis2.data.parts import add_part_options, part_name, parts_of, write_part_manifest
+from orbis2.data.shards import MANIFEST
+from orbis2.eval.protocols.rollout_fvd import (
+    concat_outcomes,
+    part_outcome,
+    split_fvd,
+    split_plan,
+    write_manifest,
+    write_media,
+)
 from orbis2.eval.protocols.systems import SYSTEMS, inference_settings, load_system
 from orbis2.eval.records import FvdRecord, Nfe, write_record
 from orbis2.interfaces import INTERFACES
-from orbis2.io import atomic_dir, sha256_file
-from orbis2.latents import open_cache
+from orbis2.io import atomic_dir, atomic_file, sha256_file
+from orbis2.latents import META, open_cache
 from orbis2.models.i3d import load_i3d
 from orbis2.registry import layout_path
 from orbis2.stage import (
@@ -33,6 +44,7 @@ from orbis2.stage import (
     open_stage,
     predictor_files,
     stage_parser,
+    work_dir,
 )
 
 INTERFACE = INTERFACES["eval_fvd"]
@@ -41,34 +53,68 @@ INTERFACE = INTERFACES["eval_fvd"]
 def main(argv: list[str] | None = None) -> None:
     parser = stage_parser(INTERFACE, __doc__)  # --assets: I3D
     add_name_argument(parser, SYSTEMS, prefix="eval_fvd_")
+    add_part_options(parser, "eval_parts", prefix="<system>/")
     # Real-data I3D statistics, keyed by the shards' hashes; outside every stage's outputs so they survive re-runs.
     parser.add_argument("--stats-cache", type=Path, default=layout_path("eval_cache"),
                         help="cache of real-data I3D statistics, not a DAG output (default: %(default)s)")
     parser.add_argument("--rollouts", type=Path, default=None,
                         help="also write every rollout, its real video and a manifest per split here, losslessly, "
-                             "for `orbis2 evaluate` (decodes every frame: slower)")
+                             "for `orbis2 evaluate` (decodes every frame: slower; every part in this process)")
     args = parser.parse_args(argv)
+    parts = parts_of(parser, args)
+    if args.rollouts and args.part is not None:
+        parser.error("--rollouts writes every rollout from this process: leave out --part")
     name = args.name
+    stage_name = f"eval_fvd_{name}" if args.part is None else f"eval_fvd_{name}_part_{part_name(args.part, parts)}"
     report = args.fvd or INTERFACE.option("fvd").path(name)
     media = args.media or INTERFACE.option("media").path(name)
-    with open_stage(f"eval_fvd_{name}", args, INTERFACE) as stage:
+    with open_stage(stage_name, args, INTERFACE) as stage:
         cfg, run = stage.cfg, stage.run
         ev, dev = cfg.evaluation, default_device()
 
         latents = latent_paths(args, SYSTEMS[name].latents)
-        system = load_system(name, predictor_files(args, SYSTEMS[name].stages), latents.tokenizers, dev,
-                             inference=inference_settings(ev))
+        predictors = predictor_files(args, SYSTEMS[name].stages)
+        system = load_system(name, predictors, latents.tokenizers, dev, inference=inference_settings(ev))
         cache = open_cache(latents.root)
         assets = args.assets or Path(cfg.assets.dir)
         i3d_file = ensure_asset("i3d_kinetics400", assets, cfg.assets.local.get("i3d_kinetics400"), download=False)
         i3d = load_i3d(i3d_file).to(dev).eval()
         i3d_sha = sha256_file(i3d_file)
+        # Where the parts keep their rollouts' outcomes: keyed by everything they depend on, so that a gather never
+        # reads a part made from other models, latents, settings or code.
+        work = work_dir(f"eval_fvd_{name}", cfg, ["data", "evaluation"],
+                        {"manifest": args.shards / MANIFEST, "latents": latents.root / META, "i3d": i3d_file,
+                         **latents.tokenizers, **predictors}, __file__)
+        plans = {split: split_plan(split, cache, cfg.data, ev) for split in ev.fvd_splits}
+
+        def outcome_of(part: int, rollouts: Path | None = None) -> dict[str, dict[str, np.ndarray]]:
+            return {split: part_outcome(plan, plan.part_batches(part, parts), system, cache, i3d, cfg.data, ev, dev,
+                                        args.shards, rollouts) for split, plan in plans.items()}
+
+        if args.part is not None:
+            outcome = outcome_of(args.part)
+            path = work / f"{part_name(args.part, parts)}.npz"
+            with atomic_file(path) as tmp:
+                with open(tmp, "wb") as f:
+                    np.savez(f, **{f"{split}/{key}": v for split, o in outcome.items() for key, v in o.items()})
+            rollouts = {split: len(o.get("generated_psnr", ())) for split, o in outcome.items()}
+            write_part_manifest(args, "eval_parts", parts, {"outcome": str(path), "sha256": sha256_file(path),
+                                                            "rollouts": rollouts}, prefix=f"{name}/")
+            run.log_metrics({f"rollouts_{split}": n for split, n in rollouts.items()})
+            stage.summary = f"{name} part {part_name(args.part, parts)}: rollouts {rollouts} -> {path}"
+            return
 
         results = {}
         with atomic_dir(media) as tmp, (atomic_dir(args.rollouts) if args.rollouts else nullcontext()) as rollouts:
-            for split in ev.fvd_splits:
-                results[split] = split_fvd(split, system, cache, i3d, tmp, cfg.data, ev, dev, args.shards,
-                                           args.stats_cache, i3d_sha, rollouts)
+            outcomes = [read_part(work, part, parts) if rollouts is None else None for part in range(parts)]
+            outcomes = [o if o is not None else outcome_of(part, rollouts) for part, o in enumerate(outcomes)]
+            for split, plan in plans.items():
+                outcome = concat_outcomes([o.get(split, {}) for o in outcomes])
+                write_media(plan, outcome, system, cache, tmp, cfg.data, args.shards)
+                if rollouts is not None:
+                    write_manifest(rollouts / split, plan, cfg.data)
+                results[split] = split_fvd(plan, outcome, system, cache, i3d, cfg.data, ev, args.shards,
+                                           args.stats_cache, i3d_sha)
         chunked = [r["chunked"] for r in results.values() if "chunked" in r]
         record = FvdRecord(model=name, label=SYSTEMS[name].label, parameters=system.parameters,
                            latent_channels=system.bottom.model.latent_channels, predictors=SYSTEMS[name].stages,
@@ -97,6 +143,19 @@ def main(argv: list[str] | None = None) -> None:
             f"{s} {v.generated_psnr.estimate:.1f}, {v.reconstruction_psnr.estimate:.1f} dB"
             for s, v in (record.first_frame or {}).items())
         stage.summary = f"{name}: FVD {splits}{slope}{first}"
+
+
+def read_part(work: Path, part: int, parts: int) -> dict[str, dict[str, np.ndarray]] | None:
+    """A part's outcome as its job left it in ``work`` (None: not run, this process does it)."""
+    path = work / f"{part_name(part, parts)}.npz"
+    if not path.is_file():
+        return None
+    out: dict[str, dict[str, np.ndarray]] = {}
+    with np.load(path) as arrays:
+        for key in arrays.files:
+            split, _, name = key.partition("/")
+            out.setdefault(split, {})[name] = arrays[key]
+    return out
 
 
 if __name__ == "__main__":

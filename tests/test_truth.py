@@ -10,7 +10,8 @@ import torch
 
 from orbis2.data.shards import Clip
 from orbis2.data.truth import Command, TruthError, counterfactual_clip, read_truth, render_commands, write_truth
-from orbis2.eval.protocols.truth import horizon_frames, latent_errors, psnr, truth_claim
+from orbis2.eval.metrics.pixels import psnr
+from orbis2.eval.protocols.truth import horizon_frames, latent_errors, truth_claim
 from orbis2.sim import Camera, Town, render_episode, simulate_ego
 from orbis2.sim.counterfactual import PathFrames, PathRenderer, on_road, render_path
 

@@ -32,6 +32,7 @@ import torch
 from orbis2.accel import default_device
 from orbis2.config.params import load_config
 from orbis2.data.shards import split_clips
+from orbis2.eval.metrics.pixels import psnr
 from orbis2.eval.metrics.stats import mean_interval, paired_difference
 from orbis2.eval.protocols.rollout_fvd import real_videos
 from orbis2.eval.protocols.starts import rollout_steps
@@ -45,7 +46,6 @@ from orbis2.eval.protocols.systems import (
     load_system,
     sample_clusters,
 )
-from orbis2.eval.protocols.truth import psnr
 from orbis2.latents import open_cache
 from orbis2.registry import layout_path
 from orbis2.stage import PREDICTOR_FILE, latent_paths

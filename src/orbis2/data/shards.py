@@ -34,7 +34,7 @@ import os
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator
+from typing import Any, Callable, Collection, Iterable, Iterator
 
 import cv2
 import numpy as np
@@ -534,9 +534,10 @@ class Clip:
         return len(self.pixels) if self.pixels is not None else len(self.jpegs)
 
 
-def split_clips(root: Path, split: str) -> dict[str, Clip]:
-    """Every clip of a split's shards by key (JPEGs stay compressed until frames are asked for)."""
-    return {clip.key: clip for clip in iter_clips(root, split)}
+def split_clips(root: Path, split: str, keys: Collection[str] | None = None) -> dict[str, Clip]:
+    """The clips of a split's shards by key, every one or those of ``keys`` (JPEGs stay compressed until frames
+    are asked for)."""
+    return {clip.key: clip for clip in iter_clips(root, split) if keys is None or clip.key in keys}
 
 
 def split_digest(root: Path, split: str) -> str:

@@ -6,7 +6,11 @@ clip-bootstrap interval, the reference rows of :mod:`orbis2.eval.protocols.refer
 the same clips and frames, and on ``long_split`` chunked FVD and the FVD-slope over
 ``long_seconds``. The long split's FVD uses the first ``seconds`` of its long
 rollouts (same contexts, same distribution as separate short rollouts).
-Randomness comes from ``evaluation.seed`` only.
+Randomness comes from ``evaluation.seed`` only: each generation batch draws its own noise from it and its index.
+
+The rollouts' side (generate, decode, featurise: :func:`part_outcome`) runs in parts over blocks of batches,
+each batch alone, so that any number of parts gives the same numbers as one (the stage's ``--parts``); the
+gather (:func:`split_fvd`) adds the real side and the intervals.
 
 I3D features of real videos (and of the references, which only depend on the
 decoding tokenizer) are cached in a folder keyed by the split's shard digest and a
@@ -22,6 +26,8 @@ grey level), at a fraction of the decoding that dominates this stage on a CPU
 from __future__ import annotations
 
 import csv
+import functools
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -29,15 +35,19 @@ import numpy as np
 import torch
 
 from orbis2.config.sections import DataConfig, EvaluationConfig
+from orbis2.data.parts import part_slice
 from orbis2.data.shards import Clip, split_clips, split_digest
 from orbis2.data.video import write_gif, write_video
+from orbis2.errors import OrbisError
 from orbis2.eval.metrics.fvd import CLIP_FRAMES, cached_features, i3d_features
+from orbis2.eval.metrics.pixels import psnr
 from orbis2.eval.metrics.stats import mean_interval, paired_difference
 from orbis2.eval.protocols.evaluate import i3d_picks, protocol, score_rollouts
 from orbis2.eval.protocols.references import reference_rows
 from orbis2.eval.protocols.systems import (
     LoadedSystem,
     Sample,
+    batch_count,
     cache_latents,
     eval_samples,
     generate,
@@ -45,7 +55,6 @@ from orbis2.eval.protocols.systems import (
     rollout_steps,
     sample_clusters,
 )
-from orbis2.eval.protocols.truth import psnr
 from orbis2.latents import LatentCache
 
 # Times (s) of the frames shown in the qualitative rollout grid.
@@ -96,76 +105,169 @@ def sample_video(system: LoadedSystem, cache: LatentCache, split: str, clips: di
     return gallery_frames(real, recon, model)
 
 
-def first_frame(system: LoadedSystem, cache: LatentCache, split: str, clips: dict[str, Clip],
-                samples: list[Sample], indices: list[np.ndarray], latents: torch.Tensor, clusters: list[str],
-                seed: int) -> dict[str, Any]:
-    """PSNR of each rollout's first generated frame and of the tokenizer's reconstruction of the same real frame,
-    against the real frame, and their paired gap, with clip-bootstrap intervals (a :class:`FirstFrame`)."""
-    first = [idx[:1] for idx in indices]
-    real = real_videos(clips, samples, first)
-    recon = system.decode(cache_latents(cache, split, system.output_level, samples, first))
-    generated = system.decode(latents[:, :1])
-    ours, tokenizer = psnr(generated, real)[:, 0], psnr(recon, real)[:, 0]
-    return {"generated_psnr": mean_interval(ours, clusters, seed=seed).to_dict(),
-            "reconstruction_psnr": mean_interval(tokenizer, clusters, seed=seed).to_dict(),
-            "gap_db": paired_difference(tokenizer, ours, clusters, seed=seed).to_dict()}
+@dataclass(frozen=True)
+class SplitPlan:
+    """What every part of one split's FVD pass and its gather agree on: the samples in order, the native indices
+    of the frames each rollout generates, the clips a bootstrap resamples, the rollout steps, the FVD windows and
+    the generation batches."""
+
+    split: str
+    long: bool
+    steps: int
+    samples: list[Sample]
+    indices: list[np.ndarray]
+    clusters: list[str]
+    short: slice
+    chunks: list[slice]
+    whole: slice | None
+    batch_size: int
+
+    @property
+    def windows(self) -> list[slice]:
+        return [self.short, *self.chunks, *([self.whole] if self.whole else [])]
+
+    @property
+    def batches(self) -> int:
+        return batch_count(len(self.samples), self.batch_size)
+
+    def part_batches(self, part: int, parts: int) -> range:
+        """The contiguous block of batches part ``part`` of ``parts`` generates (empty when parts > batches)."""
+        block = part_slice(self.batches, part, parts)
+        return range(block.start, block.stop)
+
+    def rows(self, batch: int) -> slice:
+        return slice(batch * self.batch_size, min((batch + 1) * self.batch_size, len(self.samples)))
 
 
-def split_fvd(split: str, system: LoadedSystem, cache: LatentCache, i3d, media: Path, data: DataConfig,
-              ev: EvaluationConfig, device: torch.device, shards: Path, stats_cache: Path, i3d_sha256: str = "",
-              rollouts: Path | None = None) -> dict[str, Any]:
-    """Roll out one split: ``{"fvd": ..., "references": ..., "first_frame": ..., "protocol": ...}``, plus
-    ``"chunked"`` on the long
-    split, scored by :func:`orbis2.eval.protocols.evaluate.score_rollouts` (the code ``orbis2 evaluate`` runs).
-
-    Writes a sample video, real | tokenizer | model from the context on, at least 256 px tall
-    (:func:`sample_video`; ``media/<split>.mp4``, VP9, and the same as ``media/<split>.gif``) and, on the long
-    split, the frames of
-    the qualitative grid (``media/grid.npz``). ``shards`` is the shard folder the cache
-    was encoded from; ``stats_cache`` the folder of cached real-video features. Given
-    ``rollouts``, every frame is decoded and each rollout is written losslessly with the
-    real video it continues and a manifest (:func:`write_rollouts`); the FVDs are then
-    computed from exactly the frames written.
-    """
+def split_plan(split: str, cache: LatentCache, data: DataConfig, ev: EvaluationConfig) -> SplitPlan:
     long = split == ev.long_split
     proto = protocol("orbis2", ev)
     steps = rollout_steps(data, ev.long_seconds if long else ev.seconds)
     samples = eval_samples(cache, split, data, steps, ev.starts_per_clip)
-    indices = [generated_indices(data, s.context_end, steps) for s in samples]
-    clusters = sample_clusters(cache, split, samples)
-    latents = generate(system, cache, split, samples, steps, data, ev, device)
-    short = proto.short(data.detail_hz)
     chunks, whole = proto.chunks(data.detail_hz) if long else ([], None)
+    return SplitPlan(split, long, steps, samples, [generated_indices(data, s.context_end, steps) for s in samples],
+                     sample_clusters(cache, split, samples), proto.short(data.detail_hz), chunks, whole,
+                     ev.batch_size)
+
+
+def window_key(window: slice) -> str:
+    return f"{window.start}-{window.stop}"
+
+
+def batch_outcome(plan: SplitPlan, batch: int, system: LoadedSystem, cache: LatentCache, i3d, data: DataConfig,
+                  ev: EvaluationConfig, device: torch.device, clips: dict[str, Clip],
+                  rollouts: Path | None) -> dict[str, np.ndarray]:
+    """One generation batch of a split, everything per rollout the FVD records need: its I3D features in every
+    window (``fake/<start>-<stop>``), the PSNR of its first generated frame and of the tokenizer's
+    reconstruction of the same real frame (``generated_psnr``, ``reconstruction_psnr``), the decoded frame size;
+    batch 0 also every frame of its first rollout (``sample``, for :func:`write_media`).
+
+    Each batch is generated (its own noise, :func:`generate`), decoded and featurised alone, so a part made of
+    any blocks of batches gives the same numbers as one pass over the split, to the bit. With ``rollouts``, every
+    frame is decoded and each rollout written losslessly (:func:`write_rollouts`)."""
+    rows = plan.rows(batch)
+    samples, indices = plan.samples[rows], plan.indices[rows]
+    latents = generate(system, cache, plan.split, plan.samples, plan.steps, data, ev, device,
+                       batches=range(batch, batch + 1))
     every = system.decode(latents) if rollouts is not None else None
-    generated = PickedFrames(system, latents, [short, *chunks, *([whole] if whole else [])], every)
-    clips = split_clips(shards, split)
-    what = f"{len(samples)}x{ev.starts_per_clip}starts|{steps}steps|{data.width}x{data.height}"
+    generated = PickedFrames(system, latents, plan.windows, every)
+    out = {f"fake/{window_key(w)}": i3d_features(generated.clip(w), i3d) for w in plan.windows}
+    first = [idx[:1] for idx in indices]
+    real = real_videos(clips, samples, first)
+    recon = system.decode(cache_latents(cache, plan.split, system.output_level, samples, first))
+    out["generated_psnr"] = psnr(system.decode(latents[:, :1]), real)[:, 0]
+    out["reconstruction_psnr"] = psnr(recon, real)[:, 0]
+    out["source_resolution"] = np.array(generated.frames.shape[2:4])
+    if batch == 0:
+        out["sample"] = every[:1] if every is not None else system.decode(latents[:1])
+    if rollouts is not None:
+        write_rollouts(rollouts / plan.split, every, clips, samples, indices, rows.start, data)
+    return out
+
+
+def part_outcome(plan: SplitPlan, batches: range, system: LoadedSystem, cache: LatentCache, i3d, data: DataConfig,
+                 ev: EvaluationConfig, device: torch.device, shards: Path,
+                 rollouts: Path | None = None) -> dict[str, np.ndarray]:
+    """:func:`batch_outcome` of each of ``batches`` (a part of the split), concatenated in order; it reads only
+    the clips of its own rollouts."""
+    outcomes = []
+    if batches:
+        keys = {s.key for s in plan.samples[plan.rows(batches[0]).start:plan.rows(batches[-1]).stop]}
+        clips = split_clips(shards, plan.split, keys)
+        outcomes = [batch_outcome(plan, b, system, cache, i3d, data, ev, device, clips, rollouts)
+                    for b in batches]
+    return concat_outcomes(outcomes)
+
+
+def concat_outcomes(outcomes: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Parts' (or batches') outcomes in order, as one: the per-rollout arrays concatenated (an empty part adds
+    nothing)."""
+    outcomes = [o for o in outcomes if o]
+    if not outcomes:
+        return {}
+    out = {k: np.concatenate([o[k] for o in outcomes]) for k in outcomes[0] if k not in ("source_resolution", "sample")}
+    out["source_resolution"] = outcomes[0]["source_resolution"]
+    if "sample" in outcomes[0]:  # batch 0's, in the first part that has batches
+        out["sample"] = outcomes[0]["sample"]
+    return out
+
+
+def write_media(plan: SplitPlan, outcome: dict[str, np.ndarray], system: LoadedSystem, cache: LatentCache,
+                media: Path, data: DataConfig, shards: Path) -> None:
+    """The split's sample video from its first rollout, real | tokenizer | model from the context on, at least
+    256 px tall (:func:`sample_video`; ``media/<split>.mp4``, VP9, and the same as ``media/<split>.gif``) and, on
+    the long split, the frames of the qualitative grid (``media/grid.npz``)."""
+    video, sample = outcome["sample"][0], plan.samples[0]
+    if plan.long:
+        save_grid_frames(media / "grid.npz", video, data.detail_hz)
+    clips = split_clips(shards, plan.split, {sample.key})
+    frames = sample_video(system, cache, plan.split, clips, sample, plan.indices[0], video, data)
+    write_video(media / f"{plan.split}.mp4", frames, data.detail_hz, playable=True)
+    write_gif(media / f"{plan.split}.gif", frames, data.detail_hz)
+
+
+def split_fvd(plan: SplitPlan, outcome: dict[str, np.ndarray], system: LoadedSystem, cache: LatentCache, i3d,
+              data: DataConfig, ev: EvaluationConfig, shards: Path, stats_cache: Path, i3d_sha256: str = "",
+              ) -> dict[str, Any]:
+    """One split's figures from its rollouts' outcome (every part's, :func:`part_outcome`): ``{"fvd": ...,
+    "references": ..., "first_frame": ..., "protocol": ...}``, plus ``"chunked"`` on the long split, scored by
+    :func:`orbis2.eval.protocols.evaluate.score_rollouts` (the code ``orbis2 evaluate`` runs).
+
+    The real side is the whole split's: the I3D features of the real frames of every window and the reference
+    rows are cached in ``stats_cache`` (keyed by the split's shard digest and a description of the videos), so the
+    split's clips are read only when a window's real features are not cached yet. ``shards`` is the shard folder
+    the cache was encoded from.
+    """
+    split, samples, indices, clusters = plan.split, plan.samples, plan.indices, plan.clusters
+    if len(outcome.get("generated_psnr", ())) != len(samples):
+        raise OrbisError(f"{split}: the parts hold {len(outcome.get('generated_psnr', ()))} rollouts, the split has "
+                         f"{len(samples)}; re-run the parts with the same settings and --parts")
+    proto = protocol("orbis2", ev)
+    resolution = outcome["source_resolution"].tolist()
+    what = f"{len(samples)}x{ev.starts_per_clip}starts|{plan.steps}steps|{data.width}x{data.height}"
+    clips = functools.cache(lambda: split_clips(shards, split))  # read only if a window's features are not cached
 
     def cached(description: str, compute: Callable[[], np.ndarray]) -> np.ndarray:
         return cached_features(stats_cache, f"{split}|{split_digest(shards, split)}|{description}", compute)
 
     def real(window: slice) -> np.ndarray:
         return cached(f"{what}|frames{window.start}-{window.stop}",
-                      lambda: i3d_features(real_videos(clips, samples, [i[i3d_picks(window)] for i in indices]), i3d))
+                      lambda: i3d_features(real_videos(clips(), samples, [i[i3d_picks(window)] for i in indices]),
+                                           i3d))
 
     def fake(window: slice) -> np.ndarray:
-        return i3d_features(generated.clip(window), i3d)
+        return outcome[f"fake/{window_key(window)}"]
 
-    out = score_rollouts(split, real, fake, clusters, data.detail_hz, proto, short, chunks, whole)
-    out["fvd"]["source_resolution"] = list(generated.frames.shape[2:4])
-    out["references"] = references(split, system, cache, samples, indices, short, real(short), clusters, what, i3d,
-                                   ev, cached)
-    out["first_frame"] = first_frame(system, cache, split, clips, samples, indices, latents, clusters, ev.seed)
+    out = score_rollouts(split, real, fake, clusters, data.detail_hz, proto, plan.short, plan.chunks, plan.whole)
+    out["fvd"]["source_resolution"] = resolution
+    out["references"] = references(split, system, cache, samples, indices, plan.short, real(plan.short), clusters,
+                                   what, i3d, ev, cached)
+    ours, tokenizer = outcome["generated_psnr"], outcome["reconstruction_psnr"]
+    out["first_frame"] = {"generated_psnr": mean_interval(ours, clusters, seed=ev.seed).to_dict(),
+                          "reconstruction_psnr": mean_interval(tokenizer, clusters, seed=ev.seed).to_dict(),
+                          "gap_db": paired_difference(tokenizer, ours, clusters, seed=ev.seed).to_dict()}
     out["protocol"] = proto.card(data.detail_hz, data.detail_context, len(set(clusters)), len(samples), i3d_sha256,
-                                 generated.frames.shape[2:4])
-    first = every[0] if every is not None else system.decode(latents[:1])[0]  # the sample video, every frame
-    if long:
-        save_grid_frames(media / "grid.npz", first, data.detail_hz)
-    sample = sample_video(system, cache, split, clips, samples[0], indices[0], first, data)
-    write_video(media / f"{split}.mp4", sample, data.detail_hz, playable=True)
-    write_gif(media / f"{split}.gif", sample, data.detail_hz)
-    if rollouts is not None:
-        write_rollouts(rollouts / split, every, clips, samples, indices, clusters, data)
+                                 resolution)
     return out
 
 
@@ -175,21 +277,23 @@ def context_indices(data: DataConfig, context_end: int) -> np.ndarray:
 
 
 def write_rollouts(folder: Path, frames: np.ndarray, clips: dict[str, Clip], samples: list[Sample],
-                   indices: list[np.ndarray], clusters: list[str], data: DataConfig) -> None:
-    """Each rollout as ``generated/<n>.mkv`` and the real ``detail_context`` frames plus its true continuation as
-    ``real/<n>.mkv`` (lossless FFV1 at ``detail_hz``), and ``manifest.csv`` naming both and the episode."""
-    rows = []
-    for n, (sample, idx, clip, video) in enumerate(zip(samples, indices, clusters, frames)):
-        name = f"{n:04d}"
-        write_video(folder / "generated" / f"{name}.mkv", video, data.detail_hz, lossless=True)
+                   indices: list[np.ndarray], first: int, data: DataConfig) -> None:
+    """Rollouts ``first``, ``first + 1``, ... as ``generated/<n>.mkv`` and the real ``detail_context`` frames plus
+    their true continuation as ``real/<n>.mkv`` (lossless FFV1 at ``detail_hz``); :func:`write_manifest` names
+    them all."""
+    for n, (sample, idx, video) in enumerate(zip(samples, indices, frames), start=first):
+        write_video(folder / "generated" / f"{n:04d}.mkv", video, data.detail_hz, lossless=True)
         truth = clips[sample.key].frames(np.concatenate([context_indices(data, sample.context_end), idx]))
-        write_video(folder / "real" / f"{name}.mkv", truth, data.detail_hz, lossless=True)
-        rows.append({"name": name, "generated": f"generated/{name}.mkv", "real": f"real/{name}.mkv", "clip": clip,
-                     "context_frames": data.detail_context})
+        write_video(folder / "real" / f"{n:04d}.mkv", truth, data.detail_hz, lossless=True)
+
+
+def write_manifest(folder: Path, plan: SplitPlan, data: DataConfig) -> None:
+    """``manifest.csv`` of a split's rollouts (:func:`write_rollouts`): each one's videos and episode."""
     with (folder / "manifest.csv").open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=["name", "generated", "real", "clip", "context_frames"])
         writer.writeheader()
-        writer.writerows(rows)
+        writer.writerows({"name": f"{n:04d}", "generated": f"generated/{n:04d}.mkv", "real": f"real/{n:04d}.mkv",
+                          "clip": clip, "context_frames": data.detail_context} for n, clip in enumerate(plan.clusters))
 
 
 def references(split: str, system: LoadedSystem, cache: LatentCache, samples: list[Sample],

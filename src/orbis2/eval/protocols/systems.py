@@ -247,19 +247,33 @@ def inference_settings(ev: EvaluationConfig) -> Inference:
                      steering_guidance=ev.steering_guidance)
 
 
+def batch_generator(device: torch.device | str, seed: int, batch: int) -> torch.Generator:
+    """The noise of one evaluation batch: a generator seeded from ``(seed, batch)`` alone (numpy's SeedSequence
+    spreads the pairs over independent streams), so that a batch draws the same noise whichever process, part or
+    device runs it, and the batches of a split can be generated in any order or in parts."""
+    state = np.random.SeedSequence([seed, batch]).generate_state(1, np.uint64)[0]
+    return torch.Generator(device).manual_seed(int(state))
+
+
+def batch_count(samples: int, batch_size: int) -> int:
+    return -(-samples // batch_size)
+
+
 def generate(system: LoadedSystem, cache: LatentCache, split: str, samples: list[Sample], steps: int,
              data: DataConfig, ev: EvaluationConfig, device: torch.device, steering: torch.Tensor | None = None,
-             desc: str = "", subgoals: torch.Tensor | None = None) -> torch.Tensor:
-    """Rollout latents [N, 5 * steps, ...] of ``samples``, in batches of ``evaluation.batch_size``, with noise
-    from one generator seeded by ``evaluation.seed``; ``subgoals`` [N, ...] as in :meth:`LoadedSystem.rollout`."""
-    gen = torch.Generator(device).manual_seed(ev.seed)
+             desc: str = "", subgoals: torch.Tensor | None = None, batches: range | None = None) -> torch.Tensor:
+    """Rollout latents [N, 5 * steps, ...] of ``samples``, in batches of ``evaluation.batch_size``, each batch with
+    the noise of :func:`batch_generator` (``evaluation.seed``, its index); ``subgoals`` [N, ...] as in
+    :meth:`LoadedSystem.rollout`. ``batches``: only those batches (a part of the split), their samples in order;
+    ``steering`` and ``subgoals`` still cover every sample."""
+    batches = range(batch_count(len(samples), ev.batch_size)) if batches is None else batches
     out = []
-    batches = range(0, len(samples), ev.batch_size)
-    for start in tqdm(batches, desc=desc or f"{system.name} {split}", unit="batch"):
-        part = samples[start:start + ev.batch_size]
-        contexts = contexts_for(system, cache, split, data, part, device)
-        steer = None if steering is None else steering[start:start + ev.batch_size].to(device)
-        given = None if subgoals is None else subgoals[start:start + ev.batch_size].to(device)
+    for batch in tqdm(batches, desc=desc or f"{system.name} {split}", unit="batch"):
+        rows = slice(batch * ev.batch_size, (batch + 1) * ev.batch_size)
+        contexts = contexts_for(system, cache, split, data, samples[rows], device)
+        steer = None if steering is None else steering[rows].to(device)
+        given = None if subgoals is None else subgoals[rows].to(device)
+        gen = batch_generator(device, ev.seed, batch)
         out.append(system.rollout(contexts, steps, gen, ev.top_nfe, ev.bottom_nfe, steer, subgoals=given).cpu())
     return torch.cat(out)
 

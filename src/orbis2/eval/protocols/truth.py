@@ -28,6 +28,7 @@ import torch
 
 from orbis2.config.sections import DataConfig, EvaluationConfig
 from orbis2.data.truth import TruthError, read_manifest, read_truth, truth_key
+from orbis2.eval.metrics.pixels import psnr
 from orbis2.eval.metrics.stats import decide, mean_interval, relative_difference
 from orbis2.eval.protocols.references import fvd_with_interval
 from orbis2.eval.protocols.starts import commanded_steps
@@ -50,21 +51,6 @@ def horizon_frames(horizons_s: Sequence[float], fps: float, generated: int) -> d
 def latent_errors(generated: torch.Tensor, truth: torch.Tensor) -> np.ndarray:
     """Per start and frame [N, T], the mean squared difference of normalised latents [N, T, C, h, w]."""
     return (generated.float() - truth.float()).pow(2).flatten(2).mean(-1).double().numpy()
-
-
-def psnr(generated: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """Per start and frame [N, T], PSNR (dB) of uint8 frames [N, T, H, W, 3] against the truth; capped at 100 dB
-    for identical frames.
-
-    One start at a time: the float64 differences of every start at once are 8 times the videos (1.9 GB per
-    copy at the default profile's 32 six-second starts, three copies at the peak); a start's frames reduce
-    alone, so the figures are the same to the bit.
-    """
-    mse = np.empty(generated.shape[:2])
-    for n, (video, true) in enumerate(zip(generated, truth)):
-        diff = video.astype(np.float64) - true.astype(np.float64)
-        mse[n] = (diff ** 2).reshape(len(diff), -1).mean(-1)
-    return np.minimum(10.0 * np.log10(255.0 ** 2 / np.maximum(mse, 1e-10)), 100.0)
 
 
 def horizon_cells(errors: np.ndarray, psnrs: np.ndarray, frames: dict[float, int], clusters: Sequence,

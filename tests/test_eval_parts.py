@@ -1,0 +1,70 @@
+"""The FVD pass in parts: any number of parts gives the record and media of one pass, to the bit; the DAG schedules
+one job per part only when ``parts`` > 1; a batch's noise depends on the seed and its index alone."""
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import torch
+import yaml
+
+from orbis2.eval.protocols.systems import batch_generator
+
+from conftest import project_env, run
+
+SYSTEM = "flat_detail"  # the cheapest system of the smoke project: one predictor, no top level
+
+
+def test_a_batch_draws_the_same_noise_whoever_runs_it():
+    draws = {(seed, batch): torch.randn(4, generator=batch_generator("cpu", seed, batch)) for seed in (0, 31)
+             for batch in (0, 1, 2)}
+    assert torch.equal(draws[31, 1], torch.randn(4, generator=batch_generator("cpu", 31, 1)))
+    assert len({tuple(d.tolist()) for d in draws.values()}) == len(draws)  # every (seed, batch) its own stream
+
+
+def test_the_fvd_pass_in_parts_equals_one_pass(smoke_main, tmp_path):
+    """In a copy of the smoke project, with one rollout a batch (4 batches a split): the stage in one pass, then
+    `--part 1 --parts 3` (what one of the DAG's `eval_fvd_<system>_part` jobs runs) and the gather `--parts 3`, which
+    does parts 0 and 2 itself (part 0 of 3 of a split's 4 batches is one batch, part 2 two) and reads part 1."""
+    root = Path(shutil.copytree(smoke_main, tmp_path / "project", symlinks=True))
+    params = yaml.safe_load((root / "params.yaml").read_text())
+    params["evaluation"]["smoke"]["batch_size"] = 1
+    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    stage = [sys.executable, "stages/eval_fvd.py", SYSTEM, "--profile", "smoke"]
+
+    run([*stage, "--parts", "1", "--fvd", "one.json", "--media", "one"], root)
+    out = run([*stage, "--parts", "3", "--part", "1"], root)
+    assert "part 0001-of-0003: rollouts {'val': 1, 'heldout': 1, 'turns': 1}" in out
+    manifest = json.loads((root / f"data/eval_parts/{SYSTEM}/0001-of-0003.json").read_text())
+    assert manifest["rollouts"] == {"val": 1, "heldout": 1, "turns": 1} and Path(manifest["outcome"]).is_file()
+    run([*stage, "--parts", "3", "--fvd", "three.json", "--media", "three"], root)
+
+    assert (root / "one.json").read_bytes() == (root / "three.json").read_bytes()
+    one, three = sorted((root / "one").iterdir()), sorted((root / "three").iterdir())
+    assert [p.name for p in one] == [p.name for p in three] and len(one) >= 7  # 3 mp4, 3 gif, the grid
+    assert all(a.read_bytes() == b.read_bytes() for a, b in zip(one, three))
+    record = json.loads((root / "one.json").read_text())
+    assert {s: r["videos"] for s, r in record["fvd"].items()} == {"val": 4, "heldout": 4, "turns": 4}
+
+
+def test_the_dag_runs_one_job_per_part_only_above_one_part(smoke_main, tmp_path):
+    """`--config parts=3`: three part jobs before each system's gather, which passes --parts 3; at parts=1 the gather
+    alone."""
+    root = Path(shutil.copytree(smoke_main, tmp_path / "project", symlinks=True))
+
+    def planned(*config: str) -> str:
+        proc = subprocess.run(["snakemake", "-n", "-p", "--cores", "2", "--forcerun", f"eval_fvd_{SYSTEM}",
+                               "--config", *config, "--", f"reports/eval/fvd_{SYSTEM}.json"], cwd=root,
+                              capture_output=True, text=True, env=project_env(root))
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        return proc.stdout
+
+    three = planned("parts=3")
+    parts = [line for line in three.splitlines() if line.startswith(f"python stages/eval_fvd.py {SYSTEM} --parts 3")]
+    assert [line.split(" --part ")[1].split()[0] for line in parts] == ["0", "1", "2"]
+    assert f"python stages/eval_fvd.py eval_fvd_{SYSTEM} --parts 3 " in three
+    one = planned("parts=1")
+    assert f"python stages/eval_fvd.py {SYSTEM} --parts" not in one
+    assert f"python stages/eval_fvd.py eval_fvd_{SYSTEM} --parts 1 " in one
