@@ -21,6 +21,11 @@ def eval_part_manifests(system_name):
     return lambda wildcards: [P("eval_parts", f"{system_name}/{part}") for part in PARTS] if len(PARTS) > 1 else []
 
 
+def part_args(path_args):
+    """A part job's options: the rule's paths (set when the rule is defined), then its part and part manifest."""
+    return lambda wildcards, output: f"{path_args} --part {int(wildcards.part[:4])} --part-manifest {output.part}"
+
+
 # Per system: at parts=N > 1, one job per part (an array of GPU jobs on Slurm): part I of N generates, decodes and
 # featurises the I-th block of each split's rollout batches into data/runs/ and writes its part manifest; then the
 # gather adds the real side and the intervals. The figures do not depend on `parts` (orbis2.eval.protocols.rollout_fvd).
@@ -41,12 +46,11 @@ for system_name, system in REG.systems.items():
         wildcard_constraints:
             part=r"\d{4}-of-\d{4}",
         params:
-            **stage_params(EVAL_FVD, part_paths),
-            part=lambda wildcards, output: f" --part {int(wildcards.part[:4])} --part-manifest {output.part}",
+            **{**stage_params(EVAL_FVD, part_paths), "args": part_args(shell_args(EVAL_FVD, part_paths))},
         log: log(f"eval_fvd_{system_name}_part_{{part}}")
         benchmark: bench(f"eval_fvd_{system_name}_part_{{part}}")
         shell:
-            command(EVAL_FVD, head=f" {system_name} --parts {{config[parts]}}{{params.part}}")
+            command(EVAL_FVD, head=f" {system_name} --parts {{config[parts]}}")
 
     rule:
         name: f"eval_fvd_{system_name}"

@@ -13,6 +13,7 @@ from snakemake.utils import format as snakemake_format
 
 from orbis2 import dag
 from orbis2.config.params import PROFILES, load_params, resolve_section
+from orbis2.registry import registry
 
 from conftest import ROOT
 
@@ -117,12 +118,14 @@ def test_snakefile_and_dvc_yaml_agree(both):
 
 
 def test_wildcard_rules_are_snakemake_only(both):
-    """The rules with a wildcard (scoring data/rollouts/<name>/; one part of the town, the import, the shards or a
-    latent cache, which DVC's `town`, `import`, `shards` and latents stages write themselves) are left out of
-    dvc.yaml on purpose and no other: a rule that gained a wildcard by mistake would vanish from DVC's DAG."""
+    """The rules with a wildcard (scoring data/rollouts/<name>/; one part of the town, the import, the shards, a
+    latent cache or a system's FVD pass, which DVC's `town`, `import`, `shards`, latents and eval_fvd stages do
+    themselves) are left out of dvc.yaml on purpose and no other: a rule that gained a wildcard by mistake would
+    vanish from DVC's DAG."""
     dvc, _ = both
     only = {rule.name for rule in dag.snakemake_rules(ROOT) if dag.snakemake_only(rule)}
-    assert only == {"evaluate", "town_part", "import_part", "shards_part", "latents_part", "latents_full_part"}
+    assert only == {"evaluate", "town_part", "import_part", "shards_part", "latents_part", "latents_full_part",
+                    *(f"eval_fvd_{system}_part" for system in registry().systems)}
     assert not only & set(dvc)
     assert only <= set(yaml.safe_load((ROOT / "profiles/slurm/config.yaml").read_text())["set-resources"])
 

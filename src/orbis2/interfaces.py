@@ -207,7 +207,8 @@ INTERFACES: dict[str, Interface] = _declare(
         PathOption("fvd", "--fvd", "the record", "fvd", name="{name}", output=True),
         PathOption("media", "--media", "sample videos and grid frames", "media", name="{name}", output=True,
                    folder=True),
-    ), ("data", "assets", "evaluation"), GPU, LONG, record="FvdRecord", rules="rules/evaluation.smk"),
+    ), ("data", "assets", "evaluation"), GPU, LONG, record="FvdRecord", rules="rules/evaluation.smk",
+        options=("--parts", "--part", "--part-manifest")),
     Interface("eval_probe", "stages/eval_probe.py", (
         SHARDS, *TOKENIZERS, PathOption("assets", "--assets", "pretrained assets, the teacher", "assets",
                                         folder=True, optional=True, fallback="assets.dir"),
