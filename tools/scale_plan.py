@@ -174,12 +174,14 @@ Snakemake (`--workflow-profile profiles/slurm`) at the paper's.
 - WebDataset advises shards of hundreds of MB to 1 GB and a count divisible by nodes x GPUs x
   workers; the paper profile's shards are {shard_mb:g} MB.
 
-## Not yet in parts
+## The evaluation in parts
 
-The evaluation's generate-and-featurise pass still runs as one job; its parts would follow the same
-design (`orbis2.data.parts`). The latent cache's parts check
-each shard as they read it; every other reader of shards still checks each shard of the splits it reads
-before it starts.
+Each system's FVD pass (generate, decode, featurise) runs in the same parts: part I of N takes the I-th
+block of each split's rollout batches (`eval_fvd_<system>_part`, a GPU job each) and reads only the clips
+of its own rollouts. Every batch draws its own noise from the evaluation seed and its index, and is
+decoded and featurised alone, so the figures do not depend on `parts`. Not yet in parts: the gather's
+real side (the I3D features of every real clip of a split, computed once per split and cached for every
+system), and the steering and conditioning evaluations, one job each.
 
 ## Redo this page
 
