@@ -64,7 +64,8 @@ def test_the_dag_runs_one_job_per_part_only_above_one_part(smoke_main, tmp_path)
         return proc.stdout
 
     three = planned("parts=3")
-    assert sorted(re.findall(rf"python stages/eval_fvd.py {SYSTEM} --parts 3 .* --part (\d) ", three)) == ["0", "1", "2"]
+    parts = re.findall(rf"python stages/eval_fvd.py {SYSTEM} --parts 3 .* --part (\d) ", three)
+    assert sorted(parts) == ["0", "1", "2"]
     assert f"python stages/eval_fvd.py eval_fvd_{SYSTEM} --parts 3 " in three
     one = planned("parts=1")
     assert f"python stages/eval_fvd.py {SYSTEM} --parts" not in one
