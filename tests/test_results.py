@@ -13,7 +13,7 @@ from orbis2.config.params import load_params
 from conftest import ROOT
 
 sys.path.insert(0, str(ROOT / "tools"))
-from publish_results import params_digest, profile_params, same_params  # noqa: E402
+from publish_results import git_state, params_digest, profile_params, same_params  # noqa: E402
 
 PUBLISHED = sorted((ROOT / "docs/results").glob("*/run.json"))
 
@@ -37,6 +37,27 @@ def test_a_setting_added_since_counts_as_the_same_only_at_its_null_off_value():
     assert not same_params({**published, "old": None}, published)  # a setting removed since: not the same
     assert same_params(published, {**published, "data": {"fps": 10, "micro_batch_size": None}})  # at any depth
     assert not same_params(published, {**published, "data": {"fps": 10, "micro_batch_size": 8}})
+
+
+def test_what_the_run_wrote_itself_is_no_uncommitted_change(tmp_path):
+    """dvc.lock, DVC's .gitignore files and params.yaml's profile taken from `--config profile=...` are the run's
+    own writing; an edited setting or source file is an uncommitted change, named whole."""
+    def git(*args):
+        subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True)
+    params = (ROOT / "params.yaml").read_text()
+    (tmp_path / "params.yaml").write_text(params)
+    (tmp_path / "data").mkdir()
+    git("init", "-q")
+    git("add", "-A")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "x")
+    (tmp_path / "params.yaml").write_text(params.replace("\nprofile: default\n", "\nprofile: smoke\n", 1))
+    (tmp_path / "dvc.lock").write_text("schema: '2.0'\n")
+    (tmp_path / "data/.gitignore").write_text("/latents\n")
+    assert git_state(tmp_path)["uncommitted"] == []
+    (tmp_path / "params.yaml").write_text(params.replace("\nprofile: default\n", "\nprofile: smoke\nparts: 2\n", 1)
+                                          .replace("\nparts: 1\n", "\n", 1))
+    (tmp_path / "stage.py").write_text("")
+    assert git_state(tmp_path)["uncommitted"] == ["params.yaml", "stage.py"]
 
 
 def test_every_published_folder_links_what_it_holds():

@@ -28,6 +28,7 @@ from typing import Any
 
 import pandas as pd
 import torch
+import yaml
 
 from orbis2.config.params import PROFILES, as_dict, load_params, parse_config
 from orbis2.io import atomic_file
@@ -77,10 +78,24 @@ def stage_times(folder: Path) -> pd.DataFrame:
 
 def git_state(root: Path) -> dict:
     def git(*args: str) -> str:
-        return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True).stdout.strip()
-    # dvc.lock is what the run itself wrote (its DVC record), not a change to the code that made it
-    changed = [line[3:] for line in git("status", "--porcelain").splitlines() if line[3:] != "dvc.lock"]
-    return {"commit": git("rev-parse", "HEAD") or None, "uncommitted": sorted(changed)}
+        return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True).stdout
+
+    changed = [line[3:] for line in git("status", "--porcelain", "--untracked-files=all").splitlines()]
+    return {"commit": git("rev-parse", "HEAD").strip() or None,
+            "uncommitted": sorted(path for path in changed if not written_by_the_run(root, path, git))}
+
+
+def written_by_the_run(root: Path, path: str, git) -> bool:
+    """What a run writes itself, not a change to the code that made it: DVC's record (dvc.lock, the .gitignore
+    files of its outputs) and params.yaml's `profile` when the run took the one it was given
+    (``--config profile=...``, docs/tracking.md)."""
+    if path == "dvc.lock" or path.endswith("/.gitignore") and not git("ls-files", path).strip():
+        return True
+    if path != "params.yaml":
+        return False
+    committed = yaml.safe_load(git("show", "HEAD:params.yaml"))
+    current = load_params(root / "params.yaml")
+    return {**committed, "profile": None} == {**current, "profile": None}
 
 
 def machine() -> dict:
