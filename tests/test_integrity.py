@@ -122,6 +122,11 @@ def test_a_reader_hashes_only_the_shards_it_reads(project, monkeypatch):
     assert first and hashed == [str(train[0])]
     hashed.clear()
     assert list(iter_clips(project / "shards", "val")) and hashed == [str(shard_paths(project / "shards", "val")[0])]
+    hashed.clear()  # an evaluation part: only the shards that hold its clips, named as the latent cache names them
+    second = list(iter_clips(project / "shards", "train", sources=[f"train/{train[1].name}"]))
+    assert second and hashed == [str(train[1])]
+    first_keys = {c.key for c in iter_clips(project / "shards", "train", [f"train/{train[0].name}"])}
+    assert first_keys and not first_keys & {c.key for c in second}
 
 
 def test_truncated_or_missing_shard_is_named(project, tmp_path):

@@ -483,9 +483,11 @@ def _tar_samples(urls: list[str], opening: Callable[[Iterator[dict[str, str]]], 
                           handler=_raise_shard_error, empty_check=False)
 
 
-def iter_clips(root: Path, split: str) -> Iterator[Clip]:
-    """Every clip of a split in manifest order, each shard checked just before it is read."""
-    for ref in shard_refs(root, split):
+def iter_clips(root: Path, split: str, sources: Collection[str] | None = None) -> Iterator[Clip]:
+    """Every clip of a split in manifest order, or of its shards named in ``sources`` (``<split>/<shard>.tar``, as
+    the latent cache's chunk table names them), each shard checked just before it is read."""
+    refs = shard_refs(root, split)
+    for ref in refs if sources is None else [r for r in refs if any(r.url.endswith(f"/{s}") for s in sources)]:
         for sample in shard_dataset([ref]):
             yield Clip.from_sample(sample, ref.url)
 
@@ -534,10 +536,11 @@ class Clip:
         return len(self.pixels) if self.pixels is not None else len(self.jpegs)
 
 
-def split_clips(root: Path, split: str, keys: Collection[str] | None = None) -> dict[str, Clip]:
-    """The clips of a split's shards by key, every one or those of ``keys`` (JPEGs stay compressed until frames
-    are asked for)."""
-    return {clip.key: clip for clip in iter_clips(root, split) if keys is None or clip.key in keys}
+def split_clips(root: Path, split: str, keys: Collection[str] | None = None,
+                sources: Collection[str] | None = None) -> dict[str, Clip]:
+    """The clips of a split's shards by key, every one or those of ``keys``, read from every shard of the split or
+    those named in ``sources`` (:func:`iter_clips`); JPEGs stay compressed until frames are asked for."""
+    return {clip.key: clip for clip in iter_clips(root, split, sources) if keys is None or clip.key in keys}
 
 
 def split_digest(root: Path, split: str) -> str:

@@ -189,14 +189,22 @@ def part_outcome(plan: SplitPlan, batches: range, system: LoadedSystem, cache: L
                  ev: EvaluationConfig, device: torch.device, shards: Path,
                  rollouts: Path | None = None) -> dict[str, np.ndarray]:
     """:func:`batch_outcome` of each of ``batches`` (a part of the split), concatenated in order; it reads only
-    the clips of its own rollouts."""
+    the clips of its own rollouts, from their shards (:func:`clips_of`)."""
     outcomes = []
     if batches:
-        keys = {s.key for s in plan.samples[plan.rows(batches[0]).start:plan.rows(batches[-1]).stop]}
-        clips = split_clips(shards, plan.split, keys)
+        rows = slice(plan.rows(batches[0]).start, plan.rows(batches[-1]).stop)
+        clips = clips_of(cache, shards, plan.split, plan.samples[rows])
         outcomes = [batch_outcome(plan, b, system, cache, i3d, data, ev, device, clips, rollouts)
                     for b in batches]
     return concat_outcomes(outcomes)
+
+
+def clips_of(cache: LatentCache, shards: Path, split: str, samples: list[Sample]) -> dict[str, Clip]:
+    """The clips of ``samples``, read from the shards that hold them alone (the latent cache's chunk table names
+    each clip's source shard): a part reads its own shards, not its split's."""
+    index, keys = cache.index(split), {s.key for s in samples}
+    sources = set(index.chunks["source"][index.clips["chunk"][index.find(sorted(keys))]].tolist())
+    return split_clips(shards, split, keys, sources)
 
 
 def concat_outcomes(outcomes: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
@@ -220,7 +228,7 @@ def write_media(plan: SplitPlan, outcome: dict[str, np.ndarray], system: LoadedS
     video, sample = outcome["sample"][0], plan.samples[0]
     if plan.long:
         save_grid_frames(media / "grid.npz", video, data.detail_hz)
-    clips = split_clips(shards, plan.split, {sample.key})
+    clips = clips_of(cache, shards, plan.split, [sample])
     frames = sample_video(system, cache, plan.split, clips, sample, plan.indices[0], video, data)
     write_video(media / f"{plan.split}.mp4", frames, data.detail_hz, playable=True)
     write_gif(media / f"{plan.split}.gif", frames, data.detail_hz)
