@@ -12,6 +12,14 @@ the FVD-slope over ``long_seconds`` (:mod:`orbis2.eval.protocols.rollout_fvd`). 
 rollout beats repeating the last frame in latent space is the ``eval_conditioning``
 stage's unbiased one-step comparison, not a sample's MSE (which pays twice the
 conditional variance).
+
+The rollouts' side runs in ``parts`` (params.yaml ``parts``, or ``--parts``): part i generates,
+decodes and featurises the i-th block of each split's rollout batches. ``--part I`` does that
+part only (the DAG runs one job per part above one part, Snakemake's rule
+``eval_fvd_<system>_part``, an array of GPU jobs on Slurm) and writes its outcome into
+data/runs/ and its part manifest; without it the stage does every part no job left there, then
+the real side, the intervals and the media. Each batch draws its own noise and is processed
+alone, so the figures do not depend on ``parts``.
 """
 
 from contextlib import nullcontext
@@ -81,10 +89,11 @@ def main(argv: list[str] | None = None) -> None:
         i3d = load_i3d(i3d_file).to(dev).eval()
         i3d_sha = sha256_file(i3d_file)
         # Where the parts keep their rollouts' outcomes: keyed by everything they depend on, so that a gather never
-        # reads a part made from other models, latents, settings or code.
+        # reads a part made from other models, latents, settings or code (one pass reads none: no key to hash).
+        in_parts = parts > 1 or args.part is not None
         work = work_dir(f"eval_fvd_{name}", cfg, ["data", "evaluation"],
                         {"manifest": args.shards / MANIFEST, "latents": latents.root / META, "i3d": i3d_file,
-                         **latents.tokenizers, **predictors}, __file__)
+                         **latents.tokenizers, **predictors}, __file__) if in_parts else None
         plans = {split: split_plan(split, cache, cfg.data, ev) for split in ev.fvd_splits}
 
         def outcome_of(part: int, rollouts: Path | None = None) -> dict[str, dict[str, np.ndarray]]:
@@ -106,7 +115,7 @@ def main(argv: list[str] | None = None) -> None:
 
         results = {}
         with atomic_dir(media) as tmp, (atomic_dir(args.rollouts) if args.rollouts else nullcontext()) as rollouts:
-            outcomes = [read_part(work, part, parts) if rollouts is None else None for part in range(parts)]
+            outcomes = [read_part(work, part, parts) if work and rollouts is None else None for part in range(parts)]
             outcomes = [o if o is not None else outcome_of(part, rollouts) for part, o in enumerate(outcomes)]
             for split, plan in plans.items():
                 outcome = concat_outcomes([o.get(split, {}) for o in outcomes])
