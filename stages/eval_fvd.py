@@ -22,6 +22,7 @@ the real side, the intervals and the media. Each batch draws its own noise and i
 alone, so the figures do not depend on ``parts``.
 """
 
+import zipfile
 from contextlib import nullcontext
 from pathlib import Path
 
@@ -31,6 +32,7 @@ from orbis2.accel import default_device
 from orbis2.assets import ensure_asset
 from orbis2.data.parts import add_part_options, part_name, parts_of, write_part_manifest
 from orbis2.data.shards import MANIFEST
+from orbis2.errors import OrbisError
 from orbis2.eval.protocols.rollout_fvd import (
     concat_outcomes,
     part_outcome,
@@ -107,8 +109,8 @@ def main(argv: list[str] | None = None) -> None:
                 with open(tmp, "wb") as f:
                     np.savez(f, **{f"{split}/{key}": v for split, o in outcome.items() for key, v in o.items()})
             rollouts = {split: len(o.get("generated_psnr", ())) for split, o in outcome.items()}
-            write_part_manifest(args, "eval_parts", parts, {"outcome": str(path), "sha256": sha256_file(path),
-                                                            "rollouts": rollouts}, prefix=f"{name}/")
+            write_part_manifest(args, "eval_parts", parts, {"outcome": str(path), "rollouts": rollouts},
+                                prefix=f"{name}/")
             run.log_metrics({f"rollouts_{split}": n for split, n in rollouts.items()})
             stage.summary = f"{name} part {part_name(args.part, parts)}: rollouts {rollouts} -> {path}"
             return
@@ -119,11 +121,11 @@ def main(argv: list[str] | None = None) -> None:
             outcomes = [o if o is not None else outcome_of(part, rollouts) for part, o in enumerate(outcomes)]
             for split, plan in plans.items():
                 outcome = concat_outcomes([o.get(split, {}) for o in outcomes])
+                results[split] = split_fvd(plan, outcome, system, cache, i3d, cfg.data, ev, args.shards,
+                                           args.stats_cache, i3d_sha)  # first: it checks the parts' rollout count
                 write_media(plan, outcome, system, cache, tmp, cfg.data, args.shards)
                 if rollouts is not None:
                     write_manifest(rollouts / split, plan, cfg.data)
-                results[split] = split_fvd(plan, outcome, system, cache, i3d, cfg.data, ev, args.shards,
-                                           args.stats_cache, i3d_sha)
         chunked = [r["chunked"] for r in results.values() if "chunked" in r]
         record = FvdRecord(model=name, label=SYSTEMS[name].label, parameters=system.parameters,
                            latent_channels=system.bottom.model.latent_channels, predictors=SYSTEMS[name].stages,
@@ -155,15 +157,19 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def read_part(work: Path, part: int, parts: int) -> dict[str, dict[str, np.ndarray]] | None:
-    """A part's outcome as its job left it in ``work`` (None: not run, this process does it)."""
+    """A part's outcome as its job left it in ``work`` (None: not run, this process does it). Written atomically;
+    a damaged file fails the zip's CRC check of each array as it is read."""
     path = work / f"{part_name(part, parts)}.npz"
     if not path.is_file():
         return None
     out: dict[str, dict[str, np.ndarray]] = {}
-    with np.load(path) as arrays:
-        for key in arrays.files:
-            split, _, name = key.partition("/")
-            out.setdefault(split, {})[name] = arrays[key]
+    try:
+        with np.load(path) as arrays:
+            for key in arrays.files:
+                split, _, name = key.partition("/")
+                out.setdefault(split, {})[name] = arrays[key]
+    except (OSError, ValueError, zipfile.BadZipFile) as err:
+        raise OrbisError(f"{path}: unreadable ({err}); delete it and run that part again") from err
     return out
 
 

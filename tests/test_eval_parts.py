@@ -1,6 +1,7 @@
 """The FVD pass in parts: any number of parts gives the record and media of one pass, to the bit; the DAG schedules
 one job per part only when ``parts`` > 1; a batch's noise depends on the seed and its index alone."""
 
+import importlib.util
 import json
 import re
 import shutil
@@ -8,12 +9,15 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+import pytest
 import torch
 import yaml
 
+from orbis2.errors import OrbisError
 from orbis2.eval.protocols.systems import batch_generator
 
-from conftest import project_env, run
+from conftest import ROOT, project_env, run
 
 SYSTEM = "hierarchical"  # the main job's
 
@@ -23,6 +27,20 @@ def test_a_batch_draws_the_same_noise_whoever_runs_it():
              for batch in (0, 1, 2)}
     assert torch.equal(draws[31, 1], torch.randn(4, generator=batch_generator("cpu", 31, 1)))
     assert len({tuple(d.tolist()) for d in draws.values()}) == len(draws)  # every (seed, batch) its own stream
+
+
+def test_a_damaged_part_is_named_with_the_fix(tmp_path):
+    spec = importlib.util.spec_from_file_location("eval_fvd_stage", ROOT / "stages/eval_fvd.py")
+    stage = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(stage)
+    np.savez(tmp_path / "0001-of-0002.npz", **{"val/fake/0-20": np.ones((2, 400))})
+    assert stage.read_part(tmp_path, 0, 2) is None  # not run: the gather does it
+    assert stage.read_part(tmp_path, 1, 2)["val"]["fake/0-20"].shape == (2, 400)
+    data = bytearray((tmp_path / "0001-of-0002.npz").read_bytes())
+    data[len(data) // 2] ^= 1
+    (tmp_path / "0001-of-0002.npz").write_bytes(data)
+    with pytest.raises(OrbisError, match="0001-of-0002.npz: unreadable .* delete it and run that part again"):
+        stage.read_part(tmp_path, 1, 2)
 
 
 def test_the_fvd_pass_in_parts_equals_one_pass(smoke_main, tmp_path):

@@ -487,7 +487,10 @@ def iter_clips(root: Path, split: str, sources: Collection[str] | None = None) -
     """Every clip of a split in manifest order, or of its shards named in ``sources`` (``<split>/<shard>.tar``, as
     the latent cache's chunk table names them), each shard checked just before it is read."""
     refs = shard_refs(root, split)
-    for ref in refs if sources is None else [r for r in refs if any(r.url.endswith(f"/{s}") for s in sources)]:
+    if sources is not None:
+        names = tuple(f"/{source}" for source in sources)
+        refs = [ref for ref in refs if ref.url.endswith(names)]
+    for ref in refs:
         for sample in shard_dataset([ref]):
             yield Clip.from_sample(sample, ref.url)
 
