@@ -17,24 +17,20 @@ The rollouts' side runs in ``parts`` (params.yaml ``parts``, or ``--parts``): pa
 decodes and featurises the i-th block of each split's rollout batches. ``--part I`` does that
 part only (the DAG runs one job per part above one part, Snakemake's rule
 ``eval_fvd_<system>_part``, an array of GPU jobs on Slurm) and writes its outcome into
-data/runs/ and its part manifest; without it the stage does every part no job left there, then
-the real side, the intervals and the media. Each batch draws its own noise and is processed
-alone, so the figures do not depend on ``parts``.
+data/runs/ (one file per batch, so a killed part resumes at its batch) and its part manifest;
+without it the stage makes every batch no job left there, then the real side, the intervals and
+the media. Each batch draws its own noise and is processed alone, so the figures do not depend
+on ``parts``.
 """
 
-import zipfile
 from contextlib import nullcontext
 from pathlib import Path
-
-import numpy as np
 
 from orbis2.accel import default_device
 from orbis2.assets import ensure_asset
 from orbis2.data.parts import add_part_options, part_name, parts_of, write_part_manifest
 from orbis2.data.shards import MANIFEST
-from orbis2.errors import OrbisError
 from orbis2.eval.protocols.rollout_fvd import (
-    concat_outcomes,
     part_outcome,
     split_fvd,
     split_plan,
@@ -44,7 +40,7 @@ from orbis2.eval.protocols.rollout_fvd import (
 from orbis2.eval.protocols.systems import SYSTEMS, inference_settings, load_system
 from orbis2.eval.records import FvdRecord, Nfe, write_record
 from orbis2.interfaces import INTERFACES
-from orbis2.io import atomic_dir, atomic_file, sha256_file
+from orbis2.io import atomic_dir, sha256_file
 from orbis2.latents import META, open_cache
 from orbis2.models.i3d import load_i3d
 from orbis2.registry import layout_path
@@ -90,39 +86,30 @@ def main(argv: list[str] | None = None) -> None:
         i3d_file = ensure_asset("i3d_kinetics400", assets, cfg.assets.local.get("i3d_kinetics400"), download=False)
         i3d = load_i3d(i3d_file).to(dev).eval()
         i3d_sha = sha256_file(i3d_file)
-        # Where the parts keep their rollouts' outcomes: keyed by everything they depend on, so that a gather never
-        # reads a part made from other models, latents, settings or code (one pass reads none: no key to hash).
-        in_parts = parts > 1 or args.part is not None
+        # Where each batch's outcome is kept: keyed by everything it depends on, so that no run reads an outcome
+        # made from other models, latents, settings or code.
         work = work_dir(f"eval_fvd_{name}", cfg, ["data", "evaluation"],
                         {"manifest": args.shards / MANIFEST, "latents": latents.root / META, "i3d": i3d_file,
-                         **latents.tokenizers, **predictors}, __file__) if in_parts else None
+                         **latents.tokenizers, **predictors}, __file__)
         plans = {split: split_plan(split, cache, cfg.data, ev) for split in ev.fvd_splits}
 
-        def outcome_of(part: int, rollouts: Path | None = None) -> dict[str, dict[str, np.ndarray]]:
-            return {split: part_outcome(plan, plan.part_batches(part, parts), system, cache, i3d, cfg.data, ev, dev,
-                                        args.shards, rollouts) for split, plan in plans.items()}
-
         if args.part is not None:
-            outcome = outcome_of(args.part)
-            path = work / f"{part_name(args.part, parts)}.npz"
-            with atomic_file(path) as tmp:
-                with open(tmp, "wb") as f:
-                    np.savez(f, **{f"{split}/{key}": v for split, o in outcome.items() for key, v in o.items()})
-            rollouts = {split: len(o.get("generated_psnr", ())) for split, o in outcome.items()}
-            write_part_manifest(args, "eval_parts", parts, {"outcome": str(path), "rollouts": rollouts},
+            rollouts = {split: len(part_outcome(plan, plan.part_batches(args.part, parts), system, cache, i3d,
+                                                cfg.data, ev, dev, args.shards, work).get("generated_psnr", ()))
+                        for split, plan in plans.items()}
+            write_part_manifest(args, "eval_parts", parts, {"outcomes": str(work), "rollouts": rollouts},
                                 prefix=f"{name}/")
             run.log_metrics({f"rollouts_{split}": n for split, n in rollouts.items()})
-            stage.summary = f"{name} part {part_name(args.part, parts)}: rollouts {rollouts} -> {path}"
+            stage.summary = f"{name} part {part_name(args.part, parts)}: rollouts {rollouts} -> {work}"
             return
 
         results = {}
         with atomic_dir(media) as tmp, (atomic_dir(args.rollouts) if args.rollouts else nullcontext()) as rollouts:
-            outcomes = [read_part(work, part, parts) if work and rollouts is None else None for part in range(parts)]
-            outcomes = [o if o is not None else outcome_of(part, rollouts) for part, o in enumerate(outcomes)]
-            for split, plan in plans.items():
-                outcome = concat_outcomes([o.get(split, {}) for o in outcomes])
+            for split, plan in plans.items():  # the batches no part job left in `work` are made here
+                outcome = part_outcome(plan, range(plan.batches), system, cache, i3d, cfg.data, ev, dev, args.shards,
+                                       work, rollouts)
                 results[split] = split_fvd(plan, outcome, system, cache, i3d, cfg.data, ev, args.shards,
-                                           args.stats_cache, i3d_sha)  # first: it checks the parts' rollout count
+                                           args.stats_cache, i3d_sha)  # first: it checks the rollout count
                 write_media(plan, outcome, system, cache, tmp, cfg.data, args.shards)
                 if rollouts is not None:
                     write_manifest(rollouts / split, plan, cfg.data)
@@ -154,23 +141,6 @@ def main(argv: list[str] | None = None) -> None:
             f"{s} {v.generated_psnr.estimate:.1f}, {v.reconstruction_psnr.estimate:.1f} dB"
             for s, v in (record.first_frame or {}).items())
         stage.summary = f"{name}: FVD {splits}{slope}{first}"
-
-
-def read_part(work: Path, part: int, parts: int) -> dict[str, dict[str, np.ndarray]] | None:
-    """A part's outcome as its job left it in ``work`` (None: not run, this process does it). Written atomically;
-    a damaged file fails the zip's CRC check of each array as it is read."""
-    path = work / f"{part_name(part, parts)}.npz"
-    if not path.is_file():
-        return None
-    out: dict[str, dict[str, np.ndarray]] = {}
-    try:
-        with np.load(path) as arrays:
-            for key in arrays.files:
-                split, _, name = key.partition("/")
-                out.setdefault(split, {})[name] = arrays[key]
-    except (OSError, ValueError, zipfile.BadZipFile) as err:
-        raise OrbisError(f"{path}: unreadable ({err}); delete it and run that part again") from err
-    return out
 
 
 if __name__ == "__main__":

@@ -1,7 +1,6 @@
 """The FVD pass in parts: any number of parts gives the record and media of one pass, to the bit; the DAG schedules
 one job per part only when ``parts`` > 1; a batch's noise depends on the seed and its index alone."""
 
-import importlib.util
 import json
 import re
 import shutil
@@ -15,9 +14,10 @@ import torch
 import yaml
 
 from orbis2.errors import OrbisError
+from orbis2.eval.protocols.rollout_fvd import read_outcome
 from orbis2.eval.protocols.systems import batch_generator
 
-from conftest import ROOT, project_env, run
+from conftest import project_env, run
 
 SYSTEM = "hierarchical"  # the main job's
 
@@ -29,37 +29,40 @@ def test_a_batch_draws_the_same_noise_whoever_runs_it():
     assert len({tuple(d.tolist()) for d in draws.values()}) == len(draws)  # every (seed, batch) its own stream
 
 
-def test_a_damaged_part_is_named_with_the_fix(tmp_path):
-    spec = importlib.util.spec_from_file_location("eval_fvd_stage", ROOT / "stages/eval_fvd.py")
-    stage = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(stage)
-    np.savez(tmp_path / "0001-of-0002.npz", **{"val/fake/0-20": np.ones((2, 400))})
-    assert stage.read_part(tmp_path, 0, 2) is None  # not run: the gather does it
-    assert stage.read_part(tmp_path, 1, 2)["val"]["fake/0-20"].shape == (2, 400)
-    data = bytearray((tmp_path / "0001-of-0002.npz").read_bytes())
+def test_a_damaged_batch_outcome_is_named_with_the_fix(tmp_path):
+    path = tmp_path / "000001.npz"
+    np.savez(path, **{"fake/0-20": np.ones((2, 400)), "generated_psnr": np.ones(2)})
+    assert read_outcome(path)["fake/0-20"].shape == (2, 400)
+    data = bytearray(path.read_bytes())
     data[len(data) // 2] ^= 1
-    (tmp_path / "0001-of-0002.npz").write_bytes(data)
-    with pytest.raises(OrbisError, match="0001-of-0002.npz: unreadable .* delete it and run that part again"):
-        stage.read_part(tmp_path, 1, 2)
+    path.write_bytes(data)
+    with pytest.raises(OrbisError, match="000001.npz: unreadable .* delete it and run the stage again"):
+        read_outcome(path)
 
 
 def test_the_fvd_pass_in_parts_equals_one_pass(smoke_main, tmp_path):
     """In a copy of the smoke project's main job, on a short and the long split with one rollout a batch (4
-    batches a split): the stage in one pass, then
-    `--part 1 --parts 3` (what one of the DAG's `eval_fvd_<system>_part` jobs runs) and the gather `--parts 3`, which
-    does parts 0 and 2 itself (part 0 of 3 of a split's 4 batches is one batch, part 2 two) and reads part 1."""
+    batches a split): `--part 1 --parts 3` (what one of the DAG's `eval_fvd_<system>_part` jobs runs) and the gather
+    `--parts 3`, which makes the batches of parts 0 and 2 itself (part 0 of 3 of a split's 4 batches is one batch,
+    part 2 two) and reads part 1's back, as a killed part resumes at its batch; then, from nothing, one pass."""
     root = Path(shutil.copytree(smoke_main, tmp_path / "project", symlinks=True))
     params = yaml.safe_load((root / "params.yaml").read_text())
     params["evaluation"]["smoke"].update(batch_size=1, fvd_splits=["val", "turns"])
     (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     stage = [sys.executable, "stages/eval_fvd.py", SYSTEM, "--profile", "smoke"]
 
-    run([*stage, "--parts", "1", "--fvd", "one.json", "--media", "one"], root)
     out = run([*stage, "--parts", "3", "--part", "1"], root)
     assert "part 0001-of-0003: rollouts {'val': 1, 'turns': 1}" in out
     manifest = json.loads((root / f"data/eval_parts/{SYSTEM}/0001-of-0003.json").read_text())
-    assert manifest["rollouts"] == {"val": 1, "turns": 1} and (root / manifest["outcome"]).is_file()
+    assert manifest["rollouts"] == {"val": 1, "turns": 1}  # batch 1 of each split, kept a file each
+    work = root / manifest["outcomes"]
+    assert sorted(p.name for p in (work / "val").iterdir()) == ["000001.npz"]
+    made = (work / "val/000001.npz").stat().st_mtime_ns
     run([*stage, "--parts", "3", "--fvd", "three.json", "--media", "three"], root)
+    assert sorted(p.name for p in (work / "val").iterdir()) == [f"{b:06d}.npz" for b in range(4)]
+    assert (work / "val/000001.npz").stat().st_mtime_ns == made  # read back, not made again
+    shutil.rmtree(work)  # one pass from nothing
+    run([*stage, "--parts", "1", "--fvd", "one.json", "--media", "one"], root)
 
     assert (root / "one.json").read_bytes() == (root / "three.json").read_bytes()
     one, three = sorted((root / "one").iterdir()), sorted((root / "three").iterdir())

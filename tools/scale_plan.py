@@ -179,7 +179,8 @@ Snakemake (`--workflow-profile profiles/slurm`) at the paper's.
 Each system's FVD pass (generate, decode, featurise) runs in the same parts: part I of N takes the I-th
 block of each split's rollout batches (`eval_fvd_<system>_part`, a GPU job each) and reads only the clips
 of its own rollouts. Every batch draws its own noise from the evaluation seed and its index, and is
-decoded and featurised alone, so the figures do not depend on `parts`. Not yet in parts: the gather's
+decoded and featurised alone, so the figures do not depend on `parts`; each batch's outcome is kept in
+data/runs/ as it is made, so a killed part resumes at its batch. Not yet in parts: the gather's
 real side (the I3D features of every real clip of a split, computed once per split and cached for every
 system), and the steering and conditioning evaluations, one job each.
 

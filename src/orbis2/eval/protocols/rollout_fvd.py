@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import csv
 import functools
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -55,6 +56,7 @@ from orbis2.eval.protocols.systems import (
     rollout_steps,
     sample_clusters,
 )
+from orbis2.io import atomic_file
 from orbis2.latents import LatentCache
 
 # Times (s) of the frames shown in the qualitative rollout grid.
@@ -186,17 +188,37 @@ def batch_outcome(plan: SplitPlan, batch: int, system: LoadedSystem, cache: Late
 
 
 def part_outcome(plan: SplitPlan, batches: range, system: LoadedSystem, cache: LatentCache, i3d, data: DataConfig,
-                 ev: EvaluationConfig, device: torch.device, shards: Path,
+                 ev: EvaluationConfig, device: torch.device, shards: Path, work: Path,
                  rollouts: Path | None = None) -> dict[str, np.ndarray]:
-    """:func:`batch_outcome` of each of ``batches`` (a part of the split), concatenated in order; it reads only
-    the clips of its own rollouts, from their shards (:func:`clips_of`)."""
+    """:func:`batch_outcome` of each of ``batches`` (a part of the split), concatenated in order.
+
+    Each batch's outcome is kept in ``work`` (a folder keyed by everything it depends on), written atomically:
+    a batch already there is read back, so a killed part resumes at the batch it was on, and a gather reads
+    what its part jobs left. The part reads only the clips of the rollouts it still has to make, from their
+    shards (:func:`clips_of`). With ``rollouts`` every batch is made again: its videos are written as it goes."""
+    saved = {b: work / plan.split / f"{b:06d}.npz" for b in batches}
+    todo = [b for b in batches if rollouts is not None or not saved[b].is_file()]
+    clips = clips_of(cache, shards, plan.split, [s for b in todo for s in plan.samples[plan.rows(b)]]) if todo else {}
     outcomes = []
-    if batches:
-        rows = slice(plan.rows(batches[0]).start, plan.rows(batches[-1]).stop)
-        clips = clips_of(cache, shards, plan.split, plan.samples[rows])
-        outcomes = [batch_outcome(plan, b, system, cache, i3d, data, ev, device, clips, rollouts)
-                    for b in batches]
+    for batch in batches:
+        if batch in todo:
+            outcome = batch_outcome(plan, batch, system, cache, i3d, data, ev, device, clips, rollouts)
+            with atomic_file(saved[batch]) as tmp, open(tmp, "wb") as f:
+                np.savez(f, **outcome)
+        else:
+            outcome = read_outcome(saved[batch])
+        outcomes.append(outcome)
     return concat_outcomes(outcomes)
+
+
+def read_outcome(path: Path) -> dict[str, np.ndarray]:
+    """A batch's outcome as :func:`part_outcome` kept it; a damaged file fails the zip's CRC check of each array
+    as it is read, and is named with the fix."""
+    try:
+        with np.load(path) as arrays:
+            return {key: arrays[key] for key in arrays.files}
+    except (OSError, ValueError, zipfile.BadZipFile) as err:
+        raise OrbisError(f"{path}: unreadable ({err}); delete it and run the stage again") from err
 
 
 def clips_of(cache: LatentCache, shards: Path, split: str, samples: list[Sample]) -> dict[str, Clip]:
