@@ -41,35 +41,35 @@ def test_a_damaged_batch_outcome_is_named_with_the_fix(tmp_path):
 
 
 def test_the_fvd_pass_in_parts_equals_one_pass(smoke_main, tmp_path):
-    """In a copy of the smoke project's main job, on a short and the long split with one rollout a batch (4
-    batches a split): `--part 1 --parts 3` (what one of the DAG's `eval_fvd_<system>_part` jobs runs) and the gather
-    `--parts 3`, which makes the batches of parts 0 and 2 itself (part 0 of 3 of a split's 4 batches is one batch,
-    part 2 two) and reads part 1's back, as a killed part resumes at its batch; then, from nothing, one pass."""
+    """In a copy of the smoke project's main job, on a short and the long split with one rollout a batch (2
+    batches a split): `--part 1 --parts 2` (what one of the DAG's `eval_fvd_<system>_part` jobs runs) and the gather
+    `--parts 2`, which makes part 0's batch itself and reads part 1's back, as a killed part resumes at its batch;
+    then, from nothing, one pass."""
     root = Path(shutil.copytree(smoke_main, tmp_path / "project", symlinks=True))
     params = yaml.safe_load((root / "params.yaml").read_text())
     params["evaluation"]["smoke"].update(batch_size=1, fvd_splits=["val", "turns"])
     (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     stage = [sys.executable, "stages/eval_fvd.py", SYSTEM, "--profile", "smoke"]
 
-    out = run([*stage, "--parts", "3", "--part", "1"], root)
-    assert "part 0001-of-0003: rollouts {'val': 1, 'turns': 1}" in out
-    manifest = json.loads((root / f"data/eval_parts/{SYSTEM}/0001-of-0003.json").read_text())
+    out = run([*stage, "--parts", "2", "--part", "1"], root)
+    assert "part 0001-of-0002: rollouts {'val': 1, 'turns': 1}" in out
+    manifest = json.loads((root / f"data/eval_parts/{SYSTEM}/0001-of-0002.json").read_text())
     assert manifest["rollouts"] == {"val": 1, "turns": 1}  # batch 1 of each split, kept a file each
     work = root / manifest["outcomes"]
     assert sorted(p.name for p in (work / "val").iterdir()) == ["000001.npz"]
     made = (work / "val/000001.npz").stat().st_mtime_ns
-    run([*stage, "--parts", "3", "--fvd", "three.json", "--media", "three"], root)
-    assert sorted(p.name for p in (work / "val").iterdir()) == [f"{b:06d}.npz" for b in range(4)]
+    run([*stage, "--parts", "2", "--fvd", "two.json", "--media", "two"], root)
+    assert sorted(p.name for p in (work / "val").iterdir()) == ["000000.npz", "000001.npz"]
     assert (work / "val/000001.npz").stat().st_mtime_ns == made  # read back, not made again
     shutil.rmtree(work)  # one pass from nothing
     run([*stage, "--parts", "1", "--fvd", "one.json", "--media", "one"], root)
 
-    assert (root / "one.json").read_bytes() == (root / "three.json").read_bytes()
-    one, three = sorted((root / "one").iterdir()), sorted((root / "three").iterdir())
-    assert [p.name for p in one] == [p.name for p in three] and len(one) == 5  # 2 mp4, 2 gif, the grid
-    assert all(a.read_bytes() == b.read_bytes() for a, b in zip(one, three))
+    assert (root / "one.json").read_bytes() == (root / "two.json").read_bytes()
+    one, two = sorted((root / "one").iterdir()), sorted((root / "two").iterdir())
+    assert [p.name for p in one] == [p.name for p in two] and len(one) == 5  # 2 mp4, 2 gif, the grid
+    assert all(a.read_bytes() == b.read_bytes() for a, b in zip(one, two))
     record = json.loads((root / "one.json").read_text())
-    assert {s: r["videos"] for s, r in record["fvd"].items()} == {"val": 4, "turns": 4} and record["chunked"]
+    assert {s: r["videos"] for s, r in record["fvd"].items()} == {"val": 2, "turns": 2} and record["chunked"]
 
 
 def test_the_dag_runs_one_job_per_part_only_above_one_part(smoke_main, tmp_path):
