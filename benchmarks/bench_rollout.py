@@ -140,8 +140,8 @@ def rollout_worker(args: argparse.Namespace) -> dict:
     tokenizer.requires_grad_(False)
     if args.compile:
         for net in nets:
-            compile_predictor(net, backend=args.predictor_backend)
-        compile_decoder(tokenizer)
+            compile_predictor(net, backend=args.backend)
+        compile_decoder(tokenizer, backend=args.backend)
 
     @torch.no_grad()
     def run() -> tuple[int, float, float]:
@@ -196,10 +196,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--precision", choices=("bf16", "fp32"), default="bf16", help="bf16 autocast on CUDA only")
     parser.add_argument("--compile", action="store_true",
                         help="torch.compile predictors (by region; CUDA graphs on CUDA) and decoder")
-    parser.add_argument("--predictor-backend", default="inductor",
-                        help="with --compile: torch.compile's backend for the predictors (the decoder's is inductor); "
-                             "eager traces the same graphs through dynamo and runs them as they are (tools/gpu_run.sh's"
-                             " CPU rehearsal: tests/test_compiled_path.py runs the predictors' inductor code)")
+    parser.add_argument("--backend", default="inductor",
+                        help="with --compile: torch.compile's backend for the predictors and the decoder; eager traces "
+                             "the same graphs through dynamo and runs them as they are (tools/gpu_run.sh's CPU "
+                             "rehearsal: inductor's CPU code is not what runs on a GPU, and "
+                             "tests/test_compiled_path.py runs the predictors' inductor code)")
     parser.add_argument("--compile-cache", type=Path, default=None,
                         help="with --compile: directory keeping the compiled artifacts between runs")
     parser.add_argument("--no-kv-cache", dest="kv_cache", action="store_false")
@@ -238,7 +239,7 @@ def main(argv: list[str] | None = None) -> None:
         if args.json is None:
             return
         record = {"device": device_name, "preset": args.preset, "grid": list(args.grid), "precision": args.precision,
-                  "compile": args.compile and args.predictor_backend, "kv_cache": args.kv_cache,
+                  "compile": args.compile and args.backend, "kv_cache": args.kv_cache,
                   "seconds": args.seconds, "batch": 1, "repeats": args.repeats,
                   "decoding_included": True, "systems": results, "ratios": ratios()}
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -109,7 +109,7 @@ class Step:
         torch.nn.init.normal_(self.model.final_layer.linear.weight, std=0.02)
         self.x = torch.randn(batch, frames, LATENT_CHANNELS, h, w, device=device)
         self.tokens = batch * frames * h * w
-        self.forward = compile_for_training(self.model) if args.compile else self.model  # train.compile
+        self.forward = compile_for_training(self.model, args.backend) if args.compile else self.model  # train.compile
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=1e-4, fused=device.type == "cuda")
         self.generator = torch.Generator(device=device).manual_seed(0)
         cuda_bf16 = device.type == "cuda" and args.precision == "bf16"
@@ -221,6 +221,11 @@ def main(argv: list[str] | None = None) -> None:
                         help="blocks checkpointed in the max-batch search (default: all)")
     parser.add_argument("--precision", choices=("bf16", "fp32"), default="bf16")
     parser.add_argument("--compile", action="store_true")
+    parser.add_argument("--backend", default="inductor",
+                        help="with --compile: torch.compile's backend; aot_eager captures the forward and backward "
+                             "graphs (the checkpointing policy in them) through dynamo and AOTAutograd without "
+                             "generating code (tools/gpu_run.sh's CPU rehearsal: inductor's CPU code is not what runs "
+                             "on a GPU)")
     parser.add_argument("--steps", type=int, default=5)
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--max-batch", type=int, default=64, help="upper end of the max-batch search (0 skips it)")
@@ -243,7 +248,8 @@ def main(argv: list[str] | None = None) -> None:
     measured = measured_matmul_tflops(device)
     print(f"device {name}; bf16 peak (table) {table_peak or 'unknown'} TFLOP/s; measured matmul {measured:.1f} "
           f"TFLOP/s; {args.precision}, checkpointing {args.checkpointing}, batch {args.batch_size}")
-    record: dict = {"device": name, "precision": args.precision, "compile": args.compile, "batch": args.batch_size,
+    record: dict = {"device": name, "precision": args.precision, "compile": args.compile and args.backend,
+                    "batch": args.batch_size,
                     "checkpointing": args.checkpointing, "policy": args.policy, "peak_bf16_tflops_table": table_peak,
                     "matmul_tflops_measured": measured, "sdpa": sdpa_backends(device, args.mfu_preset), "runs": []}
     print(f"{'preset':<9}{'model':<10}{'params':>14}{'tokens/s':>12}{'step s':>9}{'TFLOP/s':>9}{'MFU tbl':>9}"

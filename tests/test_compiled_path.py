@@ -175,8 +175,8 @@ def test_compiled_training_step_of_each_predictor_stage_at_paper_depth(fresh_dyn
 
     Compiled through dynamo and AOTAutograd (forward and backward graphs, the checkpointing policy inside them)
     with the ``aot_eager`` backend: inductor's CPU code generation of the two backward graphs would add a
-    minute to a suite that has none to spare, and inductor's lowering of these blocks is what the rollout test
-    above and the GPU measurement's rehearsal (``tests/test_gpu_script.py``: a compiled training step) check.
+    minute to a suite that has none to spare (and is not the code a GPU runs: no profile compiles training on
+    the CPU), and inductor's lowering of these blocks' forward is what the rollout test above checks.
     Width 384 instead of 768 (the gpu profile's): the paper width's weights, gradients and a second copy for
     the eager reference need 9 GB per predictor, more than the test machine lends one test; the graphs do not
     depend on the width (the rollout test above compiles the full paper preset)."""

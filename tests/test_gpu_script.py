@@ -1,6 +1,6 @@
-"""The GPU measurement script rehearsed on the CPU (REHEARSE=1: every part, smoke preset; inductor where no other
-test runs it), so the first minutes on a GPU measure instead of debugging; and what it carries there fits what the
-machine accepts."""
+"""The GPU measurement script rehearsed on the CPU (REHEARSE=1: every part, smoke preset, compiled through dynamo
+and AOTAutograd but not inductor's CPU code, which is not what runs on a GPU), so the first minutes on a GPU measure
+instead of debugging; and what it carries there fits what the machine accepts."""
 
 import json
 import os

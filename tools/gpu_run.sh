@@ -78,11 +78,13 @@ if [ -n "$REHEARSE" ]; then  # CPU, smoke preset: every part's real code path in
   suite+=(--rehearse)
   toggles=(--no-compile)  # the rollouts and train parts rehearse the compiled paths; the suite has no time to spare
   preset=smoke device=cpu
-  # The compiled rollouts trace the predictors through dynamo only (the eager backend; tests/test_compiled_path.py
-  # runs the predictors' inductor code, AOTAutograd included): the suite has no time to spare.
-  rollout=(--seconds 0.5 --repeats 1 --distill-nfe 2 --predictor-backend eager)
+  # The compiled paths without inductor's CPU code generation, which is not what runs on a GPU: the rollouts trace
+  # the predictors and the decoder through dynamo only (the eager backend), the training step through dynamo and
+  # AOTAutograd (aot_eager: forward and backward graphs, the checkpointing policy in them). tests/test_compiled_path.py
+  # runs the predictors' inductor code; the suite has no time to spare.
+  rollout=(--seconds 0.5 --repeats 1 --distill-nfe 2 --backend eager)
   v1=()  # eager: the rollouts part rehearses the compiled rollout already, and the test suite has no time to spare
-  train=(--presets smoke --mfu-preset smoke --batch-size 2 --checkpointing 2 --steps 1 --warmup 1)
+  train=(--presets smoke --mfu-preset smoke --batch-size 2 --checkpointing 2 --steps 1 --warmup 1 --backend aot_eager)
 else
   preset=paper device=cuda
   rollout=(--seconds 2 --repeats 3)

@@ -197,7 +197,7 @@ def compile_cache(path: Path | str | None) -> Iterator[dict]:
     record["save_s"] = time.perf_counter() - start
 
 
-def compile_decoder(tokenizer: nn.Module) -> nn.Module:
+def compile_decoder(tokenizer: nn.Module, backend: str = "inductor") -> nn.Module:
     """Compile a tokenizer's ``decode`` in place (decoding is part of the measured generation)."""
-    tokenizer.decode = torch.compile(tokenizer.decode, dynamic=False)
+    tokenizer.decode = torch.compile(tokenizer.decode, dynamic=False, backend=backend)
     return tokenizer
