@@ -13,6 +13,7 @@ import contextlib
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -47,13 +48,40 @@ torch.set_num_threads(1)
 # that fail at once, as the real tools would after their timeout, and the Slurm tests skip.
 SLURM_STATE = "ORBIS2_TEST_SLURM"  # "up" or "down", the first process's answer, inherited by the xdist workers
 SLURM_TOOLS = ("sinfo", "scontrol", "squeue", "sacct", "sbatch", "srun", "scancel", "salloc")
+SLURMCTLD_PORT = 6817  # Slurm's default where slurm.conf sets no SlurmctldPort
+
+
+def controller_listens() -> bool | None:
+    """Whether anything listens where slurm.conf puts the controller (each SlurmctldHost's address, else its name,
+    at SlurmctldPort's first port); None without a readable slurm.conf (a configless cluster: ask `sinfo`). Where
+    nothing listens, `sinfo` takes 9 s to give up, at the start of every session; a refused connection says so
+    at once."""
+    try:
+        text = Path(os.environ.get("SLURM_CONF", "/etc/slurm/slurm.conf")).read_text()
+    except OSError:
+        return None
+    hosts, port = [], SLURMCTLD_PORT
+    for line in text.splitlines():
+        key, _, value = line.split("#")[0].partition("=")
+        key, value = key.strip().lower(), value.strip()
+        if key in ("slurmctldhost", "controlmachine"):
+            name, _, address = value.partition("(")
+            hosts.append(address.rstrip(")") or name)
+        elif key == "slurmctldport":
+            port = int(value.split("-")[0])
+    for host in hosts:
+        with contextlib.suppress(OSError):
+            socket.create_connection((host, port), timeout=2).close()
+            return True
+    return False if hosts else None
 
 
 def slurm_answers() -> bool:
-    """Whether a Slurm controller answers `sinfo` here (asked once per session)."""
+    """Whether a Slurm controller answers `sinfo` here (asked once per session, unless nothing listens where
+    slurm.conf puts it)."""
     if SLURM_STATE not in os.environ:
         up = False
-        if shutil.which("sinfo"):
+        if shutil.which("sinfo") and controller_listens() is not False:
             with contextlib.suppress(subprocess.TimeoutExpired):
                 up = subprocess.run(["sinfo", "-h"], capture_output=True, timeout=20).returncode == 0
         os.environ[SLURM_STATE] = "up" if up else "down"

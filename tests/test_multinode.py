@@ -19,6 +19,8 @@ from test_predictors import SPAN, write_cache
 from orbis2.interfaces import TRAIN
 from orbis2.train import load_checkpoint, load_weights
 
+from conftest import controller_listens
+
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = Path(__file__).with_name("multinode_train.py")
 LAUNCHER = ROOT / "tools" / "slurm_torchrun.sh"
@@ -140,6 +142,20 @@ def test_the_launcher_refuses_to_run_outside_slurm():
     proc = subprocess.run([str(LAUNCHER), "stages/predictor.py"], env=env, capture_output=True, text=True)
     assert proc.returncode != 0
     assert "not inside a Slurm job; on one machine use: torchrun --standalone" in proc.stderr
+
+
+def test_the_suite_asks_sinfo_only_where_a_controller_listens(tmp_path, monkeypatch):
+    """conftest.controller_listens, run before the session's one `sinfo` (9 s where nothing answers): the
+    controller slurm.conf names found listening, the same address refused at once, no slurm.conf left to
+    `sinfo`."""
+    conf = tmp_path / "slurm.conf"
+    monkeypatch.setenv("SLURM_CONF", str(conf))
+    assert controller_listens() is None
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        port = server.getsockname()[1]
+        conf.write_text(f"ClusterName=x\nSlurmctldHost=node(127.0.0.1)  # the controller\nSlurmctldPort={port}\n")
+        assert controller_listens() is True
+    assert controller_listens() is False
 
 
 def free_port() -> int:
