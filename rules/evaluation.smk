@@ -45,12 +45,13 @@ for system_name, system in REG.systems.items():
             part=P("eval_parts", f"{system_name}/{{part}}"),
         wildcard_constraints:
             part=r"\d{4}-of-\d{4}",
-        params:
+        params:  # the system as a param: a loop variable in the command would be read when a job step runs it
             **{**stage_params(EVAL_FVD, part_paths), "args": part_args(shell_args(EVAL_FVD, part_paths))},
+            system=system_name,
         log: log(f"eval_fvd_{system_name}_part_{{part}}")
         benchmark: bench(f"eval_fvd_{system_name}_part_{{part}}")
         shell:
-            command(EVAL_FVD, head=f" {system_name} --parts {{config[parts]}}")
+            command(EVAL_FVD, head=" {params.system} --parts {config[parts]}")
 
     rule:
         name: f"eval_fvd_{system_name}"

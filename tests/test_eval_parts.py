@@ -91,3 +91,21 @@ def test_the_dag_runs_one_job_per_part_only_above_one_part(smoke_main, tmp_path)
     one = planned("parts=1")
     assert f"python stages/eval_fvd.py {SYSTEM} --parts" not in one
     assert f"python stages/eval_fvd.py eval_fvd_{SYSTEM} --parts 1 " in one
+
+
+def test_a_part_job_runs_its_own_system_where_a_cluster_job_step_runs_it(smoke_main, tmp_path):
+    """A part job as a cluster executor's job step runs it (Snakemake again, `--mode subprocess`, the one job), for
+    a system that is not the Snakefile loop's last: the step evaluates the rule's command anew, so a loop variable in
+    it would name the last system (a job step on Slurm once ran flat_abstract_full's part with hierarchical's
+    models)."""
+    root = Path(shutil.copytree(smoke_main, tmp_path / "project", symlinks=True))
+    params = yaml.safe_load((root / "params.yaml").read_text())
+    params["evaluation"]["smoke"].update(fvd_splits=["val"])
+    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    part = "0001-of-0002"
+    proc = subprocess.run(["snakemake", "--target-jobs", f"eval_fvd_{SYSTEM}_part:part={part}", "--allowed-rules",
+                           f"eval_fvd_{SYSTEM}_part", "--cores", "1", "--force", "--mode", "subprocess",
+                           "--config", "parts=2"], cwd=root, capture_output=True, text=True, env=project_env(root))
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    manifest = json.loads((root / f"data/eval_parts/{SYSTEM}/{part}.json").read_text())
+    assert set(manifest["rollouts"]) == {"val"} and f"eval_fvd_{SYSTEM}-" in manifest["outcomes"]
