@@ -47,11 +47,11 @@ for system_name, system in REG.systems.items():
             part=r"\d{4}-of-\d{4}",
         params:  # the system as a param: a loop variable in the command would be read when a job step runs it
             **{**stage_params(EVAL_FVD, part_paths), "args": part_args(shell_args(EVAL_FVD, part_paths))},
-            system=system_name,
+            scope=system_name,
         log: log(f"eval_fvd_{system_name}_part_{{part}}")
         benchmark: bench(f"eval_fvd_{system_name}_part_{{part}}")
         shell:
-            command(EVAL_FVD, head=" {params.system} --parts {config[parts]}")
+            command(EVAL_FVD, head=" {params.scope} --parts {config[parts]}")
 
     rule:
         name: f"eval_fvd_{system_name}"
