@@ -23,7 +23,7 @@ from orbis2.flow import euler_grid, euler_sample
 from orbis2.models.deviations import TURN_SEARCH, SteeringShift, best_sideways_shift, translate_columns
 from orbis2.models.sizes import stdit_config
 from orbis2.models.stdit import build_stdit
-from orbis2.models.stdit_layers import modulate, patchify, sinusoidal_embedding, unpatchify
+from orbis2.models.stdit_layers import interleaved_embedding, modulate, patchify, sinusoidal_embedding, unpatchify
 from orbis2.models.tokenizer import sincos_pos_embed_2d
 from orbis2.rollout import cascaded_rollout, flat_rollout, sample_frames, target_velocity
 
@@ -115,7 +115,9 @@ def ref_embed(model, x, frame_rate, total=None, first=0):
     tokens = tokens + model.frame_embed[start: start + f, None]
     if frame_rate is not None:
         rate = torch.as_tensor(frame_rate, dtype=torch.float32).expand(b)
-        tokens = tokens + sinusoidal_embedding(rate, model.hidden_size)[:, None, None]
+        features = (interleaved_embedding(rate, model.hidden_size, model.rate_range)
+                    if model.rate_encoding == "interleaved" else sinusoidal_embedding(rate, model.hidden_size))
+        tokens = tokens + features[:, None, None]
     return tokens
 
 
@@ -470,7 +472,7 @@ def residual_dtypes(model: torch.nn.Module) -> tuple[list[torch.dtype], object]:
 
 
 def test_weights_cast_once_keep_the_residual_stream_in_bf16_and_track_fp32():
-    """bf16 hygiene (CPU autocast here): linear and RMSNorm weights cast once, embeddings and gates cast where
+    """bf16 hygiene (CPU autocast here): linear and q/k norm weights cast once, embeddings and gates cast where
     they are added, so every block's residual stream is bf16 (no fp32 promotion) and the q/k norms run in one
     dtype. The rollout stays within 1% (relative RMS; 0.26-0.38% measured) of fp32; under autocast alone it is
     as close (the norms' arithmetic is the one difference)."""

@@ -349,7 +349,7 @@ def test_smoke_model_overfits_a_fixed_batch_with_teacher_forcing():
 
 def test_authors_options_are_checked():
     """The settings of the authors' released networks (orbis2.models.official) refuse values they do not know."""
-    with pytest.raises(ValueError, match="ST-DiT: qk_norm = 'group' must be one of rms, layer"):
+    with pytest.raises(ValueError, match="ST-DiT: qk_norm = 'group' must be one of layer, rms"):
         stdit_config("smoke", qk_norm="group")
     with pytest.raises(ValueError, match=r"ST-DiT: rate_range = \(15.0, 2.0\) must be \(low, high\)"):
         stdit_config("smoke", rate_range=(15, 2))

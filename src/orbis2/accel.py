@@ -159,15 +159,16 @@ class HostSyncs(TorchDispatchMode):
 
 def cast_for_inference(model: nn.Module, device: torch.device | str, precision: str = "bf16") -> nn.Module:
     """On CUDA with ``precision`` bf16, every linear layer's weight and bias cast to bf16 once, in place (the
-    casts bf16 autocast would make at every call), and the RMSNorm weights (the attention's q/k norms), so
-    that the norms run in the activations' dtype on the fused kernel instead of a mixed-dtype fallback. The
-    other parameters (embeddings, gates) stay fp32 and are cast to the activations' dtype where they are
-    added. Run the model under :func:`inference_autocast` still. A no-op elsewhere (CPU runs stay fp32)."""
+    casts bf16 autocast would make at every call), and the weights of the normalisations that have them (the
+    attention's q/k norms), so that no norm meets mixed dtypes (autocast still runs LayerNorm in fp32; the
+    attention casts its output back). The other parameters (embeddings, gates) stay fp32 and are cast to the
+    activations' dtype where they are added. Run the model under :func:`inference_autocast` still. A no-op
+    elsewhere (CPU runs stay fp32)."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision = {precision!r} must be one of {list(PRECISIONS)}")
     if torch.device(device).type == "cuda" and precision == "bf16":
         for module in model.modules():
-            if isinstance(module, (nn.Linear, nn.RMSNorm)):
+            if isinstance(module, (nn.Linear, nn.RMSNorm, nn.LayerNorm)):
                 module.to(torch.bfloat16)
     return model
 

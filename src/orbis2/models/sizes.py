@@ -39,10 +39,11 @@ class TokenizerConfig(ModelConfig):
     entropy_temperature: float = 0.01
     mlp_ratio: float = 4.0
     learn_pos_embed: bool = False
-    # The authors' released tokenizer (orbis2.models.official): a CLS token in each ViT encoder (with its own
-    # learned position; dropped after the last block) and a 1x1 conv from the latent to this many channels before
-    # each decoder's first conv (0: none, ours).
-    cls_token: bool = False
+    # As the authors' released tokenizer (docs/differences.md): a CLS token in each ViT encoder, with its own
+    # position row, dropped after the last block (the paper leaves it open; their code's choice). Theirs also has
+    # a 1x1 conv from the latent to this many channels before each decoder's first conv (0: none, ours; a linear
+    # map before a conv adds no function the conv cannot learn), which only their imported weights use.
+    cls_token: bool = True
     decoder_in_channels: int = 0
     abstract_decoder_in_channels: int = 0
     disc_channels: int = 64
@@ -98,10 +99,10 @@ def tokenizer_config(preset: str, **overrides) -> TokenizerConfig:
     return preset_config(TOKENIZER_PRESETS, preset, overrides)
 
 
-# The values of the STDiTConfig options below (the first of each is ours).
-QK_NORMS = ("rms", "layer")
+# The values of the STDiTConfig options below (the first of each is the default).
+QK_NORMS = ("layer", "rms")
 CAUSAL_MASKS = ("hard", "additive")
-RATE_ENCODINGS = ("geometric", "interleaved")
+RATE_ENCODINGS = ("interleaved", "geometric")
 TIMESTEPS = ("per_frame", "global")
 STEERING_POOLS = ("head_mean", "sum", "mean")
 
@@ -123,14 +124,15 @@ class STDiTConfig(ModelConfig):
     steering_len: int = 16
     steering_shift: bool = False  # steered predictor only: SteeringShift (a deviation from the paper)
     subgoal_shift: bool = False  # detail predictor only: SubgoalShift (a deviation from the paper)
-    # Choices the paper leaves open, in which the authors' released networks differ from ours: our choice is each
-    # default, theirs what orbis2.models.official records when it imports their weights (docs/official-weights.md).
-    qk_norm: str = "rms"  # query/key norm per head: "rms" (RMSNorm) | "layer" (LayerNorm with bias, theirs)
+    # Choices in which the authors' released networks can differ (docs/differences.md): where the paper leaves one
+    # open, the default is their code's; where the paper decides it, or their configs do, ours. What
+    # orbis2.models.official records when it imports their weights is theirs (docs/official-weights.md).
+    qk_norm: str = "layer"  # query/key norm per head: "layer" (LayerNorm with bias, theirs) | "rms" (RMSNorm)
     causal_mask: str = "hard"  # "hard" | "additive" (theirs: +1 on the allowed scores, the future leaks in)
     time_attn_norm: bool = True  # False (theirs): the temporal attention reads the residual stream un-normalised
     cross_attention: bool = True  # detail predictor: the gated cross-attention to the abstract tokens (theirs: none)
     abstract_positions: bool = True  # detail predictor: 2-D sin-cos positions on the abstract tokens (theirs: none)
-    rate_encoding: str = "geometric"  # frame-rate features: "geometric" (of Hz) | "interleaved" (theirs)
+    rate_encoding: str = "interleaved"  # frame-rate features: "interleaved" (theirs) | "geometric" (DiT's, of Hz)
     rate_range: tuple[float, float] = (2.0, 15.0)  # "interleaved": the rates mapped to [0, 1]
     tau_scale: float = 1000.0  # the noise-level features are of tau_scale * tau (theirs: the sampler's timescale)
     timestep: str = "per_frame"  # "per_frame" | "global" (theirs: every frame gets the last frame's noise level)

@@ -81,7 +81,7 @@ class STDiTBlock(nn.Module):
     """
 
     def __init__(self, hidden_size: int, num_heads: int, mlp_ratio: float, cond_dim: int | None = None,
-                 qk_norm: str = "rms", causal_mask: str = "hard", time_attn_norm: bool = True,
+                 qk_norm: str = "layer", causal_mask: str = "hard", time_attn_norm: bool = True,
                  cross_attention: bool = True):
         super().__init__()
         mlp_hidden = int(hidden_size * mlp_ratio)
@@ -195,8 +195,9 @@ class STDiT(nn.Module):
     the same embedding whatever the context length, including the linear-probe
     protocol's context-free input.
 
-    The options after ``subgoal_shift`` (sizes.STDiTConfig documents each) default to ours; other values
-    reproduce the authors' released networks (:mod:`orbis2.models.official`).
+    The options after ``subgoal_shift`` (sizes.STDiTConfig documents each) default to the authors' code's
+    choice where the paper leaves it open and to ours where the paper decides it; the other values reproduce
+    the authors' released networks (:mod:`orbis2.models.official`).
     ``timestep="global"`` conditions every frame on the last frame's noise level (their sampler's "global"
     timestep: the clean context sees the target's), which makes the context's features depend on the step,
     so such a predictor never caches them (:meth:`uses_kv_cache`).
@@ -219,12 +220,12 @@ class STDiT(nn.Module):
         steering_len: int = 16,
         steering_shift: bool = False,
         subgoal_shift: bool = False,
-        qk_norm: str = "rms",
+        qk_norm: str = "layer",
         causal_mask: str = "hard",
         time_attn_norm: bool = True,
         cross_attention: bool = True,
         abstract_positions: bool = True,
-        rate_encoding: str = "geometric",
+        rate_encoding: str = "interleaved",
         rate_range: tuple[float, float] = (2.0, 15.0),
         tau_scale: float = 1000.0,
         timestep: str = "per_frame",

@@ -46,12 +46,12 @@ def interleaved_embedding(values: torch.Tensor, dim: int, value_range: tuple[flo
 
 
 def rate_embedding(frame_rate: torch.Tensor | float | None, batch: int, dim: int, device: torch.device,
-                   encoding: str = "geometric", rate_range: tuple[float, float] = (2.0, 15.0)
+                   encoding: str = "interleaved", rate_range: tuple[float, float] = (2.0, 15.0)
                    ) -> torch.Tensor | None:
     """Frame rate in Hz (a number or [B]) -> features [B, dim] built on ``device`` (no host copy).
 
-    ``geometric``: DiT's timestep features of the rate in Hz (ours); ``interleaved``: :func:`interleaved_embedding`
-    of the rate normalised over ``rate_range`` (the authors' released networks).
+    ``interleaved`` (the default, the authors' code's): :func:`interleaved_embedding` of the rate normalised over
+    ``rate_range``; ``geometric``: DiT's timestep features of the rate in Hz.
     """
     if frame_rate is None:
         return None
@@ -106,8 +106,8 @@ def unpatchify(tokens: torch.Tensor, p: int, c: int, h: int, w: int) -> torch.Te
 
 
 def qk_norm(kind: str, head_dim: int) -> nn.Module:
-    """Query/key normalisation per head: ``rms`` (RMSNorm, ours) or ``layer`` (LayerNorm with bias and eps 1e-5,
-    what the authors' released networks use)."""
+    """Query/key normalisation per head: ``layer`` (LayerNorm with bias and eps 1e-5, the default, as the
+    authors' code) or ``rms`` (RMSNorm)."""
     if kind == "layer":
         return nn.LayerNorm(head_dim)
     return nn.RMSNorm(head_dim, eps=1e-6)
@@ -121,7 +121,7 @@ class Attention(nn.Module):
     present and lets the future leak in; it exists only to run those weights as they were trained.
     """
 
-    def __init__(self, dim: int, num_heads: int, norm: str = "rms", causal_mask: str = "hard"):
+    def __init__(self, dim: int, num_heads: int, norm: str = "layer", causal_mask: str = "hard"):
         super().__init__()
         if dim % num_heads:
             raise ValueError(f"dim = {dim} is not divisible by num_heads = {num_heads}")
@@ -159,7 +159,7 @@ class Attention(nn.Module):
 class CrossAttention(nn.Module):
     """Queries from the detail tokens, keys/values from the abstract conditioning tokens (qk-norm, SDPA)."""
 
-    def __init__(self, dim: int, context_dim: int, num_heads: int, norm: str = "rms"):
+    def __init__(self, dim: int, context_dim: int, num_heads: int, norm: str = "layer"):
         super().__init__()
         if context_dim % num_heads:
             raise ValueError(f"cond_dim = {context_dim} is not divisible by num_heads = {num_heads}")

@@ -113,13 +113,13 @@ class Block(nn.Module):
 class ViTEncoder(nn.Module):
     """ViT over a fixed (H, W) image returning patch tokens as [B, D, H/p, W/p].
 
-    No CLS token by default: only patch tokens are used downstream (the authors'
-    code, "Tokenizer"). The position embedding is the 2-D sin-cos table of the
-    (non-square) grid, frozen like MAE's unless ``learn_pos_embed``. With
-    ``cls_token`` (the authors' released encoders, timm's MAE ViT) a learned CLS
-    token with its own position row takes part in attention and is dropped after
-    the last block. Module names follow MAE's checkpoint so ``load_mae_encoder``
-    is a near-identity map.
+    Only patch tokens are used downstream (the authors' code, "Tokenizer"). The
+    position embedding is the 2-D sin-cos table of the (non-square) grid, frozen
+    like MAE's unless ``learn_pos_embed``. With ``cls_token`` (the tokenizer's
+    default, as the authors' released encoders and timm's MAE ViT) a learned CLS
+    token with its own position row (zeros, MAE's) takes part in attention and
+    is dropped after the last block. Module names follow MAE's checkpoint so
+    ``load_mae_encoder`` is a near-identity map.
     """
 
     def __init__(
@@ -154,10 +154,12 @@ class ViTEncoder(nn.Module):
         self._init_weights()
 
     def _init_weights(self) -> None:
-        """MAE's initialisation: xavier-uniform linears and patch projection."""
+        """MAE's initialisation: xavier-uniform linears and patch projection, the CLS token normal(0.02)."""
         w = self.patch_embed.proj.weight
         nn.init.xavier_uniform_(w.view(w.shape[0], -1))
         nn.init.zeros_(self.patch_embed.proj.bias)
+        if self.prefix:
+            nn.init.normal_(self.cls_token, std=0.02)
         for module in self.blocks.modules():
             if isinstance(module, nn.Linear):
                 nn.init.xavier_uniform_(module.weight)
