@@ -13,7 +13,9 @@ from orbis2.eval.metrics.ego_motion import (
     probe_features,
     ridge_fit,
     ridge_path,
+    ridge_predict,
     select_penalty,
+    weighted_r2,
 )
 from orbis2.eval.protocols.conditioning import (
     effect_rows,
@@ -108,10 +110,16 @@ def test_ego_motion_probe_recovers_a_linear_signal_and_not_a_shuffled_one():
         return x, x @ weights + 0.05 * rng.normal(size=(n, 2))
 
     train, val = make(400), make(160)
-    result, _ = ego_motion_probe(train, val, np.repeat(np.arange(16), 10), penalty=1.0, reps=100, seed=0)
+    result, model = ego_motion_probe(train, val, np.repeat(np.arange(16), 10), penalty=1.0, reps=100, seed=0)
     for name in ("speed", "yaw_rate"):
         assert result[name]["r2"] > 0.95 and result[name]["low"] > 0.9
         assert result[name]["shuffled_r2"] < 0.2
+    # The probe and its shuffled control share one SVD of the train features: the same bits as two fits.
+    control = ridge_fit(train[0], train[1][np.random.default_rng(0).permutation(400)], 1.0)
+    assert all(np.array_equal(a, b) for a, b in zip(model, ridge_fit(*train, 1.0)))
+    shuffled = ridge_predict(control, val[0])
+    assert [result[name]["shuffled_r2"] for name in ("speed", "yaw_rate")] == [
+        weighted_r2(val[1][:, k], shuffled[:, k], np.ones(160)) for k in range(2)]
 
 
 def test_ego_motion_pairs_pair_latents_a_step_apart_with_the_mean_motion_between():

@@ -44,9 +44,19 @@ def ego_motion_pairs(latents: list[np.ndarray], odometry: list[np.ndarray], labe
     return np.stack(xs), np.stack(ys), np.asarray(cs)
 
 
-def ridge_path(x: np.ndarray, y: np.ndarray, penalties) -> list[tuple[np.ndarray, ...]]:
+def standardised_svd(x: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The features' mean and scale, and the thin SVD (U, S, V^T) of the standardised features, which every
+    ridge fit on these features shares whatever its targets and penalty."""
+    mean, scale = x.mean(axis=0), x.std(axis=0) + 1e-8
+    u, s, vt = np.linalg.svd((x - mean) / scale, full_matrices=False)
+    return mean, scale, u, s, vt
+
+
+def ridge_path(x: np.ndarray, y: np.ndarray, penalties,
+               svd: tuple[np.ndarray, ...] | None = None) -> list[tuple[np.ndarray, ...]]:
     """Ridge regression on standardised features (intercept unpenalised), one (mean, scale, weights, bias)
-    per penalty, all from one thin SVD of the features.
+    per penalty, all from one thin SVD of the features (``svd``: :func:`standardised_svd` of ``x``, when
+    another fit on the same features made it).
 
     With z = U S V^T, the ridge weights (z^T z + p I)^-1 z^T y are V diag(s / (s^2 + p)) U^T y: the
     same solution as solving the normal equations, which the probe's few hundred pairs of thousands of
@@ -54,19 +64,19 @@ def ridge_path(x: np.ndarray, y: np.ndarray, penalties) -> list[tuple[np.ndarray
     """
     if min(penalties) <= 0:
         raise ValueError(f"ridge penalties must be > 0, got {list(penalties)}")
-    mean, scale = x.mean(axis=0), x.std(axis=0) + 1e-8
-    z = (x - mean) / scale
+    mean, scale, u, s, vt = standardised_svd(x) if svd is None else svd
     bias = y.mean(axis=0)
-    u, s, vt = np.linalg.svd(z, full_matrices=False)
     projected = u.T @ (y - bias)
     return [(mean, scale, vt.T @ ((s / (s ** 2 + penalty))[:, None] * projected), bias) for penalty in penalties]
 
 
-def ridge_fit(x: np.ndarray, y: np.ndarray, penalties) -> tuple[np.ndarray, ...]:
-    """Ridge with one penalty per target column (``penalties``: a sequence, or one value for every column)."""
+def ridge_fit(x: np.ndarray, y: np.ndarray, penalties,
+              svd: tuple[np.ndarray, ...] | None = None) -> tuple[np.ndarray, ...]:
+    """Ridge with one penalty per target column (``penalties``: a sequence, or one value for every column;
+    ``svd`` as :func:`ridge_path`'s)."""
     penalties = np.broadcast_to(np.asarray(penalties, np.float64), (y.shape[1],))
     unique = sorted(set(penalties.tolist()))
-    path = dict(zip(unique, ridge_path(x, y, unique)))
+    path = dict(zip(unique, ridge_path(x, y, unique, svd)))
     mean, scale, _, bias = path[unique[0]]
     weights = np.stack([path[p][2][:, j] for j, p in enumerate(penalties.tolist())], axis=1)
     return mean, scale, weights, bias
@@ -114,12 +124,13 @@ def ego_motion_probe(train: tuple[np.ndarray, np.ndarray], val: tuple[np.ndarray
     also the fitted probe. ``penalty``: one per target (:func:`select_penalty`) or one for all.
 
     The shuffled control trains on train targets permuted across pairs: what R^2 a probe
-    reaches without any real relation (about zero or below).
+    reaches without any real relation (about zero or below). Both fits share one SVD of the train features.
     """
-    model = ridge_fit(*train, penalty)
+    svd = standardised_svd(train[0])  # the probe and its control read the same features
+    model = ridge_fit(*train, penalty, svd)
     pred = ridge_predict(model, val[0])
     rng = np.random.default_rng(seed)
-    control = ridge_predict(ridge_fit(train[0], train[1][rng.permutation(len(train[1]))], penalty), val[0])
+    control = ridge_predict(ridge_fit(train[0], train[1][rng.permutation(len(train[1]))], penalty, svd), val[0])
     out: dict[str, Any] = {"train_pairs": len(train[0]), "val_pairs": len(val[0])}
     for k, name in enumerate(names):
         y = val[1][:, k]
