@@ -138,8 +138,10 @@ rule eval_steering:
 for scope, suffix in SCOPE_SUFFIX.items():
     speed = stage_paths(EVAL_SPEED, **latent_paths("compressed"), predictor=speed_predictors(scope),
                         speed=P("eval") + f"/speed{suffix}.json")
+    # The all scope takes the main predictors' rows from the main scope's record (the same bits).
     conditioning = stage_paths(EVAL_CONDITIONING, latents=latent_paths("compressed")["latents"],
                                predictor=REG.conditioning_predictors(scope),
+                               main_record=P("eval") + "/conditioning.json" if scope == "all" else None,
                                conditioning=P("eval") + f"/conditioning{suffix}.json")
 
     rule:

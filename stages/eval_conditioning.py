@@ -8,21 +8,28 @@ Paired variant errors on val windows, one-step conditional means vs baselines,
 latent statistics and the steered predictor's response inside the model
 (:mod:`orbis2.eval.protocols.conditioning`): every predictor of the scope on the same val
 windows and noise draws, over ``evaluation.seeds``.
+
+Each predictor's rows depend on that predictor alone (its own noise draws and bootstrap), and the
+latent statistics on the cache alone, so the all scope given ``--main-record`` (as the DAG gives it)
+takes the main scope's rows and statistics from that record and evaluates only the other predictors:
+the same record, bit for bit, as evaluating them all again.
 """
 
 
 import numpy as np
 
 from orbis2.accel import default_device
+from orbis2.errors import OrbisError
 from orbis2.eval.protocols.conditioning import (
     evaluate_predictor,
     latent_statistics,
     latent_steering_response,
+    latent_templates,
     predictor_rows,
     steering_readouts,
     val_window_pairs,
 )
-from orbis2.eval.records import ConditioningRecord, write_record
+from orbis2.eval.records import ConditioningRecord, from_json, write_record
 from orbis2.interfaces import INTERFACES
 from orbis2.latents import open_cache
 from orbis2.models.files import load_predictor
@@ -46,9 +53,16 @@ def main(argv: list[str] | None = None) -> None:
         predictors = predictor_files(args, names)
         cache = open_cache(args.latents or registry().latent_sets[LATENT_SET].root)
         first, second, keys = val_window_pairs(cache, data, settings)
-        latents, templates, probe = latent_statistics(cache, data, settings, ev.seed)
-
-        variants, baselines, response = [], [], None
+        templates = latent_templates(cache)
+        shared = main_rows(args.main_record, names, keys, settings, ev.seeds) if args.main_record else None
+        if shared is None:
+            latents, probe = latent_statistics(cache, data, settings, ev.seed, templates)
+            variants, baselines, response = [], [], None
+        else:
+            latents, probe, response = shared.latents.model_dump(), None, shared.steering_response
+            variants, baselines = [row.model_dump() for row in shared.variants], [row.model_dump() for row in
+                                                                                 shared.baselines]
+            names = [name for name in names if name not in {row["model"] for row in baselines}]
         for name in names:
             predictor = load_predictor(predictors[name], dev)
             per_seed = [evaluate_predictor(name, predictor, first, second, keys, templates, data, settings, seed, dev)
@@ -58,6 +72,9 @@ def main(argv: list[str] | None = None) -> None:
             variants += its_variants
             baselines += its_baselines
             if registry().predictors[name].steering:  # its response inside the model, read by the ego-motion probe
+                if probe is None:
+                    raise OrbisError(f"{args.main_record} does not cover the steered predictor {name}; leave out "
+                                     "--main-record, or make that record with the main scope")
                 readouts = [steering_readouts(name, predictor, first, data, ev.steering_modes, probe, settings, seed,
                                               dev) for seed in ev.seeds]
                 mean = {k: np.mean([r[k] for r in readouts], axis=0) for k in readouts[0]}
@@ -91,6 +108,20 @@ def main(argv: list[str] | None = None) -> None:
         stage.summary = (f"{len(keys)} val windows from {record.clips} clips x {settings.draws} draws x "
                          f"{len(ev.seeds)} seeds; inputs used (one-step mean): {', '.join(used) or 'none shown'}; "
                          f"ego-motion probe R^2 speed {ego.speed.r2:.2f}, yaw rate {ego.yaw_rate.r2:.2f}")
+
+
+def main_rows(path, names: list[str], keys, settings, seeds) -> ConditioningRecord:
+    """The main scope's record at ``path``, checked to fit this run: its windows, draws, seeds and bootstrap, and
+    its predictors the first of ``names`` (the main scope's, first in every scope)."""
+    record = from_json(ConditioningRecord, path, "eval_conditioning")
+    models = list(dict.fromkeys(row.model for row in record.baselines))
+    made = (record.windows, record.clips, record.draws, list(record.seeds), record.threshold, record.bootstrap_reps)
+    wanted = (len(keys), len(set(keys)), settings.draws, list(seeds), settings.threshold, settings.bootstrap_reps)
+    if made != wanted or models != names[:len(models)]:
+        raise OrbisError(f"{path} was made with other settings or predictors (windows, clips, draws, seeds, "
+                         f"threshold, bootstrap: {made}, predictors {models}; this run: {wanted}, predictors "
+                         f"{names}); run `python stages/eval_conditioning.py main` again, or leave out --main-record")
+    return record
 
 
 if __name__ == "__main__":

@@ -20,15 +20,24 @@ from orbis2.eval.metrics.ego_motion import (
 from orbis2.eval.protocols.conditioning import (
     effect_rows,
     energy_shares,
+    evaluate_predictor,
     flow_loss,
+    latent_statistics,
     latent_steering_response,
+    latent_templates,
     one_step_mean,
+    predictor_rows,
     probe_readout,
     sideways_shift,
     swapped,
+    val_window_pairs,
     variant_errors,
 )
+from orbis2.eval.records import BaselineRow, ConditioningRecord, VariantRow, from_json
+from orbis2.latents import open_cache
 from orbis2.models.deviations import translate_columns
+from orbis2.models.files import load_predictor
+from orbis2.stage import PREDICTOR_FILE
 
 CLIPS, PER_CLIP, N_CONTEXT, N_TARGET, SHAPE = 8, 4, 2, 3, (2, 3, 4)
 
@@ -293,3 +302,27 @@ def test_probe_readout_applies_the_probe_to_a_latent_pair():
     probe = ridge_fit(features, targets, 1e-6)
     read = probe_readout(probe, torch.from_numpy(before), torch.from_numpy(after), strips=0)
     np.testing.assert_allclose(read, targets, atol=1e-3)
+
+
+@pytest.mark.slow
+def test_the_all_scope_takes_the_main_rows_a_fresh_evaluation_gives(smoke_main, smoke_cfg):
+    """eval_conditioning_all takes the main predictors' rows and the latent statistics from the main scope's
+    record (--main-record, as the DAG passes it) instead of evaluating them again. That is exact because a
+    predictor's rows depend on it alone (its own noise draws and bootstrap): the hierarchy's bottom predictor
+    evaluated here alone, and the latent statistics made again, equal the main job's record bit for bit."""
+    record = from_json(ConditioningRecord, smoke_main / "reports/eval/conditioning.json")
+    ev, data, settings = smoke_cfg.evaluation, smoke_cfg.data, smoke_cfg.evaluation.conditioning
+    cache = open_cache(smoke_main / "data/latents")
+    first, second, keys = val_window_pairs(cache, data, settings)
+    templates = latent_templates(cache)
+    latents, _ = latent_statistics(cache, data, settings, ev.seed, templates)
+    assert ConditioningRecord.model_validate({**record.model_dump(), "latents": latents}) == record
+    predictor = load_predictor(smoke_main / "data/predictors/detail" / PREDICTOR_FILE, torch.device("cpu"))
+    per_seed = [evaluate_predictor("detail", predictor, first, second, keys, templates, data, settings, seed,
+                                   torch.device("cpu")) for seed in ev.seeds]
+    variants, baselines = predictor_rows("detail", per_seed, keys, settings.threshold, settings.bootstrap_reps,
+                                         ev.seed)
+    assert variants and baselines
+    assert [VariantRow.model_validate(row) for row in variants] == [r for r in record.variants if r.model == "detail"]
+    assert [BaselineRow.model_validate(row) for row in baselines] == [r for r in record.baselines
+                                                                       if r.model == "detail"]

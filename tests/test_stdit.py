@@ -7,7 +7,9 @@ import math
 import pytest
 import torch
 
+from orbis2.errors import OrbisError
 from orbis2.flow import teacher_forcing_loss
+from orbis2.models import full_build
 from orbis2.models.deviations import SteeringShift, SubgoalShift, translate_columns
 from orbis2.models.files import load_predictor, save_predictor
 from orbis2.models.sizes import STDIT_PRESETS, STDiTConfig, stdit_config
@@ -368,3 +370,21 @@ def test_additive_causal_mask_leaks_the_future_and_the_hard_one_does_not():
         assert torch.equal(hard(x, tau)[:, :3], hard(changed, tau)[:, :3])
         assert (leaky(x, tau)[:, :3] - leaky(changed, tau)[:, :3]).abs().max() > 1e-4
     assert not leaky.uses_kv_cache(True) and hard.uses_kv_cache(True)
+
+
+def test_a_saved_predictor_names_its_whole_size_and_an_older_file_stops_with_a_line(tmp_path, monkeypatch):
+    """A file records every size setting (full_build), so it loads as what was trained even when a preset or a
+    default changes later; a file that recorded only its overrides, from before the LayerNorm q/k norms became
+    the default, stops with one line naming it."""
+    build = {**full_build(STDIT_PRESETS, "smoke", {"qk_norm": "rms"}), "latent_channels": 4, "causal": True}
+    assert build["qk_norm"] == "rms" and build["rate_encoding"] == "interleaved" and build["depth"] == 2
+    model = build_stdit_from(build)
+    save_predictor(tmp_path / "new.pt", model, build, {})
+    monkeypatch.setitem(STDIT_PRESETS, "smoke", stdit_config("smoke", depth=3, rate_encoding="geometric"))
+    loaded = load_predictor(tmp_path / "new.pt").model
+    assert len(loaded.blocks) == 2 and loaded.rate_encoding == "interleaved"
+    assert all(torch.equal(a, b) for a, b in zip(loaded.state_dict().values(), model.state_dict().values()))
+    save_predictor(tmp_path / "old.pt", model, {"preset": "smoke", "latent_channels": 4, "causal": True}, {})
+    with pytest.raises(OrbisError, match=r"old\.pt: its weights do not fit the predictor its build describes "
+                                         r"\(.*q_norm.bias.*\).*run its training stage again"):
+        load_predictor(tmp_path / "old.pt")

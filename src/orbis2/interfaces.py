@@ -249,6 +249,9 @@ INTERFACES: dict[str, Interface] = _declare(
         PathOption("latents", "--latents", "the latent cache", "latents", folder=True,
                    fallback="the compressed latent set's folder, registry.yaml"),
         PREDICTORS,
+        PathOption("main_record", "--main-record", "all: the main scope's record, made from the same predictors "
+                   "and settings, whose rows it takes for the main predictors instead of evaluating them again",
+                   "eval", file="conditioning.json", optional=True),
         PathOption("conditioning", "--out", "the record", "eval", file="conditioning.json", output=True,
                    fallback="main: reports/eval/conditioning.json, all: reports/eval/conditioning_all.json"),
     ), ("data", "evaluation"), GPU, LONG, record="ConditioningRecord", rules="rules/evaluation.smk"),

@@ -67,6 +67,14 @@ def preset_config(presets: dict[str, C], preset: str, overrides: dict[str, Any])
     return presets[preset].with_overrides(**overrides)
 
 
+def full_build(presets: dict[str, C], preset: str, overrides: dict[str, Any]) -> dict[str, Any]:
+    """The size part of a ``build`` dict a file records: ``preset`` and every field of its config with
+    ``overrides`` applied. A file that names its whole architecture loads as what was trained, whatever later
+    changes to a preset or a default (the LayerNorm q/k norms and the frame-rate features became the defaults
+    after files had recorded only their overrides)."""
+    return {"preset": preset, **dataclasses.asdict(preset_config(presets, preset, overrides))}
+
+
 def split_build(presets: dict[str, C], build: dict[str, Any]) -> tuple[C, dict[str, Any]]:
     """A saved ``build`` dict (``preset``, size overrides, other builder arguments) -> (config, other arguments)."""
     rest = dict(build)

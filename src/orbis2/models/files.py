@@ -43,6 +43,20 @@ class PredictorFile:
         return int(self.meta.get("sampling", {}).get("nfe", default))
 
 
+def load_recorded_weights(path: Path, model: nn.Module, state: dict, kind: str) -> None:
+    """``state`` into ``model`` strictly; weights that do not fit the network the file's build describes stop
+    with a line naming the file. Files written before builds recorded every size setting
+    (:func:`orbis2.models.full_build`) took the defaults of their time, among them RMSNorm q/k norms and no
+    CLS token in the tokenizer encoders: they no longer fit, and only training them again mends them."""
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as err:
+        detail = str(err).split("\n\t")[1][:300] if "\n\t" in str(err) else str(err)[:300]
+        raise OrbisError(f"{path}: its weights do not fit the {kind} its build describes ({detail}), as in a "
+                         f"file written before the LayerNorm q/k norms and the encoders' CLS token became the "
+                         f"defaults: run its training stage again") from None
+
+
 def save_predictor(path: Path, model: nn.Module, build: dict, meta: dict) -> None:
     """Write ``{build, meta, state_dict}`` atomically; same content, same bytes."""
     blob = {"build": build, "meta": meta, "state_dict": model.state_dict()}
@@ -57,7 +71,7 @@ def load_predictor(path: Path, device: str | torch.device = "cpu") -> PredictorF
         raise OrbisError(f"{path}: predictor checkpoint not found; run its training stage first")
     blob = torch.load(path, map_location=device, weights_only=True)
     model = build_stdit_from(blob["build"])
-    model.load_state_dict(blob["state_dict"])
+    load_recorded_weights(path, model, blob["state_dict"], "predictor")
     model.to(device).eval().requires_grad_(False)
     return PredictorFile(model, blob["build"], blob["meta"], sha256_file(path))
 
@@ -136,7 +150,7 @@ def load_tokenizer(path: Path, device: str | torch.device = "cpu") -> TokenizerF
     cfg, rest = split_build(TOKENIZER_PRESETS, blob["build"])
     builder = build_detail_tokenizer if blob["kind"] == "detail" else build_abstract_tokenizer
     model = builder(cfg, **rest)
-    model.load_state_dict(blob["state_dict"])
+    load_recorded_weights(path, model, blob["state_dict"], "tokenizer")
     model.to(device).eval().requires_grad_(False)
     if "shift" not in blob:
         raise OrbisError(f"{path}: written by an older version without the latent normalisation; "

@@ -79,8 +79,10 @@ from orbis2.hierarchy import (
 )
 from orbis2.io import sha256_file
 from orbis2.latents import LatentCache, LatentWindowDataset, collate
+from orbis2.models import full_build
 from orbis2.models.deviations import TURN_SEARCH, best_sideways_shift, translate_columns
 from orbis2.models.files import PredictorFile, load_predictor, save_predictor
+from orbis2.models.sizes import STDIT_PRESETS
 from orbis2.models.stdit import build_stdit_from
 from orbis2.registry import PredictorSpec, registry
 from orbis2.tasks import official
@@ -295,14 +297,16 @@ class PredictorTask:
 
     @property
     def build(self) -> dict[str, Any]:
-        """The :func:`build_stdit_from` dict (preset, ``model`` overrides, wiring) :func:`save_predictor` records;
+        """The :func:`build_stdit_from` dict (preset, the whole size with ``model`` applied, wiring) that
+        :func:`save_predictor` records;
         the imported architecture where the stage starts from the authors' networks."""
         if self.architecture is not None:
             return self.architecture
         shapes, condition = self.cache.meta["tokenizers"], self.spec.condition
-        return {"preset": self.cfg.preset, "latent_channels": shapes[self.spec.level]["shape"][0],
-                "causal": self.spec.causal, "abstract_channels": shapes[condition]["shape"][0] if condition else None,
-                "steering": self.spec.steering, **self.cfg.model}
+        return {**full_build(STDIT_PRESETS, self.cfg.preset, self.cfg.model),
+                "latent_channels": shapes[self.spec.level]["shape"][0], "causal": self.spec.causal,
+                "abstract_channels": shapes[condition]["shape"][0] if condition else None,
+                "steering": self.spec.steering}
 
     def build_model(self) -> nn.Module:
         """A pure function of the config: seeded from ``train.seed``, then ``init_state`` loaded if given.

@@ -53,9 +53,10 @@ from orbis2.losses import (
     ssim,
     teacher_alignment_loss,
 )
+from orbis2.models import full_build
 from orbis2.models.discriminator import build_discriminator
 from orbis2.models.files import save_tokenizer
-from orbis2.models.sizes import tokenizer_config
+from orbis2.models.sizes import TOKENIZER_PRESETS, tokenizer_config
 from orbis2.models.teachers import build_teacher
 from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer, codebook_usage, load_mae_encoder
 from orbis2.train import DataSpec, Update, load_weights, train, unwrap
@@ -504,7 +505,7 @@ def train_detail_tokenizer(cfg: PipelineConfig, shards_root: Path, out_dir: Path
     fid = reconstruction_fid(tokenizer, inception, frame_batches(shards_root, "val", tc.fid_images,
                                                                  tc.train.batch_size, tc.train.seed))
     metrics.update(rfid=fid, steps=result.step, **stats)
-    save_tokenizer(out_dir / "tokenizer.pt", "detail", tokenizer, scale, {"preset": tc.preset},
+    save_tokenizer(out_dir / "tokenizer.pt", "detail", tokenizer, scale, full_build(TOKENIZER_PRESETS, tc.preset, {}),
                    {"metrics": metrics, "profile": cfg.profile}, shift)
     return metrics
 
@@ -531,7 +532,7 @@ def train_abstract_tokenizer(cfg: PipelineConfig, shards_root: Path, out_dir: Pa
                                                                  tc.train.batch_size, tc.train.seed),
                                             tc.latent_norm == "per_position")
     metrics.update(steps=result.step, **stats)
-    build = {"preset": tc.preset, "teacher_dim": model.teacher_dim, "compress": tc.compress}
+    build = {**full_build(TOKENIZER_PRESETS, tc.preset, {}), "teacher_dim": model.teacher_dim, "compress": tc.compress}
     save_tokenizer(out_dir / "tokenizer.pt", "abstract", model, scale, build,
                    {"metrics": metrics, "teacher": tc.teacher, "profile": cfg.profile}, shift)
     return metrics

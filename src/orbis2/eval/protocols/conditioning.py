@@ -469,17 +469,20 @@ def latent_template(cache: LatentCache, level: str, chunk: int = 4096) -> np.nda
     return cache.normalize(level, total / len(array)).numpy()  # the normalisation is affine: it commutes with the mean
 
 
-def latent_statistics(cache: LatentCache, data: DataConfig, settings,
-                      seed: int) -> tuple[dict[str, Any], dict[str, torch.Tensor], tuple[np.ndarray, ...]]:
-    """Energy shares per latent set on val and the ego-motion probe from abstract latents 0.5 s apart;
-    also the per-level templates (train means) for the dataset-mean baseline, and the fitted probe."""
+def latent_templates(cache: LatentCache) -> dict[str, torch.Tensor]:
+    """Per latent level, the template of the dataset-mean baseline: the train latents' mean."""
+    return {level: torch.from_numpy(latent_template(cache, level)) for level in KINDS}
+
+
+def latent_statistics(cache: LatentCache, data: DataConfig, settings, seed: int,
+                      templates: dict[str, torch.Tensor]) -> tuple[dict[str, Any], tuple[np.ndarray, ...]]:
+    """Energy shares per latent set on val (about ``templates``, :func:`latent_templates`) and the ego-motion
+    probe from abstract latents 0.5 s apart; also the fitted probe."""
     step = (data.detail_window - data.detail_context) * data.detail_stride
     out: dict[str, Any] = {"step_frames": step, "step_s": step / data.fps}
-    templates = {}
     for level in KINDS:
-        templates[level] = latent_template(cache, level)
         latents, _, _ = clip_latents(cache, "val", level)
-        out[level] = energy_shares(latents, templates[level], step)
+        out[level] = energy_shares(latents, templates[level].numpy(), step)
     pairs = {}
     for split in ("train", "val"):
         latents, odometry, keys = clip_latents(cache, split, "abstract")
@@ -493,7 +496,7 @@ def latent_statistics(cache: LatentCache, data: DataConfig, settings,
                                "features": f"abstract latents at t and t + {step / data.fps:g} s, "
                                            + (f"{settings.strips} vertical strips x channels" if settings.strips
                                             else "the whole latent grid")}
-    return out, {level: torch.from_numpy(t) for level, t in templates.items()}, probe
+    return out, probe
 
 
 def predictor_rows(stage: str, per_seed: list[tuple[dict, dict]], keys, threshold: float, reps: int,
