@@ -170,30 +170,28 @@ def test_snakemake_smoke_dag(smoke_project, tmp_path):
 
 def test_tokenizer_levers_measure_a_change_against_a_baseline(smoke_main, tmp_path):
     """tools/tokenizer_levers.py: short trainings on the smoke shards (outside the shared project), one with pixel
-    MSE and its paired PSNR gain over the base, one with the perceptual term; an unknown setting, or a folder's
-    name reused with other settings, stops with a line."""
+    MSE and the perceptual term and its paired PSNR gain over the base; an unknown setting, or a folder's name
+    reused with other settings, stops with a line."""
     shutil.copy(smoke_main / "params.yaml", tmp_path / "params.yaml")
     tool = [sys.executable, str(Path(__file__).parents[1] / "tools" / "tokenizer_levers.py")]
     common = ["--profile", "smoke", "--shards", str(smoke_main / "data/shards"), "--assets",
               str(smoke_main / "data/assets"), "--set", "train.steps=6", "--set", "fid_images=8"]
     run([*tool, "base", *common], tmp_path)
-    out = run([*tool, "mse", *common, "--set", "mse_weight=1.0", "--against", "base"], tmp_path)
+    out = run([*tool, "levers", *common, "--set", "mse_weight=1.0", "--perceptual", "1.0", "--perceptual-taps",
+               "conv_1,conv_2", "--against", "base"], tmp_path)
     rows = [json.loads(line) for line in (tmp_path / "reports/tokenizer_levers.jsonl").read_text().splitlines()]
-    assert [r["name"] for r in rows] == ["base", "mse"] and rows[1]["set"] == {"train.steps": 6, "fid_images": 8,
-                                                                                "mse_weight": 1.0}
+    assert [r["name"] for r in rows] == ["base", "levers"] and rows[1]["set"] == {
+        "train.steps": 6, "fid_images": 8, "mse_weight": 1.0}
+    assert rows[1]["perceptual"] == 1.0 and rows[1]["perceptual_taps"] == ["conv_1", "conv_2"]
     assert rows[0]["steps"] == 6 and rows[0]["frames"] == 8 and rows[0]["clips"] >= 2
-    assert rows[0]["psnr_per_frame"] != rows[1]["psnr_per_frame"]  # the lever changed the training
+    assert rows[0]["psnr_per_frame"] != rows[1]["psnr_per_frame"]  # the levers changed the training
     gain = rows[1]["psnr_gain_db"]
     assert gain["low"] <= gain["estimate"] <= gain["high"] and "vs base" in out
     assert gain["estimate"] == pytest.approx(sum(rows[1]["psnr_per_frame"]) / 8 - sum(rows[0]["psnr_per_frame"]) / 8)
     bad = subprocess.run([*tool, "bad", *common, "--set", "no_such_key=1"], cwd=tmp_path, capture_output=True,
                          text=True, env=project_env(tmp_path))
     assert bad.returncode != 0 and "no_such_key" in bad.stderr
-    run([*tool, "percept", *common, "--perceptual", "1.0", "--perceptual-taps", "conv_1,conv_2"], tmp_path)
-    percept = json.loads((tmp_path / "reports/tokenizer_levers.jsonl").read_text().splitlines()[-1])
-    assert percept["perceptual"] == 1.0 and percept["perceptual_taps"] == ["conv_1", "conv_2"]
-    assert percept["psnr_per_frame"] != rows[0]["psnr_per_frame"]
-    other = subprocess.run([*tool, "percept", *common], cwd=tmp_path, capture_output=True, text=True,
+    other = subprocess.run([*tool, "levers", *common], cwd=tmp_path, capture_output=True, text=True,
                            env=project_env(tmp_path))  # the folder holds a training with other settings
     assert other.returncode != 0 and "started with" in other.stderr
 
