@@ -43,6 +43,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = stage_parser(INTERFACES["eval_conditioning"], __doc__)
     add_name_argument(parser, SCOPES, default="main")
     args = parser.parse_args(argv)
+    if args.main_record and args.name == "main":
+        parser.error("--main-record is the all scope's: the main scope evaluates its predictors")
     stage_name = "eval_conditioning" + ("_all" if args.name == "all" else "")
     out = args.out or layout_path("eval") / f"{stage_name.removeprefix('eval_')}.json"
     with open_stage(stage_name, args, INTERFACES["eval_conditioning"]) as stage:

@@ -251,7 +251,7 @@ INTERFACES: dict[str, Interface] = _declare(
         PREDICTORS,
         PathOption("main_record", "--main-record", "all: the main scope's record, made from the same predictors "
                    "and settings, whose rows it takes for the main predictors instead of evaluating them again",
-                   "eval", file="conditioning.json", optional=True),
+                   "eval", file="conditioning.json", optional=True, fallback="none: every predictor evaluated"),
         PathOption("conditioning", "--out", "the record", "eval", file="conditioning.json", output=True,
                    fallback="main: reports/eval/conditioning.json, all: reports/eval/conditioning_all.json"),
     ), ("data", "evaluation"), GPU, LONG, record="ConditioningRecord", rules="rules/evaluation.smk"),
