@@ -41,7 +41,8 @@ def test_the_paper_profile_fits_80_gb_per_gpu(paper, stage):
 
 
 def test_without_checkpointing_the_paper_detail_batch_does_not_fit(paper):
-    """What the profile had before: 8 detail windows per GPU keeping every activation (~17 GB each)."""
+    """What the profile had before: 8 detail windows per GPU keeping every activation. An H100 measured ~17 GB a
+    window with RMSNorm q/k norms (the estimate then: 19); the LayerNorm ones keep fewer tensors (12.5 estimated)."""
     estimate = stage_estimate(paper, "detail", PAPER_GPUS, activation_checkpointing=0)
     assert not estimate.fits(80)
-    assert 14 < estimate.activations_gb / estimate.batch < 25  # per sample, near the ~17 GB measured on an H100
+    assert 10 < estimate.activations_gb / estimate.batch < 25  # per sample, the order the H100 measured
