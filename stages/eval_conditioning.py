@@ -56,7 +56,8 @@ def main(argv: list[str] | None = None) -> None:
         cache = open_cache(args.latents or registry().latent_sets[LATENT_SET].root)
         first, second, keys = val_window_pairs(cache, data, settings)
         templates = latent_templates(cache)
-        shared = main_rows(args.main_record, names, keys, settings, ev.seeds) if args.main_record else None
+        shared = (main_rows(args.main_record, registry().conditioning_predictors("main"), keys, settings, ev.seeds)
+                  if args.main_record else None)
         if shared is None:
             latents, probe = latent_statistics(cache, data, settings, ev.seed, templates)
             variants, baselines, response = [], [], None
@@ -74,9 +75,6 @@ def main(argv: list[str] | None = None) -> None:
             variants += its_variants
             baselines += its_baselines
             if registry().predictors[name].steering:  # its response inside the model, read by the ego-motion probe
-                if probe is None:
-                    raise OrbisError(f"{args.main_record} does not cover the steered predictor {name}; leave out "
-                                     "--main-record, or make that record with the main scope")
                 readouts = [steering_readouts(name, predictor, first, data, ev.steering_modes, probe, settings, seed,
                                               dev) for seed in ev.seeds]
                 mean = {k: np.mean([r[k] for r in readouts], axis=0) for k in readouts[0]}
@@ -114,12 +112,13 @@ def main(argv: list[str] | None = None) -> None:
 
 def main_rows(path, names: list[str], keys, settings, seeds) -> ConditioningRecord:
     """The main scope's record at ``path``, checked to fit this run: its windows, draws, seeds and bootstrap, and
-    its predictors the first of ``names`` (the main scope's, first in every scope)."""
+    its predictors ``names``, the main scope's (the steered one among them, so the all scope never needs the
+    ego-motion probe itself)."""
     record = from_json(ConditioningRecord, path, "eval_conditioning")
     models = list(dict.fromkeys(row.model for row in record.baselines))
     made = (record.windows, record.clips, record.draws, list(record.seeds), record.threshold, record.bootstrap_reps)
     wanted = (len(keys), len(set(keys)), settings.draws, list(seeds), settings.threshold, settings.bootstrap_reps)
-    if made != wanted or models != names[:len(models)]:
+    if made != wanted or models != names:
         raise OrbisError(f"{path} was made with other settings or predictors (windows, clips, draws, seeds, "
                          f"threshold, bootstrap: {made}, predictors {models}; this run: {wanted}, predictors "
                          f"{names}); run `python stages/eval_conditioning.py main` again, or leave out --main-record")

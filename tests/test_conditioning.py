@@ -3,10 +3,13 @@ one that uses it does; the one-step mean of an exact velocity field is the condi
 ego-motion probe recovers a linear signal; energy shares of constructed latents; the latent steering
 response is about 1 for latents that move like real ones and about 0 for latents that ignore steering."""
 
+import importlib.util
+
 import numpy as np
 import pytest
 import torch
 
+from orbis2.errors import OrbisError
 from orbis2.eval.metrics.ego_motion import (
     ego_motion_pairs,
     ego_motion_probe,
@@ -37,7 +40,10 @@ from orbis2.eval.records import BaselineRow, ConditioningRecord, VariantRow, fro
 from orbis2.latents import open_cache
 from orbis2.models.deviations import translate_columns
 from orbis2.models.files import load_predictor
+from orbis2.registry import registry
 from orbis2.stage import PREDICTOR_FILE
+
+from conftest import ROOT
 
 CLIPS, PER_CLIP, N_CONTEXT, N_TARGET, SHAPE = 8, 4, 2, 3, (2, 3, 4)
 
@@ -326,3 +332,13 @@ def test_the_all_scope_takes_the_main_rows_a_fresh_evaluation_gives(smoke_main, 
     assert [VariantRow.model_validate(row) for row in variants] == [r for r in record.variants if r.model == "detail"]
     assert [BaselineRow.model_validate(row) for row in baselines] == [r for r in record.baselines
                                                                        if r.model == "detail"]
+    # A record of other settings or other predictors is refused, naming the file.
+    spec = importlib.util.spec_from_file_location("stage_eval_conditioning", ROOT / "stages/eval_conditioning.py")
+    stage = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(stage)
+    path = smoke_main / "reports/eval/conditioning.json"
+    main = registry().conditioning_predictors("main")
+    assert stage.main_rows(path, main, keys, settings, ev.seeds) == record
+    for names, seeds in ((main[:-1], ev.seeds), (main, [*ev.seeds, 7])):
+        with pytest.raises(OrbisError, match=r"conditioning\.json was made with other settings or predictors"):
+            stage.main_rows(path, names, keys, settings, seeds)
