@@ -83,6 +83,11 @@ def test_profile_key_selects_values(tmp_path):
      "detail.smoke.model: ST-DiT: depth must be int, got 2.5"),
     (lambda r: r["detail"]["smoke"].update(model={"num_heads": 3}),
      "detail.smoke.model: ST-DiT: hidden_size = 64 is not divisible by num_heads = 3"),
+    (lambda r: r["_tokenizer"]["smoke"].update(model={"patch_size": 4}),
+     "tokenizer_detail.smoke.model: tokenizer: decoder_mult: the decoder upsamples x8 but the patch size is 4"),
+    (lambda r: r["tokenizer_detail"]["smoke"].update(model={"patch_size": 4, "decoder_mult": [1, 2, 4],
+                                                            "abstract_decoder_mult": [1, 1, 2]}),
+     "smoke: the tokenizers must share one latent grid"),
 ])
 def test_bad_values_name_the_key(tmp_path, mutate, key):
     def apply(raw):
@@ -92,6 +97,14 @@ def test_bad_values_name_the_key(tmp_path, mutate, key):
     with pytest.raises(ConfigError) as err:
         load_config(write_params(tmp_path, apply))
     assert key in str(err.value)
+
+
+def test_the_tokenizers_latent_grid_is_a_size_override_every_tokenizer_section_shares(tmp_path):
+    grid = {"patch_size": 4, "decoder_mult": [1, 2, 4], "abstract_decoder_mult": [1, 1, 2]}
+    cfg = load_config(write_params(tmp_path, lambda r: r["_tokenizer"]["smoke"].update(model=grid)), "smoke")
+    for name in ("tokenizer_detail", "tokenizer_abstract", "tokenizer_abstract_full"):
+        sizes = cfg.section(name).sizes()
+        assert (sizes.patch_size, sizes.decoder_mult, sizes.abstract_decoder_mult) == (4, (1, 2, 4), (1, 1, 2)), name
 
 
 def test_native_rate_of_twenty_is_accepted(tmp_path):

@@ -29,7 +29,7 @@ def test_published_params_are_todays_or_marked_stale(record):
         f"{published['profile']} --why '...'")
 
 
-def test_a_setting_added_since_counts_as_the_same_only_at_its_null_off_value():
+def test_a_setting_added_since_counts_as_the_same_only_at_its_off_value():
     published = {"profile": "default", "data": {"fps": 10}}
     assert same_params(published, {**published, "official_weights": None})
     assert not same_params(published, {**published, "official_weights": "data/official"})
@@ -37,6 +37,8 @@ def test_a_setting_added_since_counts_as_the_same_only_at_its_null_off_value():
     assert not same_params({**published, "old": None}, published)  # a setting removed since: not the same
     assert same_params(published, {**published, "data": {"fps": 10, "micro_batch_size": None}})  # at any depth
     assert not same_params(published, {**published, "data": {"fps": 10, "micro_batch_size": 8}})
+    assert same_params(published, {**published, "data": {"fps": 10, "model": {}}})  # no overrides: the same
+    assert not same_params(published, {**published, "data": {"fps": 10, "model": {"patch_size": 8}}})
 
 
 def test_what_the_run_wrote_itself_is_no_uncommitted_change(tmp_path):

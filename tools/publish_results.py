@@ -46,10 +46,10 @@ def profile_params(raw: dict, profile: str) -> dict:
 
 def same_params(published: Any, today: Any) -> bool:
     """Whether a published run's params are today's. A setting added after the run, at any depth, counts as the
-    same when it is null today: null is a setting's off value, the behaviour the run had without it."""
+    same when it is off today, null or an empty mapping (no overrides): the behaviour the run had without it."""
     if not (isinstance(published, dict) and isinstance(today, dict)):
         return published == today
-    added = {key for key in today.keys() - published.keys() if today[key] is None}
+    added = {key for key in today.keys() - published.keys() if today[key] is None or today[key] == {}}
     return published.keys() == today.keys() - added and all(same_params(published[k], today[k]) for k in published)
 
 

@@ -124,7 +124,7 @@ def main() -> None:
     cfg = load_config("params.yaml", args.profile)
     section = changed_section(cfg.tokenizer_detail, assignments(args.set))
     try:
-        sizes = tokenizer_config(section.preset, **assignments(args.model))
+        sizes = tokenizer_config(section.preset, **{**section.model, **assignments(args.model)})
     except Exception as err:  # the preset's own checks name the field
         raise SystemExit(f"--model: {err}") from err
     inception = asset_path(args.assets, "inception_v3")

@@ -106,17 +106,20 @@ def checkpoint_evidence(path: Path, configs: dict[str, PipelineConfig]) -> Evide
     if "kind" in blob:  # a tokenizer
         kind = blob["kind"]
         sections = [f"tokenizer_{name}" for name, k in registry().tokenizers.items() if k == kind]
-        fits = {p for p, cfg in configs.items() if build.get("preset") in {cfg.section(s).preset for s in sections}}
+        fits = {p for p, cfg in configs.items() if any(_sizes_fit(build, cfg.section(s)) for s in sections)}
         return Evidence(path, frozenset(fits), f"{kind} tokenizer preset {build.get('preset')!r}")
     stage = notes.get("stage")
     fits = set()
     for profile, cfg in configs.items():
         section = cfg.stages.get(stage)
-        if section is None or build.get("preset") != section.preset:
-            continue
-        if all(build.get(key) == value for key, value in section.model.items()):
+        if section is not None and _sizes_fit(build, section):
             fits.add(profile)
     return Evidence(path, frozenset(fits), f"{stage or 'predictor'} preset {build.get('preset')!r} and sizes")
+
+
+def _sizes_fit(build: dict, section) -> bool:
+    """A file's recorded ``build`` is of ``section``'s size: the same preset, and every override it sets."""
+    return build.get("preset") == section.preset and all(build.get(k) == v for k, v in section.model.items())
 
 
 def manifest_evidence(path: Path, configs: dict[str, PipelineConfig]) -> Evidence | None:

@@ -42,6 +42,7 @@ from orbis2.config.training import (
     AbstractTokenizerConfig,
     DetailTokenizerConfig,
     InverseDynamicsConfig,
+    TokenizerSection,
     predictor_config_type,
 )
 from orbis2.errors import ConfigError
@@ -128,6 +129,14 @@ class PipelineConfig:
                 f"{d.abstract_hz} Hz) must end on the last detail prediction ({d.detail_window - d.detail_context} "
                 f"frames at {d.detail_hz} Hz): the detail predictor is conditioned on that abstract subgoal"
             )
+        grids = {name: (s.sizes().image_size, s.sizes().patch_size) for name, s in self.stages.items()
+                 if isinstance(s, TokenizerSection)}
+        if len(set(grids.values())) > 1:
+            listed = ", ".join(f"{name}: {size[1]}x{size[0]} frames, patch {patch}"
+                               for name, (size, patch) in sorted(grids.items()))
+            raise ConfigError(f"{self.profile}: the tokenizers must share one latent grid (the detail predictor reads "
+                              f"the abstract latents cell by cell beside its own), but {listed}; give every "
+                              f"tokenizer section the same preset and patch_size (`_tokenizer.model`)")
         min_clip = self.data.window_span_frames / self.data.fps
         for split, seconds in self.shards.clip_seconds.items():
             if seconds < min_clip:

@@ -17,7 +17,7 @@ from typing import Any
 
 from orbis2.config.sections import positive
 from orbis2.errors import ConfigError
-from orbis2.models.sizes import STDIT_PRESETS, TOKENIZER_PRESETS
+from orbis2.models.sizes import STDIT_PRESETS, TOKENIZER_PRESETS, TokenizerConfig, tokenizer_config
 
 # Fields that change only bookkeeping, never the trajectory: a resume may change them.
 # Activation checkpointing recomputes the same activations: it changes memory and time, not the numbers;
@@ -110,10 +110,22 @@ class TrainConfig:
 
 
 @dataclass(frozen=True)
-class DetailTokenizerConfig:
-    """The detail (VQ) tokenizer: preset sizes, loss weights and schedules (paper appendix, reference code)."""
+class TokenizerSection:
+    """What both tokenizer sections share: the size, a preset of ``TOKENIZER_PRESETS`` with ``model`` overriding
+    its typed fields (``TokenizerConfig``, e.g. ``patch_size`` and the decoders' levels for another latent grid).
+    Every tokenizer section of a profile has the same latent grid (:meth:`PipelineConfig.validate`)."""
 
     preset: str
+    model: dict[str, bool | int | float | str | tuple[int, ...]]
+
+    def sizes(self) -> TokenizerConfig:
+        return tokenizer_config(self.preset, **self.model)
+
+
+@dataclass(frozen=True)
+class DetailTokenizerConfig(TokenizerSection):
+    """The detail (VQ) tokenizer: preset sizes, loss weights and schedules (paper appendix, reference code)."""
+
     train: TrainConfig
     frames_per_clip: int
     interleave_shards: int | None  # train shards read side by side (orbis2.data.shards.interleave); None: 1
@@ -139,10 +151,9 @@ class DetailTokenizerConfig:
 
 
 @dataclass(frozen=True)
-class AbstractTokenizerConfig:
+class AbstractTokenizerConfig(TokenizerSection):
     """The abstract tokenizer: encoder aligned to a frozen teacher (paper eq. 3) plus a weak decoder."""
 
-    preset: str
     train: TrainConfig
     teacher: str
     teacher_layer: str  # inception only: which 768-channel map the encoder aligns to
@@ -169,7 +180,7 @@ class AbstractTokenizerConfig:
 
 
 def _tokenizer_common(cfg: Any, where: str) -> None:
-    _model_size(TOKENIZER_PRESETS, cfg.preset, {}, where)
+    _model_size(TOKENIZER_PRESETS, cfg.preset, cfg.model, where)
     positive(cfg, where, "frames_per_clip", "eval_images", "scale_images")
     if cfg.interleave_shards is not None and cfg.interleave_shards < 1:
         raise ConfigError(f"{where}.interleave_shards = {cfg.interleave_shards} must be >= 1 or null")

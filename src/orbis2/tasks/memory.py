@@ -28,7 +28,7 @@ from torch import nn
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from orbis2.config.params import PipelineConfig
-from orbis2.models.sizes import stdit_config, tokenizer_config
+from orbis2.models.sizes import stdit_config
 from orbis2.models.stdit import build_stdit_from
 from orbis2.registry import registry
 from orbis2.train import SAVED_OPS
@@ -198,7 +198,7 @@ def estimate(build: dict[str, Any], frames: int, grid: tuple[int, int], batch: i
 def predictor_build(cfg: PipelineConfig, stage: str) -> dict[str, Any]:
     """The :func:`build_stdit_from` dict a stage of ``cfg`` trains, from the tokenizers' latent size."""
     spec, section = registry().predictors[stage], cfg.section(stage)
-    channels = tokenizer_config(cfg.section("tokenizer_detail").preset).latent_dim
+    channels = cfg.section("tokenizer_detail").sizes().latent_dim
     return {"preset": section.preset, "latent_channels": channels, "causal": spec.causal,
             "abstract_channels": channels if spec.condition else None, "steering": spec.steering, **section.model}
 
@@ -208,7 +208,7 @@ def stage_estimate(cfg: PipelineConfig, stage: str, gpus: int, **train_changes: 
     train = dataclasses.replace(cfg.section(stage).train, **train_changes)
     spec = registry().predictors[stage]
     frames = cfg.data.abstract_window if spec.rate == "slow" else cfg.data.detail_window
-    tok = tokenizer_config(cfg.section("tokenizer_detail").preset)
+    tok = cfg.section("tokenizer_detail").sizes()
     grid = (cfg.data.height // tok.patch_size, cfg.data.width // tok.patch_size)
     found = estimate(predictor_build(cfg, stage), frames, grid, train.batch_size // gpus,
                      train.activation_checkpointing, train.checkpoint_policy, train.mixed_precision == "bf16")

@@ -56,7 +56,7 @@ from orbis2.losses import (
 from orbis2.models import full_build
 from orbis2.models.discriminator import build_discriminator
 from orbis2.models.files import save_tokenizer
-from orbis2.models.sizes import TOKENIZER_PRESETS, tokenizer_config
+from orbis2.models.sizes import TOKENIZER_PRESETS
 from orbis2.models.teachers import build_teacher
 from orbis2.models.tokenizer import build_abstract_tokenizer, build_detail_tokenizer, codebook_usage, load_mae_encoder
 from orbis2.train import DataSpec, Update, load_weights, train, unwrap
@@ -193,9 +193,10 @@ def read_frames(root: Path, split: str, count: int, seed: int) -> np.ndarray:
     return np.stack(frames)
 
 
-def _check_geometry(root: Path, preset: str) -> None:
+def _check_geometry(root: Path, section: DetailTokenizerConfig | AbstractTokenizerConfig) -> None:
     manifest = load_manifest(root)
-    height, width = tokenizer_config(preset).image_size
+    preset = section.preset
+    height, width = section.sizes().image_size
     if (manifest["width"], manifest["height"]) != (width, height):
         raise OrbisError(f"{Path(root) / 'manifest.json'}: frames are {manifest['width']}x{manifest['height']} but "
                          f"tokenizer preset '{preset}' takes {width}x{height}; use the profile whose data section "
@@ -219,7 +220,7 @@ class _TokenizerTask:
 
     def __init__(self, cfg: DetailTokenizerConfig | AbstractTokenizerConfig, shards_root: Path, out_dir: Path):
         self.cfg, self.root, self.out_dir = cfg, Path(shards_root), Path(out_dir)
-        _check_geometry(self.root, cfg.preset)
+        _check_geometry(self.root, cfg)
         self._val: np.ndarray | None = None
 
     def batches(self, spec: DataSpec) -> Iterator[torch.Tensor]:
@@ -271,10 +272,10 @@ class DetailTokenizerTask(_TokenizerTask):
         self._fake: tuple[int, torch.Tensor] | None = None
 
     def build_model(self) -> DetailGAN:
-        tokenizer = build_detail_tokenizer(self.cfg.preset)
+        tokenizer = build_detail_tokenizer(self.cfg.sizes())
         if self.cfg.mae_checkpoint is not None:
             load_mae_encoder(tokenizer.encoder, self.cfg.mae_checkpoint)
-        return DetailGAN(tokenizer, build_discriminator(self.cfg.preset))
+        return DetailGAN(tokenizer, build_discriminator(self.cfg.sizes()))
 
     def loss(self, model: nn.Module, images: torch.Tensor, step: int) -> tuple[torch.Tensor, dict[str, Any]]:
         cfg = self.cfg
@@ -353,7 +354,7 @@ class AbstractTokenizerTask(_TokenizerTask):
         self.teacher, self.teacher_size = teacher, teacher_size
 
     def build_model(self) -> nn.Module:
-        return build_abstract_tokenizer(self.cfg.preset, self.teacher.feature_dim, self.cfg.compress)
+        return build_abstract_tokenizer(self.cfg.sizes(), self.teacher.feature_dim, self.cfg.compress)
 
     @torch.no_grad()
     def teacher_features(self, images: torch.Tensor) -> torch.Tensor:
@@ -505,7 +506,8 @@ def train_detail_tokenizer(cfg: PipelineConfig, shards_root: Path, out_dir: Path
     fid = reconstruction_fid(tokenizer, inception, frame_batches(shards_root, "val", tc.fid_images,
                                                                  tc.train.batch_size, tc.train.seed))
     metrics.update(rfid=fid, steps=result.step, **stats)
-    save_tokenizer(out_dir / "tokenizer.pt", "detail", tokenizer, scale, full_build(TOKENIZER_PRESETS, tc.preset, {}),
+    save_tokenizer(out_dir / "tokenizer.pt", "detail", tokenizer, scale,
+                   full_build(TOKENIZER_PRESETS, tc.preset, tc.model),
                    {"metrics": metrics, "profile": cfg.profile}, shift)
     return metrics
 
@@ -519,7 +521,7 @@ def train_abstract_tokenizer(cfg: PipelineConfig, shards_root: Path, out_dir: Pa
     """
     tc, out_dir = cfg.section(section), Path(out_dir)
     teacher = build_teacher(tc.teacher, asset_path(assets_dir, TEACHER_ASSETS[tc.teacher]), tc.teacher_layer)
-    sizes = tokenizer_config(tc.preset)
+    sizes = tc.sizes()
     (height, width), patch = sizes.image_size, sizes.patch_size
     size = (height // patch * DINOV2_PATCH, width // patch * DINOV2_PATCH) if tc.teacher == "dinov2" else None
     task = AbstractTokenizerTask(tc, shards_root, out_dir, teacher, size)
@@ -532,7 +534,8 @@ def train_abstract_tokenizer(cfg: PipelineConfig, shards_root: Path, out_dir: Pa
                                                                  tc.train.batch_size, tc.train.seed),
                                             tc.latent_norm == "per_position")
     metrics.update(steps=result.step, **stats)
-    build = {**full_build(TOKENIZER_PRESETS, tc.preset, {}), "teacher_dim": model.teacher_dim, "compress": tc.compress}
+    build = {**full_build(TOKENIZER_PRESETS, tc.preset, tc.model), "teacher_dim": model.teacher_dim,
+             "compress": tc.compress}
     save_tokenizer(out_dir / "tokenizer.pt", "abstract", model, scale, build,
                    {"metrics": metrics, "teacher": tc.teacher, "profile": cfg.profile}, shift)
     return metrics
