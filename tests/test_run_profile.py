@@ -12,6 +12,7 @@ import torch
 import yaml
 
 from orbis2.cli import main
+from orbis2.config.params import load_config
 from orbis2.errors import OrbisError
 from orbis2.run_profile import resolve_profile
 
@@ -29,8 +30,9 @@ def params(tmp_path):
     return path
 
 
-def tokenizer(path, preset, **extra):
-    torch.save({"kind": "detail", "build": {"preset": preset}, "extra": extra, "state_dict": {}}, path)
+def tokenizer(path, preset, sizes=None, **extra):
+    torch.save({"kind": "detail", "build": {"preset": preset, **(sizes or {})}, "extra": extra, "state_dict": {}},
+               path)
     return path
 
 
@@ -53,9 +55,12 @@ def test_the_files_profile_wins_over_params_yaml(params, tmp_path):
 
 
 def test_params_yaml_decides_between_profiles_the_files_fit(params, tmp_path):
+    grid = load_config(params, "default").tokenizer_detail.model  # the default profile's latent grid
     cfg, which = resolve_profile(params, None, [manifest(tmp_path / "manifest.json", 256, 160),
-                                                tokenizer(tmp_path / "t.pt", "default")])
+                                                tokenizer(tmp_path / "t.pt", "default", grid)])
     assert cfg.profile == "default" and "as" in which
+    # The tokenizer's sizes tell them apart too: the preset's own grid is the gpu profile's.
+    assert resolve_profile(params, None, [tokenizer(tmp_path / "g.pt", "default")])[0].profile == "gpu"
     # The predictor's sizes tell the gpu profile from the default one (same frames, same tokenizers).
     gpu = predictor(tmp_path / "p.pt", "default", **GPU_SIZES)
     assert resolve_profile(params, None, [tmp_path / "manifest.json", gpu])[0].profile == "gpu"
