@@ -2,10 +2,12 @@
 the publishing tool copies a run's outputs and records how it was made."""
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
 
+import pandas as pd
 import pytest
 
 from orbis2.config.params import load_params
@@ -110,3 +112,33 @@ def test_publish_refuses_a_project_without_a_finished_run(tmp_path):
     proc = publish("--root", str(tmp_path), "--out", str(tmp_path / "results"), cwd=tmp_path)
     assert proc.returncode != 0 and "run the main job first" in proc.stderr
     assert not (tmp_path / "results").exists()
+
+
+def test_two_published_runs_compare_figure_by_figure(tmp_path):
+    """tools/compare_runs.py reads every headline figure of a published folder; a run against itself differs
+    nowhere, and a moved figure shows its difference and, where the intervals part, says so."""
+    from compare_runs import Run, comparison
+
+    smoke = ROOT / "docs/results/smoke"
+    run = Run(smoke)
+    assert {"FVD val: hierarchical", "first frame PSNR, gap (dB): hierarchical val",
+            "steering turn, latents (deg): original", "claim 8: the hierarchy's FVD is below repeating the last "
+            "frame's on every split"} <= {*run.figures, *run.verdicts}
+    page = comparison(run, Run(smoke))
+    rows = [line for line in page.splitlines() if line.startswith("| ") and " | " in line]
+    figures = [row for row in rows if row.count("|") == 6 and not row.startswith("| figure")]
+    assert figures and all(row.split(" | ")[3] in ("+0", "-0") and row.endswith("|  |") for row in figures)
+    assert all(row.split(" | ")[1] == row.split(" | ")[2].rstrip(" |") for row in rows
+               if row.startswith("| claim"))
+
+    moved = tmp_path / "moved"
+    shutil.copytree(smoke, moved)
+    table = pd.read_csv(moved / "main_table.csv")
+    table.loc[table["model"] == "hierarchical", ["fvd_val", "fvd_val_low", "fvd_val_high"]] = [1.0, 0.5, 1.5]
+    table.to_csv(moved / "main_table.csv", index=False)
+    proc = subprocess.run([sys.executable, str(ROOT / "tools/compare_runs.py"), str(smoke), str(moved), "--out",
+                           str(tmp_path / "page.md")], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    row = next(line for line in (tmp_path / "page.md").read_text().splitlines()
+               if line.startswith("| FVD val: hierarchical"))
+    assert row.endswith("| apart |") and f"{1.0 - run.figures['FVD val: hierarchical'][0]:+.4g}" in row
