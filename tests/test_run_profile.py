@@ -55,12 +55,18 @@ def test_the_files_profile_wins_over_params_yaml(params, tmp_path):
 
 
 def test_params_yaml_decides_between_profiles_the_files_fit(params, tmp_path):
-    grid = load_config(params, "default").tokenizer_detail.model  # the default profile's latent grid
     cfg, which = resolve_profile(params, None, [manifest(tmp_path / "manifest.json", 256, 160),
-                                                tokenizer(tmp_path / "t.pt", "default", grid)])
+                                                tokenizer(tmp_path / "t.pt", "default")])
     assert cfg.profile == "default" and "as" in which
-    # The tokenizer's sizes tell them apart too: the preset's own grid is the gpu profile's.
+    # A tokenizer's sizes tell them apart too, where the default profile moves its latent grid (`_tokenizer.model`)
+    raw = yaml.safe_load(params.read_text())
+    raw["_tokenizer"]["default"]["model"] = grid = {"patch_size": 8, "decoder_mult": [1, 1, 2, 4],
+                                                    "abstract_decoder_mult": [1, 1, 2, 2]}
+    params.write_text(yaml.safe_dump(raw, sort_keys=False))
     assert resolve_profile(params, None, [tokenizer(tmp_path / "g.pt", "default")])[0].profile == "gpu"
+    sizes = load_config(params, "default").tokenizer_detail.model
+    assert sizes == {**grid, "decoder_mult": (1, 1, 2, 4), "abstract_decoder_mult": (1, 1, 2, 2)}
+    assert resolve_profile(params, None, [tokenizer(tmp_path / "d.pt", "default", sizes)])[0].profile == "default"
     # The predictor's sizes tell the gpu profile from the default one (same frames, same tokenizers).
     gpu = predictor(tmp_path / "p.pt", "default", **GPU_SIZES)
     assert resolve_profile(params, None, [tmp_path / "manifest.json", gpu])[0].profile == "gpu"

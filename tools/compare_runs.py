@@ -1,6 +1,6 @@
 """Two published runs side by side: their headline figures with intervals, their verdicts, their stage times.
 
-    python tools/compare_runs.py docs/results/default-16x10 docs/results/default --out comparison.md
+    python tools/compare_runs.py docs/results/default docs/results/default-32x20 --out comparison.md
 
 Each folder is one ``tools/publish_results.py`` wrote; the figures are read from its tables and from its
 ``summary.md`` (the report stage's; its tables share one format). The runs are not paired: each interval is

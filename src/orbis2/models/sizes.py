@@ -155,8 +155,8 @@ class STDiTConfig(ModelConfig):
 STDIT_PRESETS: dict[str, STDiTConfig] = {
     # Tests and CI: a CPU step in tens of milliseconds.
     "smoke": STDiTConfig(hidden_size=64, depth=2, num_heads=2, cond_dim=32),
-    # Laptop scale. The default profile reads its 32x20 latent grid in 4x4 patches (params.yaml
-    # `_predictor.default.model`: patch_size 4); the gpu profile widens this preset to 384 x 8 blocks.
+    # Laptop scale. The default profile reads its 16x10 latent grid in 2x2 patches (params.yaml
+    # `_predictor.default.model`: patch_size 2); the gpu profile widens this preset to 384 x 8 blocks.
     "default": STDiTConfig(hidden_size=128, depth=4, num_heads=4, cond_dim=64),
     # Paper: 32x18 latents of 16 channels; 512M (abstract) and 555M (detail) parameters.
     "paper": STDiTConfig(hidden_size=768, depth=24, num_heads=16, cond_dim=384),
