@@ -129,8 +129,8 @@ class PipelineConfig:
                 f"{d.abstract_hz} Hz) must end on the last detail prediction ({d.detail_window - d.detail_context} "
                 f"frames at {d.detail_hz} Hz): the detail predictor is conditioned on that abstract subgoal"
             )
-        grids = {name: (sizes.image_size, sizes.patch_size) for name, sizes in
-                 ((name, s.sizes()) for name, s in self.stages.items() if isinstance(s, TokenizerSection))}
+        tokenizers = {name: s.sizes() for name, s in self.stages.items() if isinstance(s, TokenizerSection)}
+        grids = {name: (sizes.image_size, sizes.patch_size) for name, sizes in tokenizers.items()}
         if len(set(grids.values())) > 1:
             listed = ", ".join(f"{name}: {size[1]}x{size[0]} frames, patch {patch}"
                                for name, (size, patch) in sorted(grids.items()))
