@@ -8,9 +8,10 @@ copy of the session's finished smoke project (the main job and `reports/all` don
 the order the pages give them, and must exit 0. Only what cannot run as written in a test is adapted, each in one
 place below: the install prefix must equal what CI installs, `pytest` collects (in one process) instead of recursing,
 DVC's runs are dry (the Snakemake runs made the outputs; `dvc repro` would redo them), a server is
-started, asked for its page and stopped, and a command the group already gave (the same words, its
-options in any order) is run once: the pages repeat a step as a reminder, and its second run would only
-redo the same work. The pages run in four groups side by side (`GROUPS`), each in its own copy.
+started, asked for its page and stopped, and a command given more than once (the same words, its options in
+any order) is run once, in the first group that gives it: the pages repeat a step as a reminder (the README's
+quick start and docs/pipeline.md both start the DAG), and its second run would only redo the same work on the
+same finished project. The pages run in four groups side by side (`GROUPS`), each in its own copy.
 The slowest commands are printed with their times.
 """
 
@@ -220,6 +221,24 @@ def test_every_group_has_commands_to_run():
     assert {group_of(c) for c in ALL if not c.not_run} == {*GROUPS.values(), "docs"}
 
 
+def runs_in() -> dict[tuple, str]:
+    """Each command to run (:func:`same_command` of what the test runs) and the group that runs it: the first, in
+    the pages' order, that gives it."""
+    owner = {}
+    for command in ALL:
+        text = None if command.not_run else adapted(command.text)
+        if text is not None:
+            owner.setdefault(same_command(text), group_of(command))
+    return owner
+
+
+def test_a_command_two_groups_give_runs_in_the_first():
+    owner = runs_in()
+    assert owner[same_command("snakemake --cores 2")] == "readme"  # the README's quick start, then docs/pipeline.md
+    assert owner[same_command("python -m orbis2.dag --check")] == "readme"
+    assert set(owner.values()) == {*GROUPS.values(), "docs"}  # every group keeps commands of its own
+
+
 # Groups whose pages read only the main job's outputs: they run while `reports/all` is still being built.
 AFTER_MAIN = {"evaluate", "main_only"}
 
@@ -239,12 +258,12 @@ def test_documented_commands_run_after_the_main_job(smoke_main, tmp_path, group)
 def run_group(project: Path, tmp_path: Path, group: str) -> None:
     """Run a group's commands in a copy of ``project``; every failure is reported at the end."""
     root = Path(shutil.copytree(project, tmp_path / "project", symlinks=True))
-    failures, ran, seen, times = [], 0, set(), []
+    failures, ran, seen, times, owner = [], 0, set(), [], runs_in()
     for command in ALL:
         if command.not_run or group_of(command) != group:
             continue
         text = adapted(command.text)
-        if text is None or same_command(text) in seen:
+        if text is None or same_command(text) in seen or owner[same_command(text)] != group:
             continue
         seen.add(same_command(text))
         started = time.perf_counter()
