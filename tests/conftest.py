@@ -96,7 +96,7 @@ def compile_package() -> None:
     """Write the bytecode of src/ once (``compileall``), where the environment keeps Python from writing it
     (``PYTHONDONTWRITEBYTECODE``, as on the CI machine): the session starts about 300 Python processes that import
     orbis2 (the smoke DAG's stages, Snakemake, the commands tests run), and without the files each compiles the
-    modules it imports anew, about 0.25 s of CPU for a stage's 50. Python reads the files whatever that setting,
+    modules it imports anew, 0.1-0.25 s of CPU for a stage's 50. Python reads the files whatever that setting,
     and compiles a module anew wherever its source is newer than its file."""
     compileall.compile_dir(ROOT / "src", quiet=1)
 

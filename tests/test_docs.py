@@ -221,22 +221,22 @@ def test_every_group_has_commands_to_run():
     assert {group_of(c) for c in ALL if not c.not_run} == {*GROUPS.values(), "docs"}
 
 
-def runs_in() -> dict[tuple, str]:
-    """Each command to run (:func:`same_command` of what the test runs) and the group that runs it: the first, in
-    the pages' order, that gives it."""
-    owner = {}
+def first_of_each() -> dict[tuple, Command]:
+    """Each command to run (:func:`same_command` of what the test runs) and the first, in the pages' order, that
+    gives it: the one that runs, in its own group."""
+    first = {}
     for command in ALL:
         text = None if command.not_run else adapted(command.text)
         if text is not None:
-            owner.setdefault(same_command(text), group_of(command))
-    return owner
+            first.setdefault(same_command(text), command)
+    return first
 
 
 def test_a_command_two_groups_give_runs_in_the_first():
-    owner = runs_in()
-    assert owner[same_command("snakemake --cores 2")] == "readme"  # the README's quick start, then docs/pipeline.md
-    assert owner[same_command("python -m orbis2.dag --check")] == "readme"
-    assert set(owner.values()) == {*GROUPS.values(), "docs"}  # every group keeps commands of its own
+    group = {key: group_of(command) for key, command in first_of_each().items()}
+    assert group[same_command("snakemake --cores 2")] == "readme"  # the README's quick start, then docs/pipeline.md
+    assert group[same_command("python -m orbis2.dag --check")] == "readme"
+    assert set(group.values()) == {*GROUPS.values(), "docs"}  # every group keeps commands of its own
 
 
 # Groups whose pages read only the main job's outputs: they run while `reports/all` is still being built.
@@ -258,14 +258,13 @@ def test_documented_commands_run_after_the_main_job(smoke_main, tmp_path, group)
 def run_group(project: Path, tmp_path: Path, group: str) -> None:
     """Run a group's commands in a copy of ``project``; every failure is reported at the end."""
     root = Path(shutil.copytree(project, tmp_path / "project", symlinks=True))
-    failures, ran, seen, times, owner = [], 0, set(), [], runs_in()
+    failures, ran, times, first = [], 0, [], first_of_each()
     for command in ALL:
         if command.not_run or group_of(command) != group:
             continue
         text = adapted(command.text)
-        if text is None or same_command(text) in seen or owner[same_command(text)] != group:
+        if text is None or first[same_command(text)] != command:
             continue
-        seen.add(same_command(text))
         started = time.perf_counter()
         if re.match(r"^(mlflow (ui|server)|orbis2 play)\b(?!.*--help)", text):  # servers, not their help
             problem = serve(text, root)
