@@ -36,9 +36,12 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # One compute thread per pytest-xdist worker and per process a test starts, documented commands included: the
 # workers, the smoke build and the readers of the smoke project keep both cores busy, and a second thread per
-# process only contends (the readers' commands ran 2.2x faster on one thread each). Snakemake still gives each
-# job it runs its rule's threads (capped at --cores).
+# process only contends (the readers' commands ran 2.2x faster on one thread each). Snakemake, which sets each
+# job's OMP_NUM_THREADS to its rule's threads (capped at --cores), reads the session's profile, which caps them at
+# one (tests/snakemake_profile): two smoke `action` jobs run side by side took 1.4-1.7x the CPU with two threads
+# each as with one (three pairs).
 os.environ["OMP_NUM_THREADS"] = "1"
+os.environ["SNAKEMAKE_PROFILE"] = str(ROOT / "tests" / "snakemake_profile")
 torch.set_num_threads(1)
 
 

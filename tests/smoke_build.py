@@ -8,9 +8,10 @@ or, on failure, FOLDER/failed with the failing command's output; FOLDER/build.lo
 output.
 
 The DAG is the README's (`snakemake --cores 2`, then `reports/all`) with one scheduling change: the jobs
-get one thread each (Snakemake sets ``OMP_NUM_THREADS`` to a job's threads), so that the DAG's independent
-stages run side by side. At the smoke scale a stage's tensors are too small for a second thread to pay; the
-stages compute the same things (the numbers differ from a two-thread run in the last bits of float sums).
+get one thread each (the session's Snakemake profile, tests/snakemake_profile, set by conftest), so that the
+DAG's independent stages run side by side. At the smoke scale a stage's tensors are too small for a second
+thread to pay; the stages compute the same things (the numbers differ from a two-thread run in the last bits
+of float sums).
 """
 
 from __future__ import annotations
@@ -30,11 +31,11 @@ def build(folder: Path) -> None:
     root = folder / "project"
     root.mkdir(parents=True)
     project_copy(root)
-    print(run(["snakemake", "--cores", JOBS, "--max-threads", "1"], root), flush=True)
+    print(run(["snakemake", "--cores", JOBS], root), flush=True)
     # a copy: `reports/all` goes on writing into the project (dvc.lock, the MLflow store) while its readers read
     shutil.copytree(root, folder / "main", symlinks=True)
     (folder / "main_built").touch()
-    print(run(["snakemake", "reports/all", "--cores", JOBS, "--max-threads", "1"], root), flush=True)
+    print(run(["snakemake", "reports/all", "--cores", JOBS], root), flush=True)
 
 
 if __name__ == "__main__":

@@ -160,6 +160,7 @@ def test_snakemake_smoke_dag(smoke_project, tmp_path):
 
     set_param(root, "action", "steering_dropout", 0.2)
     plan = run(["snakemake", "--cores", "2", "--dry-run"], root)  # the main job
+    assert "threads:" not in plan  # the session's profile gives every job one thread (conftest)
     assert set(re.findall(r"^(?:local)?rule (\w+):", plan, re.MULTILINE)) == {"all"} | (
         downstream("action", dvc_stages()) & set(MAIN_STAGES))
     out = run(["snakemake", "--cores", "2", "--until", "action"], root)
