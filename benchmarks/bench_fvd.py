@@ -14,9 +14,11 @@
   the time depends on the size only). The clips must agree to one grey level (other
   batches of frames round differently in the last bits of float32).
 * I3D on ``--i3d-clips`` 16-frame clips at 224 x 224 (random weights, channels-last as
-  ``i3d_features`` runs it): its units as first ported (a zero-padded copy, the
-  convolution, then the batch norm; every max pool on a -inf-padded copy) against
-  the batch norm folded into the convolution and SAME padding left to the operators.
+  ``i3d_features`` runs it), three ways: its units as first ported (a zero-padded copy, the
+  convolution, then the batch norm; every max pool on a -inf-padded copy); the batch norm
+  folded into the convolution and SAME padding left to the operators, every unit a
+  convolution; and as it runs, the pointwise units a matrix product over the channels-last
+  memory (``Unit3D.forward``), which matters on one thread.
 
 Times are medians of 3 runs after a warm-up, with the torch threads the process has.
 """
@@ -118,14 +120,29 @@ def padded_pool(x: torch.Tensor, kernel: tuple[int, int, int], stride: tuple[int
     return F.max_pool3d(i3d._same_pad(x, kernel, stride, float("-inf")), kernel, stride)
 
 
+def convolved_unit(unit: i3d.Unit3D, x: torch.Tensor) -> torch.Tensor:
+    """The unit with its batch norm folded, every kernel size a convolution (pointwise ones included)."""
+    scale = torch.rsqrt(unit.bn.running_var + i3d.BN_EPS)
+    weight, bias = unit.conv.weight * scale[:, None, None, None, None], unit.bn.bias - unit.bn.running_mean * scale
+    pads = i3d._same_pads(x.shape, unit.kernel, unit.stride)
+    if all(before == after for before, after in pads):
+        return F.relu_(F.conv3d(x, weight, bias, unit.stride, [before for before, _ in pads]))
+    return F.relu_(F.conv3d(i3d._same_pad(x, unit.kernel, unit.stride, 0.0), weight, bias, unit.stride))
+
+
 def i3d_units(clips: int) -> dict:
     model = i3d.InceptionI3d().eval().to(memory_format=torch.channels_last_3d)
     video = torch.rand(clips, 3, 16, 224, 224) * 2 - 1
     video = video.contiguous(memory_format=torch.channels_last_3d)
 
     @torch.inference_mode()
-    def folded() -> torch.Tensor:
+    def pointwise_matmul() -> torch.Tensor:
         return model(video)
+
+    @torch.inference_mode()
+    def folded() -> torch.Tensor:
+        with mock.patch.object(i3d.Unit3D, "forward", convolved_unit):
+            return model(video)
 
     @torch.inference_mode()
     def padded() -> torch.Tensor:
@@ -133,10 +150,12 @@ def i3d_units(clips: int) -> dict:
                                                                                       padded_pool):
             return model(video)
 
-    difference = float((folded() - padded()).abs().max())
-    t_old, t_new = median_seconds(padded), median_seconds(folded)
-    return {"clips": clips, "padded_s": t_old, "folded_s": t_new, "speedup": t_old / t_new,
-            "max_logit_difference": difference}
+    now, convolved, first = pointwise_matmul(), folded(), padded()
+    t_first, t_folded, t_now = median_seconds(padded), median_seconds(folded), median_seconds(pointwise_matmul)
+    return {"clips": clips, "padded_s": t_first, "folded_s": t_folded, "pointwise_matmul_s": t_now,
+            "speedup": t_first / t_folded, "pointwise_speedup": t_folded / t_now,
+            "max_logit_difference": float((convolved - first).abs().max()),
+            "pointwise_max_logit_difference": float((now - convolved).abs().max())}
 
 
 def main() -> None:
@@ -160,7 +179,9 @@ def main() -> None:
           f"{d['every_frame_s']:.2f} s, the 16 I3D reads {d['picked_frames_s']:.2f} s ({d['speedup']:.1f}x; largest "
           f"difference {d['max_difference_levels']} grey level)")
     print(f"I3D on {u['clips']} clips: padded copies and a separate batch norm {u['padded_s']:.2f} s, folded "
-          f"{u['folded_s']:.2f} s ({u['speedup']:.2f}x; largest logit difference {u['max_logit_difference']:.1e})")
+          f"{u['folded_s']:.2f} s ({u['speedup']:.2f}x; largest logit difference {u['max_logit_difference']:.1e}), "
+          f"pointwise units as a matrix product {u['pointwise_matmul_s']:.2f} s ({u['pointwise_speedup']:.2f}x "
+          f"the folded; largest logit difference {u['pointwise_max_logit_difference']:.1e})")
     if args.json:
         args.json.write_text(json.dumps(result, indent=2))
 

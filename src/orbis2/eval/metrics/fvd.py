@@ -34,6 +34,9 @@ import torch.nn.functional as F
 from threadpoolctl import ThreadpoolController
 from torch import nn
 
+from orbis2.models import i3d as i3d_network
+from orbis2.sources import source_digest
+
 CLIP_FRAMES = 16
 I3D_SIZE = 224
 
@@ -273,6 +276,14 @@ def clip_features(videos: Videos, model: nn.Module, batch_size: int = 8, device=
 def clip_stats(videos: Videos, model: nn.Module, batch_size: int = 8, device=None) -> FeatureStats:
     """Feature statistics of videos [N, T >= 16, H, W, 3], each reduced to its 16 evenly spaced frames."""
     return FeatureStats.from_features(clip_features(videos, model, batch_size, device))
+
+
+@cache
+def i3d_code() -> str:
+    """Digest of the code I3D features come from (the network's module and this one, which prepares its input),
+    as :func:`orbis2.sources.source_digest` reads it: what a feature cache is keyed by besides the weights, so
+    that features computed by other arithmetic are never reused."""
+    return source_digest([Path(i3d_network.__file__), Path(__file__)])
 
 
 def cached_features(folder: str | Path, key: str, compute: Callable[[], np.ndarray]) -> np.ndarray:

@@ -40,7 +40,7 @@ from orbis2.data.parts import part_slice
 from orbis2.data.shards import Clip, split_clips, split_digest
 from orbis2.data.video import write_gif, write_video
 from orbis2.errors import OrbisError
-from orbis2.eval.metrics.fvd import CLIP_FRAMES, cached_features, i3d_features
+from orbis2.eval.metrics.fvd import CLIP_FRAMES, cached_features, i3d_code, i3d_features
 from orbis2.eval.metrics.pixels import psnr
 from orbis2.eval.metrics.stats import mean_interval, paired_difference
 from orbis2.eval.protocols.evaluate import i3d_picks, protocol, score_rollouts
@@ -264,9 +264,9 @@ def split_fvd(plan: SplitPlan, outcome: dict[str, np.ndarray], system: LoadedSys
     :func:`orbis2.eval.protocols.evaluate.score_rollouts` (the code ``orbis2 evaluate`` runs).
 
     The real side is the whole split's: the I3D features of the real frames of every window and the reference
-    rows are cached in ``stats_cache`` (keyed by the split's shard digest and a description of the videos), so the
-    split's clips are read only when a window's real features are not cached yet. ``shards`` is the shard folder
-    the cache was encoded from.
+    rows are cached in ``stats_cache`` (keyed by the split's shard digest, the I3D weights and code, and a
+    description of the videos), so the split's clips are read only when a window's real features are not cached
+    yet. ``shards`` is the shard folder the cache was encoded from.
     """
     split, samples, indices, clusters = plan.split, plan.samples, plan.indices, plan.clusters
     if len(outcome.get("generated_psnr", ())) != len(samples):
@@ -278,7 +278,8 @@ def split_fvd(plan: SplitPlan, outcome: dict[str, np.ndarray], system: LoadedSys
     clips = functools.cache(lambda: split_clips(shards, split))  # read only if a window's features are not cached
 
     def cached(description: str, compute: Callable[[], np.ndarray]) -> np.ndarray:
-        return cached_features(stats_cache, f"{split}|{split_digest(shards, split)}|{description}", compute)
+        network = f"i3d {i3d_sha256[:16]} code {i3d_code()[:16]}"
+        return cached_features(stats_cache, f"{split}|{split_digest(shards, split)}|{network}|{description}", compute)
 
     def real(window: slice) -> np.ndarray:
         return cached(f"{what}|frames{window.start}-{window.stop}",
