@@ -122,12 +122,7 @@ def padded_pool(x: torch.Tensor, kernel: tuple[int, int, int], stride: tuple[int
 
 def convolved_unit(unit: i3d.Unit3D, x: torch.Tensor) -> torch.Tensor:
     """The unit with its batch norm folded, every kernel size a convolution (pointwise ones included)."""
-    scale = torch.rsqrt(unit.bn.running_var + i3d.BN_EPS)
-    weight, bias = unit.conv.weight * scale[:, None, None, None, None], unit.bn.bias - unit.bn.running_mean * scale
-    pads = i3d._same_pads(x.shape, unit.kernel, unit.stride)
-    if all(before == after for before, after in pads):
-        return F.relu_(F.conv3d(x, weight, bias, unit.stride, [before for before, _ in pads]))
-    return F.relu_(F.conv3d(i3d._same_pad(x, unit.kernel, unit.stride, 0.0), weight, bias, unit.stride))
+    return F.relu_(unit.convolution(x, *unit.folded()))
 
 
 def i3d_units(clips: int) -> dict:

@@ -88,9 +88,21 @@ class Unit3D(nn.Module):
         self.conv = nn.Conv3d(in_channels, out_channels, self.kernel, self.stride, bias=False)
         self.bn = BiasBatchNorm(out_channels)
 
+    def folded(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The convolution's weight and bias with the batch norm folded in."""
+        scale = torch.rsqrt(self.bn.running_var + BN_EPS)
+        return self.conv.weight * scale[:, None, None, None, None], self.bn.bias - self.bn.running_mean * scale
+
+    def convolution(self, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+        """SAME convolution, with the conv's own zero padding where SAME is symmetric (every layer but the stem)."""
+        pads = _same_pads(x.shape, self.kernel, self.stride)
+        if all(before == after for before, after in pads):
+            return F.conv3d(x, weight, bias, self.stride, [before for before, _ in pads])
+        return F.conv3d(_same_pad(x, self.kernel, self.stride, 0.0), weight, bias, self.stride)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """The batch norm folded into the convolution and the conv's own zero padding where SAME is
-        symmetric (every layer but the stem): the same logits with two fewer passes over the activations.
+        """The batch norm folded into the convolution (:meth:`folded`) and SAME padding left to the operator where
+        it can (:meth:`convolution`): the same logits with two fewer passes over the activations.
 
         A pointwise unit (1x1x1, stride 1) on a channels-last CPU tensor is a matrix product over the channels of
         the same memory (the [B, T, H, W, C] view): its output stays channels-last, with no copy. PyTorch's CPU
@@ -98,17 +110,10 @@ class Unit3D(nn.Module):
         output back: I3D took 0.58 s a clip that way and 0.43 s this way on one thread, the same 0.24 s either way
         on two (16 frames; logits equal within float round-off, 3e-6 of 8). On CUDA, cuDNN takes channels-last
         as it is, in IEEE fp32 (:func:`orbis2.eval.metrics.fvd.i3d_features`), so the convolution stays."""
-        scale = torch.rsqrt(self.bn.running_var + BN_EPS)
-        weight = self.conv.weight * scale[:, None, None, None, None]
-        bias = self.bn.bias - self.bn.running_mean * scale
+        weight, bias = self.folded()
         if self.kernel == (1, 1, 1) and self.stride == (1, 1, 1) and x.device.type == "cpu" and _channels_last(x):
             return F.relu_(F.linear(x.permute(0, 2, 3, 4, 1), weight.flatten(1), bias)).permute(0, 4, 1, 2, 3)
-        pads = _same_pads(x.shape, self.kernel, self.stride)
-        if all(before == after for before, after in pads):
-            x = F.conv3d(x, weight, bias, self.stride, [before for before, _ in pads])
-        else:
-            x = F.conv3d(_same_pad(x, self.kernel, self.stride, 0.0), weight, bias, self.stride)
-        return F.relu_(x)
+        return F.relu_(self.convolution(x, weight, bias))
 
 
 class InceptionModule(nn.Module):
